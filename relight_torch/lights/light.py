@@ -1,0 +1,95 @@
+"""Light parameters mirroring UsdLux 26.11 (and our Barzel-style applied schema).
+
+These frozen dataclasses are THE light description of the project: the USD walker creates them,
+the relighter and the reference renderer evaluate them (`relight_torch.lights.emission`), and
+`relight_torch.lights.usd` writes them back to a USD layer. Their radiometric meaning is documented
+once, in `relight_torch/lights/emission.py`.
+
+Edit a light with `dataclasses.replace(light, intensity=...)`; a light is identified by `path`.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class LightKind(str, enum.Enum):
+    """The UsdLux light types, valued by their USD type names."""
+
+    SPHERE = "SphereLight"
+    DISTANT = "DistantLight"
+    RECT = "RectLight"
+    DISK = "DiskLight"
+    CYLINDER = "CylinderLight"
+    DOME = "DomeLight"
+
+
+@dataclass(frozen=True)
+class Shaping:
+    """UsdLux ShapingAPI, present only when the API is applied (absent means no cone).
+
+    cone_angle is the HALF-angle from the light's -Z axis, in degrees.
+    """
+
+    focus: float = 0.0
+    focus_tint: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    cone_angle: float = 90.0
+    cone_softness: float = 0.0
+
+
+@dataclass(frozen=True)
+class Shadow:
+    """UsdLux ShadowAPI (fallbacks when not applied). distance/falloff -1 mean unlimited/none."""
+
+    enable: bool = True
+    color: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    distance: float = -1.0
+    falloff: float = -1.0
+    falloff_gamma: float = 1.0
+
+
+@dataclass(frozen=True)
+class Light:
+    """One UsdLux light at one time code.
+
+    Attributes:
+        path: the light prim's path; the key edits and links use.
+        kind: the UsdLux type.
+        world_from_light: (4, 4) float64 column-vector transform (scale included: normalize and
+            area use world-space size).
+        intensity, exposure, color, enable_color_temperature, color_temperature, normalize,
+        diffuse, specular: the LightAPI inputs.
+        radius: Sphere, Disk, Cylinder. width, height: Rect. length: Cylinder (along local X).
+        angle: Distant, angular DIAMETER in degrees.
+        treat_as_point / treat_as_line: hints only; see emission.py for what we do with them.
+        texture_file: Rect or Dome texture path ('' for none); texture: its (H, W, 3) float32
+            linear pixels (row 0 = top), loaded by the walker.
+        shaping: ShapingAPI values or None when the API is not applied.
+        shadow: ShadowAPI values.
+    """
+
+    path: str
+    kind: LightKind
+    world_from_light: np.ndarray = field(default_factory=lambda: np.eye(4))
+    intensity: float = 1.0
+    exposure: float = 0.0
+    color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    enable_color_temperature: bool = False
+    color_temperature: float = 6500.0
+    normalize: bool = False
+    diffuse: float = 1.0
+    specular: float = 1.0
+    radius: float = 0.5
+    width: float = 1.0
+    height: float = 1.0
+    length: float = 1.0
+    angle: float = 0.53
+    treat_as_point: bool = False
+    treat_as_line: bool = False
+    texture_file: str = ""
+    texture: np.ndarray | None = None
+    shaping: Shaping | None = None
+    shadow: Shadow = field(default_factory=Shadow)
