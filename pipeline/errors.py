@@ -1,17 +1,15 @@
-"""The one exception type users see.
+"""User-facing errors and warnings for the bake side.
 
-Anything wrong with the user's input (a file, a prim, a parameter) raises `RelightError` with a
-single line naming the culprit. The CLI prints it as `relight: error: <message>` and exits with 2;
-library callers catch it like any exception. Bugs stay ordinary exceptions with tracebacks.
+`RelightError` is defined once in `relight_torch.errors` (the lower layer) and re-exported here.
 """
 
 import logging
 
+from relight_torch.errors import RelightError
+
+__all__ = ["RelightError", "warn"]
+
 log = logging.getLogger("relight")
-
-
-class RelightError(Exception):
-    """A user-facing error: bad file, prim, parameter or cache. The message is one line."""
 
 
 def warn(message: str, sink: list[str] | None = None) -> None:

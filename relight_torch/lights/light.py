@@ -52,6 +52,42 @@ class Shadow:
 
 
 @dataclass(frozen=True)
+class BarzelShaping:
+    """Our RelightBarzelLightAPI (schemas/schema.usda documents each attribute), present only when
+    the API is applied. The fallbacks change nothing.
+
+    Attributes:
+        window_enable, window_width, window_height, window_edge, window_roundness: the
+            superelliptical window on the plane one unit in front of the light (tangent units).
+        barn_door_left, barn_door_right, barn_door_top, barn_door_bottom: flap angles in degrees
+            from the -Z axis (180 = open).
+        cookie_file: resolved cookie image path ('' for none); cookie: its (H, W, 3) float32 linear
+            pixels (row 0 = top); cookie_scale, cookie_offset: its rectangle on the projected plane.
+        near_start, near_end, far_start, far_end: world-space distance fall-off (near_end <= 0 /
+            far_end < 0 turn a ramp off); falloff_smooth: smoothstep (True) or linear ramps.
+    """
+
+    window_enable: bool = False
+    window_width: float = 1.0
+    window_height: float = 1.0
+    window_edge: float = 0.0
+    window_roundness: float = 1.0
+    barn_door_left: float = 180.0
+    barn_door_right: float = 180.0
+    barn_door_top: float = 180.0
+    barn_door_bottom: float = 180.0
+    cookie_file: str = ""
+    cookie: np.ndarray | None = None
+    cookie_scale: tuple[float, float] = (1.0, 1.0)
+    cookie_offset: tuple[float, float] = (0.0, 0.0)
+    near_start: float = 0.0
+    near_end: float = 0.0
+    far_start: float = -1.0
+    far_end: float = -1.0
+    falloff_smooth: bool = True
+
+
+@dataclass(frozen=True)
 class Light:
     """One UsdLux light at one time code.
 
@@ -69,6 +105,10 @@ class Light:
             linear pixels (row 0 = top), loaded by the walker.
         shaping: ShapingAPI values or None when the API is not applied.
         shadow: ShadowAPI values.
+        pole_axis: Dome only, 'Y' or 'Z': the resolved DomeLight_1 poleAxis (plain DomeLight: 'Y').
+        barzel: RelightBarzelLightAPI values or None when the API is not applied.
+        light_group: the light-group AOV this light writes to ('' = the prim's name; the USD reader
+            always fills it in).
     """
 
     path: str
@@ -93,3 +133,6 @@ class Light:
     texture: np.ndarray | None = None
     shaping: Shaping | None = None
     shadow: Shadow = field(default_factory=Shadow)
+    pole_axis: str = "Y"
+    barzel: BarzelShaping | None = None
+    light_group: str = ""

@@ -1,0 +1,290 @@
+"""Walk a stage's renderable gprims into one world-space triangle soup (`Geometry`).
+
+What is rendered: every Mesh and implicit gprim (see `tessellate`) whose purpose is default or
+render and that is not invisible, including instance proxies of instanceable prims, and every
+instance of every PointInstancer (its subtree is pruned from the walk and its prototypes are
+placed by `ComputeInstanceTransformsAtTime`, which honours masks and the prototype root's own
+transform; instancers nest). Inside a prototype, visibility is read from the prototype root down
+only: a hidden "Prototypes" scope above the roots does not hide the instances.
+
+Each placed gprim is one `SceneObject`. Materials come per face from the gprim's bound material
+and its `materialBind` GeomSubsets, through `MaterialLibrary.id_for`. World positions use the
+column-vector matrix; normals its inverse transpose; a mirroring transform (negative determinant)
+re-winds the triangles so that the geometric and shading normals keep agreeing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+from pxr import Usd, UsdGeom, UsdShade
+
+from pipeline.errors import warn
+from pipeline.scene.primvars import read_primvar
+from pipeline.scene.tessellate import Surface, implicit_surface, is_implicit, mesh_surface
+from pipeline.scene.types import Geometry, SceneObject
+
+# A triangle is degenerate when |cross| <= this times its longest squared edge (a relative
+# zero: repeated or collinear float32 points, not thin slivers).
+_DEGENERATE_RELATIVE_AREA = 1e-12
+
+
+@dataclass(frozen=True)
+class _Placement:
+    """One gprim and the world transforms of all its placements.
+
+    Attributes:
+        prim: the Mesh or implicit gprim (an instance proxy for instanced prims).
+        world_from_local: (I, 4, 4) float64 column-vector transforms, one per placement.
+        paths: (I,) object paths.
+    """
+
+    prim: Usd.Prim
+    world_from_local: np.ndarray
+    paths: list[str]
+
+
+def _matrix(gf_matrix) -> np.ndarray:
+    """A row-vector Gf matrix as a (4, 4) float64 column-vector matrix."""
+    return np.array(gf_matrix, np.float64).T
+
+
+class _Walker:
+    """Finds every rendered gprim placement of a stage at one time code."""
+
+    def __init__(self, time: Usd.TimeCode, warnings: list[str]):
+        self.time = time
+        self.warnings = warnings
+        self.xform_cache = UsdGeom.XformCache(time)
+
+    def _rendered(self, prim: Usd.Prim, prototype_root: Usd.Prim | None) -> bool:
+        """Purpose default/render and visible (from the prototype root down, inside one)."""
+        imageable = UsdGeom.Imageable(prim)
+        if imageable.ComputePurpose() not in (UsdGeom.Tokens.default_, UsdGeom.Tokens.render):
+            return False
+        if prototype_root is None:
+            return imageable.ComputeVisibility(self.time) != UsdGeom.Tokens.invisible
+        stop = prototype_root.GetParent()
+        while prim and prim != stop:
+            if UsdGeom.Imageable(prim).GetVisibilityAttr().Get(self.time) == UsdGeom.Tokens.invisible:
+                return False
+            prim = prim.GetParent()
+        return True
+
+    def _base_from_prim(self, prim: Usd.Prim, prototype_root: Usd.Prim | None) -> np.ndarray:
+        """(4, 4) transform from the prim's space to the world, or to its prototype root's space."""
+        if prototype_root is None:
+            return _matrix(self.xform_cache.GetLocalToWorldTransform(prim))
+        return _matrix(self.xform_cache.ComputeRelativeTransform(prim, prototype_root)[0])
+
+    def walk(self, root: Usd.Prim, world_from_base: np.ndarray, base_paths: list[str],
+             prototype_root: Usd.Prim | None = None) -> Iterator[_Placement]:
+        """Yield the gprim placements under `root`.
+
+        Args:
+            root: where to start (the pseudo-root, or a PointInstancer prototype root).
+            world_from_base: (I, 4, 4) placements of the base space (identity for the stage).
+            base_paths: (I,) object-path prefixes of those placements ('' for the stage).
+            prototype_root: the prototype root when walking a prototype, else None.
+        """
+        predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
+        prims = iter(Usd.PrimRange(root, predicate))
+        for prim in prims:
+            if prim.IsA(UsdGeom.PointInstancer):
+                prims.PruneChildren()
+                if self._rendered(prim, prototype_root):
+                    world_from_instancer = world_from_base @ self._base_from_prim(prim, prototype_root)
+                    yield from self._instances(UsdGeom.PointInstancer(prim), world_from_instancer,
+                                               base_paths)
+            elif (prim.IsA(UsdGeom.Mesh) or is_implicit(prim)) and self._rendered(prim, prototype_root):
+                world_from_local = world_from_base @ self._base_from_prim(prim, prototype_root)
+                yield _Placement(prim, world_from_local, [f"{b}{prim.GetPath()}" for b in base_paths])
+
+    def _instances(self, instancer: UsdGeom.PointInstancer, world_from_instancer: np.ndarray,
+                   base_paths: list[str]) -> Iterator[_Placement]:
+        """Yield the placements of every prototype of a PointInstancer (I outer placements)."""
+        path = instancer.GetPath()
+        transforms = instancer.ComputeInstanceTransformsAtTime(self.time, self.time)
+        proto_indices = np.asarray(instancer.GetProtoIndicesAttr().Get(self.time) or [], np.int64)
+        mask = np.asarray(instancer.ComputeMaskAtTime(self.time) or [], bool)
+        instance_ids = np.nonzero(mask)[0] if mask.size else np.arange(proto_indices.size)
+        if transforms is None or len(transforms) != instance_ids.size:
+            # USD computes no transforms at all when the arrays disagree or an index is invalid.
+            warn(f"point instancer {path}: positions, protoIndices and prototypes do not match; "
+                 "skipped", self.warnings)
+            return
+        instancer_from_instance = np.array(transforms, np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)
+        proto_indices = proto_indices[instance_ids]
+        stage = instancer.GetPrim().GetStage()
+        prototypes = instancer.GetPrototypesRel().GetForwardedTargets()
+        for index, target in enumerate(prototypes):
+            selected = np.nonzero(proto_indices == index)[0]
+            prototype = stage.GetPrimAtPath(target)
+            if selected.size == 0 or not prototype:
+                continue
+            world_from_prototype = (world_from_instancer[:, None]
+                                    @ instancer_from_instance[selected][None]).reshape(-1, 4, 4)
+            paths = [f"{b}{path}[{i}]" for b in base_paths for i in instance_ids[selected]]
+            yield from self.walk(prototype, world_from_prototype, paths, prototype_root=prototype)
+
+
+def _place(surface: Surface, world_from_local: np.ndarray):
+    """Transform a surface to each of I placements.
+
+    Returns:
+        positions (I*T, 3, 3), normals (I*T, 3, 3) (unnormalised, zero where unknown),
+        uvs (I*T, 3, 2); triangles of a mirrored placement are re-wound.
+    """
+    rotation = world_from_local[:, :3, :3]
+    num_triangles = surface.num_triangles
+    # (I, T*3, 3) batched matrix products: one GEMM per placement (einsum was 5x slower).
+    positions = (surface.positions.reshape(1, -1, 3).astype(np.float64) @ rotation.transpose(0, 2, 1)
+                 + world_from_local[:, None, :3, 3]).reshape(-1, num_triangles, 3, 3)
+    det = np.linalg.det(rotation)
+    invertible = np.abs(det) > 0
+    normal_from_local = np.zeros_like(rotation)
+    normal_from_local[invertible] = np.linalg.inv(rotation[invertible]).transpose(0, 2, 1)
+    normals = (surface.normals.reshape(1, -1, 3).astype(np.float64)
+               @ normal_from_local.transpose(0, 2, 1)).reshape(-1, num_triangles, 3, 3)
+    uvs = np.broadcast_to(surface.uvs, positions.shape[:3] + (2,))
+    mirrored = det < 0
+    winding = [0, 2, 1]
+    positions[mirrored] = positions[mirrored][:, :, winding]
+    normals[mirrored] = normals[mirrored][:, :, winding]
+    uvs = np.where(mirrored[:, None, None, None], uvs[:, :, winding], uvs)
+    return positions.reshape(-1, 3, 3), normals.reshape(-1, 3, 3), uvs.reshape(-1, 3, 2)
+
+
+def _finish_triangles(positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray):
+    """Drop degenerate/non-finite triangles; replace unknown normals by the face normal.
+
+    Args:
+        positions, normals: (N, 3, 3) float64 world space. uvs: (N, 3, 2).
+
+    Returns:
+        (keep (N,) bool, positions (K, 3, 3), normals (K, 3, 3) unit, uvs (K, 3, 2)) float32.
+    """
+    cross = np.cross(positions[:, 1] - positions[:, 0], positions[:, 2] - positions[:, 0])
+    with np.errstate(invalid="ignore", over="ignore"):
+        twice_area = np.linalg.norm(cross, axis=-1)
+        longest_edge2 = np.max(np.sum((positions - np.roll(positions, 1, axis=1)) ** 2, -1), -1)
+        keep = np.isfinite(positions).all(axis=(1, 2)) & (
+            twice_area > _DEGENERATE_RELATIVE_AREA * longest_edge2)
+    face_normal = cross[keep] / twice_area[keep, None]
+    normals = np.where(np.isfinite(normals[keep]), normals[keep], 0.0)
+    length = np.linalg.norm(normals, axis=-1, keepdims=True)
+    unit = np.where(length > 0, normals / np.where(length > 0, length, 1.0), face_normal[:, None])
+    uvs = np.nan_to_num(uvs[keep], nan=0.0, posinf=0.0, neginf=0.0)
+    return keep, positions[keep].astype(np.float32), unit.astype(np.float32), uvs.astype(np.float32)
+
+
+def _display_color(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[np.ndarray | None, str | None]:
+    """The gprim's displayColor as one colour: ((3,) float32 or None, interpolation of a
+    non-constant colour that had to be averaged, else None)."""
+    primvar = read_primvar(prim, "displayColor", time)
+    if primvar is None or len(primvar[0]) == 0 or primvar[0].shape[1] != 3:
+        return None, None
+    values, interpolation = primvar
+    averaged = None if np.all(values == values[0]) else interpolation
+    return values.mean(axis=0).astype(np.float32), averaged
+
+
+def _bound_material(prim: Usd.Prim) -> UsdShade.Material | None:
+    material, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
+    return material if material else None
+
+
+def _face_material_ids(prim: Usd.Prim, num_faces: int, display_color: np.ndarray | None, library,
+                       time: Usd.TimeCode, warnings: list[str]) -> np.ndarray:
+    """(F,) int32 material id of each authored face: the gprim's binding, then its
+    `materialBind` GeomSubsets."""
+    path = str(prim.GetPath())
+    ids = np.full(num_faces, library.id_for(_bound_material(prim), display_color, path), np.int32)
+    if not prim.IsA(UsdGeom.Mesh):
+        return ids
+    for subset in UsdShade.MaterialBindingAPI(prim).GetMaterialBindSubsets():
+        faces = np.asarray(subset.GetIndicesAttr().Get(time) or [], np.int64)
+        if faces.size and (faces.min() < 0 or faces.max() >= num_faces):
+            warn(f"GeomSubset {subset.GetPath()}: face indices outside the mesh's {num_faces} "
+                 "faces; ignored", warnings)
+            continue
+        ids[faces] = library.id_for(_bound_material(subset.GetPrim()), display_color, path)
+    return ids
+
+
+def _soup_part(surface: Surface, material_ids: np.ndarray, world_from_local: np.ndarray,
+               first_object_id: int) -> tuple[int, tuple[np.ndarray, ...]]:
+    """One gprim's triangles at all its I placements (object ids first_object_id + i).
+
+    Args:
+        surface: the gprim's local triangles (T). material_ids: (T,) per triangle.
+        world_from_local: (I, 4, 4) placements.
+
+    Returns:
+        (number of triangles dropped, (positions, normals, uvs, material_ids, object_ids)).
+    """
+    num_placements = len(world_from_local)
+    keep, positions, normals, uvs = _finish_triangles(*_place(surface, world_from_local))
+    object_ids = np.repeat(np.arange(first_object_id, first_object_id + num_placements, dtype=np.int32),
+                           surface.num_triangles)
+    part = (positions, normals, uvs, np.tile(material_ids, num_placements)[keep], object_ids[keep])
+    return int((~keep).sum()), part
+
+
+def read_geometry(stage: Usd.Stage, time: Usd.TimeCode, library,
+                  warnings: list[str]) -> tuple[Geometry, list[SceneObject]]:
+    """The stage's rendered gprims as one world-space triangle soup.
+
+    Args:
+        stage: the composed stage.
+        time: time code for transforms, points and attributes.
+        library: a `pipeline.scene.materials.MaterialLibrary` (anything with `id_for(material,
+            display_color, prim_path) -> int`).
+        warnings: sink for one-line warnings.
+
+    Returns:
+        (geometry, objects): `geometry.object_ids` index `objects`; the geometry may be empty.
+    """
+    walker = _Walker(time, warnings)
+    surfaces: dict[str, Surface | None] = {}
+    dropped: dict[str, list] = {}  # surface key -> [first prim path, triangles dropped]
+    averaged_keys: set[str] = set()
+    parts: list[tuple[np.ndarray, ...]] = []
+    objects: list[SceneObject] = []
+    for placement in walker.walk(stage.GetPseudoRoot(), np.eye(4)[None], [""]):
+        prim = placement.prim
+        source = prim.GetPrimInPrototype() if prim.IsInstanceProxy() else prim
+        key = str(source.GetPath())
+        if key not in surfaces:
+            surfaces[key] = (mesh_surface(UsdGeom.Mesh(prim), time, warnings)
+                             if prim.IsA(UsdGeom.Mesh) else implicit_surface(prim, time))
+        surface = surfaces[key]
+        if surface is None or surface.num_triangles == 0:
+            continue
+        display_color, averaged = _display_color(prim, time)
+        if averaged and key not in averaged_keys:  # once per surface, not per instance
+            averaged_keys.add(key)
+            warn(f"{prim.GetPath()}: per-{averaged} displayColor averaged to one colour", warnings)
+        material_ids = _face_material_ids(prim, surface.num_faces, display_color, library, time,
+                                          warnings)[surface.face_ids]
+        num_dropped, part = _soup_part(surface, material_ids, placement.world_from_local, len(objects))
+        if num_dropped:
+            dropped.setdefault(key, [str(prim.GetPath()), 0])[1] += num_dropped
+        parts.append(part)
+        double_sided = bool(UsdGeom.Gprim(prim).GetDoubleSidedAttr().Get(time))
+        objects.extend(SceneObject(path, double_sided) for path in placement.paths)
+    for path, count in dropped.values():
+        warn(f"{path}: dropped {count} degenerate or non-finite triangles", warnings)
+    return _concatenate(parts), objects
+
+
+def _concatenate(parts: list[tuple[np.ndarray, ...]]) -> Geometry:
+    if not parts:
+        return Geometry(positions=np.zeros((0, 3, 3), np.float32),
+                        normals=np.zeros((0, 3, 3), np.float32), uvs=np.zeros((0, 3, 2), np.float32),
+                        material_ids=np.zeros(0, np.int32), object_ids=np.zeros(0, np.int32))
+    positions, normals, uvs, material_ids, object_ids = (np.concatenate(a) for a in zip(*parts))
+    return Geometry(positions=positions, normals=normals, uvs=uvs,
+                    material_ids=material_ids.astype(np.int32), object_ids=object_ids)

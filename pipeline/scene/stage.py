@@ -1,0 +1,87 @@
+"""Opening a shot, optionally with a layer of light edits composed over it.
+
+The light edits (`relight ... --lights LAYER`) go in as the STRONGEST sublayer of an anonymous root
+layer whose weaker sublayer is the shot, so an edit overrides the shot's opinion on any light
+attribute and may also define new lights. Stage metadata is read from the root layer only, so the
+anonymous root copies the shot's (up axis, units, time codes, default prim, render settings).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pxr import Sdf, Tf, Usd
+
+from pipeline.errors import RelightError
+from relight_torch.schema import register_schemas
+
+# Root-layer metadata that must come from the shot: geometry units and axes, and the time-code
+# rate (a sublayer whose rate differs from its root's is rescaled in time).
+_SHOT_METADATA = (
+    "upAxis",
+    "metersPerUnit",
+    "defaultPrim",
+    "timeCodesPerSecond",
+    "framesPerSecond",
+    "startTimeCode",
+    "endTimeCode",
+    "renderSettingsPrimPath",
+)
+
+
+def _one_line(error: Exception) -> str:
+    """The first non-empty line of a (possibly multi-line) pxr error message."""
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    return lines[0] if lines else type(error).__name__
+
+
+def _open_layer(path: str | Path, role: str) -> Sdf.Layer:
+    """Open `path` as an Sdf layer, raising `RelightError` if it is missing or not USD.
+
+    Args:
+        path: file path of a .usd/.usda/.usdc/.usdz file.
+        role: what the file is for ("stage", "lights layer"), used in messages.
+    """
+    file = Path(path)
+    if not file.is_file():
+        raise RelightError(f"{role} not found: {file}")
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(file.resolve()))
+    except Tf.ErrorException as error:
+        raise RelightError(f"{role} {file} is not a readable USD file: {_one_line(error)}") from None
+    if layer is None:
+        raise RelightError(f"{role} {file} is not a readable USD file")
+    return layer
+
+
+def open_stage(path: str | Path, lights_layer: str | Path | None = None) -> Usd.Stage:
+    """Open a shot (.usd, .usda, .usdc or .usdz), with an optional light-edit layer over it.
+
+    Registers the project's schemas first (they must be known before any stage is opened).
+
+    Args:
+        path: the shot's root layer.
+        lights_layer: a USD layer of light edits, composed as the strongest sublayer over the
+            shot; None opens the shot as it is.
+
+    Returns:
+        The composed stage, payloads loaded.
+
+    Raises:
+        RelightError: a file is missing, is not USD, or the stage cannot be composed.
+    """
+    register_schemas()
+    shot = _open_layer(path, "stage")
+    root = shot
+    if lights_layer is not None:
+        lights = _open_layer(lights_layer, "lights layer")
+        root = Sdf.Layer.CreateAnonymous("relight_root.usda")
+        root.subLayerPaths.append(lights.identifier)
+        root.subLayerPaths.append(shot.identifier)
+        for key in _SHOT_METADATA:
+            if shot.pseudoRoot.HasInfo(key):
+                root.pseudoRoot.SetInfo(key, shot.pseudoRoot.GetInfo(key))
+    try:
+        return Usd.Stage.Open(root, Usd.Stage.LoadAll)
+    except Tf.ErrorException as error:
+        raise RelightError(f"stage {path} could not be opened: {_one_line(error)}") from None

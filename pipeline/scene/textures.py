@@ -1,0 +1,270 @@
+"""`UsdUVTexture` images: reading, colour decoding and bilinear sampling at texture coordinates.
+
+Images are read with OpenImageIO (PNG, JPEG, EXR, Radiance HDR, anything OIIO reads) into linear
+float32 pixels, row 0 at the top of the image, as `pipeline.scene.types.Texture` documents. Sampling
+follows the UsdPreviewSurface spec (2.5) and Storm:
+
+* st (0, 0) is the lower-left corner of the image, st (1, 1) the upper-right; texel (i, j) (column
+  i, row j counted from the bottom) has its centre at st = ((i + 0.5) / W, (j + 0.5) / H).
+* Bilinear filtering of the four nearest texel centres; the wrap mode is applied to each of the four
+  integer texel indices (the OpenGL rule), so 'repeat' blends the last and first columns at s = 0,
+  'clamp' and 'mirror' repeat the edge texel there, and 'black' blends towards zero.
+* Channels are expanded as UsdUVTexture outputs them: one channel -> (v, v, v, 1); two (grey and
+  alpha) -> (v, v, v, a); three -> (r, g, b, 1).
+* output = expanded sample * scale + bias.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import OpenImageIO as oiio
+
+from pipeline.errors import RelightError
+from pipeline.scene.types import Texture
+
+WRAP_MODES = ("black", "clamp", "repeat", "mirror")
+COLOR_SPACES = ("auto", "raw", "sRGB")
+OUTPUTS = ("rgb", "r", "g", "b", "a")
+
+# OIIO's `wrapmodes` metadata names ("s,t") for the UsdUVTexture wrap tokens.
+_OIIO_WRAP_MODES = {"black": "black", "clamp": "clamp", "periodic": "repeat", "mirror": "mirror"}
+_OUTPUT_CHANNELS = {"rgb": slice(0, 3), "r": slice(0, 1), "g": slice(1, 2), "b": slice(2, 3), "a": slice(3, 4)}
+
+
+def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
+    """The exact sRGB EOTF (IEC 61966-2-1), piecewise linear below 0.04045.
+
+    Args:
+        encoded: any shape, sRGB-encoded values (nominally in [0, 1]).
+
+    Returns:
+        Same shape and dtype, linear values.
+    """
+    encoded = np.asarray(encoded)
+    linear = np.where(
+        encoded <= 0.04045,
+        encoded / 12.92,
+        ((np.maximum(encoded, 0.04045) + 0.055) / 1.055) ** 2.4,
+    )
+    return linear.astype(encoded.dtype, copy=False)
+
+
+@dataclass(frozen=True)
+class DecodedImage:
+    """An image file read once, decoded to linear float pixels.
+
+    Attributes:
+        pixels: (H, W, C) float32 linear, C in 1..4, row 0 = top of the image.
+        file_wrap_modes: (wrap_s, wrap_t) from the file's `wrapmodes` metadata, None where absent.
+    """
+
+    pixels: np.ndarray
+    file_wrap_modes: tuple[str | None, str | None]
+
+
+def read_image(path: str, source_color_space: str = "auto") -> DecodedImage:
+    """Read an image file into linear float32 pixels.
+
+    `sourceColorSpace` 'auto' decodes 8-bit images with 3 or 4 channels as sRGB and leaves
+    everything else (16-bit, float, EXR, HDR, 1 or 2 channels) raw, per the spec's rule for files
+    without colour metadata (OIIO tags every PNG and JPEG as sRGB, which says nothing about how the
+    file was meant, so that tag is not used). Alpha is never decoded. More than 4 channels: the first
+    4 are kept.
+
+    Args:
+        path: image file.
+        source_color_space: 'auto', 'raw' or 'sRGB'.
+
+    Returns:
+        The decoded image.
+
+    Raises:
+        RelightError: the file is missing or not a readable image.
+    """
+    if source_color_space not in COLOR_SPACES:
+        raise RelightError(f"texture {path}: unknown sourceColorSpace '{source_color_space}'")
+    # Unassociated alpha: colour comes back as stored (PNG's straight alpha), not premultiplied.
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    image_input = oiio.ImageInput.open(path, config)
+    if image_input is None:
+        raise RelightError(f"cannot read texture {path}: {oiio.geterror()}")
+    try:
+        spec = image_input.spec()
+        pixels = image_input.read_image(format="float")
+        if pixels is None:
+            raise RelightError(f"cannot read texture {path}: {image_input.geterror()}")
+    finally:
+        image_input.close()
+    pixels = np.asarray(pixels, np.float32).reshape(spec.height, spec.width, -1)[..., :4]
+    num_channels = pixels.shape[-1]
+    is_srgb = source_color_space == "sRGB" or (
+        source_color_space == "auto" and spec.format.basetype == oiio.UINT8 and num_channels in (3, 4)
+    )
+    if is_srgb:
+        num_color = 1 if num_channels <= 2 else 3
+        pixels = pixels.copy()
+        pixels[..., :num_color] = srgb_to_linear(pixels[..., :num_color])
+    wrap_names = spec.get_string_attribute("wrapmodes").split(",")
+    file_wrap_modes = tuple(_OIIO_WRAP_MODES.get(name.strip()) for name in (wrap_names + [""])[:2])
+    return DecodedImage(np.ascontiguousarray(pixels), file_wrap_modes)
+
+
+class ImageCache:
+    """Decoded images keyed by (path, sourceColorSpace), so each file is read once per library."""
+
+    def __init__(self) -> None:
+        self._images: dict[tuple[str, str], DecodedImage] = {}
+
+    def read(self, path: str, source_color_space: str) -> DecodedImage:
+        """`read_image`, cached. Failures are not cached (they raise every time)."""
+        key = (path, source_color_space)
+        if key not in self._images:
+            self._images[key] = read_image(path, source_color_space)
+        return self._images[key]
+
+
+def load_texture(
+    path: str,
+    cache: ImageCache,
+    *,
+    source_color_space: str = "auto",
+    wrap_s: str = "useMetadata",
+    wrap_t: str = "useMetadata",
+    scale: np.ndarray | None = None,
+    bias: np.ndarray | None = None,
+    fallback: np.ndarray | None = None,
+    output: str = "rgb",
+    st_primvar: str = "st",
+    st_from_uv: np.ndarray | None = None,
+) -> Texture:
+    """Build a `Texture` from a UsdUVTexture node's settings, reading the image through `cache`.
+
+    Args:
+        path: resolved image path.
+        cache: the library's image cache.
+        source_color_space: 'auto', 'raw' or 'sRGB'.
+        wrap_s, wrap_t: a `WRAP_MODES` token or 'useMetadata' (the file's `wrapmodes`, else black).
+        scale, bias, fallback: (4,) RGBA; None for the UsdUVTexture fallbacks (1, 0, (0, 0, 0, 1)).
+        output: the connected output, one of `OUTPUTS`.
+        st_primvar: primvar feeding the st input.
+        st_from_uv: (3, 3) affine map from the primvar to st; None for identity.
+
+    Returns:
+        The texture, pixels decoded.
+
+    Raises:
+        RelightError: unreadable file, or an unknown wrap / colour space / output token.
+    """
+    for name, token in (("wrapS", wrap_s), ("wrapT", wrap_t)):
+        if token not in WRAP_MODES + ("useMetadata",):
+            raise RelightError(f"texture {path}: unknown {name} '{token}'")
+    if output not in OUTPUTS:
+        raise RelightError(f"texture {path}: unknown output '{output}'")
+    image = cache.read(path, source_color_space)
+    default = Texture(file=path, pixels=image.pixels)
+    wrap_modes = [
+        token if token != "useMetadata" else (file_mode or "black")
+        for token, file_mode in zip((wrap_s, wrap_t), image.file_wrap_modes)
+    ]
+    return Texture(
+        file=path,
+        pixels=image.pixels,
+        wrap_s=wrap_modes[0],
+        wrap_t=wrap_modes[1],
+        scale=default.scale if scale is None else np.asarray(scale, np.float32),
+        bias=default.bias if bias is None else np.asarray(bias, np.float32),
+        fallback=default.fallback if fallback is None else np.asarray(fallback, np.float32),
+        output=output,
+        st_primvar=st_primvar,
+        st_from_uv=default.st_from_uv if st_from_uv is None else np.asarray(st_from_uv, np.float64),
+    )
+
+
+def expand_to_rgba(values: np.ndarray) -> np.ndarray:
+    """Expand (..., C) texel values to RGBA the way UsdUVTexture outputs them.
+
+    Args:
+        values: (..., C), C in 1..4.
+
+    Returns:
+        (..., 4): C=1 -> (v, v, v, 1); C=2 -> (v, v, v, a); C=3 -> (r, g, b, 1); C=4 unchanged.
+    """
+    num_channels = values.shape[-1]
+    ones = np.ones(values.shape[:-1] + (1,), values.dtype)
+    if num_channels == 1:
+        return np.concatenate([values, values, values, ones], axis=-1)
+    if num_channels == 2:
+        grey = values[..., :1]
+        return np.concatenate([grey, grey, grey, values[..., 1:2]], axis=-1)
+    if num_channels == 3:
+        return np.concatenate([values, ones], axis=-1)
+    return values
+
+
+def select_output(rgba: np.ndarray, output: str) -> np.ndarray:
+    """The channels of a UsdUVTexture output: (..., 4) -> (..., 3) for 'rgb', (..., 1) for r/g/b/a."""
+    return rgba[..., _OUTPUT_CHANNELS[output]]
+
+
+def fit_channels(values: np.ndarray, num_channels: int) -> np.ndarray:
+    """Adapt (..., K) values to an input of `num_channels` (USD's connection type conversions).
+
+    One channel is broadcast (a float output feeding a colour); a wider value keeps its first
+    `num_channels` (an rgb output feeding a float takes r); a narrower one is zero-padded.
+    """
+    width = values.shape[-1]
+    if width == num_channels:
+        return values
+    if width == 1:
+        return np.repeat(values, num_channels, axis=-1)
+    if width > num_channels:
+        return values[..., :num_channels]
+    padding = np.zeros(values.shape[:-1] + (num_channels - width,), values.dtype)
+    return np.concatenate([values, padding], axis=-1)
+
+
+def _wrap_indices(index: np.ndarray, size: int, mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """Wrap integer texel indices into [0, size); returns (index, inside) where inside is False
+    only for 'black' taps that fall outside the image."""
+    if mode == "repeat":
+        return np.mod(index, size), np.ones(index.shape, bool)
+    if mode == "mirror":
+        period = np.mod(index, 2 * size)
+        return np.where(period < size, period, 2 * size - 1 - period), np.ones(index.shape, bool)
+    inside = (index >= 0) & (index < size)
+    return np.clip(index, 0, size - 1), (inside if mode == "black" else np.ones(index.shape, bool))
+
+
+def sample_texture(texture: Texture, uv: np.ndarray) -> np.ndarray:
+    """Bilinearly sample a texture at primvar coordinates.
+
+    Args:
+        texture: the texture (pixels row 0 = top).
+        uv: (N, 2) values of `texture.st_primvar`; `texture.st_from_uv` maps them to st.
+
+    Returns:
+        (N, 4) float32 RGBA = expanded sample * scale + bias (not yet reduced to `texture.output`).
+    """
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    st = uv @ texture.st_from_uv[:2, :2].T + texture.st_from_uv[:2, 2]
+    height, width = texture.pixels.shape[:2]
+    # Continuous texel coordinates with texel centres at integers; y counts rows from the bottom.
+    x = st[:, 0] * width - 0.5
+    y = st[:, 1] * height - 0.5
+    x0 = np.floor(x)
+    y0 = np.floor(y)
+    fx = (x - x0).astype(np.float32)[:, None]
+    fy = (y - y0).astype(np.float32)[:, None]
+    x0 = x0.astype(np.int64)
+    y0 = y0.astype(np.int64)
+    sampled = np.zeros((uv.shape[0], texture.pixels.shape[2]), np.float32)
+    for dx, weight_x in ((0, 1.0 - fx), (1, fx)):
+        column, column_inside = _wrap_indices(x0 + dx, width, texture.wrap_s)
+        for dy, weight_y in ((0, 1.0 - fy), (1, fy)):
+            row_from_bottom, row_inside = _wrap_indices(y0 + dy, height, texture.wrap_t)
+            texels = texture.pixels[height - 1 - row_from_bottom, column]
+            sampled += weight_x * weight_y * texels * (column_inside & row_inside)[:, None]
+    return expand_to_rgba(sampled) * texture.scale + texture.bias

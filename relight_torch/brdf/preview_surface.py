@@ -1,0 +1,206 @@
+"""UsdPreviewSurface as Storm evaluates it (usd-core 26.11 `previewSurface.glslfx`,
+`evaluateLight`), for one light direction:
+
+    a = max(roughness, 0.001)^2,  k = a/2,  fres = (1 - E.h)^5,  R = (1 - ior)/(1 + ior)
+    spec(F0, F90, a) = mix(F0, F90, fres) G(k) D_storm(a) / (4 N.L N.E + 0.001)
+    specular workflow: F0 = specularColor, F90 = 1
+    metallic workflow: c = mix(1, diffuseColor, metallic); F0 = mix(R^2 c, c, metallic); F90 = c;
+                       diffuse *= 1 - metallic
+    diffuse = diffuseColor/pi (1 - mix(F0, F90, fres))
+    clearcoat = clearcoat spec(R^2, 1, clearcoatRoughness)   (on top, no energy taken away)
+
+The BRDF here is Storm's output divided by N.L (the cosine is not part of f_r). Emission,
+occlusion and opacity are not part of it: opacity is applied by the caller according to
+opacityMode. Light `diffuse` / `specular` multipliers scale the two parts of `split`.
+
+Physics notes, checked by tests: the model is reciprocal (E.h = L.h, everything else is
+symmetric in L and E). It is NOT energy conserving at low roughness: Storm's NDF carries
+(a^2 + 0.001) in place of a^2 (x11 at roughness 0.1; white metal at roughness 0.2 reflects 1.62
+at normal incidence), and diffuse (1 - F(h)) plus the specular lobe exceeds 1 near grazing views
+(white dielectric: 1.08 at roughness 0.5, 1.02 at 0.7, 89 deg; below 1 at roughness 1).
+
+Sampling: a mixture of the cosine (diffuse), and GGX visible normals of width a (specular) and
+of the clearcoat width (clearcoat); the exact GGX is sampled while Storm's D is evaluated, which
+is unbiased because the GGX covers the same directions. Lobe probabilities are proportional to
+an albedo estimate at wo (Schlick F at N.E for the specular lobes).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from relight_torch.brdf.common import check_pair, check_sample_args, expand_to, where_above
+from relight_torch.brdf.params import BrdfParams, colour, flag, scalar
+from relight_torch.math.frame import half_vector
+from relight_torch.math.microfacet import (
+    STORM_EPSILON,
+    ggx_reflection_pdf,
+    sample_ggx_reflection,
+    schlick_fresnel,
+    storm_ggx_d,
+    storm_schlick_ggx_g,
+)
+from relight_torch.math.sampling import cosine_hemisphere, cosine_hemisphere_pdf
+
+MIN_ROUGHNESS = 0.001
+"""Storm clamps both roughnesses to at least this before squaring."""
+
+
+@dataclass(frozen=True)
+class PreviewSurfaceParams(BrdfParams):
+    """UsdPreviewSurface inputs, one row per shading point (names follow the USD inputs).
+
+    Attributes:
+        diffuse_color, emissive_color, specular_color: (N, 3) linear RGB.
+        metallic, roughness, clearcoat, clearcoat_roughness, ior, opacity: (N,).
+        use_specular_workflow: (N,) bool.
+    """
+
+    diffuse_color: torch.Tensor = colour()
+    emissive_color: torch.Tensor = colour()
+    specular_color: torch.Tensor = colour()
+    metallic: torch.Tensor = scalar()
+    roughness: torch.Tensor = scalar()
+    clearcoat: torch.Tensor = scalar()
+    clearcoat_roughness: torch.Tensor = scalar()
+    ior: torch.Tensor = scalar()
+    opacity: torch.Tensor = scalar()
+    use_specular_workflow: torch.Tensor = flag()
+
+
+def storm_alpha(roughness: torch.Tensor) -> torch.Tensor:
+    """GGX width Storm uses for a roughness (...): max(roughness, 0.001)^2."""
+    return roughness.clamp_min(MIN_ROUGHNESS) ** 2
+
+
+def _dielectric_f0(params: PreviewSurfaceParams) -> torch.Tensor:
+    """R^2 = ((1 - ior)/(1 + ior))^2, (...,) Fresnel at normal incidence of the dielectric."""
+    reflectance = (1.0 - params.ior) / (1.0 + params.ior)
+    return reflectance * reflectance
+
+
+def _specular_colors(params: PreviewSurfaceParams) -> tuple[torch.Tensor, torch.Tensor]:
+    """(F0, F90), each (..., 3), of the specular lobe for either workflow."""
+    metallic = params.metallic.unsqueeze(-1)
+    spec_color = torch.lerp(torch.ones_like(params.diffuse_color), params.diffuse_color, metallic)
+    metallic_f0 = torch.lerp(_dielectric_f0(params).unsqueeze(-1) * spec_color, spec_color, metallic)
+    specular_workflow = params.use_specular_workflow.unsqueeze(-1)
+    f0 = torch.where(specular_workflow, params.specular_color, metallic_f0)
+    f90 = torch.where(specular_workflow, torch.ones_like(spec_color), spec_color)
+    return f0, f90
+
+
+def diffuse_albedo(params: PreviewSurfaceParams) -> torch.Tensor:
+    """(N, 3) colour a diffuse-only gather uses: diffuseColor, times (1 - metallic) in the
+    metallic workflow (the specular workflow ignores metallic)."""
+    metallic_scale = torch.where(params.use_specular_workflow, torch.ones_like(params.metallic), 1.0 - params.metallic)
+    return params.diffuse_color * metallic_scale.unsqueeze(-1)
+
+
+def _storm_lobe(alpha: torch.Tensor, cos_l: torch.Tensor, cos_e: torch.Tensor, cos_h: torch.Tensor) -> torch.Tensor:
+    """Storm's `evaluateDirectSpecular` without F: D G / (4 N.L N.E + 0.001), all (...)."""
+    microfacet = storm_ggx_d(cos_h, alpha) * storm_schlick_ggx_g(cos_e, cos_l, alpha)
+    return microfacet / (4.0 * cos_l * cos_e + STORM_EPSILON)
+
+
+def split(
+    params: PreviewSurfaceParams, wo_local: torch.Tensor, wi_local: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The diffuse and the specular (+ clearcoat) parts of the BRDF, each (..., 3) in 1/sr.
+
+    Args:
+        params: rows broadcasting against the directions' batch axes.
+        wo_local: (..., 3) unit direction to the viewer (E), local frame.
+        wi_local: (..., 3) unit direction to the light (L), local frame.
+
+    Returns:
+        (diffuse, specular), 0 where either direction is below the horizon.
+    """
+    check_pair(wo_local, wi_local)
+    cos_e = wo_local[..., 2].clamp_min(0.0)
+    cos_l = wi_local[..., 2].clamp_min(0.0)
+    h_local = half_vector(wo_local, wi_local)
+    cos_h = h_local[..., 2].clamp_min(0.0)
+    e_dot_h = (wo_local * h_local).sum(-1, keepdim=True)
+    f0, f90 = _specular_colors(params)
+    fresnel = schlick_fresnel(f0, f90, e_dot_h)
+    coat_fresnel = schlick_fresnel(_dielectric_f0(params).unsqueeze(-1), 1.0, e_dot_h)
+    specular = fresnel * _storm_lobe(storm_alpha(params.roughness), cos_l, cos_e, cos_h).unsqueeze(-1)
+    coat_lobe = _storm_lobe(storm_alpha(params.clearcoat_roughness), cos_l, cos_e, cos_h)
+    specular = specular + coat_fresnel * (params.clearcoat * coat_lobe).unsqueeze(-1)
+    diffuse = diffuse_albedo(params) / math.pi * (1.0 - fresnel)
+    return where_above(diffuse, wo_local, wi_local), where_above(specular, wo_local, wi_local)
+
+
+def eval(params: PreviewSurfaceParams, wo_local: torch.Tensor, wi_local: torch.Tensor) -> torch.Tensor:
+    """BRDF value (..., 3) in 1/sr, diffuse + specular + clearcoat; 0 below the horizon."""
+    diffuse, specular = split(params, wo_local, wi_local)
+    return diffuse + specular
+
+
+def lobe_probabilities(params: PreviewSurfaceParams, wo_local: torch.Tensor) -> torch.Tensor:
+    """Probabilities (..., 3) of sampling the diffuse, specular and clearcoat lobes at wo.
+
+    Proportional to the mean over RGB of each lobe's albedo estimate: Schlick F at N.E for the
+    specular lobes, diffuse albedo (1 - F) for the diffuse one. A black material samples the
+    diffuse lobe.
+    """
+    cos_o = wo_local[..., 2]
+    f0, f90 = _specular_colors(params)
+    specular_fresnel = schlick_fresnel(f0, f90, cos_o.unsqueeze(-1))
+    coat_fresnel = schlick_fresnel(_dielectric_f0(params), 1.0, cos_o)
+    weights = torch.stack(
+        (
+            (diffuse_albedo(params) * (1.0 - specular_fresnel)).mean(-1),
+            specular_fresnel.mean(-1),
+            params.clearcoat * coat_fresnel,
+        ),
+        dim=-1,
+    ).clamp_min(0.0)
+    total = weights.sum(-1, keepdim=True)
+    black = torch.tensor([1.0, 0.0, 0.0], device=weights.device, dtype=weights.dtype)
+    return torch.where(total > 0, weights / total.clamp_min(torch.finfo(weights.dtype).tiny), black)
+
+
+def sample(
+    params: PreviewSurfaceParams, wo_local: torch.Tensor, u: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """wi (..., 3) from the lobe mixture, with the mixture pdf (...) (0 for lost samples).
+
+    u[..., 0] picks the lobe and is then rescaled to [0, 1) within the lobe's interval, so two
+    numbers per sample suffice.
+    """
+    check_sample_args(wo_local, u)
+    probabilities = lobe_probabilities(params, wo_local)
+    probabilities = probabilities.expand(*torch.broadcast_shapes(probabilities.shape[:-1], u.shape[:-1]), 3)
+    upper = probabilities.cumsum(-1)
+    u_select = u[..., 0]
+    lobe = (u_select.unsqueeze(-1) >= upper[..., :2]).sum(-1, keepdim=True)
+    lower = torch.cat((torch.zeros_like(upper[..., :1]), upper[..., :2]), dim=-1).gather(-1, lobe).squeeze(-1)
+    width = probabilities.gather(-1, lobe).squeeze(-1)
+    u_rescaled = ((u_select - lower) / width.clamp_min(torch.finfo(width.dtype).tiny)).clamp(0.0, 1.0 - torch.finfo(width.dtype).eps)
+    u_lobe = torch.stack((u_rescaled, u[..., 1]), dim=-1)
+    wi_diffuse, _ = cosine_hemisphere(u_lobe)
+    wi_specular, _ = sample_ggx_reflection(wo_local, storm_alpha(params.roughness), u_lobe)
+    wi_coat, _ = sample_ggx_reflection(wo_local, storm_alpha(params.clearcoat_roughness), u_lobe)
+    candidates = torch.stack(torch.broadcast_tensors(wi_diffuse, wi_specular, wi_coat), dim=-2)
+    wi_local = candidates.gather(-2, lobe.unsqueeze(-1).expand(*lobe.shape[:-1], 1, 3)).squeeze(-2)
+    return wi_local, pdf(params, wo_local, wi_local)
+
+
+def pdf(params: PreviewSurfaceParams, wo_local: torch.Tensor, wi_local: torch.Tensor) -> torch.Tensor:
+    """Mixture density (...) of `sample` at wi, in 1/sr; 0 below the horizon."""
+    check_pair(wo_local, wi_local)
+    probabilities = lobe_probabilities(params, wo_local)
+    densities = torch.stack(
+        torch.broadcast_tensors(
+            cosine_hemisphere_pdf(wi_local),
+            ggx_reflection_pdf(wo_local, wi_local, storm_alpha(params.roughness)),
+            ggx_reflection_pdf(wo_local, wi_local, storm_alpha(params.clearcoat_roughness)),
+        ),
+        dim=-1,
+    )
+    return where_above((probabilities * densities).sum(-1), wo_local, wi_local)

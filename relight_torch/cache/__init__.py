@@ -1,0 +1,1 @@
+"""Relighting caches on disk: one USD layer describing payload files (EXR, .npy)."""

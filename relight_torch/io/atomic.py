@@ -1,0 +1,44 @@
+"""Atomic file writes: write beside the target, fsync, then rename over it.
+
+A reader (or a re-run after SIGKILL) sees either the old file or the complete new one, never a
+half-written one. Temp files are named `.<name>.tmp-<pid>` in the target's directory, so the
+rename never crosses a filesystem.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from pathlib import Path
+from typing import Iterator
+
+
+@contextlib.contextmanager
+def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path to write; on success it replaces `target`, on error it is removed.
+
+    The temporary name keeps the target's suffix, so format-sniffing writers (OpenEXR, USD,
+    OpenImageIO) pick the right format.
+    """
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    temp = target.with_name(f".{target.stem}.tmp-{os.getpid()}{target.suffix}")
+    try:
+        yield temp
+        with open(temp, "rb+") as handle:
+            os.fsync(handle.fileno())
+        os.replace(temp, target)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            temp.unlink()
+
+
+def write_bytes_atomic(target: str | os.PathLike, data: bytes) -> None:
+    """Write `data` to `target` atomically."""
+    with atomic_path(target) as temp:
+        temp.write_bytes(data)
+
+
+def write_text_atomic(target: str | os.PathLike, text: str) -> None:
+    """Write `text` (UTF-8) to `target` atomically."""
+    write_bytes_atomic(target, text.encode("utf-8"))

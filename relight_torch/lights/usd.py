@@ -1,0 +1,326 @@
+"""UsdLux prims to `Light` objects and back.
+
+`read_light` reads one light prim at one time code (LightAPI inputs, the type's own inputs, the
+ShapingAPI only where applied, the ShadowAPI, our RelightBarzelLightAPI, the world transform, and
+the dome/rect texture and cookie images). `write_light` authors a `Light` so that reading it back
+gives an equal `Light`: every input explicitly, and the world transform as one matrix op under
+`!resetXformStack!`, so the light lands where it should whatever layer it is composed over.
+Radiometric meaning: `relight_torch.lights.emission`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass
+from typing import Iterator
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+
+from relight_torch.io.atomic import atomic_path
+from relight_torch.lights.emission import validate_light
+from relight_torch.lights.image import read_linear_rgb
+from relight_torch.lights.light import BarzelShaping, Light, LightKind, Shadow, Shaping
+from relight_torch.schema import register_schemas
+
+log = logging.getLogger("relight")
+
+BARZEL_API = "RelightBarzelLightAPI"
+LIGHT_GROUP_ATTRIBUTE = "relight:lightGroup"
+
+_KIND_FROM_TYPE = {
+    "SphereLight": LightKind.SPHERE,
+    "DistantLight": LightKind.DISTANT,
+    "RectLight": LightKind.RECT,
+    "DiskLight": LightKind.DISK,
+    "CylinderLight": LightKind.CYLINDER,
+    "DomeLight": LightKind.DOME,
+    "DomeLight_1": LightKind.DOME,
+}
+_LATLONG_FORMATS = ("automatic", "latlong")
+
+
+@dataclass(frozen=True)
+class _Input:
+    """One USD attribute <-> one dataclass field, with the check its values must pass.
+
+    check: 'flag' (bool), 'finite', 'nonnegative', 'positive', 'colour' (3 finite >= 0),
+    'pair' (2 finite), 'positive_pair' (2 finite > 0), 'asset' (image file, '' for none).
+    """
+
+    field: str
+    attribute: str
+    check: str
+
+
+_LIGHT_INPUTS = (
+    _Input("intensity", "inputs:intensity", "nonnegative"),
+    _Input("exposure", "inputs:exposure", "finite"),
+    _Input("color", "inputs:color", "colour"),
+    _Input("enable_color_temperature", "inputs:enableColorTemperature", "flag"),
+    _Input("color_temperature", "inputs:colorTemperature", "positive"),
+    _Input("normalize", "inputs:normalize", "flag"),
+    _Input("diffuse", "inputs:diffuse", "nonnegative"),
+    _Input("specular", "inputs:specular", "nonnegative"),
+)
+_KIND_INPUTS = {
+    LightKind.SPHERE: (_Input("radius", "inputs:radius", "nonnegative"),
+                       _Input("treat_as_point", "treatAsPoint", "flag")),
+    LightKind.RECT: (_Input("width", "inputs:width", "nonnegative"),
+                     _Input("height", "inputs:height", "nonnegative"),
+                     _Input("texture_file", "inputs:texture:file", "asset")),
+    LightKind.DISK: (_Input("radius", "inputs:radius", "nonnegative"),),
+    LightKind.CYLINDER: (_Input("length", "inputs:length", "nonnegative"),
+                         _Input("radius", "inputs:radius", "nonnegative"),
+                         _Input("treat_as_line", "treatAsLine", "flag")),
+    LightKind.DISTANT: (_Input("angle", "inputs:angle", "nonnegative"),),
+    LightKind.DOME: (_Input("texture_file", "inputs:texture:file", "asset"),),
+}
+_SHAPING_INPUTS = (
+    _Input("focus", "inputs:shaping:focus", "finite"),
+    _Input("focus_tint", "inputs:shaping:focusTint", "colour"),
+    _Input("cone_angle", "inputs:shaping:cone:angle", "nonnegative"),
+    _Input("cone_softness", "inputs:shaping:cone:softness", "finite"),
+)
+_SHADOW_INPUTS = (
+    _Input("enable", "inputs:shadow:enable", "flag"),
+    _Input("color", "inputs:shadow:color", "colour"),
+    _Input("distance", "inputs:shadow:distance", "finite"),
+    _Input("falloff", "inputs:shadow:falloff", "finite"),
+    _Input("falloff_gamma", "inputs:shadow:falloffGamma", "nonnegative"),
+)
+_BARZEL_INPUTS = (
+    _Input("window_enable", "relight:barzel:window:enable", "flag"),
+    _Input("window_width", "relight:barzel:window:width", "positive"),
+    _Input("window_height", "relight:barzel:window:height", "positive"),
+    _Input("window_edge", "relight:barzel:window:edge", "finite"),
+    _Input("window_roundness", "relight:barzel:window:roundness", "nonnegative"),
+    _Input("barn_door_left", "relight:barzel:barnDoor:left", "nonnegative"),
+    _Input("barn_door_right", "relight:barzel:barnDoor:right", "nonnegative"),
+    _Input("barn_door_top", "relight:barzel:barnDoor:top", "nonnegative"),
+    _Input("barn_door_bottom", "relight:barzel:barnDoor:bottom", "nonnegative"),
+    _Input("cookie_file", "relight:barzel:cookie:file", "asset"),
+    _Input("cookie_scale", "relight:barzel:cookie:scale", "positive_pair"),
+    _Input("cookie_offset", "relight:barzel:cookie:offset", "pair"),
+    _Input("near_start", "relight:barzel:near:start", "finite"),
+    _Input("near_end", "relight:barzel:near:end", "finite"),
+    _Input("far_start", "relight:barzel:far:start", "finite"),
+    _Input("far_end", "relight:barzel:far:end", "finite"),
+    _Input("falloff_smooth", "relight:barzel:falloff:smooth", "flag"),
+)
+
+
+def light_kind(prim: Usd.Prim) -> LightKind | None:
+    """The `LightKind` of a light prim, or None for types we do not model (mesh, portal, ...)."""
+    return _KIND_FROM_TYPE.get(str(prim.GetTypeName()))
+
+
+def iter_light_prims(stage: Usd.Stage, time: Usd.TimeCode) -> Iterator[Usd.Prim]:
+    """Every visible prim with UsdLux.LightAPI, instance proxies included, in namespace order.
+
+    PointInstancer subtrees are pruned (their prototypes would light the scene at the prototype's
+    own transform); invisible subtrees and non-render purposes are skipped.
+    """
+    prims = iter(Usd.PrimRange(stage.GetPseudoRoot(), Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
+    for prim in prims:
+        imageable = UsdGeom.Imageable(prim)
+        if prim.IsA(UsdGeom.PointInstancer) or (imageable and (
+                imageable.ComputeVisibility(time) == UsdGeom.Tokens.invisible
+                or imageable.ComputePurpose() not in (UsdGeom.Tokens.default_, UsdGeom.Tokens.render))):
+            prims.PruneChildren()
+            continue
+        if prim.HasAPI(UsdLux.LightAPI):
+            yield prim
+
+
+def read_light(prim: Usd.Prim, time: Usd.TimeCode = Usd.TimeCode.Default()) -> Light:
+    """Read one UsdLux light prim.
+
+    Args:
+        prim: a SphereLight, DistantLight, RectLight, DiskLight, CylinderLight, DomeLight or
+            DomeLight_1 prim (the schema plugin must be registered before its stage was opened).
+        time: time code to read attributes and transforms at.
+
+    Returns:
+        The light; `texture` / `barzel.cookie` hold the decoded images, `light_group` defaults to
+        the prim's name.
+
+    Raises:
+        ValueError: one line naming the prim and attribute, for an unsupported type, a non-finite or
+            out-of-range value, a missing or unreadable image, or an unsupported transform.
+    """
+    kind = light_kind(prim)
+    path = str(prim.GetPath())
+    if kind is None:
+        raise ValueError(f"{path}: unsupported light type '{prim.GetTypeName()}' "
+                         f"(supported: {', '.join(_KIND_FROM_TYPE)})")
+    values = _read_inputs(prim, time, _LIGHT_INPUTS + _KIND_INPUTS[kind])
+    if values.get("texture_file"):
+        values["texture"] = read_linear_rgb(values["texture_file"])
+    if kind is LightKind.DOME:
+        values["pole_axis"] = _pole_axis(prim)
+        texture_format = str(prim.GetAttribute("inputs:texture:format").Get(time))
+        if values.get("texture_file") and texture_format not in _LATLONG_FORMATS:
+            raise ValueError(f"{path}: inputs:texture:format '{texture_format}' is not supported "
+                             f"(only {' / '.join(_LATLONG_FORMATS)} lat-long maps)")
+    if prim.HasAPI(UsdLux.ShapingAPI):
+        values["shaping"] = Shaping(**_read_inputs(prim, time, _SHAPING_INPUTS))
+    values["shadow"] = Shadow(**_read_inputs(prim, time, _SHADOW_INPUTS))
+    if prim.HasAPI(BARZEL_API):
+        barzel = _read_inputs(prim, time, _BARZEL_INPUTS)
+        if barzel.get("cookie_file"):
+            barzel["cookie"] = read_linear_rgb(barzel["cookie_file"])
+        values["barzel"] = BarzelShaping(**barzel)
+    light_group = prim.GetAttribute(LIGHT_GROUP_ATTRIBUTE).Get(time) if prim.HasAttribute(LIGHT_GROUP_ATTRIBUTE) else ""
+    light = Light(path=path, kind=kind, world_from_light=_world_from_light(prim, time),
+                  light_group=light_group or prim.GetName(), **values)
+    validate_light(light)
+    return light
+
+
+def _read_inputs(prim: Usd.Prim, time: Usd.TimeCode, inputs: tuple[_Input, ...]) -> dict[str, object]:
+    """field -> checked value of every input that has a value (authored or schema fallback)."""
+    values = {}
+    for spec in inputs:
+        attribute = prim.GetAttribute(spec.attribute)
+        value = attribute.Get(time) if attribute else None
+        if value is not None:
+            values[spec.field] = _checked(prim, spec, attribute, value, time)
+    return values
+
+
+def _checked(prim: Usd.Prim, spec: _Input, attribute: Usd.Attribute, value, time: Usd.TimeCode):
+    """Convert a USD value to the dataclass field's Python type, raising ValueError when out of range."""
+    where = f"{prim.GetPath()}: {spec.attribute}"
+    if spec.check == "flag":
+        return bool(value)
+    if spec.check == "asset":
+        return _resolve_asset(attribute, value, where, time)
+    numbers = tuple(float(x) for x in value) if spec.check in ("colour", "pair", "positive_pair") else (float(value),)
+    minimum, strict = {"nonnegative": (0.0, False), "colour": (0.0, False), "positive": (0.0, True),
+                       "positive_pair": (0.0, True)}.get(spec.check, (-math.inf, False))
+    if not all(math.isfinite(x) and (x > minimum if strict else x >= minimum) for x in numbers):
+        bound = "" if minimum == -math.inf else f" and {'>' if strict else '>='} {minimum:g}"
+        raise ValueError(f"{where} = {value} must be finite{bound}")
+    return numbers if len(numbers) > 1 else numbers[0]
+
+
+def _resolve_asset(attribute: Usd.Attribute, value: Sdf.AssetPath, where: str, time: Usd.TimeCode) -> str:
+    """Absolute path of an authored image asset ('' when empty); ValueError when the file is missing."""
+    if not value.path:
+        return ""
+    resolved = value.resolvedPath
+    if not resolved:
+        layer = attribute.GetPropertyStack(time)[0].layer
+        resolved = Sdf.ComputeAssetPathRelativeToLayer(layer, value.path)
+    if not os.path.isfile(resolved):
+        raise ValueError(f"{where}: image '{value.path}' not found")
+    return os.path.abspath(resolved)
+
+
+def _pole_axis(prim: Usd.Prim) -> str:
+    """'Y' or 'Z': DomeLight_1's poleAxis with 'scene' resolved to the stage's up axis; DomeLight: 'Y'."""
+    if prim.GetTypeName() != "DomeLight_1":
+        return "Y"
+    pole_axis = str(UsdLux.DomeLight_1(prim).GetPoleAxisAttr().Get())
+    return str(UsdGeom.GetStageUpAxis(prim.GetStage())) if pole_axis == "scene" else pole_axis
+
+
+def _world_from_light(prim: Usd.Prim, time: Usd.TimeCode) -> np.ndarray:
+    """(4, 4) float64 column-vector world_from_light; ValueError if not finite and invertible."""
+    world_from_light = np.array(UsdGeom.XformCache(time).GetLocalToWorldTransform(prim), np.float64).T
+    if not np.isfinite(world_from_light).all() or abs(np.linalg.det(world_from_light[:3, :3])) < 1e-300:
+        raise ValueError(f"{prim.GetPath()}: world transform is not finite and invertible")
+    return world_from_light
+
+
+def write_light(stage: Usd.Stage, light: Light) -> Usd.Prim:
+    """Author `light` on the stage's edit target at the default time.
+
+    Every input of the light's type is authored (also where it equals the fallback, so that the
+    layer overrides whatever it is composed over); ShapingAPI and RelightBarzelLightAPI are applied
+    when present and removed (a `delete` list op) when absent but composed in. Fields that do not
+    belong to the light's type (say `width` on a sphere) are not written.
+
+    Args:
+        stage: the stage to author on (the schema plugin registered before it was opened).
+        light: the light; `light.path` is where it is defined.
+
+    Returns:
+        The light prim.
+    """
+    type_name = "DomeLight_1" if light.kind is LightKind.DOME and light.pole_axis != "Y" else light.kind.value
+    prim = stage.DefinePrim(light.path, type_name)
+    _write_inputs(prim, light, _LIGHT_INPUTS + _KIND_INPUTS[light.kind])
+    if light.kind is LightKind.DOME:
+        if light.texture_file:
+            prim.GetAttribute("inputs:texture:format").Set("latlong")
+        if type_name == "DomeLight_1":
+            UsdLux.DomeLight_1(prim).CreatePoleAxisAttr(light.pole_axis)
+    _write_applied(prim, UsdLux.ShapingAPI, light.shaping, _SHAPING_INPUTS)
+    UsdLux.ShadowAPI.Apply(prim)
+    _write_inputs(prim, light.shadow, _SHADOW_INPUTS)
+    _write_applied(prim, BARZEL_API, light.barzel, _BARZEL_INPUTS)
+    if light.light_group:
+        prim.CreateAttribute(LIGHT_GROUP_ATTRIBUTE, Sdf.ValueTypeNames.String).Set(light.light_group)
+    xformable = UsdGeom.Xformable(prim)
+    xformable.MakeMatrixXform().Set(Gf.Matrix4d(light.world_from_light.T.tolist()))
+    xformable.SetResetXformStack(True)
+    return prim
+
+
+def _write_applied(prim: Usd.Prim, api, values: object | None, inputs: tuple[_Input, ...]) -> None:
+    """Apply `api` and author `values`, or remove the API when `values` is None."""
+    if values is None:
+        if prim.HasAPI(api):
+            prim.RemoveAPI(api)
+        return
+    prim.ApplyAPI(api)
+    _write_inputs(prim, values, inputs)
+
+
+def _write_inputs(prim: Usd.Prim, values: object, inputs: tuple[_Input, ...]) -> None:
+    """Author each input's attribute from the same-named field of `values` (a dataclass)."""
+    for spec in inputs:
+        value = getattr(values, spec.field)
+        prim.GetAttribute(spec.attribute).Set(Sdf.AssetPath(value) if spec.check == "asset" else value)
+
+
+def read_lights_layer(path: str | os.PathLike) -> list[Light]:
+    """Read every supported light of a USD layer (e.g. one written by `write_lights_layer`).
+
+    Lights of unsupported types are skipped with a warning on the 'relight' logger.
+
+    Raises:
+        ValueError: the layer cannot be opened, or a light is invalid (see `read_light`).
+    """
+    register_schemas()
+    try:
+        stage = Usd.Stage.Open(os.fspath(path))
+    except Exception as error:  # pxr raises Tf.ErrorException with a multi-line message
+        raise ValueError(f"{path}: cannot open USD layer ({str(error).splitlines()[-1].strip()})") from None
+    lights = []
+    for prim in iter_light_prims(stage, Usd.TimeCode.Default()):
+        if light_kind(prim) is None:
+            log.warning("%s: %s: unsupported light type '%s' skipped", path, prim.GetPath(), prim.GetTypeName())
+            continue
+        lights.append(read_light(prim))
+    return lights
+
+
+def write_lights_layer(path: str | os.PathLike, lights: list[Light]) -> None:
+    """Write `lights` to a new USD layer at `path` atomically (temp file, then rename).
+
+    Each light keeps its world transform (`!resetXformStack!`), so the layer can be composed as the
+    strongest sublayer over its shot.
+    """
+    register_schemas()
+    stage = Usd.Stage.CreateInMemory()
+    for light in lights:
+        write_light(stage, light)
+    with atomic_path(path) as temp:
+        if not stage.GetRootLayer().Export(os.fspath(temp)):
+            raise OSError(f"{path}: could not write the lights layer")
+

@@ -1,0 +1,59 @@
+"""Shading frames: orthonormal bases, changes of frame, reflection and half vectors.
+
+Local shading frame convention (shared by every BRDF): x = tangent, y = bitangent, z = shading
+normal, right-handed. Directions are unit vectors pointing AWAY from the surface.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def orthonormal_basis(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Tangent and bitangent completing a unit normal into a right-handed frame.
+
+    Branchless construction of Duff et al. 2017, "Building an Orthonormal Basis, Revisited"
+    (JCGT 6(1)); continuous everywhere except across the plane n.z = 0 where the sign flips.
+
+    Args:
+        normal: (..., 3) unit vectors.
+
+    Returns:
+        (tangent, bitangent), each (..., 3) unit, with tangent x bitangent = normal.
+    """
+    x, y, z = normal.unbind(-1)
+    sign = torch.copysign(torch.ones_like(z), z)
+    a = -1.0 / (sign + z)
+    b = x * y * a
+    tangent = torch.stack((1.0 + sign * x * x * a, sign * b, -sign * x), dim=-1)
+    bitangent = torch.stack((b, sign + y * y * a, -y), dim=-1)
+    return tangent, bitangent
+
+
+def to_local(
+    v_world: torch.Tensor, tangent: torch.Tensor, bitangent: torch.Tensor, normal: torch.Tensor
+) -> torch.Tensor:
+    """Express world vectors (..., 3) in the frame (tangent, bitangent, normal), each (..., 3)."""
+    return torch.stack(
+        ((v_world * tangent).sum(-1), (v_world * bitangent).sum(-1), (v_world * normal).sum(-1)), dim=-1
+    )
+
+
+def to_world(
+    v_local: torch.Tensor, tangent: torch.Tensor, bitangent: torch.Tensor, normal: torch.Tensor
+) -> torch.Tensor:
+    """Inverse of `to_local`: local (..., 3) coordinates back to world vectors (..., 3)."""
+    return v_local[..., 0:1] * tangent + v_local[..., 1:2] * bitangent + v_local[..., 2:3] * normal
+
+
+def reflect(w: torch.Tensor, axis: torch.Tensor) -> torch.Tensor:
+    """Mirror direction of `w` (..., 3) about the unit `axis` (..., 3): 2 (w.axis) axis - w."""
+    return 2.0 * (w * axis).sum(-1, keepdim=True) * axis - w
+
+
+def half_vector(wo: torch.Tensor, wi: torch.Tensor) -> torch.Tensor:
+    """Unit half vector normalize(wo + wi) of two unit directions (..., 3).
+
+    Returns a zero vector (not NaN) for exactly opposite directions; callers mask those out.
+    """
+    return torch.nn.functional.normalize(wo + wi, dim=-1, eps=1e-12)
