@@ -18,19 +18,30 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
+from pxr import Usd
 
+from relight_torch.cache.layer import read_cache_layer
+from relight_torch.cache.load import check_inputs, load_gbuffer, load_npy
+from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import LightSample, is_delta_light, light_radiance_scale, sample_light
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.shadow import shadow_factor
+from relight_torch.lights.usd import read_stage_lights
 from relight_torch.math.frame import to_local
 from relight_torch.shading import reflected_radiance
+from relight_torch.stage import open_stage
 from relight_torch.visibility import Visibility
+from relight_torch.visibility.embree import EmbreeCaster
+from relight_torch.visibility.rays import RayVisibility
+
 
 _COLOUR_FIELDS = ("intensity", "exposure", "color", "enable_color_temperature", "color_temperature")
 _SHADING_FIELDS = ("shaping", "barzel", "diffuse", "specular")
@@ -236,3 +247,36 @@ class Relighter:
         state.unit_image = out
         self.counters["shading"] += 1
         return out
+
+
+def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
+                   lights_layer: str | os.PathLike | None = None,
+                   settings: RelightSettings = RelightSettings()) -> Relighter:
+    """A Relighter for a cache layer, with the shot's lights (and `lights_layer`'s edits over them).
+
+    Everything is checked before tensors are allocated (`relight_torch.cache.load`): payload sizes
+    and hashes, headers against the layer, and the inputs the bake read (a stale cache is refused).
+
+    Args:
+        path: `<stem>.relight.usda`.
+        device: torch device of the relighting kernels.
+        shadows: 'embree' (exact shadow rays, CPU) or 'shadowmaps' (torch, any device).
+        lights_layer: USD layer of light edits composed over the shot's lights.
+        settings: sampling settings.
+    """
+    layer_path = Path(path)
+    description = read_cache_layer(layer_path)
+    check_inputs(layer_path, description)
+    gbuffer = load_gbuffer(layer_path, description).to(device)
+    occluders = np.ascontiguousarray(load_npy(layer_path, description, "occluders"))
+    if shadows == "embree":
+        visibility = RayVisibility(EmbreeCaster(occluders))
+    elif shadows == "shadowmaps":
+        visibility = ShadowMapVisibility(torch.from_numpy(occluders).to(device))
+    else:
+        raise RelightError(f"shadows must be 'embree' or 'shadowmaps', got {shadows!r}")
+    relighter = Relighter(gbuffer, visibility, description.supersampling, description.exposure_scale, settings)
+    stage = open_stage(description.source, lights_layer)
+    time = Usd.TimeCode(float(description.parameters.get("time", Usd.TimeCode.EarliestTime().GetValue())))
+    relighter.set_lights(read_stage_lights(stage, time))
+    return relighter

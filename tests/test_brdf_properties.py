@@ -71,7 +71,10 @@ CASES: dict[str, tuple[ModuleType, ParamsBuilder]] = {
 # White parameters of the models (and parameter ranges) claimed to conserve energy.
 WHITE_CASES: dict[str, tuple[ModuleType, ParamsBuilder]] = {
     **{
-        f"oren_nayar_sigma{s}": (brdf.oren_nayar, lambda d, t, s=s: brdf.OrenNayarParams(_rows(d, t, 1, 1, 1), _rows(d, t, s)))
+        f"oren_nayar_sigma{s}": (
+            brdf.oren_nayar,
+            lambda d, t, s=s: brdf.OrenNayarParams(_rows(d, t, 1, 1, 1), _rows(d, t, s)),
+        )
         for s in (0.3, 1.0)
     },
     **{
@@ -284,7 +287,8 @@ def test_rows_broadcast_against_sample_axis(case, device, tolerances):
     one_row = build(device, DTYPE)
     three_rows = one_row.index(torch.tensor([0, 0, 0], device=device))
     wo = _wo_grid(device, (10.0, 40.0, 70.0))
-    wi, _ = module.sample(three_rows.with_sample_axis(), wo[:, None, :].expand(-1, 64, -1), _uniform((3, 64), 22, device))
+    wo_samples = wo[:, None, :].expand(-1, 64, -1)
+    wi, _ = module.sample(three_rows.with_sample_axis(), wo_samples, _uniform((3, 64), 22, device))
     batched = module.eval(three_rows.with_sample_axis(), wo[:, None, :].expand_as(wi), wi)
     for row in range(3):
         single = module.eval(one_row, wo[row].expand(64, 3), wi[row])

@@ -76,7 +76,8 @@ def test_schlick_fresnel_endpoints_and_midpoint():
     f0 = torch.tensor([0.04, 0.5, 0.9], dtype=DTYPE)
     f90 = torch.tensor(1.0, dtype=DTYPE)
     assert torch.allclose(microfacet.schlick_fresnel(f0, f90, torch.tensor(1.0, dtype=DTYPE)), f0)
-    assert torch.allclose(microfacet.schlick_fresnel(f0, f90, torch.tensor(0.0, dtype=DTYPE)), torch.ones(3, dtype=DTYPE))
+    grazing = microfacet.schlick_fresnel(f0, f90, torch.tensor(0.0, dtype=DTYPE))
+    assert torch.allclose(grazing, torch.ones(3, dtype=DTYPE))
     half = microfacet.schlick_fresnel(f0, f90, torch.tensor(0.5, dtype=DTYPE))
     assert torch.allclose(half, f0 + (1 - f0) / 32)
 

@@ -62,7 +62,8 @@ def test_cosine_hemisphere_mean_cosine(device):
 def test_power_cosine_density(device, tolerances, exponent):
     exponent_t = torch.tensor(exponent, dtype=torch.float64, device=device)
     directions, pdf = sampling.power_cosine_hemisphere(_uniform(4096, device), exponent_t)
-    torch.testing.assert_close(pdf, sampling.power_cosine_pdf(directions[:, 2], exponent_t), **tolerances[torch.float64])
+    expected = sampling.power_cosine_pdf(directions[:, 2], exponent_t)
+    torch.testing.assert_close(pdf, expected, **tolerances[torch.float64])
     grid, weights = sampling.hemisphere_quadrature(2048, 4, device=device, dtype=torch.float64)
     assert abs(float((sampling.power_cosine_pdf(grid[:, 2], exponent_t) * weights).sum()) - 1.0) < 1e-4
     # E[cos] = (e + 1)/(e + 2) in closed form.

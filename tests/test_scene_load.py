@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pxr import Sdf, Usd, UsdGeom, UsdLux
+from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdUtils
 
 from pipeline.errors import RelightError
 from pipeline.scene import find_camera, load_scene
-from pipeline.scene.stage import open_stage
+from relight_torch.stage import open_stage
 
 
 def _write_shot(directory: Path, *, with_mesh: bool = True, with_light: bool = True) -> Path:
@@ -117,3 +117,16 @@ def test_animated_points_read_at_the_first_frame_or_the_given_time(tmp_path, sta
     stage.Save()
     scene = load_scene(path, time=time)
     assert scene.geometry.positions[..., 0].min() == pytest.approx(expected_x)
+
+
+@pytest.mark.parametrize("suffix", [".usdc", ".usdz"])
+def test_crate_and_package_files_open(tmp_path, suffix):
+    source = _write_shot(tmp_path)
+    path = tmp_path / f"packed{suffix}"
+    if suffix == ".usdz":
+        assert UsdUtils.CreateNewUsdzPackage(str(source), str(path))
+    else:
+        Sdf.Layer.FindOrOpen(str(source)).Export(str(path))
+    scene = load_scene(path)
+    assert scene.geometry.num_triangles == 2
+    assert sorted(scene.cameras) == ["/World/CamA", "/World/CamB"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 
-from pxr import Plug, Usd, UsdLux
+from pxr import Plug, Sdf, Usd, UsdLux
 
 from relight_torch.schema import PLUGIN_NAME, SCHEMA_DIR, register_schemas
 
@@ -62,8 +62,8 @@ def test_applied_api_brings_fallbacks_to_a_light():
 
 
 def test_every_attribute_is_documented_in_the_source():
-    layer = Usd.Stage.Open(str(SCHEMA_DIR / "schema.usda")).GetRootLayer()
-    spec = layer.GetPrimAtPath("/RelightBarzelLightAPI")
+    layer = Sdf.Layer.FindOrOpen(str(SCHEMA_DIR / "schema.usda"))
+    spec = layer.GetPrimAtPath(Sdf.Path("/RelightBarzelLightAPI"))
     assert spec.documentation
     for attribute in spec.attributes:
         assert len(attribute.documentation) > 20, attribute.name

@@ -4,7 +4,7 @@ brute-force Moller-Trumbore twin."""
 import numpy as np
 import pytest
 
-from pipeline import tracing
+from relight_torch.visibility import embree
 from pipeline.scene.types import Geometry
 from pipeline.tracing import Tracer
 
@@ -306,8 +306,8 @@ def test_chunked_and_threaded_batches_match_one_call(monkeypatch):
     expected_hits = whole.intersect(origins, directions)
     expected_blocked = whole.occluded(origins, directions, t_far)
 
-    monkeypatch.setattr(tracing, "CHUNK_RAYS", 97)
-    monkeypatch.setattr(tracing, "MIN_THREAD_CHUNK_RAYS", 50)
+    monkeypatch.setattr(embree, "CHUNK_RAYS", 97)
+    monkeypatch.setattr(embree, "MIN_THREAD_CHUNK_RAYS", 50)
     chunked = Tracer(make_geometry(corners), num_threads=3)
     hits = chunked.intersect(origins, directions)
     for name in ("hit", "distance", "triangle_id", "barycentrics", "position", "shading_normal",

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from pipeline.commands.common import add_camera_options, add_lights_option
 from pipeline.scene.load import find_camera, read_scene
-from pipeline.scene.stage import open_stage
+from relight_torch.stage import open_stage
 from pipeline.scene.types import Scene
 
 

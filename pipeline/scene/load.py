@@ -11,7 +11,7 @@ from pipeline.scene.camera import read_cameras
 from pipeline.scene.geometry import read_geometry
 from pipeline.scene.lights import read_lights
 from pipeline.scene.materials import MaterialLibrary
-from pipeline.scene.stage import open_stage
+from relight_torch.stage import open_stage
 from pipeline.scene.types import Camera, Scene
 
 

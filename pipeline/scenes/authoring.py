@@ -16,6 +16,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, Vt
 
 from relight_torch.io.atomic import atomic_path
 from pipeline.scenes.meshes import MeshData
+from relight_torch.schema import register_schemas
 
 WORLD = "/World"
 MATERIALS = "/World/Materials"
@@ -41,6 +42,7 @@ _PREVIEW_INPUT_TYPES = {
 
 def create_stage(meters_per_unit: float, doc: str) -> Usd.Stage:
     """An in-memory stage: /World (default prim) with Materials (Scope), Geometry and Lights (Xforms)."""
+    register_schemas()                       # before any stage exists in this process (USD_EXR_NOTES 4)
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)

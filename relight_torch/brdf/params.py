@@ -67,7 +67,8 @@ class BrdfParams:
 
     def with_sample_axis(self) -> Self:
         """The same parameters with rows (N, 1), to shade directions (N, S, 3)."""
-        return dataclasses.replace(self, **{f.name: _insert_axis(getattr(self, f.name), f) for f in dataclasses.fields(self)})
+        fields = dataclasses.fields(self)
+        return dataclasses.replace(self, **{f.name: _insert_axis(getattr(self, f.name), f) for f in fields})
 
     @classmethod
     def from_numpy(

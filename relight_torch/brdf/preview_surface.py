@@ -15,9 +15,12 @@ opacityMode. Light `diffuse` / `specular` multipliers scale the two parts of `sp
 
 Physics notes, checked by tests: the model is reciprocal (E.h = L.h, everything else is
 symmetric in L and E). It is NOT energy conserving at low roughness: Storm's NDF carries
-(a^2 + 0.001) in place of a^2 (x11 at roughness 0.1; white metal at roughness 0.2 reflects 1.62
-at normal incidence), and diffuse (1 - F(h)) plus the specular lobe exceeds 1 near grazing views
-(white dielectric: 1.08 at roughness 0.5, 1.02 at 0.7, 89 deg; below 1 at roughness 1).
+(a^2 + 0.001) in place of a^2, scaling the lobe's energy by (a^2 + 0.001)/a^2 = 1 + 0.001/r^4:
+x1.016 at roughness 0.5, x11 at 0.1, x1e5 at 0.01 (clearcoat 1 at the fallback clearcoatRoughness
+0.01 reflects ~4000 at normal incidence), x1e9 at the 0.001 clamp. Storm only ever evaluates it
+for point-like lights, where this shows as a tiny hot highlight; integrated over area, dome or
+indirect light it is that much energy. Also diffuse (1 - F(h)) plus the specular lobe exceeds 1
+near grazing views (white dielectric: 1.08 at roughness 0.5, 1.02 at 0.7, 89 deg).
 
 Sampling: a mixture of the cosine (diffuse), and GGX visible normals of width a (specular) and
 of the clearcoat width (clearcoat); the exact GGX is sampled while Storm's D is evaluated, which
@@ -32,7 +35,7 @@ from dataclasses import dataclass
 
 import torch
 
-from relight_torch.brdf.common import check_pair, check_sample_args, expand_to, where_above
+from relight_torch.brdf.common import check_pair, check_sample_args, where_above
 from relight_torch.brdf.params import BrdfParams, colour, flag, scalar
 from relight_torch.math.frame import half_vector
 from relight_torch.math.microfacet import (
@@ -177,12 +180,16 @@ def sample(
     probabilities = lobe_probabilities(params, wo_local)
     probabilities = probabilities.expand(*torch.broadcast_shapes(probabilities.shape[:-1], u.shape[:-1]), 3)
     upper = probabilities.cumsum(-1)
-    u_select = u[..., 0]
+    # Scaled by the rounded total so that u < 1 never selects a trailing lobe of probability 0.
+    u_select = u[..., 0] * upper[..., 2]
     lobe = (u_select.unsqueeze(-1) >= upper[..., :2]).sum(-1, keepdim=True)
     lower = torch.cat((torch.zeros_like(upper[..., :1]), upper[..., :2]), dim=-1).gather(-1, lobe).squeeze(-1)
     width = probabilities.gather(-1, lobe).squeeze(-1)
-    u_rescaled = ((u_select - lower) / width.clamp_min(torch.finfo(width.dtype).tiny)).clamp(0.0, 1.0 - torch.finfo(width.dtype).eps)
+    finfo = torch.finfo(width.dtype)
+    u_rescaled = ((u_select - lower) / width.clamp_min(finfo.tiny)).clamp(0.0, 1.0 - finfo.eps)
     u_lobe = torch.stack((u_rescaled, u[..., 1]), dim=-1)
+    # Every lobe's warp runs for every sample and the chosen one is gathered: cheaper on a GPU
+    # than compacting the samples per lobe, and the warps are a few dozen flops each.
     wi_diffuse, _ = cosine_hemisphere(u_lobe)
     wi_specular, _ = sample_ggx_reflection(wo_local, storm_alpha(params.roughness), u_lobe)
     wi_coat, _ = sample_ggx_reflection(wo_local, storm_alpha(params.clearcoat_roughness), u_lobe)

@@ -46,7 +46,8 @@ def eval(params: WardParams, wo_local: torch.Tensor, wi_local: torch.Tensor) -> 
     """BRDF value (..., 3) in 1/sr for directions (..., 3); 0 below the horizon."""
     check_pair(wo_local, wi_local)
     cosines = positive(wo_local[..., 2]) * positive(wi_local[..., 2])
-    lobe = _gaussian(params, wo_local + wi_local) / (4.0 * math.pi * params.alpha_x * params.alpha_y * torch.sqrt(cosines))
+    normalization = 4.0 * math.pi * params.alpha_x * params.alpha_y * torch.sqrt(cosines)
+    lobe = _gaussian(params, wo_local + wi_local) / normalization
     return where_above(params.rho_s * lobe.unsqueeze(-1), wo_local, wi_local)
 
 

@@ -68,6 +68,7 @@ class CacheDescription:
         resolution: (width, height) in pixels.
         supersampling: sub-samples per pixel side.
         world_from_camera: (4, 4) float64 column-vector transform.
+        exposure_scale: the camera's linear exposure scale, applied to relit images.
         content_hash: sha256 over every input hash and the parameters.
         inputs: input file (absolute path) -> sha256 of its bytes.
         parameters: the method's parameters (bool, int, float or str values).
@@ -80,6 +81,7 @@ class CacheDescription:
     resolution: tuple[int, int]
     supersampling: int
     world_from_camera: np.ndarray
+    exposure_scale: float
     content_hash: str
     inputs: dict[str, str]
     parameters: dict[str, bool | int | float | str]
@@ -139,6 +141,7 @@ def write_cache_layer(path: str | os.PathLike, description: CacheDescription) ->
     cache.GetAttribute("relight:resolution").Set(Gf.Vec2i(*description.resolution))
     cache.GetAttribute("relight:supersampling").Set(description.supersampling)
     cache.GetAttribute("relight:worldFromCamera").Set(Gf.Matrix4d(description.world_from_camera.T.tolist()))
+    cache.GetAttribute("relight:exposureScale").Set(description.exposure_scale)
     cache.GetAttribute("relight:contentHash").Set(description.content_hash)
     files = sorted(description.inputs)
     cache.GetAttribute("relight:inputFiles").Set(Vt.StringArray([os.path.relpath(f, directory) for f in files]))
@@ -222,6 +225,7 @@ def read_cache_layer(path: str | os.PathLike) -> CacheDescription:
         resolution=tuple(int(v) for v in _get(cache, "relight:resolution", path)),
         supersampling=int(_get(cache, "relight:supersampling", path)),
         world_from_camera=matrix,
+        exposure_scale=float(_get(cache, "relight:exposureScale", path)),
         content_hash=_get(cache, "relight:contentHash", path),
         inputs={str((directory / f).resolve()): h for f, h in zip(files, hashes)},
         parameters=parameters,

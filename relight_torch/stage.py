@@ -12,7 +12,7 @@ from pathlib import Path
 
 from pxr import Sdf, Tf, Usd
 
-from pipeline.errors import RelightError
+from relight_torch.errors import RelightError
 from relight_torch.schema import register_schemas
 
 # Root-layer metadata that must come from the shot: geometry units and axes, and the time-code

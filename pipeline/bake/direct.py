@@ -1,0 +1,59 @@
+"""`relight bake --method direct`: the deep framebuffer and the occluders, as a cache.
+
+Writes into OUT:
+    <stem>.relight.usda     the cache layer (RelightCache prim, provenance, payload list)
+    <stem>.dfb.exr          the deep framebuffer (channels in relight_torch.cache.gbuffer_exr)
+    <stem>.occluders.npy    (T, 3, 3) float32 world triangles: shadows without the shot
+Each file is written atomically; the layer last, so a cache layer never names a missing payload.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline import __version__
+from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
+from pipeline.bake.inputs import hash_inputs, input_files
+from pipeline.scene.types import Camera, Scene
+from relight_torch.cache.gbuffer_exr import gbuffer_to_channels
+from relight_torch.cache.layer import (SUFFIX, CacheDescription, Payload, content_hash, file_sha256,
+                                       write_cache_layer)
+from relight_torch.io.atomic import atomic_path
+from relight_torch.io.exr import write_exr
+
+
+def write_npy(path: Path, array: np.ndarray) -> Payload:
+    """Write a .npy payload atomically and describe it."""
+    with atomic_path(path) as temp:
+        with open(temp, "wb") as handle:
+            np.save(handle, array, allow_pickle=False)
+    return Payload(name="", file=path.name, format="npy", sha256=file_sha256(path),
+                   num_bytes=path.stat().st_size, shape=tuple(array.shape), dtype=array.dtype.name)
+
+
+def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 1) -> Path:
+    """Bake the direct-lighting cache of `camera`; returns the cache layer's path."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    dfb = bake_deep_framebuffer(scene, camera, supersampling)
+    channels, constants = gbuffer_to_channels(dfb.gbuffer)
+    dfb_path = out_dir / f"{stem}.dfb.exr"
+    write_exr(dfb_path, channels, {"relight:supersampling": supersampling})
+    deep = Payload(name="deepFramebuffer", file=dfb_path.name, format="exr", sha256=file_sha256(dfb_path),
+                   num_bytes=dfb_path.stat().st_size, channels=tuple(sorted(channels)), constants=constants)
+    occluders = write_npy(out_dir / f"{stem}.occluders.npy", scene.geometry.positions.astype(np.float32))
+    occluders = Payload(**{**vars(occluders), "name": "occluders"})
+    parameters = {"supersampling": supersampling}
+    inputs = hash_inputs(input_files(scene))
+    description = CacheDescription(
+        method="direct", source=scene.source, camera_path=camera.path,
+        resolution=(camera.width, camera.height), supersampling=supersampling,
+        world_from_camera=camera.world_from_camera, exposure_scale=camera.exposure_scale,
+        content_hash=content_hash(inputs, parameters, __version__), inputs=inputs,
+        parameters=parameters, payloads=(deep, occluders),
+    )
+    layer_path = out_dir / f"{stem}{SUFFIX}"
+    write_cache_layer(layer_path, description)
+    return layer_path
