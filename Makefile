@@ -21,3 +21,12 @@ test: $(STAMP)
 
 clean:
 	rm -rf $(VENV) build *.egg-info
+
+# The README's first command: bake a bundled scene, relight it under light edits, write images and a chart.
+demo: $(STAMP)
+	$(BIN)/relight demo --out out/demo
+
+# Bake a shot's direct-lighting cache: make bake SCENE=shot.usda CAMERA=/World/Camera OUT=cache/
+bake: $(STAMP)
+	@test -n "$(SCENE)" -a -n "$(CAMERA)" || { echo "usage: make bake SCENE=shot.usda CAMERA=/Path/Camera [OUT=dir]" >&2; exit 2; }
+	$(BIN)/relight bake "$(SCENE)" --camera "$(CAMERA)" --out "$(or $(OUT),out/bake)"

@@ -24,9 +24,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from pxr import Usd
 
-from relight_torch.cache.layer import read_cache_layer
+from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import check_inputs, load_gbuffer, load_npy
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
@@ -37,7 +36,7 @@ from relight_torch.lights.shadow import shadow_factor
 from relight_torch.lights.usd import read_stage_lights
 from relight_torch.math.frame import to_local
 from relight_torch.shading import reflected_radiance
-from relight_torch.stage import open_stage
+from relight_torch.stage import open_stage, time_code
 from relight_torch.visibility import Visibility
 from relight_torch.visibility.embree import EmbreeCaster
 from relight_torch.visibility.rays import RayVisibility
@@ -116,6 +115,9 @@ class Relighter:
         supersampling: s; the sub-sample image is box-filtered by s x s after shading.
         exposure_scale: the camera's linear exposure scale.
         settings: sampling settings.
+
+    Attributes:
+        description: the cache layer's description when opened with `open_relighter`.
     """
 
     def __init__(self, gbuffer: GBuffer, visibility: Visibility, supersampling: int = 1,
@@ -129,6 +131,7 @@ class Relighter:
         self.exposure_scale = exposure_scale
         self.settings = settings
         self.counters: collections.Counter[str] = collections.Counter()
+        self.description: CacheDescription | None = None
         self._lights: dict[str, _LightState] = {}
         self._wo_local = to_local(gbuffer.wo_world(), gbuffer.tangent, gbuffer.bitangent, gbuffer.normal)
         self._u: dict[int, torch.Tensor] = {}
@@ -272,11 +275,17 @@ def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", 
     if shadows == "embree":
         visibility = RayVisibility(EmbreeCaster(occluders))
     elif shadows == "shadowmaps":
+        from relight_torch.visibility.shadow_maps import ShadowMapVisibility  # noqa: PLC0415 (being written)
         visibility = ShadowMapVisibility(torch.from_numpy(occluders).to(device))
     else:
         raise RelightError(f"shadows must be 'embree' or 'shadowmaps', got {shadows!r}")
     relighter = Relighter(gbuffer, visibility, description.supersampling, description.exposure_scale, settings)
-    stage = open_stage(description.source, lights_layer)
-    time = Usd.TimeCode(float(description.parameters.get("time", Usd.TimeCode.EarliestTime().GetValue())))
-    relighter.set_lights(read_stage_lights(stage, time))
+    relighter.description = description
+    relighter.set_lights(shot_lights(description, lights_layer))
     return relighter
+
+
+def shot_lights(description: CacheDescription, lights_layer: str | os.PathLike | None = None) -> list[Light]:
+    """The lights of the cache's shot, at the baked time, with `lights_layer` composed over them."""
+    stage = open_stage(description.source, lights_layer)
+    return read_stage_lights(stage, time_code(stage, description.parameters.get("time")))

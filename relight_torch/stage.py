@@ -85,3 +85,17 @@ def open_stage(path: str | Path, lights_layer: str | Path | None = None) -> Usd.
         return Usd.Stage.Open(root, Usd.Stage.LoadAll)
     except Tf.ErrorException as error:
         raise RelightError(f"stage {path} could not be opened: {_one_line(error)}") from None
+
+
+def time_code(stage: Usd.Stage, time: float | None) -> Usd.TimeCode:
+    """The time code to read: `time`, else the stage's first frame.
+
+    The first frame is the authored startTimeCode, else the earliest time sample (attributes
+    without samples read their default value either way). Not `Usd.TimeCode.Default()`: that
+    reads nothing from attributes that only have time samples, e.g. animated points.
+    """
+    if time is not None:
+        return Usd.TimeCode(time)
+    if stage.HasAuthoredTimeCodeRange():
+        return Usd.TimeCode(stage.GetStartTimeCode())
+    return Usd.TimeCode.EarliestTime()

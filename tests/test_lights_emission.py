@@ -31,9 +31,10 @@ def transform(translate=(0.0, 0.0, 0.0), scale=(1.0, 1.0, 1.0), rotate_x_deg=0.0
     return matrix
 
 
-def uniform(num_points: int, num_samples: int, seed: int, dtype=torch.float64) -> torch.Tensor:
+def uniform(num_points: int, num_samples: int, seed: int, dtype=torch.float64, device="cpu") -> torch.Tensor:
+    """(num_points, num_samples, 2) seeded uniform numbers, drawn on the CPU (same on every device)."""
     generator = torch.Generator().manual_seed(seed)
-    return torch.rand(num_points, num_samples, 2, generator=generator, dtype=dtype)
+    return torch.rand(num_points, num_samples, 2, generator=generator, dtype=dtype).to(device)
 
 
 def assert_estimate(samples: torch.Tensor, expected: float) -> None:
@@ -44,21 +45,23 @@ def assert_estimate(samples: torch.Tensor, expected: float) -> None:
         f"estimate {mean} +- {standard_error} vs expected {expected}")
 
 
-def irradiance_by_light_sampling(light: Light, point, normal, num_samples: int, seed: int = 0) -> torch.Tensor:
+def irradiance_by_light_sampling(light: Light, point, normal, num_samples: int, seed: int = 0,
+                                 device="cpu") -> torch.Tensor:
     """(S,) per-sample estimates of the irradiance (first channel) at a point with a normal."""
-    point = torch.tensor([point], dtype=torch.float64)
-    sample = sample_light(light, point, uniform(1, num_samples, seed))
-    cosine = (sample.direction[0] * torch.tensor(normal, dtype=torch.float64)).sum(-1).clamp_min(0.0)
+    point = torch.tensor([point], dtype=torch.float64, device=device)
+    sample = sample_light(light, point, uniform(1, num_samples, seed, device=device))
+    cosine = (sample.direction[0] * torch.tensor(normal, dtype=torch.float64, device=device)).sum(-1).clamp_min(0.0)
     return sample.weight()[0, :, 0] * cosine
 
 
-def irradiance_by_cosine_sampling(light: Light, point, normal, num_samples: int, seed: int = 1) -> torch.Tensor:
+def irradiance_by_cosine_sampling(light: Light, point, normal, num_samples: int, seed: int = 1,
+                                  device="cpu") -> torch.Tensor:
     """(S,) per-sample irradiance estimates from cosine-weighted directions (as BSDF rays would go)."""
-    normal = torch.tensor(normal, dtype=torch.float64)
-    local, pdf = cosine_hemisphere(uniform(1, num_samples, seed)[0])
+    normal = torch.tensor(normal, dtype=torch.float64, device=device)
+    local, pdf = cosine_hemisphere(uniform(1, num_samples, seed, device=device)[0])
     tangent, bitangent = orthonormal_basis(normal)
     directions = to_world(local, tangent, bitangent, normal)
-    radiance = emitted_radiance(light, torch.tensor([point], dtype=torch.float64), directions)
+    radiance = emitted_radiance(light, torch.tensor([point], dtype=torch.float64, device=device), directions)
     return radiance[:, 0] * local[:, 2] / pdf
 
 
@@ -171,6 +174,15 @@ def test_one_sided_lights_emit_only_to_their_front():
     assert (inside.radiance == 0).all() and (inside.pdf == 0).all()
 
 
+def test_rect_texture_faces_the_receiver_unmirrored():
+    texture = np.array([[[1, 0, 0], [0, 1, 0]], [[0, 0, 1], [1, 1, 1]]], np.float32)   # row 0 = top
+    rect = Light("/R", LightKind.RECT, texture=texture, world_from_light=transform((0, 0, 1)))
+    # Seen from below (-Z, looking up +Z), local +X is on the viewer's left: pixel (0, 0) at (+X, +Y).
+    receivers = torch.tensor([[0.25, 0.25, 0.0], [-0.25, 0.25, 0.0], [0.25, -0.25, 0.0], [-0.25, -0.25, 0.0]])
+    radiance = emitted_radiance(rect, receivers, torch.tensor([0.0, 0.0, 1.0]))
+    np.testing.assert_allclose(radiance.numpy(), texture.reshape(4, 3), atol=1e-6)
+
+
 def test_cylinder_emits_from_its_side_only():
     cylinder = Light("/C", LightKind.CYLINDER, radius=0.5, length=2.0)
     along_axis = torch.tensor([5.0, 0.0, 0.0])
@@ -194,9 +206,9 @@ AREA_LIGHTS = [
 
 
 @pytest.mark.parametrize("light", AREA_LIGHTS, ids=lambda light: light.path)
-def test_sample_pdf_equals_light_pdf_of_the_direction(light):
-    points = torch.tensor([[0.0, 0.0, 0.0], [0.5, -0.3, 0.1]], dtype=torch.float64)
-    sample = sample_light(light, points, uniform(2, 256, 3))
+def test_sample_pdf_equals_light_pdf_of_the_direction(light, device):
+    points = torch.tensor([[0.0, 0.0, 0.0], [0.5, -0.3, 0.1]], dtype=torch.float64, device=device)
+    sample = sample_light(light, points, uniform(2, 256, 3, device=device))
     torch.testing.assert_close(light_pdf(light, points.unsqueeze(1), sample.direction), sample.pdf)
     torch.testing.assert_close(emitted_radiance(light, points.unsqueeze(1), sample.direction), sample.radiance)
     hit = torch.isfinite(sample.distance)
@@ -204,30 +216,43 @@ def test_sample_pdf_equals_light_pdf_of_the_direction(light):
 
 
 @pytest.mark.parametrize("light", AREA_LIGHTS, ids=lambda light: light.path)
-def test_light_pdf_integrates_to_one_over_the_sphere(light):
-    directions, density = uniform_sphere(uniform(1, 200000, 5)[0])
-    ratio = light_pdf(light, torch.zeros(1, 3, dtype=torch.float64), directions) / density
+def test_light_pdf_integrates_to_one_over_the_sphere(light, device):
+    directions, density = uniform_sphere(uniform(1, 200000, 5, device=device)[0])
+    ratio = light_pdf(light, torch.zeros(1, 3, dtype=torch.float64, device=device), directions) / density
     assert_estimate(ratio, 1.0)
 
 
 @pytest.mark.parametrize("light", AREA_LIGHTS, ids=lambda light: light.path)
-def test_light_and_bsdf_sampling_estimate_the_same_irradiance(light):
+def test_light_and_bsdf_sampling_estimate_the_same_irradiance(light, device):
     normal = (0.0, 0.0, 1.0)
-    by_light = irradiance_by_light_sampling(light, (0, 0, 0), normal, 20000)
-    by_bsdf = irradiance_by_cosine_sampling(light, (0, 0, 0), normal, 200000)
+    by_light = irradiance_by_light_sampling(light, (0, 0, 0), normal, 20000, device=device)
+    by_bsdf = irradiance_by_cosine_sampling(light, (0, 0, 0), normal, 200000, device=device)
     difference = by_light.mean() - by_bsdf.mean()
     standard_error = math.sqrt(by_light.var().item() / by_light.numel() + by_bsdf.var().item() / by_bsdf.numel())
     assert by_light.mean() > 0
     assert abs(difference.item()) <= NUM_SIGMA * standard_error
 
 
-def test_sampling_follows_the_input_dtype():
-    light = AREA_LIGHTS[1]
-    sample = sample_light(light, torch.zeros(3, 3, dtype=torch.float32), uniform(3, 4, 0, torch.float32))
-    assert sample.direction.dtype == sample.radiance.dtype == sample.pdf.dtype == torch.float32
+TEXTURED_DOME = Light("/Dome", LightKind.DOME, texture=np.ones((4, 8, 3), np.float32))
+
+
+@pytest.mark.parametrize("light", AREA_LIGHTS + [TEXTURED_DOME], ids=lambda light: light.path)
+def test_sampling_follows_the_input_device_and_dtype(light, device):
+    points = torch.zeros(3, 3, dtype=torch.float32, device=device)
+    sample = sample_light(light, points, uniform(3, 4, 0, torch.float32, device))
+    for tensor in (sample.direction, sample.distance, sample.radiance, sample.pdf):
+        assert tensor.dtype == torch.float32 and tensor.device == points.device
     assert sample.direction.shape == (3, 4, 3) and sample.pdf.shape == (3, 4)
-    with pytest.raises(ValueError, match="points must have shape"):
+
+
+def test_bad_shapes_raise():
+    light = AREA_LIGHTS[1]
+    with pytest.raises(ValueError, match=r"points must have shape \(\.\.\., 3\); got \(3, 2\)"):
         sample_light(light, torch.zeros(3, 2), uniform(3, 4, 0))
+    with pytest.raises(ValueError, match="u must be .N, S, 2. of the points' dtype"):
+        sample_light(light, torch.zeros(3, 3, dtype=torch.float64), uniform(2, 4, 0))
+    with pytest.raises(ValueError, match="directions must have shape"):
+        light_pdf(light, torch.zeros(3), torch.zeros(4))
 
 
 def test_transforms_the_samplers_cannot_honour_are_rejected():
@@ -249,29 +274,30 @@ def dome_texture(height: int = 16, width: int = 32, seed: int = 0) -> np.ndarray
     return texture
 
 
-def test_dome_pdf_integrates_to_one():
+def test_dome_pdf_integrates_to_one(device):
     dome = Light("/Dome", LightKind.DOME, texture=dome_texture(), world_from_light=transform(rotate_x_deg=25))
     # Midpoint rule on a grid four times finer than the pixels: pdf_uv is constant on each cell.
     num_theta, num_phi = 64, 128
-    theta = (torch.arange(num_theta, dtype=torch.float64) + 0.5) / num_theta * math.pi
-    phi = (torch.arange(num_phi, dtype=torch.float64) + 0.5) / num_phi * 2 * math.pi
+    theta = (torch.arange(num_theta, dtype=torch.float64, device=device) + 0.5) / num_theta * math.pi
+    phi = (torch.arange(num_phi, dtype=torch.float64, device=device) + 0.5) / num_phi * 2 * math.pi
     theta, phi = torch.meshgrid(theta, phi, indexing="ij")
     local = torch.stack((torch.sin(theta) * torch.sin(phi), torch.cos(theta), torch.sin(theta) * torch.cos(phi)), -1)
-    world = local @ torch.as_tensor(dome.world_from_light[:3, :3]).T
+    world = local @ torch.as_tensor(dome.world_from_light[:3, :3], device=device).T
     solid_angle = torch.sin(theta) * (math.pi / num_theta) * (2 * math.pi / num_phi)
-    total = (light_pdf(dome, torch.zeros(3, dtype=torch.float64), world) * solid_angle).sum()
+    total = (light_pdf(dome, torch.zeros(3, dtype=torch.float64, device=device), world) * solid_angle).sum()
     # Exact up to the sin(theta) of the cell centre versus the pixel centre: O(1/num_theta^2).
     assert total.item() == pytest.approx(1.0, abs=2e-3)
 
 
-def test_dome_importance_and_uniform_sampling_agree():
+def test_dome_importance_and_uniform_sampling_agree(device):
     dome = Light("/Dome", LightKind.DOME, intensity=1.5, texture=dome_texture(),
                  world_from_light=transform(rotate_x_deg=25))
     normal = (0.0, 0.6, 0.8)
-    importance = irradiance_by_light_sampling(dome, (0, 0, 0), normal, 20000)
-    directions, density = uniform_sphere(uniform(1, 400000, 7)[0])
-    cosine = (directions * torch.tensor(normal, dtype=torch.float64)).sum(-1).clamp_min(0.0)
-    uniform_estimate = emitted_radiance(dome, torch.zeros(3, dtype=torch.float64), directions)[:, 0] * cosine / density
+    importance = irradiance_by_light_sampling(dome, (0, 0, 0), normal, 20000, device=device)
+    directions, density = uniform_sphere(uniform(1, 400000, 7, device=device)[0])
+    cosine = (directions * torch.tensor(normal, dtype=torch.float64, device=device)).sum(-1).clamp_min(0.0)
+    origin = torch.zeros(3, dtype=torch.float64, device=device)
+    uniform_estimate = emitted_radiance(dome, origin, directions)[:, 0] * cosine / density
     standard_error = math.sqrt(importance.var().item() / importance.numel()
                                + uniform_estimate.var().item() / uniform_estimate.numel())
     assert abs(importance.mean().item() - uniform_estimate.mean().item()) <= NUM_SIGMA * standard_error

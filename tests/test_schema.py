@@ -75,5 +75,6 @@ def test_generated_files_match_schema_source(tmp_path):
     spec.loader.exec_module(generate)
     generate.generate(tmp_path)
     for name in ("generatedSchema.usda", "plugInfo.json"):
-        assert (tmp_path / name).read_text() == (SCHEMA_DIR / name).read_text(), f"{name} is stale: run schemas/generate.py"
+        stale = f"{name} is stale: run schemas/generate.py"
+        assert (tmp_path / name).read_text() == (SCHEMA_DIR / name).read_text(), stale
     assert "@PLUG_INFO" not in (tmp_path / "plugInfo.json").read_text()

@@ -33,8 +33,13 @@ def write_npy(path: Path, array: np.ndarray) -> Payload:
                    num_bytes=path.stat().st_size, shape=tuple(array.shape), dtype=array.dtype.name)
 
 
-def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 1) -> Path:
-    """Bake the direct-lighting cache of `camera`; returns the cache layer's path."""
+def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 1,
+                time_code: float | None = None) -> Path:
+    """Bake the direct-lighting cache of `camera`; returns the cache layer's path.
+
+    Args:
+        time_code: the time the scene was read at (recorded so lights are read at the same time).
+    """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     dfb = bake_deep_framebuffer(scene, camera, supersampling)
@@ -45,7 +50,9 @@ def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
                    num_bytes=dfb_path.stat().st_size, channels=tuple(sorted(channels)), constants=constants)
     occluders = write_npy(out_dir / f"{stem}.occluders.npy", scene.geometry.positions.astype(np.float32))
     occluders = Payload(**{**vars(occluders), "name": "occluders"})
-    parameters = {"supersampling": supersampling}
+    parameters: dict = {"supersampling": supersampling}
+    if time_code is not None:
+        parameters["time"] = float(time_code)
     inputs = hash_inputs(input_files(scene))
     description = CacheDescription(
         method="direct", source=scene.source, camera_path=camera.path,

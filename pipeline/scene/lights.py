@@ -1,17 +1,17 @@
 """The shot's lights: every visible UsdLux light prim as a `Light` (via relight_torch.lights.usd).
 
-Unsupported light types (MeshLightAPI, PortalLight, ...) are skipped with a warning; light
-filters and dome portals are ignored with a warning; a light with a bad value stops the load with
-a `RelightError` naming the prim and attribute.
+Unsupported light types (MeshLightAPI, PortalLight, ...) are skipped and light filters and dome
+portals ignored, each with a warning; a light with a bad value stops the load with a
+`RelightError` naming the prim and attribute.
 """
 
 from __future__ import annotations
 
-from pxr import Usd, UsdLux
+from pxr import Usd
 
-from pipeline.errors import RelightError, warn
+from pipeline.errors import RelightError
 from relight_torch.lights.light import Light
-from relight_torch.lights.usd import iter_light_prims, light_kind, read_light
+from relight_torch.lights.usd import read_stage_lights
 
 
 def read_lights(stage: Usd.Stage, time: Usd.TimeCode, warnings: list[str] | None = None) -> list[Light]:
@@ -29,18 +29,7 @@ def read_lights(stage: Usd.Stage, time: Usd.TimeCode, warnings: list[str] | None
         RelightError: a light has a non-finite or out-of-range value, a missing image, or a
             transform its sampler cannot honour.
     """
-    lights = []
-    for prim in iter_light_prims(stage, time):
-        if light_kind(prim) is None:
-            warn(f"{prim.GetPath()}: light type '{prim.GetTypeName()}' is not supported; skipped",
-                 warnings)
-            continue
-        if UsdLux.LightAPI(prim).GetFiltersRel().GetTargets():
-            warn(f"{prim.GetPath()}: light:filters are not supported; ignored", warnings)
-        if prim.HasRelationship("portals") and prim.GetRelationship("portals").GetTargets():
-            warn(f"{prim.GetPath()}: dome light portals are not supported; ignored", warnings)
-        try:
-            lights.append(read_light(prim, time))
-        except ValueError as error:
-            raise RelightError(str(error)) from None
-    return lights
+    try:
+        return read_stage_lights(stage, time, warnings)
+    except ValueError as error:
+        raise RelightError(str(error)) from None

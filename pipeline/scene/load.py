@@ -11,22 +11,8 @@ from pipeline.scene.camera import read_cameras
 from pipeline.scene.geometry import read_geometry
 from pipeline.scene.lights import read_lights
 from pipeline.scene.materials import MaterialLibrary
-from relight_torch.stage import open_stage
+from relight_torch.stage import open_stage, time_code
 from pipeline.scene.types import Camera, Scene
-
-
-def time_code(stage: Usd.Stage, time: float | None) -> Usd.TimeCode:
-    """The time code to read: `time`, else the stage's first frame.
-
-    The first frame is the authored startTimeCode, else the earliest time sample (attributes
-    without samples read their default value either way). Not `Usd.TimeCode.Default()`: that
-    reads nothing from attributes that only have time samples, e.g. animated points.
-    """
-    if time is not None:
-        return Usd.TimeCode(time)
-    if stage.HasAuthoredTimeCodeRange():
-        return Usd.TimeCode(stage.GetStartTimeCode())
-    return Usd.TimeCode.EarliestTime()
 
 
 def read_scene(stage: Usd.Stage, source: str, *, time: float | None = None,

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, Vt
 
-from relight_torch.io.atomic import atomic_path
 from pipeline.scenes.meshes import MeshData
+from relight_torch.io.atomic import atomic_path
 from relight_torch.schema import register_schemas
 
 WORLD = "/World"

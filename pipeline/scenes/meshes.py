@@ -146,7 +146,7 @@ def revolve(profile: np.ndarray, num_segments: int, *, angle_range: tuple[float,
         MeshData with (K [+1], S + 1) points (the seam duplicated so st has no wrap), st =
         (angle fraction, profile arc-length fraction).
     """
-    profile = np.asarray(profile, np.float64)
+    profile = np.array(profile, np.float64)                  # a copy: poles are snapped to r = 0 below
     if closed_profile:
         profile_for_tangent = np.concatenate([profile[-1:], profile, profile[:1]])
         tangent = (profile_for_tangent[2:] - profile_for_tangent[:-2])
@@ -155,6 +155,8 @@ def revolve(profile: np.ndarray, num_segments: int, *, angle_range: tuple[float,
         tangent = np.gradient(profile, axis=0)
     normal_rh = _normalized(np.stack([tangent[:, 1], -tangent[:, 0]], axis=-1))   # (K, 2) right of travel
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(profile, axis=0), axis=-1))])
+    on_axis = profile[:, 0] <= 1e-9 * np.abs(profile).max()    # e.g. sin(pi) * r is 1e-16, not 0
+    profile[on_axis, 0] = 0.0
 
     num_rows, num_columns = len(profile), num_segments + 1
     theta = np.linspace(angle_range[0], angle_range[1], num_columns)
@@ -170,8 +172,6 @@ def revolve(profile: np.ndarray, num_segments: int, *, angle_range: tuple[float,
     k, j = np.meshgrid(np.arange(num_rows - 1), np.arange(num_segments), indexing="ij")
     quads = np.stack([k * num_columns + j, k * num_columns + j + 1,
                       (k + 1) * num_columns + j + 1, (k + 1) * num_columns + j], -1)   # (K-1, S, 4)
-    on_axis = profile[:, 0] <= 1e-9 * np.abs(profile).max()
-    profile[on_axis, 0] = 0.0
     faces, counts = [], []
     for row in range(num_rows - 1):
         # A pole row collapses one edge of its quads: drop the duplicate corner.

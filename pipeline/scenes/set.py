@@ -24,7 +24,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Sdf, UsdGeom, UsdLux, Vt
+from pxr import Gf, UsdGeom, UsdLux, Vt
 
 from pipeline.scenes import authoring
 from pipeline.scenes.bundled import BundledScene, LightEdit, LightOverride

@@ -61,7 +61,7 @@ def brick_albedo(height: np.ndarray, num_bricks_x: int, num_rows: int, seed: int
     """
     size = height.shape[0]
     rng = np.random.default_rng(seed)
-    tints = rng.uniform(0.75, 1.2, size=(num_rows, num_bricks_x + 1, 1)) * BRICK_LINEAR_RGB   # (rows, bricks, 3)
+    tints = rng.uniform(0.75, 1.2, size=(num_rows, num_bricks_x, 1)) * BRICK_LINEAR_RGB   # (rows, bricks, 3)
     row = (np.arange(size) * num_rows // size)[:, None]
     col_f = (np.arange(size) + 0.5) / size * num_bricks_x
     col = np.floor(col_f[None, :] + 0.5 * (row % 2)).astype(int) % num_bricks_x   # wrap: tiles seamlessly

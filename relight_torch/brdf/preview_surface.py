@@ -2,7 +2,7 @@
 `evaluateLight`), for one light direction:
 
     a = max(roughness, 0.001)^2,  k = a/2,  fres = (1 - E.h)^5,  R = (1 - ior)/(1 + ior)
-    spec(F0, F90, a) = mix(F0, F90, fres) G(k) D_storm(a) / (4 N.L N.E + 0.001)
+    spec(F0, F90, a) = mix(F0, F90, fres) G(k) D(a) / (4 N.L N.E + 0.001)
     specular workflow: F0 = specularColor, F90 = 1
     metallic workflow: c = mix(1, diffuseColor, metallic); F0 = mix(R^2 c, c, metallic); F90 = c;
                        diffuse *= 1 - metallic
@@ -13,18 +13,20 @@ The BRDF here is Storm's output divided by N.L (the cosine is not part of f_r). 
 occlusion and opacity are not part of it: opacity is applied by the caller according to
 opacityMode. Light `diffuse` / `specular` multipliers scale the two parts of `split`.
 
+One departure from Storm, decided on purpose: D is the exact GGX a^2 / (pi ((N.h)^2 (a^2 - 1) + 1)^2),
+not Storm's (a^2 + 0.001) numerator (`storm_ggx_d`). Storm's variant scales the lobe's energy by
+1 + 0.001/r^4: x1.016 at roughness 0.5, x11 at 0.1, x1e5 at 0.01 (clearcoat 1 at the fallback
+clearcoatRoughness 0.01 would reflect ~4000 at normal incidence). Storm only evaluates it for
+point-like lights, where it shows as a tiny hot highlight; a path tracer, area and dome lights and
+every indirect method integrate it, so it would be that much energy. Renderers that integrate
+UsdPreviewSurface (hdEmbree, Karma, RenderMan) use the exact GGX too.
+
 Physics notes, checked by tests: the model is reciprocal (E.h = L.h, everything else is
-symmetric in L and E). It is NOT energy conserving at low roughness: Storm's NDF carries
-(a^2 + 0.001) in place of a^2, scaling the lobe's energy by (a^2 + 0.001)/a^2 = 1 + 0.001/r^4:
-x1.016 at roughness 0.5, x11 at 0.1, x1e5 at 0.01 (clearcoat 1 at the fallback clearcoatRoughness
-0.01 reflects ~4000 at normal incidence), x1e9 at the 0.001 clamp. Storm only ever evaluates it
-for point-like lights, where this shows as a tiny hot highlight; integrated over area, dome or
-indirect light it is that much energy. Also diffuse (1 - F(h)) plus the specular lobe exceeds 1
-near grazing views (white dielectric: 1.08 at roughness 0.5, 1.02 at 0.7, 89 deg).
+symmetric in L and E). Diffuse (1 - F(h)) plus the specular lobe exceeds 1 near grazing views
+(white dielectric: 1.08 at roughness 0.5, 1.02 at 0.7, 89 deg).
 
 Sampling: a mixture of the cosine (diffuse), and GGX visible normals of width a (specular) and
-of the clearcoat width (clearcoat); the exact GGX is sampled while Storm's D is evaluated, which
-is unbiased because the GGX covers the same directions. Lobe probabilities are proportional to
+of the clearcoat width (clearcoat); the exact GGX is both sampled and evaluated. Lobe probabilities are proportional to
 an albedo estimate at wo (Schlick F at N.E for the specular lobes).
 """
 
@@ -40,10 +42,10 @@ from relight_torch.brdf.params import BrdfParams, colour, flag, scalar
 from relight_torch.math.frame import half_vector
 from relight_torch.math.microfacet import (
     STORM_EPSILON,
+    ggx_d,
     ggx_reflection_pdf,
     sample_ggx_reflection,
     schlick_fresnel,
-    storm_ggx_d,
     storm_schlick_ggx_g,
 )
 from relight_torch.math.sampling import cosine_hemisphere, cosine_hemisphere_pdf
@@ -104,8 +106,8 @@ def diffuse_albedo(params: PreviewSurfaceParams) -> torch.Tensor:
 
 
 def _storm_lobe(alpha: torch.Tensor, cos_l: torch.Tensor, cos_e: torch.Tensor, cos_h: torch.Tensor) -> torch.Tensor:
-    """Storm's `evaluateDirectSpecular` without F: D G / (4 N.L N.E + 0.001), all (...)."""
-    microfacet = storm_ggx_d(cos_h, alpha) * storm_schlick_ggx_g(cos_e, cos_l, alpha)
+    """Storm's `evaluateDirectSpecular` without F, with the exact GGX D: D G / (4 N.L N.E + 0.001)."""
+    microfacet = ggx_d(cos_h, alpha) * storm_schlick_ggx_g(cos_e, cos_l, alpha)
     return microfacet / (4.0 * cos_l * cos_e + STORM_EPSILON)
 
 

@@ -52,8 +52,7 @@ def load_gbuffer(layer_path: Path, description: CacheDescription) -> GBuffer:
     width, height = description.resolution
     s = description.supersampling
     with OpenEXR.File(str(path), header_only=True) as exr:
-        header = exr.header()
-    (x0, y0), (x1, y1) = header["dataWindow"]
+        (x0, y0), (x1, y1) = exr.header()["dataWindow"]  # the header is cleared on close
     found = (int(y1 - y0 + 1), int(x1 - x0 + 1))
     if found != (height * s, width * s):
         raise RelightError(f"{path}: deep framebuffer is {found[1]}x{found[0]}, the cache layer says "

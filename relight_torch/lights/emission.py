@@ -104,7 +104,7 @@ def size_factor(light: Light) -> float:
     if light.kind in _AREA_KINDS:
         return surface_area(light)
     if light.kind is LightKind.DISTANT:
-        theta_max = min(max(math.radians(light.angle) / 2.0, 0.0), math.pi)
+        theta_max = _distant_theta_max(light)
         if theta_max == 0.0:
             return 1.0
         sin2 = math.sin(theta_max) ** 2
@@ -169,13 +169,16 @@ def sample_light(light: Light, points: torch.Tensor, u: torch.Tensor) -> LightSa
     Args:
         light: the light.
         points: (N, 3) world receiver positions.
-        u: (N, S, 2) uniform numbers in [0, 1) (device and dtype of the results follow `points`).
+        u: (N, S, 2) uniform numbers in [0, 1), same device and dtype as `points` (and the results).
 
     Returns:
         LightSample with (N, S) leading dimensions.
     """
     check_last_dim(points, 3, "points")
     check_last_dim(u, 2, "u")
+    if u.dtype != points.dtype or u.shape[:-2] != points.shape[:-1]:
+        raise ValueError(f"u must be (N, S, 2) of the points' dtype {points.dtype} for points {tuple(points.shape)}; "
+                         f"got {u.dtype} {tuple(u.shape)}")
     receivers = points.unsqueeze(-2)
     frame = LightFrame.of(light, points)
     if is_delta_light(light):
@@ -185,7 +188,7 @@ def sample_light(light: Light, points: torch.Tensor, u: torch.Tensor) -> LightSa
         distance = to_centre.norm(dim=-1)
         sin2_max = (world_radius(light) / distance).square()
         cos_max = torch.where(sin2_max < 1.0, torch.sqrt((1.0 - sin2_max).clamp_min(0.0)), -1.0)
-        directions = _cone_directions(u, to_centre / distance.unsqueeze(-1), cos_max)
+        directions = _cone_directions(u, torch.nn.functional.normalize(to_centre, dim=-1), cos_max)
     elif light.kind is LightKind.DISTANT:
         cos_max = torch.full_like(u[..., 0], math.cos(_distant_theta_max(light)))
         directions = _cone_directions(u, _to_distant_light(frame).expand_as(receivers), cos_max)
@@ -253,7 +256,7 @@ def _trace(light: Light, frame: LightFrame, points: torch.Tensor, directions: to
         texture = _rect_texture(light, hits.point_local) if has_texture else 1.0
         distance = torch.where(hits.cos_light > 0, distance, math.inf)
     lit = torch.isfinite(distance).unsqueeze(-1)
-    radiance = scale * texture * _shape(light, frame, -directions, points) * lit
+    radiance = torch.where(lit, scale * texture * _shape(light, frame, -directions, points), 0.0)
     return distance, radiance, pdf
 
 
@@ -342,8 +345,10 @@ def _to_distant_light(frame: LightFrame) -> torch.Tensor:
 
 
 def _distant_theta_max(light: Light) -> float:
+    """thetaMax = clamp(radians(angle) / 2, 0, pi): the distant light's half-angle."""
     return min(max(math.radians(light.angle) / 2.0, 0.0), math.pi)
 
 
 def _one_minus_cos(theta: float) -> float:
+    """1 - cos(theta) without cancellation for small angles."""
     return 2.0 * math.sin(0.5 * theta) ** 2

@@ -241,8 +241,9 @@ def write_light(stage: Usd.Stage, light: Light) -> Usd.Prim:
 
     Every input of the light's type is authored (also where it equals the fallback, so that the
     layer overrides whatever it is composed over); ShapingAPI and RelightBarzelLightAPI are applied
-    when present and removed (a `delete` list op) when absent but composed in. Fields that do not
-    belong to the light's type (say `width` on a sphere) are not written.
+    when present and deleted (a `delete` list-op entry) when absent, so a lights layer removes them
+    from the shot below. Fields that do not belong to the light's type (say `width` on a sphere)
+    are not written.
 
     Args:
         stage: the stage to author on (the schema plugin registered before it was opened).
@@ -259,10 +260,12 @@ def write_light(stage: Usd.Stage, light: Light) -> Usd.Prim:
             prim.GetAttribute("inputs:texture:format").Set("latlong")
         if type_name == "DomeLight_1":
             UsdLux.DomeLight_1(prim).CreatePoleAxisAttr(light.pole_axis)
-    _write_applied(prim, UsdLux.ShapingAPI, light.shaping, _SHAPING_INPUTS)
-    UsdLux.ShadowAPI.Apply(prim)
-    _write_inputs(prim, light.shadow, _SHADOW_INPUTS)
-    _write_applied(prim, BARZEL_API, light.barzel, _BARZEL_INPUTS)
+    applied = {"ShapingAPI": light.shaping is not None, "ShadowAPI": True, BARZEL_API: light.barzel is not None}
+    _author_api_schemas(prim, applied)
+    for values, inputs in ((light.shaping, _SHAPING_INPUTS), (light.shadow, _SHADOW_INPUTS),
+                           (light.barzel, _BARZEL_INPUTS)):
+        if values is not None:
+            _write_inputs(prim, values, inputs)
     if light.light_group:
         prim.CreateAttribute(LIGHT_GROUP_ATTRIBUTE, Sdf.ValueTypeNames.String).Set(light.light_group)
     xformable = UsdGeom.Xformable(prim)
@@ -271,14 +274,26 @@ def write_light(stage: Usd.Stage, light: Light) -> Usd.Prim:
     return prim
 
 
-def _write_applied(prim: Usd.Prim, api, values: object | None, inputs: tuple[_Input, ...]) -> None:
-    """Apply `api` and author `values`, or remove the API when `values` is None."""
-    if values is None:
-        if prim.HasAPI(api):
-            prim.RemoveAPI(api)
-        return
-    prim.ApplyAPI(api)
-    _write_inputs(prim, values, inputs)
+def _author_api_schemas(prim: Usd.Prim, applied: dict[str, bool]) -> None:
+    """Prepend the applied API schemas and delete the others in the edit target's `apiSchemas`.
+
+    The `delete` entries make a lights layer override the shot it is composed over (a light whose
+    ShapingAPI was removed loses it); API schemas we do not manage are kept as authored.
+    """
+    spec = prim.GetStage().GetEditTarget().GetPrimSpecForScenePath(prim.GetPath())
+    current = spec.GetInfo("apiSchemas") if spec.HasInfo("apiSchemas") else Sdf.TokenListOp()
+
+    def unmanaged(items) -> list[str]:
+        return [item for item in items if item not in applied]
+
+    wanted = [name for name, on in applied.items() if on]
+    if current.isExplicit:
+        operation = Sdf.TokenListOp.CreateExplicit(unmanaged(current.explicitItems) + wanted)
+    else:
+        operation = Sdf.TokenListOp.Create(
+            prependedItems=unmanaged(current.prependedItems) + wanted, appendedItems=unmanaged(current.appendedItems),
+            deletedItems=unmanaged(current.deletedItems) + [name for name, on in applied.items() if not on])
+    spec.SetInfo("apiSchemas", operation)
 
 
 def _write_inputs(prim: Usd.Prim, values: object, inputs: tuple[_Input, ...]) -> None:
@@ -288,10 +303,35 @@ def _write_inputs(prim: Usd.Prim, values: object, inputs: tuple[_Input, ...]) ->
         prim.GetAttribute(spec.attribute).Set(Sdf.AssetPath(value) if spec.check == "asset" else value)
 
 
+def read_stage_lights(stage: Usd.Stage, time: Usd.TimeCode, warnings: list[str] | None = None) -> list[Light]:
+    """Read every visible light of a stage (see `iter_light_prims`) at `time`.
+
+    Lights of unsupported types are skipped, and light filters and dome portals ignored, each with
+    a one-line warning logged on the 'relight' logger and appended to `warnings` when given.
+
+    Raises:
+        ValueError: a light is invalid (see `read_light`).
+    """
+    lights = []
+    for prim in iter_light_prims(stage, time):
+        problems = []
+        if light_kind(prim) is None:
+            problems.append(f"{prim.GetPath()}: light type '{prim.GetTypeName()}' is not supported; skipped")
+        elif UsdLux.LightAPI(prim).GetFiltersRel().GetTargets():
+            problems.append(f"{prim.GetPath()}: light:filters are not supported; ignored")
+        if prim.HasRelationship("portals") and prim.GetRelationship("portals").GetTargets():
+            problems.append(f"{prim.GetPath()}: dome light portals are not supported; ignored")
+        for message in problems:
+            log.warning(message)
+            if warnings is not None:
+                warnings.append(message)
+        if light_kind(prim) is not None:
+            lights.append(read_light(prim, time))
+    return lights
+
+
 def read_lights_layer(path: str | os.PathLike) -> list[Light]:
     """Read every supported light of a USD layer (e.g. one written by `write_lights_layer`).
-
-    Lights of unsupported types are skipped with a warning on the 'relight' logger.
 
     Raises:
         ValueError: the layer cannot be opened, or a light is invalid (see `read_light`).
@@ -301,25 +341,22 @@ def read_lights_layer(path: str | os.PathLike) -> list[Light]:
         stage = Usd.Stage.Open(os.fspath(path))
     except Exception as error:  # pxr raises Tf.ErrorException with a multi-line message
         raise ValueError(f"{path}: cannot open USD layer ({str(error).splitlines()[-1].strip()})") from None
-    lights = []
-    for prim in iter_light_prims(stage, Usd.TimeCode.Default()):
-        if light_kind(prim) is None:
-            log.warning("%s: %s: unsupported light type '%s' skipped", path, prim.GetPath(), prim.GetTypeName())
-            continue
-        lights.append(read_light(prim))
-    return lights
+    return read_stage_lights(stage, Usd.TimeCode.Default())
 
 
 def write_lights_layer(path: str | os.PathLike, lights: list[Light]) -> None:
     """Write `lights` to a new USD layer at `path` atomically (temp file, then rename).
 
     Each light keeps its world transform (`!resetXformStack!`), so the layer can be composed as the
-    strongest sublayer over its shot.
+    strongest sublayer over its shot. The root prim is the default prim when the lights share one.
     """
     register_schemas()
     stage = Usd.Stage.CreateInMemory()
     for light in lights:
         write_light(stage, light)
+    roots = {Sdf.Path(light.path).GetPrefixes()[0] for light in lights}
+    if len(roots) == 1:
+        stage.SetDefaultPrim(stage.GetPrimAtPath(roots.pop()))
     with atomic_path(path) as temp:
         if not stage.GetRootLayer().Export(os.fspath(temp)):
             raise OSError(f"{path}: could not write the lights layer")
