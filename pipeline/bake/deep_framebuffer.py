@@ -10,13 +10,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import dataclasses
+
 import numpy as np
 
 from pipeline.scene.camera import camera_rays
 from pipeline.scene.surface import triangle_tangents
 from pipeline.scene.types import Camera, Scene
-from pipeline.shading_points import shading_points
+from pipeline.shading_points import ShadingPoints, shading_points
 from pipeline.tracing import Tracer
+from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.gbuffer import GBuffer
 
 
@@ -35,44 +38,117 @@ class DeepFramebuffer:
     supersampling: int
 
 
-def sub_sample_offsets(supersampling: int) -> list[tuple[int, int, np.ndarray]]:
-    """The regular s x s grid inside a pixel: (row, col, offset (2,) in [0, 1)) per sub-sample."""
-    grid = (np.arange(supersampling, dtype=np.float32) + 0.5) / supersampling
-    return [(i, j, np.array([grid[j], grid[i]], np.float32)) for i in range(supersampling) for j in range(supersampling)]
+def grid_rays(camera: Camera, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rays through an n x n regular grid inside every pixel, as (H n W n, 3) origins and directions
+    in image order of the (H n, W n) sub-sample image."""
+    height, width = camera.height, camera.width
+    origins = np.empty((height * n, width * n, 3), np.float32)
+    directions = np.empty_like(origins)
+    grid = (np.arange(n, dtype=np.float32) + 0.5) / n
+    for i in range(n):
+        for j in range(n):
+            offset = np.broadcast_to(np.array([grid[j], grid[i]], np.float32), (height, width, 2)).copy()
+            origins[i::n, j::n], directions[i::n, j::n] = camera_rays(camera, offset)
+    return origins.reshape(-1, 3), directions.reshape(-1, 3)
 
 
-def bake_deep_framebuffer(scene: Scene, camera: Camera, supersampling: int = 1,
+def bake_deep_framebuffer(scene: Scene, camera: Camera, supersampling: int = 1, texture_samples: int = 2,
                           tracer: Tracer | None = None) -> DeepFramebuffer:
     """Trace the camera's sub-sample rays and record the visible surfaces.
+
+    Textures are filtered over each sub-sample's footprint, as a production renderer filters them:
+    the material parameters (and the normal-mapped normal) of a sub-sample are the average over a
+    t x t grid of rays inside it that hit the same object as its centre ray. Geometry (position,
+    geometric normal, depth, ids) is the centre ray's.
 
     Args:
         scene: the shot.
         camera: the camera (its width and height set the resolution).
         supersampling: s >= 1 sub-samples per pixel side.
+        texture_samples: t >= 1 material samples per sub-sample side (1 = point-sampled textures).
         tracer: reuse a built tracer (the BVH is built otherwise).
     """
-    if supersampling < 1:
-        raise ValueError(f"supersampling must be >= 1, got {supersampling}")
+    if supersampling < 1 or texture_samples < 1:
+        raise ValueError(f"supersampling and texture_samples must be >= 1, got {supersampling}, {texture_samples}")
     tracer = tracer or Tracer(scene.geometry)
     height, width, s = camera.height, camera.width, supersampling
-    origins = np.empty((height * s, width * s, 3), np.float32)
-    directions = np.empty_like(origins)
-    for i, j, offset in sub_sample_offsets(s):
-        o, d = camera_rays(camera, np.broadcast_to(offset, (height, width, 2)).copy())
-        origins[i::s, j::s], directions[i::s, j::s] = o, d
-    origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
-    hits = tracer.intersect(origins, directions)
     tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs)
+    origins, directions = grid_rays(camera, s)
+    hits = tracer.intersect(origins, directions)
     points = shading_points(scene, tangents, hits, directions)
+    pixel_index = np.flatnonzero(hits.hit)
+    params, normal, tangent, bitangent = points.params, points.normal, points.tangent, points.bitangent
+    if texture_samples > 1:
+        params, normal, tangent, bitangent = _filter_materials(
+            scene, tracer, tangents, camera, s, texture_samples, pixel_index, points)
     camera_position = camera.world_from_camera[:3, 3]
     forward = -camera.world_from_camera[:3, 2] / np.linalg.norm(camera.world_from_camera[:3, 2])
     depth = (points.position - camera_position) @ forward
     gbuffer = GBuffer.from_numpy(
         image_size=(height * s, width * s),
-        pixel_index=np.flatnonzero(hits.hit),
-        position=points.position, normal=points.normal, tangent=points.tangent,
-        bitangent=points.bitangent, geometric_normal=points.geometric_normal,
-        params=points.params, material_id=points.material_id, object_id=points.object_id,
+        pixel_index=pixel_index,
+        position=points.position, normal=normal, tangent=tangent,
+        bitangent=bitangent, geometric_normal=points.geometric_normal,
+        params=params, material_id=points.material_id, object_id=points.object_id,
         depth=depth.astype(np.float32), camera_position=camera_position,
     )
     return DeepFramebuffer(gbuffer=gbuffer, camera=camera, supersampling=s)
+
+
+def _fold_normal_spread(params: dict[str, np.ndarray], length: np.ndarray) -> None:
+    """Fold the spread of averaged normals (mean length `length` (N,) in (0, 1]) into the material.
+
+    Diffuse light is linear in the normal (E[n . l] = E[n] . l away from the horizon), so shading
+    with the unit mean normal and the diffuse colour scaled by |E[n]| is exact for it. The specular
+    lobes widen as in Toksvig's method: the normals' spread, as a von Mises-Fisher lobe of
+    concentration kappa = (3 |n| - |n|^3) / (1 - |n|^2), adds 2 / kappa to the GGX alpha^2
+    (alpha = roughness^2, as UsdPreviewSurface squares it).
+    """
+    params["diffuse_color"] = params["diffuse_color"] * length[:, None]
+    spread = 1.0 - length * length
+    inverse_kappa = np.where(spread > 1e-6, spread / np.maximum(3.0 * length - length**3, 1e-6), 0.0)
+    for name in ("roughness", "clearcoat_roughness"):
+        alpha = np.square(params[name].astype(np.float64))
+        params[name] = np.power(alpha * alpha + 2.0 * inverse_kappa, 0.25).astype(np.float32)
+
+
+def _filter_materials(scene: Scene, tracer: Tracer, tangents: np.ndarray, camera: Camera, s: int, t: int,
+                      pixel_index: np.ndarray, centre: ShadingPoints):
+    """Average material parameters and shading normals of t x t rays per covered sub-sample.
+
+    Returns (params, normal, tangent, bitangent) for the N covered sub-samples, the frame
+    re-orthonormalised around the averaged normal.
+    """
+    height, width = camera.height, camera.width
+    origins, directions = grid_rays(camera, s * t)
+    hits = tracer.intersect(origins, directions)
+    fine = shading_points(scene, tangents, hits, directions)
+    fine_index = np.flatnonzero(hits.hit)
+    row, col = np.divmod(fine_index, width * s * t)
+    owner_pixel = (row // t) * (width * s) + col // t          # flat sub-sample of each fine hit
+    slot = np.full(height * s * width * s, -1, np.int64)
+    slot[pixel_index] = np.arange(pixel_index.size)
+    owner = slot[owner_pixel]
+    same = owner >= 0
+    same[same] &= fine.object_id[same] == centre.object_id[owner[same]]
+    owner, counts = owner[same], np.bincount(owner[same], minlength=pixel_index.size).astype(np.float32)
+    counts = np.maximum(counts, 1.0)
+
+    def average(fine_values: np.ndarray, centre_values: np.ndarray) -> np.ndarray:
+        flat = fine_values[same].reshape(owner.size, -1).astype(np.float64)
+        sums = np.stack([np.bincount(owner, flat[:, c], pixel_index.size) for c in range(flat.shape[1])], -1)
+        mean = (sums / counts[:, None]).reshape(centre_values.shape).astype(np.float32)
+        has = np.bincount(owner, minlength=pixel_index.size) > 0
+        return np.where(has.reshape((-1,) + (1,) * (centre_values.ndim - 1)), mean, centre_values)
+
+    fields = {f.name: getattr(centre.params, f.name).numpy() for f in dataclasses.fields(centre.params)}
+    filtered = {name: (values if values.dtype == bool else average(getattr(fine.params, name).numpy(), values))
+                for name, values in fields.items()}
+    normal = average(fine.normal, centre.normal)
+    length = np.clip(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-6, 1.0)
+    normal /= length
+    _fold_normal_spread(filtered, length[:, 0])
+    tangent = centre.tangent - normal * np.sum(centre.tangent * normal, axis=-1, keepdims=True)
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=-1, keepdims=True), 1e-12)
+    bitangent = np.cross(normal, tangent).astype(np.float32)
+    return PreviewSurfaceParams.from_numpy(filtered), normal, tangent.astype(np.float32), bitangent

@@ -33,16 +33,18 @@ def write_npy(path: Path, array: np.ndarray) -> Payload:
                    num_bytes=path.stat().st_size, shape=tuple(array.shape), dtype=array.dtype.name)
 
 
-def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 1,
-                time_code: float | None = None) -> Path:
+def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
+                texture_samples: int = 2, time_code: float | None = None) -> Path:
     """Bake the direct-lighting cache of `camera`; returns the cache layer's path.
 
     Args:
+        supersampling: sub-samples per pixel side (box-filtered after shading).
+        texture_samples: material samples per sub-sample side (texture filtering).
         time_code: the time the scene was read at (recorded so lights are read at the same time).
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    dfb = bake_deep_framebuffer(scene, camera, supersampling)
+    dfb = bake_deep_framebuffer(scene, camera, supersampling, texture_samples)
     channels, constants = gbuffer_to_channels(dfb.gbuffer)
     dfb_path = out_dir / f"{stem}.dfb.exr"
     write_exr(dfb_path, channels, {"relight:supersampling": supersampling})
@@ -50,7 +52,7 @@ def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
                    num_bytes=dfb_path.stat().st_size, channels=tuple(sorted(channels)), constants=constants)
     occluders = write_npy(out_dir / f"{stem}.occluders.npy", scene.geometry.positions.astype(np.float32))
     occluders = Payload(**{**vars(occluders), "name": "occluders"})
-    parameters: dict = {"supersampling": supersampling}
+    parameters: dict = {"supersampling": supersampling, "textureSamples": texture_samples}
     if time_code is not None:
         parameters["time"] = float(time_code)
     inputs = hash_inputs(input_files(scene))

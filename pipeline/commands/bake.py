@@ -26,18 +26,21 @@ def add_parser(subparsers) -> None:
                         help="relighting method to bake for (default: direct)")
     parser.add_argument("--supersampling", type=int, default=2, metavar="S",
                         help="S x S sub-samples per pixel, shaded separately and box-filtered (default 2)")
+    parser.add_argument("--texture-samples", type=int, default=2, metavar="T",
+                        help="T x T material samples per sub-sample, averaged: texture filtering (default 2)")
     parser.add_argument("--stem", help="file name stem (default: the scene file's stem)")
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.supersampling < 1:
-        raise RelightError(f"--supersampling must be >= 1, got {args.supersampling}")
+    if args.supersampling < 1 or args.texture_samples < 1:
+        raise RelightError(f"--supersampling and --texture-samples must be >= 1, "
+                           f"got {args.supersampling} and {args.texture_samples}")
     start = time.perf_counter()
     scene = load_scene(args.scene, time=args.time, width=args.width, height=args.height)
     camera = find_camera(scene, args.camera)
     stem = args.stem or Path(args.scene).name.split(".")[0]
-    layer = bake_direct(scene, camera, args.out, stem, args.supersampling, time_code=args.time)
+    layer = bake_direct(scene, camera, args.out, stem, args.supersampling, args.texture_samples, time_code=args.time)
     print(f"{layer}: {args.method} cache of {args.camera} at {camera.width}x{camera.height} "
           f"(supersampling {args.supersampling}) in {time.perf_counter() - start:.1f} s")
     return 0

@@ -7,10 +7,13 @@ Layout (one EXR at the sub-sample resolution, ZIP):
     materialId, objectId        UINT   ids (< 2^24)
     coverage                    HALF   1 where a surface was hit, 0 elsewhere
     diffuseColor.R/G/B, emissiveColor.*, specularColor.*, metallic, roughness, clearcoat,
-    clearcoatRoughness, ior, opacity, useSpecularWorkflow      HALF  UsdPreviewSurface inputs
+    clearcoatRoughness, ior, opacity, useSpecularWorkflow      HALF (FLOAT where HALF
+                                                               overflows)  UsdPreviewSurface inputs
 
 A material channel whose value is the same on every covered sub-sample is not stored: its
 value goes into the payload's `constants` (a purely diffuse scene has no specular channels).
+Material channels are HALF (11-bit mantissa: 5e-4 relative, finer than 8-bit textures) unless
+a value exceeds HALF's range (65504, e.g. a bright emissiveColor), then FLOAT.
 """
 
 from __future__ import annotations
@@ -50,6 +53,10 @@ MATERIAL_CHANNELS = (
 )
 
 
+_EXR_TYPE_NAMES = {np.dtype(np.float16): "HALF", np.dtype(np.float32): "FLOAT", np.dtype(np.uint32): "UINT"}
+_HALF_MAX = float(np.finfo(np.float16).max)
+
+
 def _names(layer: str, components: tuple[str, ...]) -> list[str]:
     return [f"{layer}.{c}" for c in components] if components else [layer]
 
@@ -77,11 +84,43 @@ def gbuffer_to_channels(gbuffer: GBuffer) -> tuple[dict[str, np.ndarray], dict[s
     for layer, name, components in MATERIAL_CHANNELS:
         values = getattr(gbuffer.params, name).cpu().numpy().astype(np.float32)
         for channel, column in zip(_names(layer, components), _columns(values)):
-            if column.size and np.all(column == column[0]):
+            if not column.size:  # nothing covered: every channel is trivially constant
+                constants[channel] = 0.0
+            elif np.all(column == column[0]):
                 constants[channel] = float(column[0])
             else:
-                channels[channel] = image(column, np.float16)
+                channels[channel] = image(column, material_dtype(column))
     return channels, constants
+
+
+def material_dtype(column: np.ndarray) -> type:
+    """np.float16 for a material channel's (N,) values, np.float32 where HALF would overflow."""
+    return np.float32 if np.abs(column).max(initial=0.0) > _HALF_MAX else np.float16
+
+
+def check_channel_types(types: dict[str, np.dtype], source: str) -> None:
+    """Refuse channels whose pixel type is not the layout's (geometry exact; materials HALF or FLOAT).
+
+    Args:
+        types: channel name -> numpy dtype (from an EXR header or the decoded arrays).
+        source: the file, for messages.
+
+    Raises:
+        RelightError: one line naming the channel, its type and the expected one.
+    """
+    expected = {"coverage": (np.dtype(np.float16),)}
+    for layer, _, components, dtype in GEOMETRY_CHANNELS:
+        expected.update({channel: (np.dtype(dtype),) for channel in _names(layer, components)})
+    for layer, _, components in MATERIAL_CHANNELS:
+        expected.update({channel: (np.dtype(np.float16), np.dtype(np.float32))
+                         for channel in _names(layer, components)})
+    for channel, dtype in sorted(types.items()):
+        if channel not in expected:
+            raise RelightError(f"{source}: unexpected deep framebuffer channel {channel}")
+        if np.dtype(dtype) not in expected[channel]:
+            names = " or ".join(_EXR_TYPE_NAMES[d] for d in expected[channel])
+            raise RelightError(f"{source}: channel {channel} is {_EXR_TYPE_NAMES.get(np.dtype(dtype), dtype)}, "
+                               f"expected {names}")
 
 
 def gbuffer_from_channels(channels: dict[str, np.ndarray], constants: dict[str, float],
@@ -89,15 +128,24 @@ def gbuffer_from_channels(channels: dict[str, np.ndarray], constants: dict[str, 
     """Rebuild a GBuffer (CPU tensors) from EXR channels and constants.
 
     Raises:
-        RelightError: a channel is missing (neither stored nor constant) or shapes disagree.
+        RelightError: a channel is missing (neither stored nor constant), of the wrong pixel type,
+            or not finite on a covered sub-sample, or shapes disagree.
     """
     if "coverage" not in channels:
         raise RelightError(f"{source}: deep framebuffer has no coverage channel")
+    check_channel_types({name: channel.dtype for name, channel in channels.items()}, source)
     shape = channels["coverage"].shape
     for name, channel in channels.items():
         if channel.shape != shape:
             raise RelightError(f"{source}: channel {name} has shape {channel.shape}, expected {shape}")
     pixel_index = np.flatnonzero(channels["coverage"].reshape(-1) > 0.5)
+    for name, channel in sorted(channels.items()):
+        num_bad = int(np.count_nonzero(~np.isfinite(channel.reshape(-1)[pixel_index])))
+        if num_bad:
+            raise RelightError(f"{source}: channel {name} has {num_bad} non-finite covered values")
+    for name, value in sorted(constants.items()):
+        if not np.isfinite(value):
+            raise RelightError(f"{source}: constant channel {name} = {value} is not finite")
 
     def column(channel: str, dtype) -> np.ndarray:
         if channel in channels:

@@ -7,10 +7,12 @@ ids are UINT. ZIP compression, never lossy codecs. Writes are atomic.
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import OpenEXR
+import OpenImageIO as oiio
 
 from relight_torch.io.atomic import atomic_path
 from relight_torch.errors import RelightError
@@ -18,6 +20,24 @@ from relight_torch.errors import RelightError
 OpenEXR.set_global_thread_count(os.cpu_count() or 1)
 
 _ALLOWED = (np.float16, np.float32, np.uint32)
+# OpenImageIO's names of the three EXR pixel types, and the numpy dtype each reads back as.
+_PIXEL_TYPES = {"half": np.dtype(np.float16), "float": np.dtype(np.float32), "uint": np.dtype(np.uint32)}
+
+
+@dataclass(frozen=True)
+class ExrHeader:
+    """What an EXR's header says, read without decoding pixels.
+
+    Attributes:
+        width, height: data window size in pixels.
+        channels: channel name -> numpy dtype of its pixels (float16 HALF, float32 FLOAT, uint32 UINT).
+        compression: the codec's name ('zip', 'piz', 'dwaa', ...).
+    """
+
+    width: int
+    height: int
+    channels: dict[str, np.dtype]
+    compression: str
 
 
 def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray],
@@ -57,6 +77,41 @@ def write_rgb_exr(path: str | os.PathLike, rgb: np.ndarray,
     write_exr(path, channels, attributes)
 
 
+def _one_line(text: str) -> str:
+    """The last non-empty line of a (possibly multi-line) library message: its most specific part."""
+    lines = [line.strip() for line in str(text).splitlines() if line.strip()]
+    return lines[-1] if lines else "unknown error"
+
+
+def read_exr_header(path: str | os.PathLike) -> ExrHeader:
+    """Read part 0's header: size, channel names and pixel types, compression.
+
+    OpenImageIO reads it: OpenEXR's Python header-only mode does not report pixel types.
+
+    Raises:
+        RelightError: the file is missing or its header is not a readable EXR header.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise RelightError(f"{path}: no such EXR file")
+    image = oiio.ImageInput.open(str(path))
+    if image is None:
+        raise RelightError(f"{path}: not a readable EXR file ({_one_line(oiio.geterror())})")
+    try:
+        spec = image.spec()
+        if image.format_name() != "openexr":
+            raise RelightError(f"{path}: is a {image.format_name()} image, not an EXR file")
+        formats = spec.channelformats or [spec.format] * spec.nchannels
+        unknown = sorted({str(f) for f in formats} - set(_PIXEL_TYPES))
+        if unknown:
+            raise RelightError(f"{path}: unsupported EXR pixel type {unknown[0]}")
+        channels = {name: _PIXEL_TYPES[str(f)] for name, f in zip(spec.channelnames, formats)}
+        return ExrHeader(width=spec.width, height=spec.height, channels=channels,
+                         compression=str(spec.getattribute("compression") or "none"))
+    finally:
+        image.close()
+
+
 def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, object]]:
     """Read every channel of part 0 as separate (H, W) arrays, and the header.
 
@@ -72,7 +127,7 @@ def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, 
             channels = {name: np.array(ch.pixels) for name, ch in part.channels.items()}
             header = dict(part.header)
     except Exception as error:  # OpenEXR raises plain Exceptions for corrupt files
-        raise RelightError(f"{path}: not a readable EXR file ({error})") from error
+        raise RelightError(f"{path}: not a readable EXR file ({_one_line(error)})") from None
     return channels, header
 
 

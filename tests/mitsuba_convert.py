@@ -1,0 +1,256 @@
+"""Our `Scene` as a Mitsuba 3 scene dict: the independent renderer the reference is checked against.
+
+Only what the reference comparison needs, and nothing that maps loosely (anything else raises
+ValueError naming it):
+
+* Geometry: one triangle mesh per material (`mi.Mesh` from `Geometry.positions`, per-corner
+  shading normals as vertex normals).
+* Materials: UsdPreviewSurface without textures, as a Mitsuba BSDF written here in Dr.Jit from
+  Storm's `previewSurface.glslfx` (`evaluateLight`), independently of `relight_torch.brdf`, and
+  made two-sided with Mitsuba's `twosided`. Mitsuba's built-ins do not fit: 'diffuse' is
+  Lambertian while the preview surface's diffuse lobe is scaled by 1 - F(E.h) and carries a
+  Schlick specular lobe rising to 1 at grazing (even with specularColor 0), and 'roughconductor'
+  uses a complex-IOR Fresnel and the exact GGX D (Storm's D has a^2 + 0.001 on top).
+  Sampled as cosine-weighted diffuse and GGX visible normals half and half (GGX only for
+  metals), a different strategy from ours.
+* Lights: RectLight as an area emitter on a 'rectangle', SphereLight as one on a 'sphere', with the
+  UsdLux radiance intensity * 2^exposure * color (/ area if normalize), emitting along local -Z
+  (rect, one-sided) or outward (sphere). No texture, shaping, colour temperature, Barzel, or
+  per-lobe multipliers. The emitters' shapes are black (they absorb what reaches them), whereas
+  our lights are invisible to every ray that is not looking for them: compare pixels away from
+  the lights' silhouettes (`light_footprint_mask`).
+* Camera: 'perspective' pinhole with our horizontal field of view and transform, box pixel
+  filter (a sample counts in the pixel it falls in, as in ours).
+* Integrator: 'path' with max_depth = max_bounces + 2 (Mitsuba counts the camera segment and the
+  segment to the light: max_depth 2 is direct light) and hide_emitters (our lights are not seen
+  by camera rays).
+"""
+
+from __future__ import annotations
+
+import math
+
+import mitsuba as mi
+import numpy as np
+
+from pipeline.scene.types import Camera, Material, Scene
+from relight_torch.lights.light import Light, LightKind
+
+VARIANT = "scalar_rgb"
+"""Mitsuba's LLVM variants would trace the Python BSDF into vectorised kernels, but Dr.Jit 1.x emits
+`llvm.minimum`, which the LLVM 14/15 of Debian 12 cannot compile ("Cannot select: fminimum"); the
+scalar variant calls the BSDF from Python at each vertex (~20k paths/s, enough for small images).
+Set on import: the BSDF class derives from the variant's `mi.BSDF`."""
+mi.set_variant(VARIANT)
+
+
+class StormPreviewSurface(mi.BSDF):
+    """Storm's UsdPreviewSurface `evaluateLight` (clearcoat included) as a one-sided Mitsuba BSDF.
+
+    Mitsuba's `si.wi` is our wo (towards the viewer, E) and its `wo` our wi (towards the light, L).
+    `eval` returns f_r * N.L, as Mitsuba BSDFs do. Plain Python float arithmetic: in the scalar
+    variant it is several times faster than Dr.Jit calls on scalars.
+
+    Properties: diffuse_color, specular_color (lists of 3 floats), metallic, roughness, clearcoat,
+    clearcoat_roughness, ior (floats), use_specular_workflow (bool).
+    """
+
+    def __init__(self, props: mi.Properties):
+        mi.BSDF.__init__(self, props)
+        diffuse = np.asarray(props["diffuse_color"], np.float64)
+        specular = np.asarray(props["specular_color"], np.float64)
+        metallic, ior = props["metallic"], props["ior"]
+        reflectance = (1.0 - ior) / (1.0 + ior)
+        if props["use_specular_workflow"]:
+            f0, f90 = specular, np.ones(3)
+        else:
+            spec_color = 1.0 + (diffuse - 1.0) * metallic
+            f0 = reflectance**2 * spec_color + (spec_color - reflectance**2 * spec_color) * metallic
+            f90 = spec_color
+            diffuse = diffuse * (1.0 - metallic)
+        self.diffuse, self.f0, self.f90 = ([float(v) for v in c] for c in (diffuse, f0, f90))
+        self.coat_f0 = reflectance**2
+        self.clearcoat = float(props["clearcoat"])
+        self.alpha = max(props["roughness"], _MIN_ROUGHNESS) ** 2
+        self.coat_alpha = max(props["clearcoat_roughness"], _MIN_ROUGHNESS) ** 2
+        self.ggx = mi.MicrofacetDistribution(mi.MicrofacetType.GGX, self.alpha, True)
+        self.diffuse_probability = 0.5 if max(self.diffuse) > 0 else 0.0
+        self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide
+        self.m_components = [mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide,
+                             mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide]
+
+    @staticmethod
+    def _lobe(alpha: float, cos_l: float, cos_e: float, cos_h: float) -> float:
+        """Storm's D G / (4 N.L N.E + 0.001), without Fresnel."""
+        alpha2 = alpha * alpha
+        denominator = cos_h * cos_h * (alpha2 - 1.0) + 1.0
+        d = (alpha2 + _STORM_EPSILON) / (math.pi * denominator * denominator)
+        k = 0.5 * alpha
+        g = cos_e / (cos_e * (1.0 - k) + k) * cos_l / (cos_l * (1.0 - k) + k)
+        return d * g / (4.0 * cos_l * cos_e + _STORM_EPSILON)
+
+    def _eval_pdf(self, wi_view, wo_light) -> tuple[mi.Color3f, float]:
+        """(f_r N.L, pdf of `sample`), both 0 unless both directions are above the surface."""
+        ex, ey, ez = wi_view[0], wi_view[1], wi_view[2]
+        lx, ly, lz = wo_light[0], wo_light[1], wo_light[2]
+        if ez <= 0.0 or lz <= 0.0:
+            return mi.Color3f(0.0), 0.0
+        hx, hy, hz = ex + lx, ey + ly, ez + lz
+        h_length = math.sqrt(hx * hx + hy * hy + hz * hz)
+        hx, hy, hz = hx / h_length, hy / h_length, hz / h_length
+        e_dot_h = ex * hx + ey * hy + ez * hz
+        fresnel = max(0.0, 1.0 - e_dot_h) ** 5
+        lobe = self._lobe(self.alpha, lz, ez, hz)
+        coat = self.clearcoat * (self.coat_f0 + (1.0 - self.coat_f0) * fresnel) * self._lobe(self.coat_alpha, lz, ez, hz)
+        value = []
+        for diffuse, f0, f90 in zip(self.diffuse, self.f0, self.f90):
+            specular_f = f0 + (f90 - f0) * fresnel
+            value.append((diffuse / math.pi * (1.0 - specular_f) + specular_f * lobe + coat) * lz)
+        h = mi.Vector3f(hx, hy, hz)
+        specular_pdf = self.ggx.pdf(wi_view, h) / (4.0 * e_dot_h)
+        pdf = self.diffuse_probability * lz / math.pi + (1.0 - self.diffuse_probability) * specular_pdf
+        return mi.Color3f(*value), pdf
+
+    def sample(self, ctx, si, sample1, sample2, active=True):
+        bs = mi.BSDFSample3f()
+        diffuse_chosen = sample1 < self.diffuse_probability
+        if diffuse_chosen:
+            bs.wo = mi.warp.square_to_cosine_hemisphere(sample2)
+        else:
+            normal, _ = self.ggx.sample(si.wi, sample2)
+            bs.wo = mi.reflect(si.wi, normal)
+        value, bs.pdf = self._eval_pdf(si.wi, bs.wo)
+        bs.eta = 1.0
+        bs.sampled_type = int(mi.BSDFFlags.DiffuseReflection if diffuse_chosen else mi.BSDFFlags.GlossyReflection)
+        bs.sampled_component = 0 if diffuse_chosen else 1
+        return bs, (value / bs.pdf if bs.pdf > 0 else mi.Color3f(0.0))
+
+    def eval(self, ctx, si, wo, active=True):
+        return self._eval_pdf(si.wi, wo)[0]
+
+    def pdf(self, ctx, si, wo, active=True):
+        return self._eval_pdf(si.wi, wo)[1]
+
+    def eval_pdf(self, ctx, si, wo, active=True):
+        return self._eval_pdf(si.wi, wo)
+
+    def to_string(self):
+        return f"StormPreviewSurface[diffuse={self.diffuse}, f0={self.f0}, alpha={self.alpha}]"
+
+
+mi.register_bsdf("storm_preview_surface", lambda props: StormPreviewSurface(props))
+
+
+def _material_bsdf(material: Material) -> dict:
+    """Two-sided Storm BSDF dict of an untextured material."""
+    textured = [name for name in ("diffuse_color", "specular_color", "metallic", "roughness", "clearcoat",
+                                  "clearcoat_roughness", "ior", "opacity", "normal", "emissive_color")
+                if getattr(material, name).texture is not None]
+    if textured:
+        raise ValueError(f"{material.path}: textured inputs {textured} are not converted")
+    if float(material.emissive_color.value.max()) > 0:
+        raise ValueError(f"{material.path}: emissive materials are not converted")
+    scalar = {name: float(getattr(material, name).value[0])
+              for name in ("metallic", "roughness", "clearcoat", "clearcoat_roughness", "ior")}
+    return {"type": "twosided", "material": {
+        "type": "storm_preview_surface",
+        "diffuse_color": [float(v) for v in material.diffuse_color.value],
+        "specular_color": [float(v) for v in material.specular_color.value],
+        "use_specular_workflow": bool(material.use_specular_workflow), **scalar}}
+
+
+def _meshes(scene: Scene) -> dict:
+    """One Mitsuba mesh (soup: 3 vertices per triangle) per material id."""
+    geometry = scene.geometry
+    meshes = {}
+    for material_id in np.unique(geometry.material_ids):
+        rows = geometry.material_ids == material_id
+        num_triangles = int(rows.sum())
+        mesh = mi.Mesh(f"material_{material_id}", 3 * num_triangles, num_triangles, has_vertex_normals=True)
+        params = mi.traverse(mesh)
+        buffers = {"vertex_positions": geometry.positions[rows], "vertex_normals": geometry.normals[rows],
+                   "faces": np.arange(3 * num_triangles, dtype=np.uint32)}
+        for name, values in buffers.items():
+            params[name] = type(params[name])(np.ascontiguousarray(values).reshape(-1))
+        params.update()
+        mesh.set_bsdf(mi.load_dict(_material_bsdf(scene.materials[material_id])))
+        meshes[f"mesh_{material_id}"] = mesh
+    return meshes
+
+
+def light_radiance(light: Light) -> np.ndarray:
+    """(3,) UsdLux radiance, written from the schema doc: intensity 2^exposure color [/ area]."""
+    unsupported = {"texture": light.texture is not None, "shaping": light.shaping is not None,
+                   "colorTemperature": light.enable_color_temperature, "barzel": light.barzel is not None,
+                   "diffuse/specular": light.diffuse != 1.0 or light.specular != 1.0}
+    if any(unsupported.values()):
+        raise ValueError(f"{light.path}: {[k for k, v in unsupported.items() if v]} not converted")
+    radiance = light.intensity * 2.0**light.exposure * np.asarray(light.color, np.float64)
+    if light.normalize:
+        linear = light.world_from_light[:3, :3]
+        if light.kind is LightKind.RECT:
+            area = light.width * light.height * np.linalg.norm(np.cross(linear[:, 0], linear[:, 1]))
+        else:
+            area = 4.0 * math.pi * (light.radius * np.linalg.norm(linear[:, 0])) ** 2
+        radiance = radiance / area
+    return radiance
+
+
+def _emitter(light: Light) -> dict:
+    """A black shape with an area emitter of the light's radiance."""
+    emitter = {"type": "area", "radiance": {"type": "rgb", "value": light_radiance(light).tolist()}}
+    black = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}}
+    if light.kind is LightKind.RECT:
+        # Mitsuba's rectangle spans [-1, 1]^2 and emits along +Z: scale it, then turn +Z to -Z.
+        light_from_rectangle = np.diag([0.5 * light.width, -0.5 * light.height, -1.0, 1.0])
+        to_world = light.world_from_light @ light_from_rectangle
+        return {"type": "rectangle", "to_world": mi.ScalarTransform4f(to_world.tolist()), "emitter": emitter,
+                "bsdf": black}
+    if light.kind is LightKind.SPHERE and light.radius > 0:
+        to_world = light.world_from_light @ np.diag([light.radius, light.radius, light.radius, 1.0])
+        return {"type": "sphere", "to_world": mi.ScalarTransform4f(to_world.tolist()), "emitter": emitter,
+                "bsdf": black}
+    raise ValueError(f"{light.path}: {light.kind.value} is not converted")
+
+
+def _sensor(camera: Camera, spp: int, seed: int) -> dict:
+    """Pinhole with our horizontal fov. Mitsuba's camera looks down +Z with +X to the left of the
+    image, ours down -Z with +X to the right: a half turn about Y maps one onto the other."""
+    if camera.horizontal_aperture_offset or camera.vertical_aperture_offset:
+        raise ValueError(f"{camera.path}: aperture offsets are not converted")
+    fov = math.degrees(2.0 * math.atan(0.5 * camera.horizontal_aperture / camera.focal_length))
+    to_world = camera.world_from_camera @ np.diag([-1.0, 1.0, -1.0, 1.0])
+    return {
+        "type": "perspective", "fov": fov, "fov_axis": "x",
+        "near_clip": float(camera.clipping_range[0]), "far_clip": float(camera.clipping_range[1]),
+        "to_world": mi.ScalarTransform4f(to_world.tolist()),
+        "sampler": {"type": "independent", "sample_count": spp, "seed": seed},
+        "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
+                 "rfilter": {"type": "box"}, "pixel_format": "rgb", "component_format": "float32"},
+    }
+
+
+def scene_dict(scene: Scene, camera: Camera, max_bounces: int, spp: int, seed: int = 0) -> dict:
+    """The Mitsuba scene dict of our scene seen by `camera`.
+
+    Args:
+        scene: a scene whose materials, lights and camera convert (see the module doc).
+        camera: the camera; its width and height are the film's.
+        max_bounces: our `ReferenceSettings.max_bounces` (0 = direct light only).
+        spp: samples per pixel; seed: the sampler's seed.
+    """
+    if camera.exposure_scale != 1.0:
+        raise ValueError(f"{camera.path}: camera exposure is not converted")
+    result = {"type": "scene",
+              "integrator": {"type": "path", "max_depth": max_bounces + 2, "hide_emitters": True},
+              "sensor": _sensor(camera, spp, seed)}
+    result.update(_meshes(scene))
+    for index, light in enumerate(scene.lights):
+        result[f"light_{index}"] = _emitter(light)
+    return result
+
+
+def render(scene: Scene, camera: Camera, max_bounces: int, spp: int, seed: int = 0) -> np.ndarray:
+    """(H, W, 3) float32 Mitsuba render of our scene (linear radiance, row 0 at the top)."""
+    mitsuba_scene = mi.load_dict(scene_dict(scene, camera, max_bounces, spp, seed))
+    return np.array(mi.render(mitsuba_scene, spp=spp, seed=seed), dtype=np.float32)
