@@ -3,6 +3,9 @@
 Each shading point gets S stratified sample positions in [0, 1)^2 (a sqrt(S) x sqrt(S) jittered
 grid, or a scrambled Sobol set when S is not a square), shifted by a per-point Cranley-Patterson
 rotation drawn once from a fixed seed. The same u are used for every light and every edit.
+
+How many samples a light gets: `adaptive_sample_count` of its `angular_radius` (small lights
+need fewer).
 """
 
 from __future__ import annotations
@@ -11,6 +14,8 @@ import math
 
 import torch
 
+from relight_torch.lights.geometry import axis_scales, world_radius
+from relight_torch.lights.light import Light, LightKind
 from relight_torch.math.sampling import sobol
 
 
@@ -29,3 +34,47 @@ def fixed_light_samples(num_points: int, num_samples: int, seed: int = 0,
     rotation = torch.rand((num_points, 1, 2), generator=generator, dtype=torch.float64)
     u = torch.remainder(pattern.unsqueeze(0) + rotation, 1.0)
     return u.clamp(max=1.0 - 1e-7).to(device=device, dtype=dtype)
+
+
+def angular_radius(light: Light, points: torch.Tensor) -> float:
+    """Largest angular radius (radians) of the light seen from any of the points (N, 3).
+
+    The half-angle of the light's bounding sphere (area lights) or of its cone (distant light)
+    from the nearest point; pi / 2 when a point lies inside the bounding sphere; pi for a dome.
+    """
+    if light.kind is LightKind.DOME:
+        return math.pi
+    if light.kind is LightKind.DISTANT:
+        return min(max(math.radians(light.angle) / 2.0, 0.0), math.pi)
+    radius = _bounding_radius(light)
+    if radius == 0.0 or points.shape[0] == 0:
+        return 0.0
+    centre = torch.as_tensor(light.world_from_light[:3, 3], device=points.device, dtype=points.dtype)
+    nearest = float((points - centre).norm(dim=-1).min())
+    return math.asin(radius / nearest) if nearest > radius else math.pi / 2.0
+
+
+def adaptive_sample_count(max_samples: int, min_samples: int, angle: float, full_angle: float) -> int:
+    """Samples per shading point for a light of angular radius `angle` (radians).
+
+    `max_samples` from `full_angle` up (and always when full_angle <= 0); below it, in
+    proportion to the solid angle the light subtends, sin^2(angle) / sin^2(full_angle), and at
+    least `min_samples`. A small light's penumbrae and highlights are narrow, so few stratified
+    samples estimate them with little noise.
+    """
+    if full_angle <= 0.0 or angle >= full_angle:
+        return max_samples
+    fraction = (math.sin(angle) / math.sin(full_angle)) ** 2
+    return min(max_samples, max(min_samples, math.ceil(max_samples * fraction)))
+
+
+def _bounding_radius(light: Light) -> float:
+    """World radius of a sphere around the light's origin that holds its emitting surface."""
+    scale_x, scale_y, _ = axis_scales(light)
+    if light.kind is LightKind.SPHERE:
+        return world_radius(light)
+    if light.kind is LightKind.RECT:
+        return 0.5 * math.hypot(light.width * scale_x, light.height * scale_y)
+    if light.kind is LightKind.DISK:
+        return light.radius * max(scale_x, scale_y)
+    return math.hypot(0.5 * light.length * scale_x, world_radius(light))

@@ -1,17 +1,32 @@
 """The relighter: direct light on a deep framebuffer, re-rendering only what an edit touches.
 
-Light is linear, so the image is a sum over lights of colour_scale(light) x unit_image(light),
-where colour_scale = intensity 2^exposure color [blackbody] and unit_image is the light's image
+Light is linear, so the image is a sum over lights of
+
+    colour_scale(light) x (diffuse x diffuse_image(light) + specular x specular_image(light))
+
+where colour_scale = intensity 2^exposure color [blackbody], `diffuse` / `specular` are the
+light's per-lobe multipliers, and the two images are the light's diffuse and specular reflection
 with those set to 1. Per light the relighter keeps three stages, each recomputed only when its
 inputs change:
 
-    samples + visibility   <- transform, size, kind, texture, shadow settings   (Visibility calls)
-    unit_image             <- the above + shaping, Barzel controls, diffuse/specular multipliers
-    colour_scale           <- intensity, exposure, color, colour temperature    (a multiply)
+    transport   <- transform, size, kind, texture, shadow settings     ('visibility' counter)
+        light samples of the unshaped unit light, their shadow rays, and per live sample the
+        diffuse and specular f cos(theta_i) L_i V / (pdf S), kept only at the shading points
+        the light reaches (facing it, not fully shadowed)
+    images      <- the above + ShapingAPI and Barzel controls            ('shading' counter)
+        the shaping factor of each live sample times its transport, summed per point
+    scale       <- intensity, exposure, color, colour temperature, diffuse, specular (a multiply)
+
+Shaping multiplies the radiance a light emits towards a receiver, and nothing else depends on it,
+so a shaping edit re-weights the cached transport without tracing or shading again (the
+deep-framebuffer split of Gershbein & Hanrahan 2000: surface terms cached, light shaders re-run).
+The sum of all lights but the last one edited is cached, so editing one light's colour costs two
+multiply-adds over the image.
 
 Area lights and domes use fixed stratified samples per shading point (`light_samples`), so the
-image does not flicker while a light is edited. `counters` counts visibility and shading passes
-(tests use it to check that a colour edit shades nothing).
+image does not flicker while a light is edited; `RelightSettings.full_sampling_angle` gives small
+lights fewer samples (their count then changes in steps as a light moves). `counters` counts
+visibility and shading passes (tests use it to check that a colour edit shades nothing).
 """
 
 from __future__ import annotations
@@ -25,25 +40,30 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relight_torch.brdf import preview_surface
 from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import check_inputs, load_gbuffer, load_npy
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
-from relight_torch.light_samples import fixed_light_samples
-from relight_torch.lights.emission import LightSample, is_delta_light, light_radiance_scale, sample_light
+from relight_torch.light_samples import adaptive_sample_count, angular_radius, fixed_light_samples
+from relight_torch.lights.emission import is_delta_light, light_radiance_scale, sample_light
+from relight_torch.lights.geometry import LightFrame
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.shadow import shadow_factor
+from relight_torch.lights.shaping import barzel_factor, shaping_factor
 from relight_torch.lights.usd import read_stage_lights
 from relight_torch.math.frame import to_local
-from relight_torch.shading import reflected_radiance
 from relight_torch.stage import open_stage, time_code
 from relight_torch.visibility import Visibility
 from relight_torch.visibility.embree import EmbreeCaster
 from relight_torch.visibility.rays import RayVisibility
 
 
-_COLOUR_FIELDS = ("intensity", "exposure", "color", "enable_color_temperature", "color_temperature")
-_SHADING_FIELDS = ("shaping", "barzel", "diffuse", "specular")
+_COLOUR_FIELDS = ("intensity", "exposure", "color", "enable_color_temperature", "color_temperature",
+                  "diffuse", "specular")
+_SHADING_FIELDS = ("shaping", "barzel")
+# The kinds whose emission ShapingAPI and Barzel controls shape (see lights/emission.py).
+_SHAPED_KINDS = (LightKind.SPHERE, LightKind.RECT, LightKind.DISK, LightKind.CYLINDER)
 
 
 @dataclass(frozen=True)
@@ -55,13 +75,19 @@ class RelightSettings:
             lights with an angle (delta lights take one).
         dome_samples: fixed samples per shading point for dome lights.
         seed: seed of the per-point sample rotations.
-        chunk_points: shading points processed together (bounds the (N, S, 3) temporaries).
+        chunk_samples: light samples processed together (bounds the (N, S, 3) temporaries).
+        full_sampling_angle: angular radius (degrees) from which a light gets all `area_samples`;
+            smaller lights get fewer, in proportion to their solid angle
+            (`light_samples.adaptive_sample_count`). 0 gives every light `area_samples`.
+        min_area_samples: the fewest samples a small light gets.
     """
 
     area_samples: int = 16
     dome_samples: int = 64
     seed: int = 0
-    chunk_points: int = 1 << 16
+    chunk_samples: int = 1 << 20
+    full_sampling_angle: float = 0.0
+    min_area_samples: int = 1
 
 
 def _key(light: Light, names: tuple[str, ...]) -> tuple:
@@ -96,14 +122,36 @@ def colour_scale(light: Light) -> np.ndarray:
     return np.divide(full, unit, out=np.zeros(3), where=unit != 0)
 
 
+@dataclass(frozen=True)
+class _Transport:
+    """A light's cached transport: P shading points it reaches, S samples each.
+
+    Attributes:
+        points: (P,) int64 indices of the shading points, ascending.
+        emission_local: (P, S, 3) unit emission directions in the light's frame (from the
+            light's samples towards the points), or None when shaping does not apply (distant
+            and dome lights, whose samples are then summed: S = 1).
+        lobes: (P, S, 2, 3) each sample's diffuse [..., 0, :] and specular [..., 1, :]
+            f cos(theta_i) L_i V / (pdf S) for the unshaped unit light (V: the ShadowAPI factor).
+    """
+
+    points: torch.Tensor
+    emission_local: torch.Tensor | None
+    lobes: torch.Tensor
+
+    @property
+    def num_bytes(self) -> int:
+        tensors = (self.points, self.emission_local, self.lobes)
+        return sum(t.numel() * t.element_size() for t in tensors if t is not None)
+
+
 @dataclass
 class _LightState:
     light: Light
     geometry_key: tuple
     shading_key: tuple
-    samples: list[LightSample]         # one per chunk of shading points
-    shadow: list[torch.Tensor]         # (n, S, 3) shadow factor per chunk
-    unit_image: torch.Tensor | None    # (N, 3)
+    transport: _Transport | None = None
+    images: torch.Tensor | None = None  # (N, 2, 3) diffuse and specular unit images
 
 
 class Relighter:
@@ -118,6 +166,7 @@ class Relighter:
 
     Attributes:
         description: the cache layer's description when opened with `open_relighter`.
+        counters: 'visibility' and 'shading' passes run so far (one per light and stage).
     """
 
     def __init__(self, gbuffer: GBuffer, visibility: Visibility, supersampling: int = 1,
@@ -135,6 +184,12 @@ class Relighter:
         self._lights: dict[str, _LightState] = {}
         self._wo_local = to_local(gbuffer.wo_world(), gbuffer.tangent, gbuffer.bitangent, gbuffer.normal)
         self._u: dict[int, torch.Tensor] = {}
+        # Every pixel covered in order: scattering into the image is a reshape.
+        self._dense = gbuffer.num_samples == height * width and bool(
+            (gbuffer.pixel_index == torch.arange(height * width, device=gbuffer.device)).all())
+        # Emission plus every light but `_active` (the last one edited), or None when stale.
+        self._active: str | None = None
+        self._others: torch.Tensor | None = None
 
     # -- lights ---------------------------------------------------------------------------------
 
@@ -145,7 +200,7 @@ class Relighter:
     def set_lights(self, lights: list[Light]) -> None:
         """Replace the whole rig; unchanged lights keep their cached work."""
         for path in set(self._lights) - {light.path for light in lights}:
-            del self._lights[path]
+            self.remove_light(path)
         for light in lights:
             self.set_light(light)
 
@@ -155,60 +210,84 @@ class Relighter:
         shading_key = geometry_key + _key(light, _SHADING_FIELDS)
         state = self._lights.get(light.path)
         if state is None or state.geometry_key != geometry_key:
-            state = _LightState(light, geometry_key, shading_key, [], [], None)
+            state = _LightState(light, geometry_key, shading_key)
         elif state.shading_key != shading_key:
-            state.unit_image, state.shading_key = None, shading_key
+            state.images, state.shading_key = None, shading_key
         state.light = light
         self._lights[light.path] = state
+        if light.path != self._active:
+            self._active, self._others = light.path, None
 
     def remove_light(self, path: str) -> None:
         if path not in self._lights:
             raise KeyError(f"no light {path!r} in the relighter (has {sorted(self._lights)})")
         del self._lights[path]
+        self._others = None
+
+    def cache_bytes(self) -> int:
+        """Bytes held by the per-light caches (transport and images)."""
+        total = 0
+        for state in self._lights.values():
+            total += state.transport.num_bytes if state.transport is not None else 0
+            total += state.images.numel() * state.images.element_size() if state.images is not None else 0
+        return total
 
     # -- rendering ------------------------------------------------------------------------------
 
     def render_samples(self) -> torch.Tensor:
         """(N, 3) radiance of every covered sub-sample (camera exposure not applied)."""
-        total = self.gbuffer.params.emissive_color.clone()
-        for state in self._lights.values():
-            scale = torch.as_tensor(colour_scale(state.light), device=total.device, dtype=total.dtype)
-            if bool((scale == 0).all()):
-                continue
-            total += scale * self._unit_image(state)
-        return total
+        if self._others is None:
+            self._others = self.gbuffer.params.emissive_color.clone()
+            for path, state in self._lights.items():
+                if path != self._active:
+                    self._others.addmm_(*self._lobe_terms(state))
+        if self._active not in self._lights:
+            return self._others.clone()
+        return torch.addmm(self._others, *self._lobe_terms(self._lights[self._active]))
 
     def render(self) -> torch.Tensor:
         """(H, W, 3) linear image: sub-samples shaded, box-filtered, camera exposure applied."""
-        image = self.gbuffer.scatter(self.render_samples())
-        s = self.supersampling
-        if s > 1:
-            height, width, _ = image.shape
-            image = image.reshape(height // s, s, width // s, s, 3).mean(dim=(1, 3))
-        return image * self.exposure_scale
+        return self._to_image(self.render_samples())
 
     def light_image(self, path: str) -> torch.Tensor:
         """(H, W, 3) image of one light alone (for AOVs and tests)."""
-        state = self._lights[path]
-        scale = torch.as_tensor(colour_scale(state.light), device=self.gbuffer.device,
-                                dtype=self.gbuffer.position.dtype)
-        image = self.gbuffer.scatter(scale * self._unit_image(state))
+        return self._to_image(torch.mm(*self._lobe_terms(self._lights[path])))
+
+    def _to_image(self, values: torch.Tensor) -> torch.Tensor:
+        """Sub-sample values (N, 3) to the (H, W, 3) image: scattered, box-filtered, exposed."""
+        height, width = self.gbuffer.image_size
+        image = values.reshape(height, width, 3) if self._dense else self.gbuffer.scatter(values)
         s = self.supersampling
         if s > 1:
-            height, width, _ = image.shape
             image = image.reshape(height // s, s, width // s, s, 3).mean(dim=(1, 3))
-        return image * self.exposure_scale
+        return image * self.exposure_scale if self.exposure_scale != 1.0 else image
+
+    def _lobe_terms(self, state: _LightState) -> tuple[torch.Tensor, torch.Tensor]:
+        """(images (N, 6), scales (6, 3)): the light's image (N, 3) is their matrix product.
+
+        One product adds both lobes, each scaled by its colour, in a single pass over the image.
+        """
+        light = state.light
+        scale = np.concatenate((np.diag(colour_scale(light) * light.diffuse),
+                                np.diag(colour_scale(light) * light.specular)))
+        images = self._images(state) if scale.any() else torch.zeros_like(self.gbuffer.position).repeat(1, 2)
+        return images.reshape(-1, 6), torch.as_tensor(scale, device=images.device, dtype=images.dtype)
 
     # -- per-light stages -----------------------------------------------------------------------
 
-    def _chunks(self) -> list[slice]:
-        n, step = self.gbuffer.num_samples, self.settings.chunk_points
+    def _chunks(self, num_samples: int) -> list[slice]:
+        n, step = self.gbuffer.num_samples, max(1, self.settings.chunk_samples // num_samples)
         return [slice(i, min(i + step, n)) for i in range(0, n, step)]
 
     def _num_samples(self, light: Light) -> int:
+        settings = self.settings
         if is_delta_light(light):
             return 1
-        return self.settings.dome_samples if light.kind is LightKind.DOME else self.settings.area_samples
+        if light.kind is LightKind.DOME:
+            return settings.dome_samples
+        return adaptive_sample_count(settings.area_samples, settings.min_area_samples,
+                                     angular_radius(light, self.gbuffer.position),
+                                     np.radians(settings.full_sampling_angle))
 
     def _fixed_u(self, num_samples: int) -> torch.Tensor:
         if num_samples not in self._u:
@@ -217,39 +296,78 @@ class Relighter:
                                                        g.device, g.position.dtype)
         return self._u[num_samples]
 
-    def _sample_and_test(self, state: _LightState) -> None:
-        """Light samples and their shadow factors, for the unit light (colour is a rescale)."""
+    def _transport(self, state: _LightState) -> _Transport:
+        """Light samples, shadow rays and BRDF of the unshaped unit light at the points it reaches."""
+        if state.transport is not None:
+            return state.transport
         g = self.gbuffer
-        unit = unit_light(state.light)
-        u = self._fixed_u(self._num_samples(unit))
-        state.samples, state.shadow = [], []
-        for chunk in self._chunks():
-            sample = sample_light(unit, g.position[chunk], u[chunk])
-            distance = self.visibility.occluder_distance(unit, g.position[chunk], g.geometric_normal[chunk],
-                                                         sample.direction, sample.distance)
-            state.samples.append(sample)
-            state.shadow.append(shadow_factor(unit.shadow, torch.isfinite(distance), distance))
-        self.counters["visibility"] += 1
-
-    def _unit_image(self, state: _LightState) -> torch.Tensor:
-        if state.unit_image is not None:
-            return state.unit_image
-        if not state.samples:
-            self._sample_and_test(state)
-        g = self.gbuffer
-        light = unit_light(state.light)
-        out = torch.zeros_like(g.position)
-        for chunk, sample, shadow in zip(self._chunks(), state.samples, state.shadow):
+        light = dataclasses.replace(unit_light(state.light), shaping=None, barzel=None)
+        shaped = light.kind in _SHAPED_KINDS
+        frame = LightFrame.of(light, g.position)
+        num_samples = self._num_samples(light)
+        u = self._fixed_u(num_samples)
+        parts = []
+        for chunk in self._chunks(num_samples):
+            sample = sample_light(light, g.position[chunk], u[chunk])
             wi_local = to_local(sample.direction, g.tangent[chunk, None], g.bitangent[chunk, None],
                                 g.normal[chunk, None])
             facing = (sample.direction * g.geometric_normal[chunk, None]).sum(-1) > 0
-            weight = sample.weight() * shadow * facing.unsqueeze(-1)
-            reflected = reflected_radiance(g.params.index(chunk).with_sample_axis(), self._wo_local[chunk, None],
-                                           wi_local, weight, light.diffuse, light.specular)
-            out[chunk] = reflected.mean(dim=1)
-        state.unit_image = out
+            weight = sample.weight() * ((wi_local[..., 2] > 0) & facing).unsqueeze(-1)
+            # Points that no sample can light (facing away, inside the light, outside its cone of
+            # directions) cast no shadow rays and are not kept.
+            lit = torch.nonzero((weight != 0).flatten(1).any(-1) & (self._wo_local[chunk, 2] > 0)).squeeze(-1)
+            direction, wi_local, weight = sample.direction[lit], wi_local[lit], weight[lit]
+            points = lit + chunk.start
+            distance = self.visibility.occluder_distance(light, g.position[points], g.geometric_normal[points],
+                                                         direction, sample.distance[lit])
+            weight = weight * shadow_factor(light.shadow, torch.isfinite(distance), distance)
+            weight = weight * (wi_local[..., 2:] / num_samples)
+            lobes = torch.stack(preview_surface.split(g.params.index(points).with_sample_axis(),
+                                                      self._wo_local[points, None], wi_local), dim=-2)
+            lobes = lobes * weight.unsqueeze(-2)
+            if shaped:
+                emission_local = torch.nn.functional.normalize(frame.vector_to_local(-direction), dim=-1)
+            else:
+                emission_local, lobes = None, lobes.sum(1, keepdim=True)
+            parts.append((points, emission_local, lobes))
+        points, emission_local, lobes = zip(*parts)
+        state.transport = _Transport(torch.cat(points), torch.cat(emission_local) if shaped else None,
+                                     torch.cat(lobes))
+        state.images = None
+        self.counters["visibility"] += 1
+        return state.transport
+
+    def _images(self, state: _LightState) -> torch.Tensor:
+        """The light's diffuse and specular unit images (N, 2, 3): transport x shaping, per point."""
+        if state.images is not None:
+            return state.images
+        transport = self._transport(state)
+        lobes = transport.lobes
+        factor = self._emission_factor(state.light, transport)
+        if factor is not None:
+            lobes = lobes * factor.unsqueeze(-2)
+        per_point = lobes.sum(1)
+        num_points = self.gbuffer.num_samples
+        if transport.points.shape[0] == num_points:  # every point lit: points is arange(N)
+            state.images = per_point
+        else:
+            state.images = per_point.new_zeros(num_points, 2, 3).index_copy_(0, transport.points, per_point)
         self.counters["shading"] += 1
-        return out
+        return state.images
+
+    def _emission_factor(self, light: Light, transport: _Transport) -> torch.Tensor | None:
+        """(P, S, 3) ShapingAPI x Barzel factor of each cached sample; None when nothing applies."""
+        if transport.emission_local is None:
+            return None
+        factor = None
+        if light.shaping is not None:
+            factor = shaping_factor(light.shaping, transport.emission_local)
+        if light.barzel is not None:
+            position = self.gbuffer.position[transport.points]
+            origin = torch.as_tensor(light.world_from_light[:3, 3], device=position.device, dtype=position.dtype)
+            barzel = barzel_factor(light.barzel, transport.emission_local, (position - origin).norm(dim=-1, keepdim=True))
+            factor = barzel if factor is None else factor * barzel
+        return factor
 
 
 def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",

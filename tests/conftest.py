@@ -11,6 +11,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+import relight_torch  # noqa: F401  registers the USD schemas before any test opens a stage
+
 TOLERANCES = {
     torch.float32: {"rtol": 1e-5, "atol": 1e-6},
     torch.float64: {"rtol": 1e-10, "atol": 1e-12},

@@ -32,8 +32,12 @@ import math
 
 import mitsuba as mi
 import numpy as np
+import torch
 
+from pipeline.scene.camera import camera_rays
 from pipeline.scene.types import Camera, Material, Scene
+from pipeline.tracing import Tracer
+from relight_torch.lights.emission import intersect_light
 from relight_torch.lights.light import Light, LightKind
 
 VARIANT = "scalar_rgb"
@@ -42,6 +46,9 @@ VARIANT = "scalar_rgb"
 scalar variant calls the BSDF from Python at each vertex (~20k paths/s, enough for small images).
 Set on import: the BSDF class derives from the variant's `mi.BSDF`."""
 mi.set_variant(VARIANT)
+
+_MIN_ROUGHNESS = 0.001
+_STORM_EPSILON = 0.001
 
 
 class StormPreviewSurface(mi.BSDF):
@@ -254,3 +261,21 @@ def render(scene: Scene, camera: Camera, max_bounces: int, spp: int, seed: int =
     """(H, W, 3) float32 Mitsuba render of our scene (linear radiance, row 0 at the top)."""
     mitsuba_scene = mi.load_dict(scene_dict(scene, camera, max_bounces, spp, seed))
     return np.array(mi.render(mitsuba_scene, spp=spp, seed=seed), dtype=np.float32)
+
+
+def light_footprint_mask(scene: Scene, camera: Camera, num_offsets: int = 4) -> np.ndarray:
+    """(H, W) bool: pixels where some camera ray (a num_offsets^2 grid over the pixel, edges
+    included) meets a light before any surface; there Mitsuba sees the black emitter and we see
+    what lies behind the (invisible) light."""
+    tracer = Tracer(scene.geometry)
+    grid = np.linspace(0.0, 1.0, num_offsets, dtype=np.float32)
+    covered = np.zeros((camera.height, camera.width), bool)
+    for dy in grid:
+        for dx in grid:
+            offsets = np.broadcast_to(np.array([dx, dy], np.float32), (camera.height, camera.width, 2))
+            origins, directions = (a.reshape(-1, 3) for a in camera_rays(camera, np.ascontiguousarray(offsets)))
+            surface = tracer.intersect(origins, directions).distance
+            for light in scene.lights:
+                to_light = intersect_light(light, torch.from_numpy(origins), torch.from_numpy(directions)).numpy()
+                covered |= (to_light < surface).reshape(camera.height, camera.width)
+    return covered

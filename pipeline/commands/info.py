@@ -1,4 +1,10 @@
-"""`relight info`: what the walker sees in a stage (counts, lights, cameras, warnings)."""
+"""`relight info`: what the walker sees in a stage, or what a cache layer holds and whether it is usable.
+
+For a stage: counts, lights, cameras, the walker's warnings. For a cache layer (a layer with a
+RelightCache prim, whatever its name): provenance (source, camera, content hash, input files),
+method and parameters, each payload's size, format and channels, and the verdict — valid, stale
+(an input changed since the bake) or corrupt (a payload missing, truncated, replaced or edited).
+"""
 
 from __future__ import annotations
 
@@ -7,20 +13,88 @@ from collections import Counter
 from pathlib import Path
 
 from pipeline.commands.common import add_camera_options, add_lights_option
+from pipeline.errors import RelightError
 from pipeline.scene.load import find_camera, read_scene
-from relight_torch.stage import open_stage
 from pipeline.scene.types import Scene
+from relight_torch.cache.layer import is_cache_layer
+from relight_torch.cache.status import CacheStatus, PayloadStatus, cache_status
+from relight_torch.io.exr import PIXEL_TYPE_NAMES, read_exr_header
+from relight_torch.stage import open_stage
 
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
-        "info", help="describe a USD stage as the baker reads it",
-        description="Print the triangle, object, material, light and camera counts of a stage, "
-                    "with light types, camera paths and the walker's warnings.")
-    parser.add_argument("scene", metavar="SCENE", help="USD stage (.usda, .usdc, .usdz)")
+        "info", help="describe a USD stage as the baker reads it, or check a cache layer",
+        description="For a stage: print the triangle, object, material, light and camera counts, with "
+                    "light types, camera paths and the walker's warnings. For a cache layer written by "
+                    "`relight bake`: print its provenance, method, parameters and payload files with their "
+                    "sizes, and whether it is valid, stale or corrupt (exit status 1 unless valid).")
+    parser.add_argument("scene", metavar="SCENE", help="USD stage (.usda, .usdc, .usdz) or cache layer (.relight.usda)")
     add_camera_options(parser, required=False)
     add_lights_option(parser)
     parser.set_defaults(run=run)
+
+
+def _bytes(num_bytes: int) -> str:
+    """A size for people: '980 B', '13.0 KiB', '2.5 MiB'."""
+    size, unit = float(num_bytes), "B"
+    for larger in ("KiB", "MiB", "GiB", "TiB"):
+        if size < 1024:
+            break
+        size, unit = size / 1024, larger
+    return f"{num_bytes} B" if unit == "B" else f"{size:.1f} {unit}"
+
+
+def _exr_lines(status: PayloadStatus) -> list[str]:
+    """Channel names grouped by pixel type, raw size, and the constants elided from the file."""
+    lines = []
+    if status.num_bytes is not None and status.problem is None:
+        header = read_exr_header(status.path)
+        by_type: dict[str, list[str]] = {}
+        for name, dtype in header.channels.items():
+            by_type.setdefault(PIXEL_TYPE_NAMES[dtype], []).append(name)
+        raw = header.width * header.height * sum(dtype.itemsize for dtype in header.channels.values())
+        lines.append(f"      {header.width}x{header.height}, {len(header.channels)} channels, "
+                     f"{header.compression} compression, {raw / status.num_bytes:.1f}x smaller than raw ({_bytes(raw)})")
+        lines += [f"      {kind}: {' '.join(names)}" for kind, names in sorted(by_type.items())]
+    constants = status.payload.constants
+    if constants:
+        lines.append("      constant (not stored): "
+                     + ", ".join(f"{name} = {value:g}" for name, value in sorted(constants.items())))
+    return lines
+
+
+def _describe_cache(status: CacheStatus) -> list[str]:
+    """Lines describing a checked cache layer."""
+    d = status.description
+    width, height = d.resolution
+    lines = [
+        f"{status.path}: relight cache",
+        f"  method: {d.method}",
+        f"  source: {d.source}",
+        f"  camera: {d.camera_path}, {width}x{height}, supersampling {d.supersampling}, "
+        f"exposure scale {d.exposure_scale:g}",
+        f"  content hash: {d.content_hash}",
+        "  parameters: " + (", ".join(f"{k} = {v}" for k, v in sorted(d.parameters.items())) or "none"),
+        f"  inputs: {len(d.inputs)}",
+    ]
+    lines += [f"    {file}  {status.stale_inputs.get(file, 'unchanged')}" for file in sorted(d.inputs)]
+    on_disk = sum(p.num_bytes or 0 for p in status.payloads)
+    lines.append(f"  payloads: {len(status.payloads)}, {_bytes(on_disk)} on disk")
+    for payload_status in status.payloads:
+        payload = payload_status.payload
+        found = "missing" if payload_status.num_bytes is None else _bytes(payload_status.num_bytes)
+        what = f"{payload.dtype}{list(payload.shape)}" if payload.format == "npy" else f"{len(payload.channels)} channels"
+        lines.append(f"    {payload.name}: {payload.file}, {payload.format}, {found} "
+                     f"({payload.num_bytes} bytes recorded), {what}, "
+                     f"{'ok' if payload_status.problem is None else 'BAD'}")
+        if payload.format == "exr":
+            lines += _exr_lines(payload_status)
+    problems = [p.problem for p in status.payloads if p.problem]
+    problems += [f"input {file} {state} since the bake" for file, state in status.stale_inputs.items()]
+    lines.append(f"  status: {status.verdict}")
+    lines += [f"    {problem}" for problem in problems]
+    return lines
 
 
 def _describe_scene(scene: Scene) -> list[str]:
@@ -71,6 +145,14 @@ def describe_stage(path: str | Path, *, lights_layer: str | Path | None = None, 
 
 
 def run(args: argparse.Namespace) -> int:
+    if is_cache_layer(args.scene):
+        given = [f"--{name}" for name in ("camera", "lights", "time", "width", "height")
+                 if getattr(args, name) is not None]
+        if given:
+            raise RelightError(f"{args.scene} is a cache layer: stage options ({', '.join(given)}) do not apply")
+        status = cache_status(args.scene)
+        print("\n".join(_describe_cache(status)))
+        return 0 if status.verdict == "valid" else 1
     scene = _read(args.scene, args.lights, args.time, args.width, args.height)
     if args.camera is not None:
         find_camera(scene, args.camera)

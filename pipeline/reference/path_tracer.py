@@ -10,12 +10,23 @@ by multiple importance sampling (power heuristic); Russian roulette from `roulet
 `max_bounces = 0` is direct light only (light -> surface -> camera), 1 adds one indirect bounce...
 Lights are not seen by camera rays (Karma's default `renderlightgeo = 0`): they show through
 reflection only, as in the relighter, whose deep framebuffer holds surfaces only.
+Lights are not occluders either: a ray passes through a light's surface to whatever lies behind
+it (so an area light mounted just below a ceiling lets that ceiling patch show through it).
 Surfaces are shaded on both sides; opacity is ignored (opaque), with a warning.
+
+Speed (see `pipeline.reference.bench`): batches of passes are traced on `num_workers` Python
+threads with torch held to one intra-op thread while rendering. Torch's OpenMP pool spin-waits
+at every op barrier; on a shared machine where its threads get descheduled, two OpenMP threads ran
+the Cornell box 25x slower than one (4 k vs 136 k paths/s), whereas independent batches on
+threads never wait for each other (torch, numpy and Embree release the GIL in their kernels).
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,8 +39,8 @@ from pipeline.scene.types import Camera, Scene
 from pipeline.shading_points import ShadingPoints, shading_points
 from pipeline.tracing import Tracer
 from relight_torch.brdf import preview_surface
-from relight_torch.lights.emission import emitted_radiance, intersect_light, light_pdf, sample_light
-from relight_torch.lights.light import Light, LightKind
+from relight_torch.lights.emission import emitted_radiance, intersect_light, is_delta_light, light_pdf, sample_light
+from relight_torch.lights.light import LightKind
 from relight_torch.math.frame import to_local, to_world
 from relight_torch.shading import reflected_radiance
 
@@ -43,16 +54,19 @@ class ReferenceSettings:
     Attributes:
         spp: samples (paths) per pixel.
         max_bounces: indirect bounces; 0 = direct light only.
-        seed: the image is a deterministic function of the scene, camera, settings and seed.
+        seed: the image is a deterministic function of the scene, camera, settings and seed
+            (not of `num_workers` or the machine's thread count).
         roulette_depth: vertex index from which Russian roulette may end paths.
-        paths_per_batch: paths traced together (memory ~ 1 KB per path).
+        paths_per_batch: paths traced together by one worker (memory ~ 1 KB per path).
+        num_workers: batches traced concurrently; None: the CPUs this process may use.
     """
 
     spp: int = 64
     max_bounces: int = 4
     seed: int = 0
     roulette_depth: int = 3
-    paths_per_batch: int = 1 << 17
+    paths_per_batch: int = 1 << 16
+    num_workers: int | None = None
 
 
 @dataclass(frozen=True)
@@ -63,13 +77,40 @@ class ReferenceImage:
         mean: (H, W, 3) float32 linear radiance (camera exposure applied).
         variance: (H, W, 3) float32 variance of `mean` itself (sample variance / spp).
         seconds: wall-clock render time.
-        num_paths: paths traced.
+        num_paths: paths traced (camera rays).
+        num_vertices: surface points shaded along them (next-event estimation and BSDF sampling
+            at each): the work done, beside `num_paths`.
     """
 
     mean: np.ndarray
     variance: np.ndarray
     seconds: float
     num_paths: int
+    num_vertices: int = 0
+
+
+@dataclass
+class _Vertex:
+    """The shading points of the live paths at one depth, with their torch views.
+
+    Attributes:
+        points: the shading points (numpy, for the tracer).
+        frame: (tangent, bitangent, normal), each (N, 3) float32 tensors.
+        wo_local: (N, 3) direction to the previous vertex in the shading frame.
+        position, geometric_normal: (N, 3) float32 tensors.
+    """
+
+    points: ShadingPoints
+    frame: tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+    wo_local: torch.Tensor
+    position: torch.Tensor
+    geometric_normal: torch.Tensor
+
+    @staticmethod
+    def of(points: ShadingPoints) -> _Vertex:
+        frame = tuple(torch.from_numpy(a) for a in (points.tangent, points.bitangent, points.normal))
+        return _Vertex(points, frame, to_local(torch.from_numpy(points.wo_world), *frame),
+                       torch.from_numpy(points.position), torch.from_numpy(points.geometric_normal))
 
 
 def _power_heuristic(pdf_a: torch.Tensor, pdf_b: torch.Tensor) -> torch.Tensor:
@@ -77,16 +118,30 @@ def _power_heuristic(pdf_a: torch.Tensor, pdf_b: torch.Tensor) -> torch.Tensor:
     return torch.where(a2 > 0, a2 / (a2 + b2), torch.zeros_like(a2))
 
 
+@contextlib.contextmanager
+def _torch_threads(num_threads: int):
+    """Run the block with torch's intra-op thread count set to `num_threads`, then restore it."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(num_threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
 class PathTracer:
     """Renders one scene from any of its cameras; Embree BVH and tangents built once."""
 
     def __init__(self, scene: Scene, settings: ReferenceSettings = ReferenceSettings()):
-        if settings.spp < 1 or settings.max_bounces < 0:
-            raise ValueError(f"spp must be >= 1 and max_bounces >= 0, got {settings}")
+        if settings.spp < 1 or settings.max_bounces < 0 or settings.paths_per_batch < 1:
+            raise ValueError(f"spp and paths_per_batch must be >= 1 and max_bounces >= 0, got {settings}")
         self.scene = scene
         self.settings = settings
-        self.tracer = Tracer(scene.geometry)
+        self.num_workers = settings.num_workers or len(os.sched_getaffinity(0))
+        # Parallelism comes from the workers; one Embree thread each.
+        self.tracer = Tracer(scene.geometry, num_threads=1 if self.num_workers > 1 else None)
         self.tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs)
+        self.area_lights = [light for light in scene.lights if not is_delta_light(light)]
         if any(m.opacity.texture is not None or float(m.opacity.value[0]) < 1.0 for m in scene.materials):
             warn("reference: opacity is ignored; every surface is rendered opaque", scene.warnings)
 
@@ -99,17 +154,32 @@ class PathTracer:
         total_sum = np.zeros((num_pixels, 3), np.float64)
         total_sq = np.zeros((num_pixels, 3), np.float64)
         passes_per_batch = max(1, self.settings.paths_per_batch // num_pixels)
-        for batch_index, first in enumerate(range(0, self.settings.spp, passes_per_batch)):
+        batches = list(enumerate(range(0, self.settings.spp, passes_per_batch)))
+
+        def trace_batch(batch: tuple[int, int]) -> tuple[np.ndarray, int]:
+            """((passes, num_pixels, 3) float64 radiance, vertices shaded) of one batch of passes."""
+            batch_index, first = batch
             num_passes = min(passes_per_batch, self.settings.spp - first)
             rng = np.random.default_rng([self.settings.seed, batch_index])
             rays = [camera_rays(camera, rng.random((height, width, 2), dtype=np.float32)) for _ in range(num_passes)]
             origins = np.concatenate([o.reshape(-1, 3) for o, _ in rays])
             directions = np.concatenate([d.reshape(-1, 3) for _, d in rays])
-            radiance = self._trace(origins, directions, rng).reshape(num_passes, num_pixels, 3) * camera.exposure_scale
-            total_sum += radiance.sum(axis=0)
-            total_sq += (radiance**2).sum(axis=0)
-            if progress is not None:
-                progress((first + num_passes) * num_pixels, total)
+            radiance, num_vertices = self._trace(origins, directions, rng)
+            radiance = radiance.numpy().astype(np.float64).reshape(num_passes, num_pixels, 3)
+            return radiance * camera.exposure_scale, num_vertices
+
+        done = num_vertices = 0
+        with _torch_threads(1), ThreadPoolExecutor(self.num_workers) as pool:
+            # Batches are summed in order (the image does not depend on scheduling), a window of
+            # num_workers at a time so that memory stays bounded.
+            for window in range(0, len(batches), self.num_workers):
+                for radiance, batch_vertices in pool.map(trace_batch, batches[window:window + self.num_workers]):
+                    num_vertices += batch_vertices
+                    total_sum += radiance.sum(axis=0)
+                    total_sq += np.einsum("pnc,pnc->nc", radiance, radiance)
+                    done += radiance.shape[0] * num_pixels
+                    if progress is not None:
+                        progress(done, total)
         spp = self.settings.spp
         mean = total_sum / spp
         sample_variance = np.maximum(total_sq / spp - mean**2, 0.0) * spp / max(spp - 1, 1)
@@ -118,120 +188,111 @@ class PathTracer:
             variance=(sample_variance / spp).reshape(height, width, 3).astype(np.float32),
             seconds=time.perf_counter() - start,
             num_paths=total,
+            num_vertices=num_vertices,
         )
 
-    def _trace(self, origins: np.ndarray, directions: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Radiance (N, 3) float64 carried back along N camera rays."""
+    def _trace(self, origins: np.ndarray, directions: np.ndarray,
+               rng: np.random.Generator) -> tuple[torch.Tensor, int]:
+        """(radiance (N, 3) float32 carried back along N camera rays, surface vertices shaded)."""
         num_paths = origins.shape[0]
-        radiance = np.zeros((num_paths, 3), np.float64)
-        throughput = torch.ones((num_paths, 3), dtype=torch.float32)
-        path = np.arange(num_paths)             # which path each live ray belongs to
+        num_vertices = 0
+        radiance = torch.zeros((num_paths, 3))
+        throughput = torch.ones((num_paths, 3))
+        path = torch.arange(num_paths)          # which path each live ray belongs to
         bsdf_pdf = torch.zeros(num_paths)       # pdf of the direction just sampled (solid angle)
-        previous_points = origins               # where the live rays start
+        previous_points = torch.from_numpy(origins)
         for depth in range(self.settings.max_bounces + 2):
             hits = self.tracer.intersect(origins, directions)
-            if depth > 0:
-                self._add_emitters_hit(radiance, path, throughput, previous_points, directions, hits.distance, bsdf_pdf)
+            if depth > 0 and self.area_lights:
+                emitted = self._emitters_hit(previous_points, torch.from_numpy(directions),
+                                             torch.from_numpy(hits.distance), bsdf_pdf)
+                radiance.index_add_(0, path, throughput * emitted)
             if depth == self.settings.max_bounces + 1:
                 break
-            keep = hits.hit
-            path, throughput = path[keep], throughput[torch.from_numpy(keep)]
-            if path.size == 0:
+            keep = torch.from_numpy(hits.hit)
+            path, throughput = path[keep], throughput[keep]
+            if path.numel() == 0:
                 break
-            points = shading_points(self.scene, self.tangents, hits, directions)
-            radiance[path] += (throughput * points.params.emissive_color).double().numpy()
-            radiance[path] += self._next_event(points, throughput, rng)
-            wi_world, weight, bsdf_pdf = self._sample_bsdf(points, rng)
+            vertex = _Vertex.of(shading_points(self.scene, self.tangents, hits, directions))
+            num_vertices += path.numel()
+            direct = vertex.points.params.emissive_color + self._next_event(vertex, rng)
+            radiance.index_add_(0, path, throughput * direct)
+            wi_world, weight, bsdf_pdf = self._sample_bsdf(vertex, rng)
             throughput = throughput * weight
+            survive = bsdf_pdf > 0
             if depth + 1 >= self.settings.roulette_depth:
-                survive_probability = throughput.max(dim=-1).values.clamp(max=0.95)
-                survive = torch.from_numpy(rng.random(path.size, dtype=np.float32)) < survive_probability
+                survive_probability = throughput.amax(dim=-1).clamp(max=0.95)
+                survive &= torch.from_numpy(rng.random(path.numel(), dtype=np.float32)) < survive_probability
                 throughput = throughput / survive_probability.clamp(min=1e-8)[:, None]
-                survive &= bsdf_pdf > 0
-            else:
-                survive = bsdf_pdf > 0
-            alive = survive.numpy()
-            path, throughput, bsdf_pdf = path[alive], throughput[survive], bsdf_pdf[survive]
-            directions = wi_world[alive]
-            origins = self.tracer.offset_origins(points.position[alive], points.geometric_normal[alive], directions)
-            previous_points = points.position[alive]
-            if path.size == 0:
+            path, throughput, bsdf_pdf = path[survive], throughput[survive], bsdf_pdf[survive]
+            previous_points = vertex.position[survive]
+            directions = wi_world[survive].numpy()
+            origins = self.tracer.offset_origins(previous_points.numpy(), vertex.points.geometric_normal[survive.numpy()],
+                                                 directions)
+            if path.numel() == 0:
                 break
-        return radiance
+        return radiance, num_vertices
 
-    def _add_emitters_hit(self, radiance, path, throughput, points, directions, surface_distance, bsdf_pdf) -> None:
-        """Add light seen along BSDF-sampled rays, MIS-weighted against next-event estimation."""
-        p = torch.from_numpy(points)
-        d = torch.from_numpy(directions)
-        nearest = np.full(path.size, np.inf)
-        for light in self.scene.lights:
-            if _is_delta(light):
-                continue
+    def _emitters_hit(self, points: torch.Tensor, directions: torch.Tensor, surface_distance: torch.Tensor,
+                      bsdf_pdf: torch.Tensor) -> torch.Tensor:
+        """Light (N, 3) seen along BSDF-sampled rays, MIS-weighted against next-event estimation.
+
+        Every light met before the surface counts: lights do not occlude one another, exactly as
+        next-event estimation's shadow rays test the scene's surfaces only.
+        """
+        total = torch.zeros_like(directions)
+        escaped = torch.isinf(surface_distance)
+        for light in self.area_lights:
             if light.kind in _INFINITE_KINDS:
-                reached = ~np.isfinite(surface_distance)
+                reached = escaped
             else:
-                distance = intersect_light(light, p, d).numpy()
-                reached = (distance < surface_distance) & (distance < nearest)
-                nearest = np.where(reached, distance, nearest)
-            if not reached.any():
+                reached = intersect_light(light, points, directions) < surface_distance
+            idx = torch.nonzero(reached).squeeze(1)
+            if idx.numel() == 0:
                 continue
-            mask = torch.from_numpy(reached)
-            emitted = emitted_radiance(light, p[mask], d[mask])
-            weight = _power_heuristic(bsdf_pdf[mask], light_pdf(light, p[mask], d[mask]))
-            radiance[path[reached]] += (throughput[mask] * emitted * weight[:, None]).double().numpy()
+            p, d = points[idx], directions[idx]
+            weight = _power_heuristic(bsdf_pdf[idx], light_pdf(light, p, d))
+            total.index_add_(0, idx, emitted_radiance(light, p, d) * weight[:, None])
+        return total
 
-    def _next_event(self, points: ShadingPoints, throughput: torch.Tensor, rng: np.random.Generator) -> np.ndarray:
+    def _next_event(self, vertex: _Vertex, rng: np.random.Generator) -> torch.Tensor:
         """Direct light (N, 3) from one sample of every light, shadow-tested, MIS-weighted."""
-        num_points = points.position.shape[0]
-        total = torch.zeros((num_points, 3))
-        position = torch.from_numpy(points.position)
-        frame = [torch.from_numpy(a) for a in (points.tangent, points.bitangent, points.normal)]
-        wo_local = to_local(torch.from_numpy(points.wo_world), *frame)
-        geometric = torch.from_numpy(points.geometric_normal)
+        points = vertex.points
+        total = torch.zeros_like(vertex.position)
         for light in self.scene.lights:
-            u = torch.from_numpy(rng.random((num_points, 1, 2), dtype=np.float32))
-            sample = sample_light(light, position, u)
-            direction = sample.direction[:, 0]
-            pdf = sample.pdf[:, 0]
-            usable = (pdf > 0) & ((direction * geometric).sum(-1) > 0) & (sample.radiance[:, 0].amax(-1) > 0)
-            if not bool(usable.any()):
-                continue
+            u = torch.from_numpy(rng.random((total.shape[0], 1, 2), dtype=np.float32))
+            sample = sample_light(light, vertex.position, u)
+            direction, pdf, arriving = sample.direction[:, 0], sample.pdf[:, 0], sample.radiance[:, 0]
+            usable = (pdf > 0) & ((direction * vertex.geometric_normal).sum(-1) > 0) & (arriving.amax(-1) > 0)
             idx = torch.nonzero(usable).squeeze(1)
+            if idx.numel() == 0:
+                continue
+            idx_numpy = idx.numpy()
+            direction = direction[idx]
             shadow_distance = sample.distance[idx, 0].numpy()
-            origins = self.tracer.offset_origins(points.position[idx.numpy()], points.geometric_normal[idx.numpy()],
-                                                 direction[idx].numpy())
-            t_far = np.where(np.isfinite(shadow_distance), shadow_distance * (1.0 - 1e-4) - self.tracer.epsilon, np.inf)
-            visible = torch.from_numpy(~self.tracer.occluded(origins, direction[idx].numpy(), t_far))
-            wi_local = to_local(direction[idx], *(f[idx] for f in frame))
+            origins = self.tracer.offset_origins(points.position[idx_numpy], points.geometric_normal[idx_numpy],
+                                                 direction.numpy())
+            t_far = np.where(np.isfinite(shadow_distance),
+                             shadow_distance * (1.0 - 1e-4) - self.tracer.epsilon, np.inf).astype(np.float32)
+            visible = torch.from_numpy(~self.tracer.occluded(origins, direction.numpy(), t_far))
+            wi_local = to_local(direction, *(f[idx] for f in vertex.frame))
+            wo_local = vertex.wo_local[idx]
             params = points.params.index(idx)
-            contribution = reflected_radiance(params, wo_local[idx], wi_local, sample.radiance[idx, 0],
-                                              light.diffuse, light.specular)
-            if sample.is_delta:
-                weight = torch.ones_like(pdf[idx])
-            else:
-                weight = _power_heuristic(pdf[idx], preview_surface.pdf(params, wo_local[idx], wi_local))
-            total[idx] += contribution * (visible.float() * weight / pdf[idx])[:, None]
-        return (throughput * total).double().numpy()
+            contribution = reflected_radiance(params, wo_local, wi_local, arriving[idx], light.diffuse, light.specular)
+            scale = visible.float() / pdf[idx]
+            if not sample.is_delta:
+                scale = scale * _power_heuristic(pdf[idx], preview_surface.pdf(params, wo_local, wi_local))
+            total.index_add_(0, idx, contribution * scale[:, None])
+        return total
 
-    def _sample_bsdf(self, points: ShadingPoints, rng: np.random.Generator):
-        """Sample the next direction: (wi_world (N, 3) float32 numpy, weight f cos / pdf (N, 3), pdf (N,))."""
-        frame = [torch.from_numpy(a) for a in (points.tangent, points.bitangent, points.normal)]
-        wo_local = to_local(torch.from_numpy(points.wo_world), *frame)
-        u = torch.from_numpy(rng.random((wo_local.shape[0], 2), dtype=np.float32))
-        wi_local, pdf = preview_surface.sample(points.params, wo_local, u)
-        wi_world = to_world(wi_local, *frame)
-        geometric = torch.from_numpy(points.geometric_normal)
-        valid = (pdf > 0) & ((wi_world * geometric).sum(-1) > 0) & (wi_local[..., 2] > 0)
-        f_cos = reflected_radiance(points.params, wo_local, wi_local, torch.ones_like(wo_local))
+    def _sample_bsdf(self, vertex: _Vertex, rng: np.random.Generator):
+        """Sample the next direction: (wi_world (N, 3), weight f cos / pdf (N, 3), pdf (N,)), tensors."""
+        params = vertex.points.params
+        u = torch.from_numpy(rng.random((vertex.wo_local.shape[0], 2), dtype=np.float32))
+        wi_local, pdf = preview_surface.sample(params, vertex.wo_local, u)
+        wi_world = to_world(wi_local, *vertex.frame)
+        valid = (pdf > 0) & ((wi_world * vertex.geometric_normal).sum(-1) > 0) & (wi_local[..., 2] > 0)
+        f_cos = reflected_radiance(params, vertex.wo_local, wi_local, torch.ones_like(wi_local))
         weight = torch.where(valid[:, None], f_cos / pdf.clamp(min=1e-20)[:, None], torch.zeros_like(f_cos))
         pdf = torch.where(valid, pdf, torch.zeros_like(pdf))
-        return wi_world.numpy().astype(np.float32), weight, pdf
-
-
-def _is_delta(light: Light) -> bool:
-    """Lights that BSDF sampling can never hit (zero size)."""
-    if light.kind == LightKind.DISTANT:
-        return light.angle <= 0.0
-    if light.kind == LightKind.SPHERE:
-        return light.radius <= 0.0
-    return False
+        return wi_world.contiguous(), weight, pdf

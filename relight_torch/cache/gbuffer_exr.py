@@ -24,6 +24,7 @@ import torch
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
+from relight_torch.io.exr import PIXEL_TYPE_NAMES
 
 _XYZ = ("X", "Y", "Z")
 _RGB = ("R", "G", "B")
@@ -53,7 +54,6 @@ MATERIAL_CHANNELS = (
 )
 
 
-_EXR_TYPE_NAMES = {np.dtype(np.float16): "HALF", np.dtype(np.float32): "FLOAT", np.dtype(np.uint32): "UINT"}
 _HALF_MAX = float(np.finfo(np.float16).max)
 
 
@@ -118,8 +118,8 @@ def check_channel_types(types: dict[str, np.dtype], source: str) -> None:
         if channel not in expected:
             raise RelightError(f"{source}: unexpected deep framebuffer channel {channel}")
         if np.dtype(dtype) not in expected[channel]:
-            names = " or ".join(_EXR_TYPE_NAMES[d] for d in expected[channel])
-            raise RelightError(f"{source}: channel {channel} is {_EXR_TYPE_NAMES.get(np.dtype(dtype), dtype)}, "
+            names = " or ".join(PIXEL_TYPE_NAMES[d] for d in expected[channel])
+            raise RelightError(f"{source}: channel {channel} is {PIXEL_TYPE_NAMES.get(np.dtype(dtype), dtype)}, "
                                f"expected {names}")
 
 

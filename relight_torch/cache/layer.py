@@ -8,7 +8,14 @@
                                             elided because constant (name + value)
 
 Payload files sit beside the layer and are referenced by relative asset paths. Nothing here is
-pickled; writes are atomic (temp file, then rename).
+pickled; writes are atomic (temp file, then rename). The layer carries the shot's upAxis and
+metersPerUnit (positions and transforms in it are in the shot's units) and a defaultPrim, so it is
+clean under UsdValidation's validators (see `relight_torch.cache.validation` for ours).
+
+Reading trusts nothing: every attribute must be authored with its schema type (a schema fallback
+does not stand in for a value the writer always authors), arrays that go together must have the
+same length, and numbers must be in range; each problem is one `RelightError` line naming the
+layer, prim and attribute.
 """
 
 from __future__ import annotations
@@ -16,11 +23,12 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, Vt
+from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
 from relight_torch.errors import RelightError
 from relight_torch.io.atomic import atomic_path
@@ -29,6 +37,9 @@ from relight_torch.schema import register_schemas
 CACHE_PRIM = "/Cache"
 CACHE_VERSION = 1
 SUFFIX = ".relight.usda"
+METHODS = ("direct", "transfer", "gather", "cuts", "multiview")
+FORMATS = ("exr", "npy")
+_SHA256 = re.compile(r"[0-9a-f]{64}")
 
 
 @dataclass(frozen=True)
@@ -125,18 +136,53 @@ def _sdf_type(value) -> Sdf.ValueTypeName:
     raise TypeError(f"cache parameter of unsupported type {type(value).__name__}: {value!r}")
 
 
+def _anchored(relative: str) -> str:
+    """A layer-relative asset path spelled `./x` or `../x`: USD treats a bare `x` as a search path."""
+    if os.path.isabs(relative) or relative.startswith(("./", "../")):
+        return relative
+    return f"./{relative}"
+
+
+def shot_units(source: str | os.PathLike) -> tuple[str, float]:
+    """(upAxis, metersPerUnit) of a shot, from its root layer's metadata (USD's fallbacks if unset).
+
+    Raises:
+        RelightError: the shot's root layer cannot be opened.
+    """
+    try:
+        layer = Sdf.Layer.FindOrOpen(os.fspath(source))
+    except Exception as error:  # pxr raises Tf.ErrorException with multi-line text
+        raise RelightError(f"{source}: not a readable USD layer ({str(error).splitlines()[0]})") from None
+    if layer is None:
+        raise RelightError(f"{source}: no such USD layer (the cache's source)")
+    root = layer.pseudoRoot
+    up_axis = root.GetInfo("upAxis") if root.HasInfo("upAxis") else UsdGeom.GetFallbackUpAxis()
+    meters_per_unit = (root.GetInfo("metersPerUnit") if root.HasInfo("metersPerUnit")
+                       else UsdGeom.LinearUnits.centimeters)
+    return str(up_axis), float(meters_per_unit)
+
+
 def write_cache_layer(path: str | os.PathLike, description: CacheDescription) -> None:
-    """Author the cache layer atomically. Payload files must already be written beside it."""
+    """Author the cache layer atomically. Payload files must already be written beside it.
+
+    Raises:
+        RelightError: the description's source (the shot) cannot be opened for its units.
+    """
     register_schemas()
     path = Path(path)
     directory = path.parent.resolve()
     layer = Sdf.Layer.CreateAnonymous(SUFFIX)
     stage = Usd.Stage.Open(layer)
+    up_axis, meters_per_unit = shot_units(description.source)
+    UsdGeom.SetStageUpAxis(stage, up_axis)
+    UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
+    layer.documentation = (f"relight {description.method} cache of {description.camera_path} in "
+                           f"{os.path.relpath(description.source, directory)}")
     cache = stage.DefinePrim(CACHE_PRIM, "RelightCache")
     stage.SetDefaultPrim(cache)
     cache.GetAttribute("relight:method").Set(description.method)
     cache.GetAttribute("relight:version").Set(CACHE_VERSION)
-    cache.GetAttribute("relight:source").Set(Sdf.AssetPath(os.path.relpath(description.source, directory)))
+    cache.GetAttribute("relight:source").Set(Sdf.AssetPath(_anchored(os.path.relpath(description.source, directory))))
     cache.GetAttribute("relight:cameraPath").Set(description.camera_path)
     cache.GetAttribute("relight:resolution").Set(Gf.Vec2i(*description.resolution))
     cache.GetAttribute("relight:supersampling").Set(description.supersampling)
@@ -150,7 +196,7 @@ def write_cache_layer(path: str | os.PathLike, description: CacheDescription) ->
         cache.CreateAttribute(f"relight:parameters:{name}", _sdf_type(value), custom=True).Set(value)
     for payload in description.payloads:
         prim = stage.DefinePrim(f"{CACHE_PRIM}/{payload.name}", "RelightPayload")
-        prim.GetAttribute("relight:file").Set(Sdf.AssetPath(payload.file))
+        prim.GetAttribute("relight:file").Set(Sdf.AssetPath(_anchored(payload.file)))
         prim.GetAttribute("relight:format").Set(payload.format)
         prim.GetAttribute("relight:sha256").Set(payload.sha256)
         prim.GetAttribute("relight:bytes").Set(payload.num_bytes)
@@ -161,22 +207,83 @@ def write_cache_layer(path: str | os.PathLike, description: CacheDescription) ->
         prim.GetAttribute("relight:constantChannels").Set(Vt.StringArray(names))
         prim.GetAttribute("relight:constantValues").Set(Vt.DoubleArray([payload.constants[n] for n in names]))
     with atomic_path(path) as temp:
-        layer.Export(str(temp))
+        if not layer.Export(str(temp)):
+            raise OSError(f"{path}: could not write the cache layer")
+
+
+def is_cache_layer(path: str | os.PathLike) -> bool:
+    """True when `path` is a USD layer defining a RelightCache prim at CACHE_PRIM (by content, not name)."""
+    try:
+        layer = Sdf.Layer.FindOrOpen(os.fspath(path))
+    except Exception:  # pxr raises Tf.ErrorException for unreadable files: not a cache layer
+        return False
+    spec = layer.GetPrimAtPath(CACHE_PRIM) if layer is not None else None
+    return spec is not None and spec.typeName == "RelightCache"
 
 
 def _get(prim: Usd.Prim, name: str, path: Path):
+    """The authored value of `name`, checked against its schema type."""
     attribute = prim.GetAttribute(name)
-    value = attribute.Get() if attribute else None
-    if value is None:
-        raise RelightError(f"{path}: {prim.GetPath()} has no {name}")
+    if not attribute or not attribute.HasAuthoredValue():
+        raise RelightError(f"{path}: {prim.GetPath()}.{name} is missing (the layer was edited; re-bake)")
+    value = attribute.Get()
+    expected = type(attribute.GetTypeName().defaultValue)
+    if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
+        raise RelightError(f"{path}: {prim.GetPath()}.{name} = {value!r} is not a {attribute.GetTypeName()}")
     return value
+
+
+def _require(condition: bool, path: Path, prim: Usd.Prim, message: str) -> None:
+    if not condition:
+        raise RelightError(f"{path}: {prim.GetPath()}.{message}")
+
+
+def _plain_dtype(name: str) -> bool:
+    """True for the name of a numpy dtype holding no Python objects (nothing that needs pickle)."""
+    try:
+        return bool(name) and not np.dtype(name).hasobject
+    except TypeError:
+        return False
+
+
+def _read_payload(prim: Usd.Prim, path: Path) -> Payload:
+    """One RelightPayload prim, its attributes checked for consistency."""
+    names = list(_get(prim, "relight:constantChannels", path))
+    values = [float(v) for v in _get(prim, "relight:constantValues", path)]
+    _require(len(names) == len(values), path, prim,
+             f"relight:constantValues has {len(values)} values for {len(names)} relight:constantChannels")
+    file = _get(prim, "relight:file", path).path
+    _require(bool(file), path, prim, "relight:file is empty")
+    payload = Payload(
+        name=prim.GetName(),
+        file=os.path.normpath(file),
+        format=_get(prim, "relight:format", path),
+        sha256=_get(prim, "relight:sha256", path),
+        num_bytes=int(_get(prim, "relight:bytes", path)),
+        channels=tuple(_get(prim, "relight:channels", path)),
+        shape=tuple(int(n) for n in _get(prim, "relight:shape", path)),
+        dtype=_get(prim, "relight:dtype", path),
+        constants=dict(zip(names, values)),
+    )
+    _require(payload.format in FORMATS, path, prim, f"relight:format {payload.format!r} is not one of {FORMATS}")
+    _require(_SHA256.fullmatch(payload.sha256) is not None, path, prim,
+             f"relight:sha256 {payload.sha256!r} is not a sha256 hex digest")
+    _require(payload.num_bytes > 0, path, prim, f"relight:bytes = {payload.num_bytes} must be > 0")
+    if payload.format == "exr":
+        _require(len(payload.channels) > 0, path, prim, "relight:channels is empty for an EXR payload")
+    else:
+        _require(all(n >= 0 for n in payload.shape), path, prim, f"relight:shape {list(payload.shape)} is negative")
+        _require(_plain_dtype(payload.dtype), path, prim,
+                 f"relight:dtype {payload.dtype!r} is not a numpy dtype without objects")
+    return payload
 
 
 def read_cache_layer(path: str | os.PathLike) -> CacheDescription:
     """Read a cache layer (payload files are not opened here).
 
     Raises:
-        RelightError: missing file, not a cache layer, unsupported version or missing attributes.
+        RelightError: missing file, not a cache layer, unsupported version, or an attribute that is
+            missing, of the wrong type or inconsistent with the others (one line naming it).
     """
     register_schemas()
     path = Path(path)
@@ -191,43 +298,41 @@ def read_cache_layer(path: str | os.PathLike) -> CacheDescription:
         raise RelightError(f"{path}: not a relight cache (no RelightCache prim at {CACHE_PRIM})")
     version = _get(cache, "relight:version", path)
     if version != CACHE_VERSION:
-        raise RelightError(f"{path}: cache version {version} is not supported (expected {CACHE_VERSION})")
+        raise RelightError(f"{path}: cache version {version} is not supported (this relight reads version "
+                           f"{CACHE_VERSION}); re-bake it")
+    method = _get(cache, "relight:method", path)
+    _require(method in METHODS, path, cache, f"relight:method {method!r} is not one of {METHODS}")
     directory = path.parent.resolve()
     source = _get(cache, "relight:source", path).path
-    files = _get(cache, "relight:inputFiles", path)
-    hashes = _get(cache, "relight:inputHashes", path)
+    _require(bool(source), path, cache, "relight:source is empty")
+    files = list(_get(cache, "relight:inputFiles", path))
+    hashes = list(_get(cache, "relight:inputHashes", path))
+    _require(len(files) == len(hashes), path, cache,
+             f"relight:inputHashes has {len(hashes)} entries for {len(files)} relight:inputFiles")
+    resolution = tuple(int(v) for v in _get(cache, "relight:resolution", path))
+    _require(min(resolution) > 0, path, cache, f"relight:resolution {list(resolution)} must be positive")
+    supersampling = int(_get(cache, "relight:supersampling", path))
+    _require(supersampling >= 1, path, cache, f"relight:supersampling = {supersampling} must be >= 1")
+    exposure_scale = float(_get(cache, "relight:exposureScale", path))
+    _require(math.isfinite(exposure_scale) and exposure_scale >= 0, path, cache,
+             f"relight:exposureScale = {exposure_scale} must be finite and >= 0")
+    matrix = np.array(_get(cache, "relight:worldFromCamera", path), dtype=np.float64).T
+    _require(bool(np.all(np.isfinite(matrix))) and not math.isclose(abs(np.linalg.det(matrix[:3, :3])), 0.0),
+             path, cache, "relight:worldFromCamera is not a valid transform")
     parameters = {a.GetName().split(":", 2)[2]: a.Get() for a in cache.GetAttributes()
                   if a.GetName().startswith("relight:parameters:")}
-    payloads = []
-    for prim in cache.GetChildren():
-        if prim.GetTypeName() != "RelightPayload":
-            continue
-        names = list(_get(prim, "relight:constantChannels", path))
-        values = list(_get(prim, "relight:constantValues", path))
-        payloads.append(Payload(
-            name=prim.GetName(),
-            file=_get(prim, "relight:file", path).path,
-            format=_get(prim, "relight:format", path),
-            sha256=_get(prim, "relight:sha256", path),
-            num_bytes=int(_get(prim, "relight:bytes", path)),
-            channels=tuple(_get(prim, "relight:channels", path)),
-            shape=tuple(int(n) for n in _get(prim, "relight:shape", path)),
-            dtype=_get(prim, "relight:dtype", path),
-            constants=dict(zip(names, (float(v) for v in values))),
-        ))
-    matrix = np.array(_get(cache, "relight:worldFromCamera", path), dtype=np.float64).T
-    if not np.all(np.isfinite(matrix)) or math.isclose(abs(np.linalg.det(matrix[:3, :3])), 0.0):
-        raise RelightError(f"{path}: relight:worldFromCamera is not a valid transform")
+    payloads = tuple(_read_payload(prim, path) for prim in cache.GetChildren()
+                     if prim.GetTypeName() == "RelightPayload")
     return CacheDescription(
-        method=_get(cache, "relight:method", path),
+        method=method,
         source=str((directory / source).resolve()),
         camera_path=_get(cache, "relight:cameraPath", path),
-        resolution=tuple(int(v) for v in _get(cache, "relight:resolution", path)),
-        supersampling=int(_get(cache, "relight:supersampling", path)),
+        resolution=resolution,
+        supersampling=supersampling,
         world_from_camera=matrix,
-        exposure_scale=float(_get(cache, "relight:exposureScale", path)),
+        exposure_scale=exposure_scale,
         content_hash=_get(cache, "relight:contentHash", path),
         inputs={str((directory / f).resolve()): h for f, h in zip(files, hashes)},
         parameters=parameters,
-        payloads=tuple(payloads),
+        payloads=payloads,
     )

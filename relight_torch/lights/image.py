@@ -1,8 +1,7 @@
 """Light images (dome and rect textures, cookies): reading, lookups, and per-device copies.
 
 Images are (H, W, 3) float32 linear RGB with row 0 at the TOP, as `Light.texture` and
-`BarzelShaping.cookie` hold them. Integer-format files (PNG, JPEG, 8/16-bit TIFF) are taken to be
-sRGB-encoded and decoded to linear; float formats (EXR, HDR, float TIFF) are linear already.
+`BarzelShaping.cookie` hold them; files are decoded as textures are (8-bit colour is sRGB).
 """
 
 from __future__ import annotations
@@ -13,14 +12,12 @@ import weakref
 from typing import Callable, Hashable
 
 import numpy as np
-import OpenImageIO as oiio
 import torch
 
-_INTEGER_FORMATS = (oiio.UINT8, oiio.UINT16, oiio.INT8, oiio.INT16)
-
+from relight_torch.io.images import read_image
 
 def read_linear_rgb(path: str | os.PathLike) -> np.ndarray:
-    """Read an image file as linear RGB.
+    """Read an image file as linear RGB (`relight_torch.io.images.read_image`, 'auto' colour space).
 
     Args:
         path: image file readable by OpenImageIO.
@@ -32,22 +29,11 @@ def read_linear_rgb(path: str | os.PathLike) -> np.ndarray:
     Raises:
         ValueError: the file cannot be read or holds non-finite pixels.
     """
-    buffer = oiio.ImageBuf(str(path))
-    pixels = buffer.get_pixels(oiio.FLOAT)
-    if buffer.has_error or pixels is None:
-        raise ValueError(f"{path}: cannot read image ({buffer.geterror().strip() or 'unknown format'})")
-    pixels = np.asarray(pixels, np.float32).reshape(buffer.spec().height, buffer.spec().width, -1)
+    pixels = read_image(str(path)).pixels
     rgb = np.repeat(pixels[..., :1], 3, axis=-1) if pixels.shape[-1] < 3 else pixels[..., :3]
-    if buffer.spec().format.basetype in _INTEGER_FORMATS:
-        rgb = _srgb_to_linear(rgb)
     if not np.isfinite(rgb).all():
         raise ValueError(f"{path}: image holds non-finite pixels")
     return np.ascontiguousarray(rgb, np.float32)
-
-
-def _srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB decoding of values in [0, 1]."""
-    return np.where(encoded <= 0.04045, encoded / 12.92, ((encoded + 0.055) / 1.055) ** 2.4)
 
 
 class ArrayTensorCache:

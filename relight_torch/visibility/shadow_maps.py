@@ -56,7 +56,7 @@ import torch
 from relight_torch.errors import RelightError
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.math.frame import orthonormal_basis
-from relight_torch.visibility.depth_maps import DepthMap, OrthoMap, PinholeMaps
+from relight_torch.visibility.depth_maps import CubeMap, DepthMap, OrthoMap, PinholeMaps
 
 # Bias floor for "behind the stored surface", in texel footprints at the stored depth.
 BEHIND_TEXELS = 1.0
@@ -119,6 +119,7 @@ class ShadowMapVisibility:
             RelightError: for a dome light (shadow maps cannot represent it).
         """
         dtype = self.occluders.dtype
+        result_dtype = distances.dtype
         points, normals = points.to(dtype), normals.to(dtype)
         directions, distances = directions.to(dtype), distances.to(dtype)
         depth_map = self.depth_map(light, points)
@@ -129,7 +130,7 @@ class ShadowMapVisibility:
         else:
             reach = torch.where(torch.isfinite(distances), distances, torch.zeros_like(distances))
         found = _march(depth_map, points, normals, directions, reach, self.march_steps)
-        return found.to(distances.dtype)
+        return found.to(result_dtype)
 
     def depth_map(self, light: Light, points: torch.Tensor | None = None) -> DepthMap:
         """The light's map, built on first use and whenever its geometry (or a distant window) changes.
@@ -170,7 +171,7 @@ class ShadowMapVisibility:
             right, up = orthonormal_basis(forward)
             tan_half_fov = math.tan(math.radians(shaping.cone_angle + SPOT_MARGIN_DEGREES))
             return PinholeMaps(centre, torch.stack((right, up, forward)).unsqueeze(0), tan_half_fov, self.resolution)
-        return PinholeMaps.cube(centre, self.resolution)
+        return CubeMap(centre, self.resolution)
 
     def _distant_frame(self, light: Light) -> torch.Tensor:
         """(3, 3) rows right, up, forward (= the light's -direction) of a distant light's map."""

@@ -1,0 +1,194 @@
+"""`relight bake --method transfer`: the direct cache plus gathers and wavelet transfer rows.
+
+Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct`):
+    <stem>.viewPixels.npy          (R,) int64 pixel (row * W + col) of each F row: one view
+                                   sample per pixel centre (indirect light is smooth; the direct
+                                   part keeps the cache's supersampling, as in the chapter)
+    <stem>.gather<Field>.npy       the gather cloud (`GatherSamples` fields), texture order
+    <stem>.finalGather<Part>.npy   F: Values (nnz, 3) float16 | uint8, Scale and Low (R, 3)
+                                   float32, Indices (nnz,) int32, Offsets (R + 1,) int64
+                                   (`relight_torch.transfer.sparse` and `.encoding`)
+    <stem>.bounce<Part>.npy        M, the same layout over G rows, when bounces > 1
+Rows are baked in chunks saved under `.<stem>.transfer-<hash>/` as they finish; a killed bake
+re-run with the same inputs and settings skips the finished chunks. The cache layer is rewritten
+last (method 'transfer'), then the chunk directory is removed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from pipeline import __version__
+from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
+from pipeline.bake.direct import bake_direct, write_npy
+from pipeline.bake.transfer.gather_cloud import create_gathers
+from pipeline.bake.transfer.rows import bounce_rows, final_gather_rows
+from pipeline.progress import progress_bar
+from pipeline.scene.types import Camera, Scene
+from pipeline.tracing import Tracer
+from relight_torch.cache.layer import Payload, content_hash, read_cache_layer, write_cache_layer
+from relight_torch.io.atomic import atomic_path
+from relight_torch.transfer.encoding import ENCODINGS, EncodedValues, encode
+from relight_torch.transfer.haar import haar2d
+from relight_torch.transfer.sparse import keep_top_k
+
+F_PREFIX, M_PREFIX = "finalGather", "bounce"
+_GATHER_FIELDS = ("position", "normal", "albedo", "emission", "area")
+
+
+@dataclass(frozen=True)
+class TransferSettings:
+    """What the transfer bake keeps.
+
+    Attributes:
+        num_gathers: gather samples, a power of 4 (the chapter: 65,536).
+        num_coefficients: wavelet coefficients kept per F row (the chapter: 100).
+        num_bounces: indirect bounces B; 1 bakes F only, B > 1 also M (applied B - 1 times).
+        num_bounce_coefficients: coefficients kept per M row (the chapter: 40).
+        encoding: 'float16' or 'uint8' (8-bit with per-row scale and offset).
+        seed: seed of the gather placement.
+        rows_per_chunk: rows per resumable chunk file.
+        pairs_per_batch: (row, gather) pairs evaluated together (bounds temporaries, ~100 B each).
+    """
+
+    num_gathers: int = 16384
+    num_coefficients: int = 100
+    num_bounces: int = 1
+    num_bounce_coefficients: int = 40
+    encoding: str = "float16"
+    seed: int = 0
+    rows_per_chunk: int = 4096
+    pairs_per_batch: int = 1 << 20
+
+    def check(self) -> None:
+        """Raise ValueError naming the first bad setting."""
+        if self.num_coefficients < 1 or self.num_bounce_coefficients < 1:
+            raise ValueError("the numbers of kept coefficients must be >= 1")
+        if self.num_bounces < 1:
+            raise ValueError(f"bounces must be >= 1, got {self.num_bounces}")
+        if self.encoding not in ENCODINGS:
+            raise ValueError(f"encoding must be one of {ENCODINGS}, got {self.encoding!r}")
+        if self.rows_per_chunk < 1 or self.pairs_per_batch < 1:
+            raise ValueError("rows_per_chunk and pairs_per_batch must be >= 1")
+
+    def parameters(self) -> dict[str, int | str]:
+        """The settings that change the cache, as cache-layer parameters."""
+        return {"gathers": self.num_gathers, "coefficients": self.num_coefficients, "bounces": self.num_bounces,
+                "bounceCoefficients": self.num_bounce_coefficients, "encoding": self.encoding,
+                "gatherSeed": self.seed}
+
+
+def _bake_chunk(evaluate: Callable[[slice], torch.Tensor], rows: slice, side: int, num_kept: int,
+                settings: TransferSettings, update: Callable[[int], None]) -> dict[str, np.ndarray]:
+    """Evaluate, transform, cull and encode the rows `rows`; arrays named as the payload parts."""
+    batch = max(1, settings.pairs_per_batch // (side * side))
+    parts = []
+    for start in range(rows.start, rows.stop, batch):
+        block = evaluate(slice(start, min(start + batch, rows.stop)))
+        parts.append(keep_top_k(haar2d(block.reshape(-1, side, side, 3)), num_kept))
+        update(min(start + batch, rows.stop) - rows.start)
+    values = torch.cat([p.values for p in parts])
+    counts = torch.cat([p.offsets.diff() for p in parts])
+    offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
+    encoded = encode(values, offsets, settings.encoding)
+    return {"Values": encoded.stored.numpy(), "Scale": encoded.scale.numpy(), "Low": encoded.low.numpy(),
+            "Indices": torch.cat([p.indices for p in parts]).numpy(), "Counts": counts.numpy()}
+
+
+def bake_rows(evaluate: Callable[[slice], torch.Tensor], num_rows: int, side: int, num_kept: int,
+              settings: TransferSettings, chunk_dir: Path, name: str, progress: bool | None = None
+              ) -> tuple[EncodedValues, torch.Tensor, torch.Tensor]:
+    """All rows of one matrix, chunk by chunk, reusing the chunks `chunk_dir` already holds.
+
+    Args:
+        evaluate: rows (a slice) -> (R, G, 3) dense matrix rows, gathers in texture order.
+        num_rows: rows of the matrix; side: n (G = n^2); num_kept: coefficients per row.
+        chunk_dir: where finished chunks are saved (`<name>-<first row>.npz`, written atomically).
+
+    Returns:
+        (encoded values, indices (nnz,) int32, offsets (R + 1,) int64).
+    """
+    chunks = []
+    with progress_bar(f"{name} rows", num_rows, "rows", progress) as update:
+        for first in range(0, num_rows, settings.rows_per_chunk):
+            rows = slice(first, min(first + settings.rows_per_chunk, num_rows))
+            path = chunk_dir / f"{name}-{first:09d}.npz"
+            if not path.is_file():
+                arrays = _bake_chunk(evaluate, rows, side, num_kept, settings,
+                                     lambda done, first=first: update(first + done, num_rows))
+                with atomic_path(path) as temp:
+                    with open(temp, "wb") as handle:
+                        np.savez(handle, **arrays)
+            with np.load(path, allow_pickle=False) as saved:
+                chunks.append({key: saved[key] for key in saved.files})
+            update(rows.stop, num_rows)
+
+    def join(key: str) -> torch.Tensor:
+        return torch.from_numpy(np.concatenate([c[key] for c in chunks]))
+
+    counts = join("Counts")
+    offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
+    return EncodedValues(join("Values"), join("Scale"), join("Low")), join("Indices"), offsets
+
+
+def _payload(out_dir: Path, stem: str, name: str, array: np.ndarray) -> Payload:
+    return dataclasses.replace(write_npy(out_dir / f"{stem}.{name}.npy", np.ascontiguousarray(array)), name=name)
+
+
+def _matrix_payloads(out_dir: Path, stem: str, prefix: str, encoded: EncodedValues, indices: torch.Tensor,
+                     offsets: torch.Tensor) -> list[Payload]:
+    arrays = {"Values": encoded.stored, "Scale": encoded.scale, "Low": encoded.low, "Indices": indices,
+              "Offsets": offsets}
+    return [_payload(out_dir, stem, prefix + part, array.numpy()) for part, array in arrays.items()]
+
+
+def bake_transfer(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
+                  texture_samples: int = 2, time_code: float | None = None,
+                  settings: TransferSettings = TransferSettings(), progress: bool | None = None) -> Path:
+    """Bake the transfer cache of `camera`; returns the cache layer's path.
+
+    Args:
+        supersampling: of the direct part (F has one row per covered pixel centre).
+        texture_samples: material samples per sub-sample side (texture filtering).
+        time_code: the time the scene was read at.
+        settings: gathers, kept coefficients, bounces, encoding.
+        progress: show progress bars (None: when stderr is a terminal).
+
+    Raises:
+        ValueError: bad settings (see `TransferSettings.check`, `create_gathers`).
+    """
+    settings.check()
+    out_dir = Path(out_dir)
+    layer_path = bake_direct(scene, camera, out_dir, stem, supersampling=supersampling,
+                             texture_samples=texture_samples, time_code=time_code)
+    description = read_cache_layer(layer_path)
+    parameters = {**description.parameters, **settings.parameters()}
+    digest = content_hash(description.inputs, parameters, __version__)
+    chunk_dir = out_dir / f".{stem}.transfer-{digest[:16]}"
+    chunk_dir.mkdir(parents=True, exist_ok=True)
+
+    tracer = Tracer(scene.geometry)
+    view = bake_deep_framebuffer(scene, camera, 1, texture_samples, tracer=tracer).gbuffer
+    gathers = create_gathers(scene, settings.num_gathers, settings.seed)
+    payloads = [_payload(out_dir, stem, "viewPixels", view.pixel_index.numpy())]
+    payloads += [_payload(out_dir, stem, "gather" + name.capitalize(), getattr(gathers, name).numpy())
+                 for name in _GATHER_FIELDS]
+    final_gather = bake_rows(lambda rows: final_gather_rows(view, rows, gathers, tracer), view.num_samples,
+                             gathers.side, settings.num_coefficients, settings, chunk_dir, F_PREFIX, progress)
+    payloads += _matrix_payloads(out_dir, stem, F_PREFIX, *final_gather)
+    if settings.num_bounces > 1:
+        bounce = bake_rows(lambda rows: bounce_rows(rows, gathers, tracer), gathers.num_gathers, gathers.side,
+                           settings.num_bounce_coefficients, settings, chunk_dir, M_PREFIX, progress)
+        payloads += _matrix_payloads(out_dir, stem, M_PREFIX, *bounce)
+    write_cache_layer(layer_path, dataclasses.replace(
+        description, method="transfer", parameters=parameters, content_hash=digest,
+        payloads=description.payloads + tuple(payloads)))
+    shutil.rmtree(chunk_dir)
+    return layer_path

@@ -1,0 +1,209 @@
+"""The gather cloud: samples over all surfaces by area, flattened into a square texture.
+
+Creation follows the chapter's divide-and-conquer (Listing 9-1): a budget of samples and a set of
+triangles are split together, the budget in proportion to the areas, until a group has one
+sample (placed on an area-weighted random triangle of the group, standing for the group's whole
+area) or one triangle (its budget of samples, each standing for an equal share). Two decisions:
+
+* Triangles larger than the mean area per sample are first halved along their longest edge, so
+  a big wall's samples are stratified over it like the rest instead of drawn at random.
+* `split` is a plane through the group's centroids, across the longest axis of their bounding box,
+  placed where the cumulative area reaches half.
+
+The recursion runs level by level over all groups at once (sorting by group, then key), so no
+Python loop visits triangles. Flattening (Listing 9-2) splits recursively into equal halves
+across the principal axis of the features (20 p / diagonal, n), whose squared distances are the
+chapter's `400 |dp|^2 + diagonal^2 |dn|^2` divided by diagonal^2; split k sets bit k (from the
+top) of the sample's Morton index, even splits choosing the row half, odd splits the column half.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from pipeline.scene.surface import evaluate_materials
+from pipeline.scene.types import Scene
+from relight_torch.brdf.preview_surface import PreviewSurfaceParams, diffuse_albedo
+from relight_torch.transfer.gathers import GatherSamples
+
+# Bounds on the level-by-level loops (each level at least halves something).
+MAX_REFINE_LEVELS = 48
+MAX_SPLIT_LEVELS = 96
+POSITION_WEIGHT = 20.0
+"""sqrt(400) of the chapter's distance, applied to positions divided by the scene diagonal."""
+
+
+def triangle_areas(corners: np.ndarray) -> np.ndarray:
+    """(T,) float64 areas of (T, 3, 3) triangles."""
+    corners = corners.astype(np.float64)
+    return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=-1)
+
+
+def refine_triangles(corners: np.ndarray, uvs: np.ndarray, max_area: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Halve triangles along their longest edge until none is larger than `max_area`.
+
+    Args:
+        corners: (T, 3, 3) float positions; uvs: (T, 3, 2) per-corner uvs (split alongside).
+        max_area: largest area to keep.
+
+    Returns:
+        (corners (T', 3, 3), uvs (T', 3, 2), parent (T',) int64 index of the input triangle); the
+        winding of every piece is its parent's.
+    """
+    parent = np.arange(corners.shape[0])
+    for _ in range(MAX_REFINE_LEVELS):
+        big = triangle_areas(corners) > max_area
+        if not big.any():
+            break
+        c, u = corners[big], uvs[big]
+        edge_lengths = np.linalg.norm(np.roll(c, -1, axis=1) - c, axis=-1)
+        roll = (np.argmax(edge_lengths, axis=1)[:, None] + np.arange(3)) % 3
+        c = np.take_along_axis(c, roll[:, :, None], axis=1)
+        u = np.take_along_axis(u, roll[:, :, None], axis=1)
+        mid_c, mid_u = 0.5 * (c[:, 0] + c[:, 1]), 0.5 * (u[:, 0] + u[:, 1])
+        corners = np.concatenate([corners[~big], np.stack([c[:, 0], mid_c, c[:, 2]], 1),
+                                  np.stack([mid_c, c[:, 1], c[:, 2]], 1)])
+        uvs = np.concatenate([uvs[~big], np.stack([u[:, 0], mid_u, u[:, 2]], 1), np.stack([mid_u, u[:, 1], u[:, 2]], 1)])
+        parent = np.concatenate([parent[~big], parent[big], parent[big]])
+    return corners, uvs, parent
+
+
+def split_budget(centroids: np.ndarray, areas: np.ndarray, num_samples: int,
+                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Listing 9-1's recursion: which triangle each sample lands on, and the area it stands for.
+
+    Args:
+        centroids: (T, 3) triangle centroids; areas: (T,) positive areas.
+        num_samples: the budget (>= 1).
+        rng: picks the triangle of one-sample groups.
+
+    Returns:
+        (triangle (num_samples,) int64, area (num_samples,) float64); areas sum to the total.
+    """
+    order = np.arange(areas.shape[0])
+    start, count = np.array([0]), np.array([areas.shape[0]])
+    budget, group_area = np.array([num_samples]), np.array([areas.sum()])
+    for _ in range(MAX_SPLIT_LEVELS):
+        active = (budget > 1) & (count > 1)
+        if not active.any():
+            break
+        group = np.repeat(np.arange(start.shape[0]), count)
+        points = centroids[order]
+        extent = np.maximum.reduceat(points, start, axis=0) - np.minimum.reduceat(points, start, axis=0)
+        key = points[np.arange(order.shape[0]), np.argmax(extent, axis=1)[group]]
+        order = order[np.lexsort((key, group))]
+        cumulative = np.cumsum(areas[order])
+        before_group = cumulative[start] - areas[order][start]
+        within = cumulative - before_group[group]
+        num_before_half = np.add.reduceat(within < 0.5 * group_area[group], start)
+        left = np.clip(num_before_half + 1, 1, np.maximum(count - 1, 1))
+        left_area = within[start + left - 1]
+        left_budget = np.clip((budget * left_area / group_area).astype(np.int64), 1, np.maximum(budget - 1, 1))
+        # Each active group becomes (left, right); inactive groups stay as they are.
+        start, count, budget, group_area = (
+            _interleave(active, start, start, start + left), _interleave(active, count, left, count - left),
+            _interleave(active, budget, left_budget, budget - left_budget),
+            _interleave(active, group_area, left_area, group_area - left_area))
+    cumulative = np.cumsum(areas[order])
+    before_group = cumulative[start] - areas[order][start]
+    # One-sample groups: an area-weighted random triangle; one-triangle groups: all their samples on it.
+    target = before_group + rng.random(start.shape[0]) * group_area
+    pick = np.clip(np.searchsorted(cumulative, target, side="right"), start, start + count - 1)
+    sample_group = np.repeat(np.arange(start.shape[0]), budget)
+    triangle = order[pick][sample_group]
+    return triangle, (group_area / budget)[sample_group]
+
+
+def _interleave(active: np.ndarray, whole: np.ndarray, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """New per-group array: `whole` for inactive groups, `left` then `right` for active ones."""
+    repeat = np.where(active, 2, 1)
+    first = np.cumsum(repeat) - repeat
+    out = np.empty(int(repeat.sum()), dtype=np.result_type(whole, left, right))
+    out[first] = np.where(active, left, whole)
+    out[first[active] + 1] = right[active]
+    return out
+
+
+def flatten_order(position: np.ndarray, normal: np.ndarray, diagonal: float) -> np.ndarray:
+    """Listing 9-2: the texture position of each sample, similar samples in the same Haar blocks.
+
+    Args:
+        position, normal: (G, 3) with G = 4^L.
+        diagonal: the scene's bounding-box diagonal.
+
+    Returns:
+        (G,) int64 permutation: texture cell t (row-major in the n x n square) holds sample
+        `order[t]`.
+    """
+    num = position.shape[0]
+    side = math.isqrt(num)
+    num_levels = 2 * int(round(math.log2(side))) if side > 1 else 0
+    features = np.concatenate([POSITION_WEIGHT * position / diagonal, normal], axis=1).astype(np.float64)
+    morton = np.arange(num)
+    for level in range(num_levels):
+        groups = morton.reshape(1 << level, -1)
+        f = features[groups]
+        centred = f - f.mean(axis=1, keepdims=True)
+        _, vectors = np.linalg.eigh(np.einsum("gmi,gmj->gij", centred, centred))
+        projection = np.einsum("gmi,gi->gm", centred, vectors[..., -1])
+        morton = np.take_along_axis(groups, np.argsort(projection, axis=1, kind="stable"), axis=1).reshape(-1)
+    index = np.arange(num)
+    row, col = np.zeros(num, np.int64), np.zeros(num, np.int64)
+    for level in range(num_levels):
+        bit = (index >> (num_levels - 1 - level)) & 1
+        if level % 2 == 0:
+            row = (row << 1) | bit
+        else:
+            col = (col << 1) | bit
+    order = np.empty(num, np.int64)
+    order[row * side + col] = morton
+    return order
+
+
+def create_gathers(scene: Scene, num_gathers: int, seed: int = 0) -> GatherSamples:
+    """The scene's gather cloud, in texture order (CPU float32 tensors).
+
+    Args:
+        scene: the shot (its triangle soup and materials).
+        num_gathers: a power of 4.
+        seed: seed of the random placement.
+
+    Raises:
+        ValueError: num_gathers is not a power of 4, or the scene has no surface area.
+    """
+    side = math.isqrt(num_gathers)
+    if num_gathers < 1 or side * side != num_gathers or side & (side - 1):
+        raise ValueError(f"the number of gathers must be a power of 4, got {num_gathers}")
+    geometry = scene.geometry
+    areas = triangle_areas(geometry.positions)
+    keep = areas > 0
+    if not keep.any():
+        raise ValueError("the scene has no surface area to place gathers on")
+    corners, uvs, parent = refine_triangles(geometry.positions[keep].astype(np.float64), geometry.uvs[keep],
+                                            areas.sum() / num_gathers)
+    parent = np.flatnonzero(keep)[parent]
+    rng = np.random.default_rng(seed)
+    triangle, sample_area = split_budget(corners.mean(axis=1), triangle_areas(corners), num_gathers, rng)
+    # Uniform point in each chosen triangle.
+    u = rng.random((num_gathers, 2))
+    root = np.sqrt(u[:, 0])
+    weights = np.stack([1.0 - root, u[:, 1] * root, root * (1.0 - u[:, 1])], axis=1)
+    c = corners[triangle]
+    position = np.einsum("gc,gck->gk", weights, c)
+    uv = np.einsum("gc,gck->gk", weights, uvs[triangle].astype(np.float64))
+    normal = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    material_id = geometry.material_ids[parent[triangle]]
+    values = evaluate_materials(scene.materials, material_id, uv.astype(np.float32))
+    values.pop("normal_tangent")
+    params = PreviewSurfaceParams.from_numpy(values)
+    points = geometry.positions.reshape(-1, 3)
+    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    order = flatten_order(position, normal, diagonal)
+    columns = {"position": position, "normal": normal, "albedo": diffuse_albedo(params).numpy(),
+               "emission": values["emissive_color"], "area": sample_area}
+    return GatherSamples(**{name: torch.from_numpy(np.ascontiguousarray(np.asarray(a)[order], np.float32))
+                            for name, a in columns.items()})

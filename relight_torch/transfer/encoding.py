@@ -1,0 +1,71 @@
+"""How wavelet row values are stored: float16 or 8-bit, each with a per-row, per-channel scale.
+
+Coefficients of one row span many magnitudes and rows differ by orders of magnitude (a view
+sample in a corner against one in the open), so both encodings normalise per row and channel
+(the chapter quantises per block with a scale and an offset at the quad's vertices; a row is our
+block):
+
+    float16: stored = value / scale,               scale = max |value| of the row's channel
+    uint8:   stored = round(255 (value - low) / scale), scale = max - min, low = min
+
+Decoding gives float values again; the relighter decodes once at load time.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+ENCODINGS = ("float16", "uint8")
+
+
+@dataclass(frozen=True)
+class EncodedValues:
+    """Stored values of R rows.
+
+    Attributes:
+        stored: (nnz, C) float16 or uint8.
+        scale: (R, C) float32 per-row, per-channel scale.
+        low: (R, C) float32 per-row, per-channel offset (zero for float16).
+    """
+
+    stored: torch.Tensor
+    scale: torch.Tensor
+    low: torch.Tensor
+
+
+def _row_of(offsets: torch.Tensor) -> torch.Tensor:
+    """(nnz,) row of each entry of a CSR layout with (R + 1,) offsets."""
+    return torch.repeat_interleave(torch.arange(offsets.shape[0] - 1, device=offsets.device), offsets.diff())
+
+
+def _segment_reduce(values: torch.Tensor, row: torch.Tensor, num_rows: int, reduce: str, initial: float) -> torch.Tensor:
+    out = values.new_full((num_rows, values.shape[1]), initial)
+    return out.scatter_reduce(0, row.unsqueeze(-1).expand_as(values), values, reduce, include_self=False)
+
+
+def encode(values: torch.Tensor, offsets: torch.Tensor, encoding: str) -> EncodedValues:
+    """Encode (nnz, C) float values of rows laid out by (R + 1,) offsets."""
+    if encoding not in ENCODINGS:
+        raise ValueError(f"encoding must be one of {ENCODINGS}, got {encoding!r}")
+    values = values.float()
+    row, num_rows = _row_of(offsets), offsets.shape[0] - 1
+    if encoding == "float16":
+        scale = _segment_reduce(values.abs(), row, num_rows, "amax", 0.0)
+        scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+        return EncodedValues((values / scale[row]).half(), scale, torch.zeros_like(scale))
+    low = _segment_reduce(values, row, num_rows, "amin", 0.0)
+    high = _segment_reduce(values, row, num_rows, "amax", 0.0)
+    scale = torch.where(high > low, high - low, torch.ones_like(high))
+    stored = torch.round(255.0 * (values - low[row]) / scale[row]).clamp(0, 255).to(torch.uint8)
+    return EncodedValues(stored, scale, low)
+
+
+def decode(encoded: EncodedValues, offsets: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """(nnz, C) values of `dtype` back from their encoding."""
+    row = _row_of(offsets)
+    scale, low = encoded.scale.to(dtype), encoded.low.to(dtype)
+    if encoded.stored.dtype == torch.uint8:
+        return low[row] + scale[row] * (encoded.stored.to(dtype) / 255.0)
+    return encoded.stored.to(dtype) * scale[row]

@@ -1,0 +1,90 @@
+"""Gather samples: the diffuse points that carry light from the lights to the view samples.
+
+They are spread over every surface, visible or not, and stored in the order of the square
+n x n texture their Haar transform works on (row-major: sample t sits at row t // n, column
+t % n), so that a light vector over gathers reshapes to an (n, n, C) image.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import torch
+
+from relight_torch.light_samples import fixed_light_samples
+from relight_torch.lights.emission import sample_light
+from relight_torch.lights.light import Light
+from relight_torch.lights.shadow import shadow_factor
+from relight_torch.visibility import Visibility
+
+
+@dataclass(frozen=True)
+class GatherSamples:
+    """G = n^2 gather samples in texture order.
+
+    Attributes:
+        position: (G, 3) world position.
+        normal: (G, 3) unit normal of the side that receives and emits (the triangle's winding).
+        albedo: (G, 3) diffuse albedo (UsdPreviewSurface `diffuse_albedo`).
+        emission: (G, 3) emitted radiance (emissiveColor).
+        area: (G,) world surface area each sample stands for.
+    """
+
+    position: torch.Tensor
+    normal: torch.Tensor
+    albedo: torch.Tensor
+    emission: torch.Tensor
+    area: torch.Tensor
+
+    def __post_init__(self) -> None:
+        num = self.position.shape[0]
+        side = math.isqrt(num)
+        if side * side != num or side & (side - 1):
+            raise ValueError(f"the number of gathers must be a power of 4, got {num}")
+        for name in ("position", "normal", "albedo", "emission"):
+            if getattr(self, name).shape != (num, 3):
+                raise ValueError(f"GatherSamples.{name} must be ({num}, 3), got {tuple(getattr(self, name).shape)}")
+        if self.area.shape != (num,):
+            raise ValueError(f"GatherSamples.area must be ({num},), got {tuple(self.area.shape)}")
+
+    @property
+    def num_gathers(self) -> int:
+        return int(self.position.shape[0])
+
+    @property
+    def side(self) -> int:
+        """n, the side of the square texture."""
+        return math.isqrt(self.num_gathers)
+
+    def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> "GatherSamples":
+        return GatherSamples(**{f.name: getattr(self, f.name).to(device, dtype) for f in fields(self)})
+
+
+def gather_radiance(light: Light, gathers: GatherSamples, visibility: Visibility, num_samples: int,
+                    seed: int = 0, chunk_points: int = 1 << 16) -> torch.Tensor:
+    """Radiance (G, 3) leaving each gather after one diffuse reflection of `light`.
+
+    L = diffuse * albedo / pi * E, with E the irradiance from `num_samples` fixed light samples per
+    gather (the view samples' light kernels and visibility: `sample_light`, `occluder_distance`,
+    `shadow_factor`), on the side the gather's normal points to.
+
+    Args:
+        light: the light (its colour included; pass a unit light to cache per light).
+        gathers: the gather samples (device and dtype of the result).
+        visibility: shadow queries, as for the view samples.
+        num_samples: light samples per gather (1 for delta lights).
+        seed: seed of the fixed sample pattern.
+        chunk_points: gathers processed together.
+    """
+    u = fixed_light_samples(gathers.num_gathers, num_samples, seed, gathers.position.device, gathers.position.dtype)
+    irradiance = torch.zeros_like(gathers.position)
+    for start in range(0, gathers.num_gathers, chunk_points):
+        chunk = slice(start, start + chunk_points)
+        position, normal = gathers.position[chunk], gathers.normal[chunk]
+        sample = sample_light(light, position, u[chunk])
+        distance = visibility.occluder_distance(light, position, normal, sample.direction, sample.distance)
+        shadow = shadow_factor(light.shadow, torch.isfinite(distance), distance)
+        cosine = (sample.direction * normal.unsqueeze(1)).sum(-1).clamp(min=0.0)
+        irradiance[chunk] = (sample.weight() * shadow * cosine.unsqueeze(-1)).mean(dim=1)
+    return light.diffuse * gathers.albedo / math.pi * irradiance

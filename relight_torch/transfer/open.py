@@ -1,0 +1,80 @@
+"""Opening a cache for relighting, whatever its method: the one entry point `relight render` uses."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from relight_torch.cache.layer import CacheDescription, read_cache_layer
+from relight_torch.cache.load import load_npy
+from relight_torch.errors import RelightError
+from relight_torch.relighter import Relighter, RelightSettings, open_relighter
+from relight_torch.transfer.encoding import EncodedValues, decode
+from relight_torch.transfer.gathers import GatherSamples
+from relight_torch.transfer.relighter import TransferRelighter
+from relight_torch.transfer.sparse import SparseRows
+
+_GATHER_FIELDS = ("position", "normal", "albedo", "emission", "area")
+
+
+def _load(layer_path: Path, description: CacheDescription, name: str) -> torch.Tensor:
+    """A .npy payload (checked against the layer) as a CPU tensor."""
+    return torch.from_numpy(np.array(load_npy(layer_path, description, name)))
+
+
+def load_sparse_rows(layer_path: Path, description: CacheDescription, prefix: str, num_columns: int) -> SparseRows:
+    """The wavelet rows stored under `prefix` (see `pipeline.bake.transfer.bake`), decoded, checked.
+
+    Raises:
+        RelightError: a payload is missing or breaks the layout's invariants.
+    """
+    parts = {part: _load(layer_path, description, prefix + part) for part in ("Values", "Scale", "Low",
+                                                                           "Indices", "Offsets")}
+    offsets = parts["Offsets"]
+    rows = SparseRows(decode(EncodedValues(parts["Values"], parts["Scale"], parts["Low"]), offsets),
+                      parts["Indices"], offsets, num_columns)
+    try:
+        rows.check()
+    except ValueError as error:
+        raise RelightError(f"{layer_path}: {prefix} rows are malformed ({error})") from None
+    return rows
+
+
+def open_transfer_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
+                            lights_layer: str | os.PathLike | None = None,
+                            settings: RelightSettings = RelightSettings()) -> TransferRelighter:
+    """A TransferRelighter for a 'transfer' cache layer (arguments as `open_relighter`)."""
+    layer_path = Path(path)
+    direct = open_relighter(layer_path, device, shadows, lights_layer, settings)
+    description = direct.description
+    gathers = GatherSamples(**{name: _load(layer_path, description, "gather" + name.capitalize())
+                               for name in _GATHER_FIELDS}).to(device)
+    dtype = direct.gbuffer.position.dtype
+    final_gather = load_sparse_rows(layer_path, description, "finalGather", gathers.num_gathers).to(device, dtype)
+    num_bounces = int(description.parameters["bounces"])
+    bounce = (load_sparse_rows(layer_path, description, "bounce", gathers.num_gathers).to(device, dtype)
+              if num_bounces > 1 else None)
+    view_pixels = _load(layer_path, description, "viewPixels").to(device)
+    try:
+        return TransferRelighter(direct, gathers, view_pixels, final_gather, bounce, num_bounces)
+    except ValueError as error:
+        raise RelightError(f"{layer_path}: {error}") from None
+
+
+def open_cache_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
+                         lights_layer: str | os.PathLike | None = None,
+                         settings: RelightSettings = RelightSettings()) -> Relighter | TransferRelighter:
+    """The relighter of a cache layer's method ('direct' or 'transfer'); arguments as `open_relighter`.
+
+    Raises:
+        RelightError: the layer is unreadable, of another method, stale or corrupt.
+    """
+    method = read_cache_layer(path).method
+    if method == "direct":
+        return open_relighter(path, device, shadows, lights_layer, settings)
+    if method == "transfer":
+        return open_transfer_relighter(path, device, shadows, lights_layer, settings)
+    raise RelightError(f"{path}: cannot relight a {method!r} cache (this build relights 'direct' and 'transfer')")

@@ -1,0 +1,150 @@
+"""The transfer relighter: direct light from the direct `Relighter`, plus indirect light.
+
+Per light, linear as the direct part: the unit light's gather radiance g_d (one reflection off
+the gathers, `gather_radiance`) and its indirect image F (I + M + ... + M^(B-1)) g_d are cached,
+and scaled by the light's colour factor at render time. A colour edit therefore re-renders
+nothing; a move or a reshape recomputes that light's gather light and one pass of sparse
+products; other lights keep theirs. Emissive gathers add a light-independent term, computed once.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+
+import numpy as np
+import torch
+
+from relight_torch.lights.emission import is_delta_light
+from relight_torch.lights.light import Light, LightKind
+from relight_torch.relighter import Relighter, colour_scale, unit_light
+from relight_torch.transfer.gathers import GatherSamples, gather_radiance
+from relight_torch.transfer.haar import haar2d
+from relight_torch.transfer.sparse import SparseRows
+
+
+def _frozen(value) -> object:
+    """A hashable, comparable snapshot of a light field (arrays by content, dataclasses by field)."""
+    if isinstance(value, np.ndarray):
+        return value.shape, value.dtype.str, value.tobytes()
+    if dataclasses.is_dataclass(value):
+        return tuple((f.name, _frozen(getattr(value, f.name))) for f in dataclasses.fields(value))
+    return value
+
+
+@dataclasses.dataclass
+class _IndirectState:
+    key: object                 # `_frozen(unit_light(light))`: what the cached work depends on
+    unit_indirect: torch.Tensor  # (R, 3) indirect radiance of the unit light at the F rows
+
+
+class TransferRelighter:
+    """Direct + indirect relighting of one transfer cache.
+
+    Args:
+        direct: the direct relighter of the cache's deep framebuffer (lights live there; its
+            visibility also answers the gathers' shadow queries).
+        gathers: the G gather samples, texture order, on the direct relighter's device.
+        view_pixels: (R,) int64 pixel (row * W + col) of each F row.
+        final_gather: F, R wavelet rows over G.
+        bounce: M, G wavelet rows over G, or None for one bounce.
+        num_bounces: B >= 1; M is applied B - 1 times.
+    """
+
+    def __init__(self, direct: Relighter, gathers: GatherSamples, view_pixels: torch.Tensor,
+                 final_gather: SparseRows, bounce: SparseRows | None = None, num_bounces: int = 1):
+        if final_gather.num_columns != gathers.num_gathers or final_gather.num_rows != view_pixels.shape[0]:
+            raise ValueError(f"F is {final_gather.num_rows}x{final_gather.num_columns}; expected "
+                             f"{view_pixels.shape[0]} view rows x {gathers.num_gathers} gathers")
+        if num_bounces < 1 or (num_bounces > 1 and (bounce is None or bounce.num_rows != gathers.num_gathers)):
+            raise ValueError(f"{num_bounces} bounces need M as {gathers.num_gathers} rows (got "
+                             f"{None if bounce is None else bounce.num_rows})")
+        self.direct = direct
+        self.gathers = gathers
+        self.view_pixels = view_pixels
+        self.final_gather = final_gather
+        self.bounce = bounce
+        self.num_bounces = num_bounces
+        self.counters: collections.Counter[str] = collections.Counter()
+        self._states: dict[str, _IndirectState] = {}
+        self._emission_indirect: torch.Tensor | None = None
+
+    # -- lights (the direct relighter holds them) -----------------------------------------------
+
+    @property
+    def lights(self) -> list[Light]:
+        return self.direct.lights
+
+    def set_lights(self, lights: list[Light]) -> None:
+        """Replace the whole rig; unchanged lights keep their cached work."""
+        self.direct.set_lights(lights)
+        for path in set(self._states) - {light.path for light in lights}:
+            del self._states[path]
+
+    def set_light(self, light: Light) -> None:
+        """Add or edit a light (matched by path)."""
+        self.direct.set_light(light)
+
+    def remove_light(self, path: str) -> None:
+        self.direct.remove_light(path)
+        self._states.pop(path, None)
+
+    # -- rendering ------------------------------------------------------------------------------
+
+    def render(self) -> torch.Tensor:
+        """(H, W, 3) linear image: direct (supersampled) + indirect (per pixel), exposure applied."""
+        return self.direct.render() + self.indirect_image()
+
+    def indirect_image(self) -> torch.Tensor:
+        """(H, W, 3) indirect light alone, camera exposure applied."""
+        rows = self.indirect_rows()
+        height, width = (size // self.direct.supersampling for size in self.direct.gbuffer.image_size)
+        image = rows.new_zeros((height * width, 3))
+        image[self.view_pixels] = rows
+        return image.reshape(height, width, 3) * self.direct.exposure_scale
+
+    def indirect_rows(self) -> torch.Tensor:
+        """(R, 3) indirect radiance at the F rows' view samples (exposure not applied)."""
+        total = self._emission_rows()
+        for light in self.lights:
+            scale = torch.as_tensor(colour_scale(light), device=total.device, dtype=total.dtype)
+            if bool((scale == 0).all()):
+                continue
+            total = total + scale * self._unit_indirect(light)
+        return total
+
+    def transfer(self, radiance: torch.Tensor) -> torch.Tensor:
+        """F (I + M + ... + M^(B-1)) radiance: (G, 3) gather radiance -> (R, 3) at the view rows."""
+        total, bounced = radiance, radiance
+        for _ in range(self.num_bounces - 1):
+            bounced = self.bounce.matmul(self._wavelet(bounced))
+            total = total + bounced
+        self.counters["transfer"] += 1
+        return self.final_gather.matmul(self._wavelet(total))
+
+    def _wavelet(self, radiance: torch.Tensor) -> torch.Tensor:
+        """(G, 3) gather values in texture order -> (G, 3) Haar coefficients, flattened row-major."""
+        side = self.gathers.side
+        return haar2d(radiance.reshape(side, side, 3)).reshape(-1, 3)
+
+    # -- cached stages --------------------------------------------------------------------------
+
+    def _emission_rows(self) -> torch.Tensor:
+        if self._emission_indirect is None:
+            self._emission_indirect = self.transfer(self.gathers.emission)
+        return self._emission_indirect
+
+    def _unit_indirect(self, light: Light) -> torch.Tensor:
+        unit = unit_light(light)
+        key = _frozen(unit)
+        state = self._states.get(light.path)
+        if state is None or state.key != key:
+            settings = self.direct.settings
+            num_samples = 1 if is_delta_light(unit) else (
+                settings.dome_samples if unit.kind is LightKind.DOME else settings.area_samples)
+            radiance = gather_radiance(unit, self.gathers, self.direct.visibility, num_samples, settings.seed,
+                                       settings.chunk_points)
+            self.counters["gather_light"] += 1
+            state = _IndirectState(key, self.transfer(radiance))
+            self._states[light.path] = state
+        return state.unit_indirect
