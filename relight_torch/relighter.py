@@ -127,12 +127,18 @@ class _Transport:
     """A light's cached transport: P shading points it reaches, S samples each.
 
     Attributes:
-        points: (P,) int64 indices of the shading points, ascending.
-        emission_local: (P, S, 3) unit emission directions in the light's frame (from the
+        points: (P,) int64 indices of the shading points, ascending, or None for all N (the
+            light reaches most of them: a scatter per shading pass would cost more than the
+            unlit points' zeros).
+        emission_local: (S, P, 3) unit emission directions in the light's frame (from the
             light's samples towards the points), or None when shaping does not apply (distant
             and dome lights, whose samples are then summed: S = 1).
-        lobes: (P, S, 2, 3) each sample's diffuse [..., 0, :] and specular [..., 1, :]
-            f cos(theta_i) L_i V / (pdf S) for the unshaped unit light (V: the ShadowAPI factor).
+        lobes: (2, S, P, 3) each sample's diffuse [0] and specular [1] f cos(theta_i) L_i V /
+            (pdf S) for the unshaped unit light (V: the ShadowAPI factor).
+
+    Samples lead and colours trail so that the shaping factor broadcasts over whole (P, 3)
+    slabs and sums over samples add slabs: torch's CPU kernels vectorise those, while a
+    broadcast or a reduction over a middle axis of (P, S, 2, 3) ran 10-20x slower.
     """
 
     points: torch.Tensor
@@ -151,7 +157,7 @@ class _LightState:
     geometry_key: tuple
     shading_key: tuple
     transport: _Transport | None = None
-    images: torch.Tensor | None = None  # (N, 2, 3) diffuse and specular unit images
+    images: torch.Tensor | None = None  # (2, N, 3) diffuse and specular unit images
 
 
 class Relighter:
@@ -224,6 +230,15 @@ class Relighter:
         del self._lights[path]
         self._others = None
 
+    def invalidate(self, visibility: bool = False) -> None:
+        """Drop every light's images (and with `visibility`, its transport): the next render
+        shades (and traces) them again. For benchmarks and to free memory."""
+        for state in self._lights.values():
+            state.images = None
+            if visibility:
+                state.transport = None
+        self._others = None
+
     def cache_bytes(self) -> int:
         """Bytes held by the per-light caches (transport and images)."""
         total = 0
@@ -240,10 +255,10 @@ class Relighter:
             self._others = self.gbuffer.params.emissive_color.clone()
             for path, state in self._lights.items():
                 if path != self._active:
-                    self._others.addmm_(*self._lobe_terms(state))
+                    self._add_light(self._others, state)
         if self._active not in self._lights:
             return self._others.clone()
-        return torch.addmm(self._others, *self._lobe_terms(self._lights[self._active]))
+        return self._add_light(self._others, self._lights[self._active], in_place=False)
 
     def render(self) -> torch.Tensor:
         """(H, W, 3) linear image: sub-samples shaded, box-filtered, camera exposure applied."""
@@ -251,7 +266,7 @@ class Relighter:
 
     def light_image(self, path: str) -> torch.Tensor:
         """(H, W, 3) image of one light alone (for AOVs and tests)."""
-        return self._to_image(torch.mm(*self._lobe_terms(self._lights[path])))
+        return self._to_image(self._add_light(torch.zeros_like(self.gbuffer.position), self._lights[path]))
 
     def _to_image(self, values: torch.Tensor) -> torch.Tensor:
         """Sub-sample values (N, 3) to the (H, W, 3) image: scattered, box-filtered, exposed."""
@@ -262,16 +277,17 @@ class Relighter:
             image = image.reshape(height // s, s, width // s, s, 3).mean(dim=(1, 3))
         return image * self.exposure_scale if self.exposure_scale != 1.0 else image
 
-    def _lobe_terms(self, state: _LightState) -> tuple[torch.Tensor, torch.Tensor]:
-        """(images (N, 6), scales (6, 3)): the light's image (N, 3) is their matrix product.
-
-        One product adds both lobes, each scaled by its colour, in a single pass over the image.
-        """
+    def _add_light(self, total: torch.Tensor, state: _LightState, in_place: bool = True) -> torch.Tensor:
+        """total (N, 3) plus the light's image: its diffuse and specular images times their scales."""
         light = state.light
-        scale = np.concatenate((np.diag(colour_scale(light) * light.diffuse),
-                                np.diag(colour_scale(light) * light.specular)))
-        images = self._images(state) if scale.any() else torch.zeros_like(self.gbuffer.position).repeat(1, 2)
-        return images.reshape(-1, 6), torch.as_tensor(scale, device=images.device, dtype=images.dtype)
+        scale = colour_scale(light)
+        if not scale.any():
+            return total if in_place else total.clone()
+        diffuse, specular = self._images(state)
+        diffuse_scale, specular_scale = (torch.as_tensor(scale * lobe, device=total.device, dtype=total.dtype)
+                                         for lobe in (light.diffuse, light.specular))
+        total = total.addcmul_(diffuse, diffuse_scale) if in_place else torch.addcmul(total, diffuse, diffuse_scale)
+        return total.addcmul_(specular, specular_scale)
 
     # -- per-light stages -----------------------------------------------------------------------
 
@@ -279,7 +295,8 @@ class Relighter:
         n, step = self.gbuffer.num_samples, max(1, self.settings.chunk_samples // num_samples)
         return [slice(i, min(i + step, n)) for i in range(0, n, step)]
 
-    def _num_samples(self, light: Light) -> int:
+    def num_light_samples(self, light: Light) -> int:
+        """Light samples per shading point the light gets (`RelightSettings`)."""
         settings = self.settings
         if is_delta_light(light):
             return 1
@@ -302,70 +319,88 @@ class Relighter:
             return state.transport
         g = self.gbuffer
         light = dataclasses.replace(unit_light(state.light), shaping=None, barzel=None)
-        shaped = light.kind in _SHAPED_KINDS
-        frame = LightFrame.of(light, g.position)
-        num_samples = self._num_samples(light)
-        u = self._fixed_u(num_samples)
-        parts = []
-        for chunk in self._chunks(num_samples):
-            sample = sample_light(light, g.position[chunk], u[chunk])
-            wi_local = to_local(sample.direction, g.tangent[chunk, None], g.bitangent[chunk, None],
-                                g.normal[chunk, None])
-            facing = (sample.direction * g.geometric_normal[chunk, None]).sum(-1) > 0
-            weight = sample.weight() * ((wi_local[..., 2] > 0) & facing).unsqueeze(-1)
-            # Points that no sample can light (facing away, inside the light, outside its cone of
-            # directions) cast no shadow rays and are not kept.
-            lit = torch.nonzero((weight != 0).flatten(1).any(-1) & (self._wo_local[chunk, 2] > 0)).squeeze(-1)
-            direction, wi_local, weight = sample.direction[lit], wi_local[lit], weight[lit]
-            points = lit + chunk.start
-            distance = self.visibility.occluder_distance(light, g.position[points], g.geometric_normal[points],
-                                                         direction, sample.distance[lit])
-            weight = weight * shadow_factor(light.shadow, torch.isfinite(distance), distance)
-            weight = weight * (wi_local[..., 2:] / num_samples)
-            lobes = torch.stack(preview_surface.split(g.params.index(points).with_sample_axis(),
-                                                      self._wo_local[points, None], wi_local), dim=-2)
-            lobes = lobes * weight.unsqueeze(-2)
-            if shaped:
-                emission_local = torch.nn.functional.normalize(frame.vector_to_local(-direction), dim=-1)
-            else:
-                emission_local, lobes = None, lobes.sum(1, keepdim=True)
-            parts.append((points, emission_local, lobes))
-        points, emission_local, lobes = zip(*parts)
-        state.transport = _Transport(torch.cat(points), torch.cat(emission_local) if shaped else None,
-                                     torch.cat(lobes))
+        num_samples = self.num_light_samples(light)
+        parts = [self._chunk_transport(light, chunk, num_samples) for chunk in self._chunks(num_samples)]
+        lobes = torch.cat([part.lobes for part in parts], dim=2)
+        shaped = parts[0].emission_local is not None
+        emission_local = torch.cat([part.emission_local for part in parts], dim=1) if shaped else None
+        points = None
+        if any(part.points is not None for part in parts):
+            points = torch.cat([torch.arange(chunk.start, chunk.stop, device=g.device) if part.points is None
+                                else part.points for chunk, part in zip(self._chunks(num_samples), parts)])
+            if 2 * points.shape[0] > g.num_samples:
+                lobes = lobes.new_zeros(2, lobes.shape[1], g.num_samples, 3).index_copy_(2, points, lobes)
+                if shaped:
+                    emission_local = emission_local.new_zeros(num_samples, g.num_samples, 3).index_copy_(
+                        1, points, emission_local)
+                points = None
+        state.transport = _Transport(points, emission_local, lobes)
         state.images = None
         self.counters["visibility"] += 1
         return state.transport
 
+    def _chunk_transport(self, light: Light, chunk: slice, num_samples: int) -> _Transport:
+        """The transport of an unshaped unit light at the shading points of `chunk`.
+
+        Points that no sample can light (facing away, inside the light, outside its cone of
+        directions) cast no shadow rays and are dropped, unless they are fewer than half the
+        chunk: then the whole chunk is kept, its rows read as views rather than gathered.
+        """
+        g = self.gbuffer
+        sample = sample_light(light, g.position[chunk], self._fixed_u(num_samples)[chunk])
+        wi_local = to_local(sample.direction, g.tangent[chunk, None], g.bitangent[chunk, None], g.normal[chunk, None])
+        facing = (sample.direction * g.geometric_normal[chunk, None]).sum(-1) > 0
+        weight = sample.weight() * ((wi_local[..., 2] > 0) & facing).unsqueeze(-1)
+        lit = (weight != 0).flatten(1).any(-1) & (self._wo_local[chunk, 2] > 0)
+        if 2 * int(lit.sum()) > lit.shape[0]:
+            local, rows, points = slice(None), chunk, None
+        else:
+            local = torch.nonzero(lit).squeeze(-1)
+            rows = points = local + chunk.start
+        direction, wi_local, weight = sample.direction[local], wi_local[local], weight[local]
+        distance = self.visibility.occluder_distance(light, g.position[rows], g.geometric_normal[rows],
+                                                     direction, sample.distance[local])
+        weight = weight * shadow_factor(light.shadow, torch.isfinite(distance), distance)
+        weight = weight * (wi_local[..., 2:] / num_samples)
+        lobes = torch.stack(preview_surface.split(g.params.index(rows).with_sample_axis(),
+                                                  self._wo_local[rows, None], wi_local))
+        lobes = (lobes * weight).transpose(1, 2)
+        if light.kind not in _SHAPED_KINDS:
+            return _Transport(points, None, lobes.sum(1, keepdim=True))
+        emission_local = torch.nn.functional.normalize(LightFrame.of(light, direction).vector_to_local(-direction),
+                                                       dim=-1)
+        return _Transport(points, emission_local.transpose(0, 1), lobes)
+
     def _images(self, state: _LightState) -> torch.Tensor:
-        """The light's diffuse and specular unit images (N, 2, 3): transport x shaping, per point."""
+        """The light's diffuse and specular unit images (2, N, 3): transport x shaping, per point."""
         if state.images is not None:
             return state.images
         transport = self._transport(state)
         lobes = transport.lobes
         factor = self._emission_factor(state.light, transport)
         if factor is not None:
-            lobes = lobes * factor.unsqueeze(-2)
-        per_point = lobes.sum(1)
-        num_points = self.gbuffer.num_samples
-        if transport.points.shape[0] == num_points:  # every point lit: points is arange(N)
+            lobes = lobes * factor
+        per_point = lobes[:, 0] if lobes.shape[1] == 1 else lobes.sum(1)
+        if transport.points is None:
             state.images = per_point
         else:
-            state.images = per_point.new_zeros(num_points, 2, 3).index_copy_(0, transport.points, per_point)
+            state.images = per_point.new_zeros(2, self.gbuffer.num_samples, 3).index_copy_(
+                1, transport.points, per_point)
         self.counters["shading"] += 1
         return state.images
 
     def _emission_factor(self, light: Light, transport: _Transport) -> torch.Tensor | None:
-        """(P, S, 3) ShapingAPI x Barzel factor of each cached sample; None when nothing applies."""
+        """(S, P, 3) ShapingAPI x Barzel factor of each cached sample; None when nothing applies."""
         if transport.emission_local is None:
             return None
         factor = None
         if light.shaping is not None:
             factor = shaping_factor(light.shaping, transport.emission_local)
         if light.barzel is not None:
-            position = self.gbuffer.position[transport.points]
+            position = self.gbuffer.position
+            position = position if transport.points is None else position[transport.points]
             origin = torch.as_tensor(light.world_from_light[:3, 3], device=position.device, dtype=position.dtype)
-            barzel = barzel_factor(light.barzel, transport.emission_local, (position - origin).norm(dim=-1, keepdim=True))
+            barzel = barzel_factor(light.barzel, transport.emission_local, (position - origin).norm(dim=-1))
             factor = barzel if factor is None else factor * barzel
         return factor
 

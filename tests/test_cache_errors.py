@@ -20,7 +20,7 @@ from cache_support import SIZE, bake_bundled, copy_bake
 from pipeline import cli
 from pipeline.errors import RelightError
 from pipeline.scene import load_scene
-from relight_torch.cache.layer import file_sha256, read_cache_layer
+from relight_torch.cache.layer import file_sha256
 from relight_torch.io.exr import read_exr, write_exr
 from relight_torch.relighter import open_relighter
 
@@ -81,8 +81,10 @@ def _three_nan_positions(channels: dict) -> None:
 # (damage(cache), pattern the message must match; {dfb}/{occluders}/{shot} stand for the file paths)
 CASES = {
     "payload missing": (lambda c: _dfb(c).unlink(), r"payload deepFramebuffer file {dfb} is missing"),
-    "payload truncated": (lambda c: _truncate(_dfb(c), 5000), r"{dfb}: payload deepFramebuffer is truncated \(5000 of \d+ bytes\)"),
-    "header truncated": (lambda c: _truncate(_dfb(c), 100), r"{dfb}: payload deepFramebuffer is truncated \(100 of \d+ bytes\)"),
+    "payload truncated": (lambda c: _truncate(_dfb(c), 5000),
+                          r"{dfb}: payload deepFramebuffer is truncated \(5000 of \d+ bytes\)"),
+    "header truncated": (lambda c: _truncate(_dfb(c), 100),
+                         r"{dfb}: payload deepFramebuffer is truncated \(100 of \d+ bytes\)"),
     "payload edited in place": (
         lambda c: _dfb(c).write_bytes(_dfb(c).read_bytes()[:-1] + b"\x7f"),
         r"{dfb}: payload deepFramebuffer does not match the sha256 the cache layer records"),
@@ -94,7 +96,8 @@ CASES = {
         r"{dfb}: payload deepFramebuffer is a 16x16 EXR, the cache layer says 32x32"),
     "channel dropped, layer re-recorded": (
         lambda c: _rewrite_dfb(c, lambda ch: ch.pop("N.Y")),
-        r"{dfb}: payload deepFramebuffer channels differ from the cache layer's \(unexpected \[\], missing \['N.Y'\]\)"),
+        r"{dfb}: payload deepFramebuffer channels differ from the cache layer's "
+        r"\(unexpected \[\], missing \['N.Y'\]\)"),
     "position stored as half, layer re-recorded": (
         lambda c: _rewrite_dfb(c, lambda ch: ch.update({"P.X": ch["P.X"].astype(np.float16)})),
         r"{dfb}: channel P.X is HALF, expected FLOAT"),

@@ -32,8 +32,8 @@ def test_valid_cache_is_described_with_provenance_and_sizes(baked, capsys):
     status, out = _info(baked, capsys)
     assert status == 0
     description = read_cache_layer(baked)
-    assert f"  method: direct" in out and f"  source: {description.source}" in out
-    assert f"  camera: /World/Camera, 32x32, supersampling 2, exposure scale 1" in out
+    assert "  method: direct" in out and f"  source: {description.source}" in out
+    assert "  camera: /World/Camera, 32x32, supersampling 2, exposure scale 1" in out
     assert f"  content hash: {description.content_hash}" in out
     assert "  parameters: supersampling = 2, textureSamples = 1" in out
     assert f"  inputs: {len(description.inputs)}" in out and "glossy_brick_albedo.png  unchanged" in out
@@ -65,8 +65,8 @@ def test_corrupt_cache_names_the_bad_payload(cache, capsys):
     npy.write_bytes(npy.read_bytes()[:1000])
     status, out = _info(cache, capsys)
     assert status == 1
-    assert re.search(r"^    occluders: glossy.occluders.npy, npy, 1000 B \(\d+ bytes recorded\), float32\[\d+, 3, 3\], BAD$",
-                     out, re.M)
+    line = r"^    occluders: glossy.occluders.npy, npy, 1000 B \(\d+ bytes recorded\), float32\[\d+, 3, 3\], BAD$"
+    assert re.search(line, out, re.M)
     assert "  status: corrupt" in out and f"{npy.resolve()}: payload occluders is truncated (1000 of" in out
     assert cache_status(cache).verdict == "corrupt"
 

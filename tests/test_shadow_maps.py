@@ -62,7 +62,7 @@ def scene():
     """(occluders (T, 3, 3) float32, receivers (N, 3), normals (N, 3)) of the floor and floating square."""
     floor = grid((0, 0, 0), (4, 0, 0), (0, 4, 0), 4)
     square = quad((0.3, 0.2, 1.0), (0.5, 0, 0), (0, 0.5, 0))
-    coordinates = (np.arange(48) + 0.5) / 48 * 6.0 - 3.0
+    coordinates = (np.arange(40) + 0.5) / 40 * 6.0 - 3.0
     xy = np.stack(np.meshgrid(coordinates, coordinates, indexing="ij"), axis=-1).reshape(-1, 2)
     points = torch.tensor(np.c_[xy, np.zeros(len(xy))], dtype=torch.float32)
     normals = torch.tensor([0.0, 0.0, 1.0]).expand_as(points).contiguous()
@@ -75,9 +75,9 @@ def agreement(light: Light, corners: np.ndarray, points: torch.Tensor, normals: 
     samples = sample_light(light, points, fixed_light_samples(len(points), num_samples, seed=1))
     reference = RayVisibility(EmbreeCaster(corners)).occluder_distance(light, points, normals, samples.direction,
                                                                        samples.distance)
-    found = visibility.occluder_distance(light, points.to(visibility.occluders.device), normals.to(visibility.occluders.device),
-                                         samples.direction.to(visibility.occluders.device),
-                                         samples.distance.to(visibility.occluders.device)).cpu()
+    device = visibility.occluders.device
+    found = visibility.occluder_distance(light, points.to(device), normals.to(device), samples.direction.to(device),
+                                         samples.distance.to(device)).cpu()
     assert found.shape == reference.shape and found.dtype == samples.distance.dtype
     blocked, blocked_found = torch.isfinite(reference), torch.isfinite(found)
     facing = ((samples.direction * normals.unsqueeze(1)).sum(-1) > 0) & (samples.pdf > 0)
@@ -91,7 +91,8 @@ def agreement(light: Light, corners: np.ndarray, points: torch.Tensor, normals: 
 def test_ray_triangle_distance_hand_values():
     corners = torch.tensor([[[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [0.0, 1.0, 2.0]]]).expand(3, 3, 3)
     origins = torch.zeros(3, 3)
-    directions = torch.nn.functional.normalize(torch.tensor([[0.2, 0.2, 1.0], [0.0, 0.0, -1.0], [1.0, 1.0, 0.5]]), dim=-1)
+    directions = torch.tensor([[0.2, 0.2, 1.0], [0.0, 0.0, -1.0], [1.0, 1.0, 0.5]])
+    directions = torch.nn.functional.normalize(directions, dim=-1)
     distance = ray_triangle_distance(origins, directions, corners)
     assert distance[0].item() == pytest.approx(2.0 * math.sqrt(1.08), rel=1e-6)
     assert math.isinf(distance[1].item()) and math.isinf(distance[2].item())  # behind, and past the triangle
@@ -102,14 +103,12 @@ def test_cube_map_depth_of_a_plane_is_its_distance_over_cosine():
     cube = CubeMap(torch.zeros(3), 16)
     cube.build(plane)
     down = 5  # faces: +X, -X, +Y, -Y, +Z, -Z
-    centre = torch.zeros(3)
     rows, cols = torch.meshgrid(torch.arange(16), torch.arange(16), indexing="ij")
     _, directions = cube.texel_rays(torch.full_like(rows, down), rows, cols)
     torch.testing.assert_close(cube.depth[down], 2.0 / -directions[..., 2], rtol=1e-5, atol=0.0)
     assert torch.isinf(cube.depth[4]).all()
     # Side faces see the plane in their lower half only.
     assert torch.isfinite(cube.depth[0]).float().mean().item() == pytest.approx(0.5)
-    del centre
 
 
 @pytest.mark.parametrize("kind", ["cube", "spot", "ortho"])
@@ -136,7 +135,7 @@ def test_rasteriser_matches_brute_force_rays(kind):
     every = ray_triangle_distance(origins.repeat_interleave(40, 0), directions.repeat_interleave(40, 0),
                                   corners.repeat(num_texels, 1, 1))
     slow = every.reshape(num_texels, 40).amin(dim=1).reshape(fast.shape)
-    assert torch.isfinite(slow).float().mean().item() > 0.2
+    assert torch.isfinite(slow).float().mean().item() > 0.05
     torch.testing.assert_close(fast, slow)
 
 
@@ -146,7 +145,7 @@ def test_sphere_light_shadow_agrees_with_embree(scene, radius, num_samples):
     light = light_at((0.0, 0.0, 3.0), radius=radius)
     visibility = ShadowMapVisibility(torch.from_numpy(corners), resolution=RESOLUTION)
     away, overall, blocked, blocked_found = agreement(light, corners, points, normals, visibility, num_samples)
-    assert type(visibility.depth_map(light)) is PinholeMaps and visibility.depth_map(light).num_faces == 6
+    assert isinstance(visibility.depth_map(light), CubeMap)
     assert blocked > 0.03  # the test is not vacuous: part of the floor is in shadow
     assert away > 0.98 and overall > 0.97
     assert blocked_found == pytest.approx(blocked, abs=0.005)
@@ -162,7 +161,7 @@ def test_spot_light_uses_one_perspective_map(scene, dtype, device):
     assert type(depth_map) is PinholeMaps and depth_map.num_faces == 1 and depth_map.depth.dtype == dtype
     assert blocked > 0.03 and away > 0.98 and overall > 0.97
     wide = light_at((0.5, 0.0, 3.0), kind=LightKind.DISK, radius=0.1, shaping=Shaping(cone_angle=80.0))
-    assert visibility.depth_map(wide).num_faces == 6
+    assert isinstance(visibility.depth_map(wide), CubeMap)
 
 
 @pytest.mark.parametrize("angle, num_samples", [(0.0, 1), (4.0, NUM_SAMPLES)])
@@ -173,8 +172,12 @@ def test_distant_light_shadow_agrees_with_embree(scene, angle, num_samples):
     away, overall, blocked, _ = agreement(light, corners, points, normals, visibility, num_samples)
     depth_map = visibility.depth_map(light, points)
     assert type(depth_map) is OrthoMap and visibility.num_builds == 1
-    # The window is the receivers' bounds (6 x 6) widened by the cone's sideways reach: finer than the floor's 8 x 8.
-    assert 3.0 <= depth_map.half_size < 3.0 * 1.1 + math.tan(math.radians(angle / 2)) * 1.1
+    # The window is the receivers' bounds (half-side <= 2.925 on both axes) widened by how far the
+    # cone's rays travel sideways up to the highest occluder, plus half a texel: finer than the floor's 8 x 8.
+    to_light = torch.from_numpy(light.world_from_light[:3, 2]).float()
+    rise = float((torch.from_numpy(corners).reshape(-1, 3) @ to_light).max() - (points @ to_light).min())
+    widest = (float(points[:, 0].max()) + rise * math.tan(math.radians(angle / 2.0))) * (1.0 + 1.0 / RESOLUTION)
+    assert 2.6 < depth_map.half_size <= widest * 1.001 < 4.0
     assert blocked > 0.01 and away > 0.98 and overall > 0.97
 
 
@@ -188,7 +191,7 @@ def test_distant_window_grows_with_the_queries(scene):
     assert visibility.depth_map(light, near_corner) is visibility.depth_map(light, near_corner[:3])
     assert visibility.num_builds == 1
     _, overall, blocked, _ = agreement(light, corners, points, normals, visibility, 1)
-    assert visibility.num_builds == 2 and visibility.depth_map(light, points).half_size > 3.0
+    assert visibility.num_builds == 2 and visibility.depth_map(light, points).half_size > 2.9
     assert blocked > 0.01 and overall > 0.98
 
 

@@ -44,6 +44,9 @@ def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    layer_path = out_dir / f"{stem}{SUFFIX}"
+    # An old layer must not survive beside new payloads if this bake dies midway.
+    layer_path.unlink(missing_ok=True)
     dfb = bake_deep_framebuffer(scene, camera, supersampling, texture_samples)
     channels, constants = gbuffer_to_channels(dfb.gbuffer)
     dfb_path = out_dir / f"{stem}.dfb.exr"
@@ -63,6 +66,5 @@ def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
         content_hash=content_hash(inputs, parameters, __version__), inputs=inputs,
         parameters=parameters, payloads=(deep, occluders),
     )
-    layer_path = out_dir / f"{stem}{SUFFIX}"
     write_cache_layer(layer_path, description)
     return layer_path

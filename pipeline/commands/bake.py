@@ -7,11 +7,12 @@ import time
 from pathlib import Path
 
 from pipeline.bake.direct import bake_direct
+from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
 from pipeline.commands.common import add_camera_options
 from pipeline.errors import RelightError
 from pipeline.scene import find_camera, load_scene
 
-METHODS = ("direct",)
+METHODS = ("direct", "transfer")
 
 
 def add_parser(subparsers) -> None:
@@ -29,6 +30,18 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--texture-samples", type=int, default=2, metavar="T",
                         help="T x T material samples per sub-sample, averaged: texture filtering (default 2)")
     parser.add_argument("--stem", help="file name stem (default: the scene file's stem)")
+    transfer = parser.add_argument_group("transfer (--method transfer)")
+    defaults = TransferSettings()
+    transfer.add_argument("--gathers", type=int, default=defaults.num_gathers, metavar="G",
+                          help=f"gather samples, a power of 4 (default {defaults.num_gathers})")
+    transfer.add_argument("--coefficients", type=int, default=defaults.num_coefficients, metavar="K",
+                          help=f"wavelet coefficients kept per final-gather row (default {defaults.num_coefficients})")
+    transfer.add_argument("--bounces", type=int, default=defaults.num_bounces, metavar="B",
+                          help="indirect bounces; 1 bakes the final gather only (default 1)")
+    transfer.add_argument("--bounce-coefficients", type=int, default=defaults.num_bounce_coefficients, metavar="K",
+                          help=f"coefficients kept per gather-to-gather row (default {defaults.num_bounce_coefficients})")
+    transfer.add_argument("--quantize", action="store_true",
+                          help="store coefficients as 8 bits with a per-row scale and offset (default float16)")
     parser.set_defaults(run=run)
 
 
@@ -40,7 +53,19 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene, time=args.time, width=args.width, height=args.height)
     camera = find_camera(scene, args.camera)
     stem = args.stem or Path(args.scene).name.split(".")[0]
-    layer = bake_direct(scene, camera, args.out, stem, args.supersampling, args.texture_samples, time_code=args.time)
+    if args.method == "transfer":
+        settings = TransferSettings(num_gathers=args.gathers, num_coefficients=args.coefficients,
+                                    num_bounces=args.bounces, num_bounce_coefficients=args.bounce_coefficients,
+                                    encoding="uint8" if args.quantize else "float16")
+        try:
+            settings.check()
+        except ValueError as error:
+            raise RelightError(f"bake --method transfer: {error}") from None
+        layer = bake_transfer(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
+                              time_code=args.time, settings=settings)
+    else:
+        layer = bake_direct(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
+                            time_code=args.time)
     print(f"{layer}: {args.method} cache of {args.camera} at {camera.width}x{camera.height} "
           f"(supersampling {args.supersampling}) in {time.perf_counter() - start:.1f} s")
     return 0

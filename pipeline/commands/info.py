@@ -55,7 +55,8 @@ def _exr_lines(status: PayloadStatus) -> list[str]:
             by_type.setdefault(PIXEL_TYPE_NAMES[dtype], []).append(name)
         raw = header.width * header.height * sum(dtype.itemsize for dtype in header.channels.values())
         lines.append(f"      {header.width}x{header.height}, {len(header.channels)} channels, "
-                     f"{header.compression} compression, {raw / status.num_bytes:.1f}x smaller than raw ({_bytes(raw)})")
+                     f"{header.compression} compression, "
+                     f"{raw / status.num_bytes:.1f}x smaller than raw ({_bytes(raw)})")
         lines += [f"      {kind}: {' '.join(names)}" for kind, names in sorted(by_type.items())]
     constants = status.payload.constants
     if constants:
@@ -84,7 +85,8 @@ def _describe_cache(status: CacheStatus) -> list[str]:
     for payload_status in status.payloads:
         payload = payload_status.payload
         found = "missing" if payload_status.num_bytes is None else _bytes(payload_status.num_bytes)
-        what = f"{payload.dtype}{list(payload.shape)}" if payload.format == "npy" else f"{len(payload.channels)} channels"
+        what = (f"{payload.dtype}{list(payload.shape)}" if payload.format == "npy"
+                else f"{len(payload.channels)} channels")
         lines.append(f"    {payload.name}: {payload.file}, {payload.format}, {found} "
                      f"({payload.num_bytes} bytes recorded), {what}, "
                      f"{'ok' if payload_status.problem is None else 'BAD'}")

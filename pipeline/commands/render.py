@@ -8,7 +8,7 @@ import time
 from pipeline.commands.common import add_device_option, add_lights_option
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.io.preview import write_png
-from relight_torch.relighter import open_relighter
+from relight_torch.transfer.open import open_cache_relighter
 
 
 def add_parser(subparsers) -> None:
@@ -28,7 +28,7 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
-    relighter = open_relighter(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
+    relighter = open_cache_relighter(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
     image = relighter.render().cpu().numpy()
     write_rgb_exr(args.out, image)
     if args.png:

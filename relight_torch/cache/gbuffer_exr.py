@@ -19,7 +19,6 @@ a value exceeds HALF's range (65504, e.g. a bright emissiveColor), then FLOAT.
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.errors import RelightError

@@ -70,7 +70,8 @@ def check_exr_header(path: Path, payload: Payload, header: ExrHeader, image_size
         raise RelightError(f"{path}: payload {payload.name} is a {header.width}x{header.height} EXR, "
                            f"the cache layer says {width}x{height}")
     if set(header.channels) != set(payload.channels):
-        extra, missing = sorted(set(header.channels) - set(payload.channels)), sorted(set(payload.channels) - set(header.channels))
+        extra = sorted(set(header.channels) - set(payload.channels))
+        missing = sorted(set(payload.channels) - set(header.channels))
         raise RelightError(f"{path}: payload {payload.name} channels differ from the cache layer's "
                            f"(unexpected {extra}, missing {missing})")
     check_channel_types(header.channels, str(path))

@@ -142,8 +142,7 @@ class TransferRelighter:
             settings = self.direct.settings
             num_samples = 1 if is_delta_light(unit) else (
                 settings.dome_samples if unit.kind is LightKind.DOME else settings.area_samples)
-            radiance = gather_radiance(unit, self.gathers, self.direct.visibility, num_samples, settings.seed,
-                                       settings.chunk_points)
+            radiance = gather_radiance(unit, self.gathers, self.direct.visibility, num_samples, settings.seed)
             self.counters["gather_light"] += 1
             state = _IndirectState(key, self.transfer(radiance))
             self._states[light.path] = state

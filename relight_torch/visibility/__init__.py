@@ -2,7 +2,7 @@
 
 `Visibility` is the interface; implementations: Embree shadow rays over the cache's occluder
 triangles (`relight_torch.visibility.embree`, exact, CPU) and shadow maps rendered in torch from the
-cache's occluder points (`relight_torch.visibility.shadow_maps`, any device).
+cache's occluder triangles (`relight_torch.visibility.shadow_maps`, any device).
 """
 
 from __future__ import annotations

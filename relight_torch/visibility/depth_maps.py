@@ -108,10 +108,17 @@ class DepthMap:
             texel = texel + jitter
         index = torch.floor(texel).clamp(0, self.resolution - 1).long()
         col, row = index[..., 0], index[..., 1]
-        stored = self.depth[face, row, col]
-        stored = torch.where(inside, stored, torch.full_like(stored, torch.inf))
+        flat = (face * self.resolution + row) * self.resolution + col
+        stored = torch.where(inside, _take(self.depth, flat), torch.inf)
         origin, direction = self.texel_rays(face, row, col)
-        return MapLookup(stored, depth, origin, direction, self.slope[face, row, col])
+        return MapLookup(stored, depth, origin, direction, _take(self.slope, flat))
+
+
+def _take(table: torch.Tensor, flat: torch.Tensor) -> torch.Tensor:
+    """Rows of a (F, R, R, ...) table at flat texel indices (...): (..., ...) (index_select is
+    several times faster than indexing with three index tensors)."""
+    rows = table.reshape(-1, *table.shape[3:]).index_select(0, flat.reshape(-1))
+    return rows.reshape(*flat.shape, *table.shape[3:])
 
 
 def _axis_slope(depth: torch.Tensor, dim: int) -> torch.Tensor:
@@ -173,7 +180,9 @@ class PinholeMaps(DepthMap):
     def project(self, points):
         offset = points - self.centre
         face = self.face_of(offset)
-        local = (self.face_from_world[face] @ offset.unsqueeze(-1)).squeeze(-1)
+        # Every face's coordinates, then a gather: 3x faster than per-query (3, 3) matrix products.
+        local = torch.einsum("...k,fjk->...fj", offset, self.face_from_world)
+        local = torch.gather(local, -2, face[..., None, None].expand(*face.shape, 1, 3)).squeeze(-2)
         z = local[..., 2]
         positive = z > 0
         safe_z = torch.where(positive, z, torch.ones_like(z))
@@ -182,7 +191,7 @@ class PinholeMaps(DepthMap):
         return face, uv, offset.norm(dim=-1), inside
 
     def texel_rays(self, face, row, col):
-        direction = self.directions[face, row, col]
+        direction = _take(self.directions, (face * self.resolution + row) * self.resolution + col)
         return self.centre.expand_as(direction), direction
 
     def footprint(self, depth):
@@ -228,7 +237,7 @@ class CubeMap(PinholeMaps):
         super().__init__(centre, torch.stack(faces), 1.0, resolution)
 
     def face_of(self, offset):
-        """The face of the dominant axis (elementwise: an argmax over faces was 5x slower)."""
+        """The face of the dominant axis (elementwise: an argmax over the faces' z was 10x slower)."""
         size = offset.abs()
         x_major = (size[..., 0] >= size[..., 1]) & (size[..., 0] >= size[..., 2])
         axis = torch.where(x_major, 0, torch.where(size[..., 1] >= size[..., 2], 1, 2))

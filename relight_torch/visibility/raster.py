@@ -8,14 +8,16 @@ texel) candidates into one index range, and processes that range in chunks: ray-
 (Moeller-Trumbore, two-sided) and `scatter_reduce(..., 'amin')` into the map. The only Python
 loop is over chunks.
 
-Decision (measured on the shadow tests' scenes and a 1024^2 cube map): an exact ray test per
-candidate texel rather than splatting area-proportional point samples. Splatting needs a
-footprint wide enough to close holes between samples, which both dilates occluders (light
-leaks turn into over-darkening at silhouettes) and quantises depth to the sample's texel; the
-per-texel ray gives the exact depth at the texel centre, no holes between triangles sharing an
-edge (barycentric tests are inclusive by `BARYCENTRIC_SLACK`), and the exact depth is what lets
-the lookup reject the receiver's own plane without a world epsilon. Its cost is the sum of the
-triangles' texel bounding boxes (large thin diagonal triangles waste some candidates).
+Decision: an exact ray test per candidate texel rather than splatting area-proportional point
+samples with scatter_reduce('amin') (the splatter was reasoned about, not built). Splatting
+needs a footprint wide enough to close the holes between samples, which dilates occluders
+(over-darkening at silhouettes) and quantises depth to the sample's texel; the per-texel ray
+gives the exact depth at the texel centre, leaves no holes between triangles sharing an edge
+(barycentric tests are inclusive by `BARYCENTRIC_SLACK`), and its exact depth is what lets the
+lookup recognise the receiver's own plane without a world epsilon. Its cost is the sum of the
+triangles' texel bounding boxes (large thin diagonal triangles waste candidates): on this
+project's shared 2-core CPU, a 1024^2 cube map of the 30-triangle Cornell box (its walls fill
+all six faces) builds in about 6 s, of the 11k-triangle glossy scene in about 4.6 s.
 """
 
 from __future__ import annotations

@@ -209,7 +209,8 @@ class ShadowMapVisibility:
         top = float(corners[:, 2].amin()) - TOP_MARGIN_FRACTION * extent
         u_low, v_low, u_high, v_high = window
         # Half a texel of padding keeps the window's edges inside texels.
-        half_size = 0.5 * max(u_high - u_low, v_high - v_low, TOP_MARGIN_FRACTION * extent) * (1.0 + 1.0 / self.resolution)
+        side = max(u_high - u_low, v_high - v_low, TOP_MARGIN_FRACTION * extent)
+        half_size = 0.5 * side * (1.0 + 1.0 / self.resolution)
         centre_local = torch.tensor((0.5 * (u_low + u_high), 0.5 * (v_low + v_high), top),
                                     device=frame.device, dtype=frame.dtype)
         return OrthoMap(frame, centre_local @ frame, half_size, self.resolution)

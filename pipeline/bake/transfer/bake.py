@@ -17,6 +17,7 @@ last (method 'transfer'), then the chunk directory is removed.
 from __future__ import annotations
 
 import dataclasses
+import math
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,6 +70,9 @@ class TransferSettings:
 
     def check(self) -> None:
         """Raise ValueError naming the first bad setting."""
+        side = math.isqrt(max(self.num_gathers, 0))
+        if self.num_gathers < 1 or side * side != self.num_gathers or side & (side - 1):
+            raise ValueError(f"gathers must be a power of 4 (1024, 4096, 16384, 65536...), got {self.num_gathers}")
         if self.num_coefficients < 1 or self.num_bounce_coefficients < 1:
             raise ValueError("the numbers of kept coefficients must be >= 1")
         if self.num_bounces < 1:

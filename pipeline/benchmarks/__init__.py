@@ -1,0 +1,1 @@
+"""Benchmarks behind the `relight bench-*` commands: timings reported, never asserted."""
