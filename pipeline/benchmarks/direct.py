@@ -91,6 +91,8 @@ def look_at(position: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndar
     z_axis = position - target
     z_axis = z_axis / np.linalg.norm(z_axis)
     x_axis = np.cross(up, z_axis)
+    if np.linalg.norm(x_axis) < 1e-6:  # looking along `up`: any perpendicular axis will do
+        x_axis = np.cross(np.roll(up, 1), z_axis)
     x_axis = x_axis / np.linalg.norm(x_axis)
     matrix = np.eye(4)
     matrix[:3, 0], matrix[:3, 1], matrix[:3, 2], matrix[:3, 3] = x_axis, np.cross(z_axis, x_axis), z_axis, position
