@@ -9,6 +9,8 @@ method and parameters, each payload's size, format and channels, and the verdict
 from __future__ import annotations
 
 import argparse
+import time
+import tracemalloc
 from collections import Counter
 from pathlib import Path
 
@@ -155,8 +157,15 @@ def run(args: argparse.Namespace) -> int:
         status = cache_status(args.scene)
         print("\n".join(_describe_cache(status)))
         return 0 if status.verdict == "valid" else 1
+    tracemalloc.start()
+    start = time.perf_counter()
     scene = _read(args.scene, args.lights, args.time, args.width, args.height)
+    seconds = time.perf_counter() - start
+    _, peak_bytes = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
     if args.camera is not None:
         find_camera(scene, args.camera)
     print("\n".join(_describe_scene(scene)))
+    print(f"  import: {seconds:.2f} s, peak {peak_bytes / 2**20:.1f} MiB allocated by Python and numpy "
+          f"(tracemalloc; USD's own C++ memory not counted)")
     return 0
