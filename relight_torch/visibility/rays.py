@@ -39,9 +39,9 @@ class RayVisibility:
         side = torch.sign((directions * normals.unsqueeze(1)).sum(-1, keepdim=True))
         origins = points.unsqueeze(1) + normals.unsqueeze(1) * (side * eps)
         t_far = torch.where(torch.isfinite(distances), distances - 2.0 * eps, torch.full_like(distances, np.inf))
-        o = origins.expand(num_points, num_samples, 3).reshape(-1, 3).detach().cpu().numpy().astype(np.float32)
-        d = directions.reshape(-1, 3).detach().cpu().numpy().astype(np.float32)
-        t = t_far.reshape(-1).detach().cpu().numpy().astype(np.float32)
+        o = origins.expand(num_points, num_samples, 3).reshape(-1, 3).detach().cpu().numpy().astype(np.float32, copy=False)
+        d = directions.reshape(-1, 3).detach().cpu().numpy().astype(np.float32, copy=False)
+        t = t_far.reshape(-1).detach().cpu().numpy().astype(np.float32, copy=False)
         live = t > 0
         result = np.full(t.shape, np.inf, np.float32)
         self.num_rays += int(live.sum())
