@@ -104,15 +104,17 @@ def _chart(path: Path, rows: list[dict], args: argparse.Namespace) -> None:
 
     figure, axes = plt.subplots(figsize=(7, 4.5), dpi=120)
     for row in rows:
-        axes.scatter(row["edit_ms"], row["psnr_db"], label=f"{row['edit']} (edit)")
+        points = axes.scatter(row["edit_ms"], row["psnr_db"], label=f"{row['edit']}: apply the edit")
+        axes.scatter(row["render_ms"], row["psnr_db"], marker="x", color=points.get_facecolor(),
+                     label=f"{row['edit']}: re-render, nothing changed")
         axes.annotate(row["edit"], (row["edit_ms"], row["psnr_db"]), textcoords="offset points", xytext=(5, 5))
     reference_ms = np.median([r["reference_s"] for r in rows]) * 1e3
     axes.axvline(reference_ms, color="grey", linestyle="--", label=f"reference render ({args.spp} spp)")
     axes.set_xscale("log")
-    axes.set_xlabel("time per light edit (ms, log)")
+    axes.set_xlabel("milliseconds per frame (log)")
     axes.set_ylabel("PSNR against the path-traced reference (dB)")
     axes.set_title(f"{args.scene} {args.width}x{args.height}: direct relighting vs re-rendering")
-    axes.legend(fontsize=8, loc="lower right")
+    axes.legend(fontsize=7, loc="lower left", ncol=2)
     axes.grid(True, which="both", alpha=0.3)
     figure.tight_layout()
     with atomic_path(path) as temp:
