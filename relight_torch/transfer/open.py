@@ -12,7 +12,7 @@ from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import load_npy
 from relight_torch.errors import RelightError
 from relight_torch.relighter import Relighter, RelightSettings, open_relighter
-from relight_torch.transfer.encoding import EncodedValues, decode
+from relight_torch.transfer.encoding import PARTS, EncodedRows, decode_rows
 from relight_torch.transfer.gathers import GatherSamples
 from relight_torch.transfer.relighter import TransferRelighter
 from relight_torch.transfer.sparse import SparseRows
@@ -31,11 +31,9 @@ def load_sparse_rows(layer_path: Path, description: CacheDescription, prefix: st
     Raises:
         RelightError: a payload is missing or breaks the layout's invariants.
     """
-    parts = {part: _load(layer_path, description, prefix + part) for part in ("Values", "Scale", "Low",
-                                                                           "Indices", "Offsets")}
-    offsets = parts["Offsets"]
-    rows = SparseRows(decode(EncodedValues(parts["Values"], parts["Scale"], parts["Low"]), offsets),
-                      parts["Indices"], offsets, num_columns)
+    parts = [part for part in PARTS if part != "Colour" or int(description.parameters.get("rowColour", 0))]
+    arrays = {part: load_npy(layer_path, description, prefix + part) for part in parts}
+    rows = decode_rows(EncodedRows.from_arrays(arrays, num_columns))
     try:
         rows.check()
     except ValueError as error:

@@ -2,9 +2,16 @@
 
 Layout of R rows over D = n x n wavelet coefficients (`SparseRows`):
 
-    values   (nnz, C) floating: the kept coefficients (RGB, C = 3)
-    indices  (nnz,) int32:      flat coefficient index i n + j, in [0, D)
-    offsets  (R + 1,) int64:    row r holds entries offsets[r] : offsets[r + 1]
+    values      (nnz, C) floating: the kept coefficients, RGB (C = 3) or one scalar (C = 1)
+    indices     (nnz,) int32:      flat coefficient index i n + j, in [0, D)
+    offsets     (R + 1,) int64:    row r holds entries offsets[r] : offsets[r + 1]
+    row_colour  (R, 3) or None:    with scalar values, row r is values x row_colour[r]
+
+The colour factorisation (`factor_colour`) stores a row as the best rank-1 product of a scalar
+wavelet row and an RGB colour: exact where the row's colour does not vary over the gathers (a
+diffuse receiver: its albedo; every row of M), an approximation for glossy receivers whose
+specular lobe is not tinted like their diffuse one. It divides the values by 3 and turns the three
+per-channel products into one `embedding_bag` over (D, 3) embeddings.
 
 Invariants (checked by `SparseRows.check` and the tests): offsets[0] = 0, offsets[-1] = nnz,
 offsets non-decreasing; within a row the indices are strictly increasing (sorted, unique).
@@ -15,6 +22,7 @@ and a gather-multiply-sum by ~7x (shared/PERF_NOTES.md).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -31,12 +39,14 @@ class SparseRows:
         indices: (nnz,) int32 column of each value.
         offsets: (R + 1,) int64 row starts.
         num_columns: D, the number of wavelet coefficients (gathers) per row.
+        row_colour: (R, 3) colour of each row when `values` are (nnz, 1) scalars, else None.
     """
 
     values: torch.Tensor
     indices: torch.Tensor
     offsets: torch.Tensor
     num_columns: int
+    row_colour: torch.Tensor | None = None
 
     @property
     def num_rows(self) -> int:
@@ -44,8 +54,9 @@ class SparseRows:
 
     @property
     def num_bytes(self) -> int:
-        """Bytes of the three arrays as held."""
-        return sum(t.numel() * t.element_size() for t in (self.values, self.indices, self.offsets))
+        """Bytes of the arrays as held."""
+        arrays = (self.values, self.indices, self.offsets) + (() if self.row_colour is None else (self.row_colour,))
+        return sum(t.numel() * t.element_size() for t in arrays)
 
     def to(self, device: torch.device | str, dtype: torch.dtype) -> "SparseRows":
         """Move to `device`, values cast to `dtype` (indices and offsets keep theirs).
@@ -55,7 +66,8 @@ class SparseRows:
         weights embedding_bag was 9x slower (1.9 s against 0.21 s for 307,200 x 100 x 3 on 2 cores).
         """
         planar = self.values.to(device, dtype).t().contiguous().t()
-        return SparseRows(planar, self.indices.to(device), self.offsets.to(device), self.num_columns)
+        colour = None if self.row_colour is None else self.row_colour.to(device, dtype)
+        return SparseRows(planar, self.indices.to(device), self.offsets.to(device), self.num_columns, colour)
 
     def check(self) -> None:
         """Raise ValueError naming the first broken invariant of the layout."""
@@ -69,6 +81,9 @@ class SparseRows:
         if offsets.dim() != 1 or offsets.shape[0] < 1 or int(offsets[0]) != 0 or int(offsets[-1]) != nnz:
             raise ValueError(f"offsets must run from 0 to nnz = {nnz}; got {tuple(offsets.shape)} ending "
                              f"{int(offsets[-1]) if offsets.numel() else None}")
+        if self.row_colour is not None and (self.values.shape[1] != 1 or self.row_colour.shape != (self.num_rows, 3)):
+            raise ValueError(f"a row colour needs (nnz, 1) values and ({self.num_rows}, 3) colours; got "
+                             f"{tuple(self.values.shape)} and {tuple(self.row_colour.shape)}")
         if bool((offsets[1:] < offsets[:-1]).any()):
             raise ValueError("offsets must be non-decreasing")
         if nnz and (int(self.indices.min()) < 0 or int(self.indices.max()) >= self.num_columns):
@@ -82,20 +97,24 @@ class SparseRows:
         """Rows times a dense wavelet vector, channel by channel.
 
         Args:
-            dense: (D, C) wavelet coefficients of the light (same C as `values`).
+            dense: (D, 3) wavelet coefficients of the light.
 
         Returns:
-            (R, C): out[r, c] = sum_k values[k, c] dense[indices[k], c] over row r's entries.
+            (R, 3): out[r, c] = sum_k values[k, c] dense[indices[k], c] over row r's entries, or with
+            scalar values row_colour[r, c] sum_k values[k, 0] dense[indices[k], c].
         """
-        if dense.shape != (self.num_columns, self.values.shape[1]):
-            raise ValueError(f"dense must be ({self.num_columns}, {self.values.shape[1]}), got {tuple(dense.shape)}")
+        if dense.shape != (self.num_columns, 3):
+            raise ValueError(f"dense must be ({self.num_columns}, 3), got {tuple(dense.shape)}")
         indices = self.indices.long() if dense.device.type != "cpu" else self.indices
         offsets = self.offsets.to(indices.dtype)
-        columns = [torch.nn.functional.embedding_bag(indices, dense[:, c:c + 1].contiguous(), offsets, mode="sum",
-                                                     per_sample_weights=self.values[:, c].contiguous(),
-                                                     include_last_offset=True)
-                   for c in range(dense.shape[1])]
-        return torch.cat(columns, dim=1)
+
+        def bag(table: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+            return torch.nn.functional.embedding_bag(indices, table.contiguous(), offsets, mode="sum",
+                                                     per_sample_weights=weights.contiguous(), include_last_offset=True)
+
+        if self.row_colour is not None:
+            return bag(dense, self.values[:, 0]) * self.row_colour
+        return torch.cat([bag(dense[:, c:c + 1], self.values[:, c]) for c in range(3)], dim=1)
 
 
 def keep_top_k(coefficients: torch.Tensor, num_kept: int) -> SparseRows:
@@ -129,13 +148,60 @@ def keep_top_k(coefficients: torch.Tensor, num_kept: int) -> SparseRows:
     return SparseRows(values[nonzero], kept[nonzero].to(torch.int32), offsets, side * side)
 
 
+def factor_colour(coefficients: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each row as a scalar row times a colour: the rank-1 least-squares fit (see the module doc).
+
+    With A the row's (n^2, C) coefficients, the colour is the unit top eigenvector v of the C x C
+    Gram matrix A^T A (sign chosen so its sum is positive) and the scalar row is A v; the kept
+    energy is the top eigenvalue, so a row of one colour is reproduced exactly.
+
+    Args:
+        coefficients: (R, n, n, C) rows (Haar coefficients or gather values alike: the fit commutes
+            with the orthonormal transform).
+
+    Returns:
+        (scalars (R, n, n, 1), colour (R, C) unit length), of the input dtype.
+    """
+    num_rows, side, _, channels = coefficients.shape
+    flat = coefficients.reshape(num_rows, side * side, channels)
+    gram = torch.einsum("rgc,rgd->rcd", flat.double(), flat.double())
+    colour = torch.linalg.eigh(gram).eigenvectors[..., -1]
+    colour = torch.where(colour.sum(-1, keepdim=True) < 0, -colour, colour).to(coefficients.dtype)
+    scalars = torch.einsum("rgc,rc->rg", flat, colour)
+    return scalars.reshape(num_rows, side, side, 1), colour
+
+
+def cull(rows: SparseRows, num_kept: int) -> SparseRows:
+    """Keep the `num_kept` most important entries of each row (`keep_top_k`'s order) of sparse rows.
+
+    `cull(keep_top_k(x, k1), k2)` equals `keep_top_k(x, k2)` for k2 <= k1 (up to ties): a bake
+    kept at k1 can be studied at any smaller k without evaluating its rows again.
+    """
+    if num_kept < 1:
+        raise ValueError(f"num_kept must be >= 1, got {num_kept}")
+    side = math.isqrt(rows.num_columns)
+    area = support_area(side, rows.indices.device).reshape(-1).to(rows.values.dtype)
+    importance = rows.values.abs().sum(-1) * area[rows.indices.long()]
+    row_of = torch.repeat_interleave(torch.arange(rows.num_rows, device=rows.offsets.device), rows.offsets.diff())
+    # Most important first, then (stable) grouped by row: rank within the row is position - row start.
+    by_importance = torch.argsort(importance, descending=True, stable=True)
+    order = by_importance[torch.argsort(row_of[by_importance], stable=True)]
+    rank = torch.arange(order.shape[0], device=order.device) - rows.offsets[row_of[order]]
+    keep = torch.zeros_like(importance, dtype=torch.bool)
+    keep[order] = rank < num_kept
+    offsets = torch.zeros_like(rows.offsets)
+    offsets[1:] = rows.offsets.diff().clamp(max=num_kept).cumsum(0)
+    return SparseRows(rows.values[keep], rows.indices[keep], offsets, rows.num_columns, rows.row_colour)
+
+
 def concatenate(parts: list[SparseRows]) -> SparseRows:
-    """The rows of several `SparseRows` (same columns) one after the other."""
+    """The rows of several `SparseRows` (same columns, all with or all without a row colour) in turn."""
     if not parts:
         raise ValueError("nothing to concatenate")
     starts = [0]
     for part in parts[:-1]:
         starts.append(starts[-1] + int(part.offsets[-1]))
     offsets = torch.cat([parts[0].offsets[:1]] + [p.offsets[1:] + s for p, s in zip(parts, starts)])
+    colour = None if parts[0].row_colour is None else torch.cat([p.row_colour for p in parts])
     return SparseRows(torch.cat([p.values for p in parts]), torch.cat([p.indices for p in parts]), offsets,
-                      parts[0].num_columns)
+                      parts[0].num_columns, colour)

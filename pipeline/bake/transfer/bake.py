@@ -5,9 +5,10 @@ Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct`):
                                    sample per pixel centre (indirect light is smooth; the direct
                                    part keeps the cache's supersampling, as in the chapter)
     <stem>.gather<Field>.npy       the gather cloud (`GatherSamples` fields), texture order
-    <stem>.finalGather<Part>.npy   F: Values (nnz, 3) float16 | uint8, Scale and Low (R, 3)
-                                   float32, Indices (nnz,) int32, Offsets (R + 1,) int64
-                                   (`relight_torch.transfer.sparse` and `.encoding`)
+    <stem>.finalGather<Part>.npy   F: Values (nnz, C) float16 | uint8, Scale and Low (R, C)
+                                   float32, Indices (nnz,) uint16 (int32 over 65,536 gathers),
+                                   Offsets (R + 1,) int64 and, colour-factored (C = 1), Colour
+                                   (R, 3) float32 (`relight_torch.transfer.sparse` and `.encoding`)
     <stem>.bounce<Part>.npy        M, the same layout over G rows, when bounces > 1
 Rows are baked in chunks saved under `.<stem>.transfer-<hash>/` as they finish; a killed bake
 re-run with the same inputs and settings skips the finished chunks. The cache layer is rewritten
@@ -18,7 +19,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import shutil
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -36,9 +39,9 @@ from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.cache.layer import Payload, content_hash, read_cache_layer, write_cache_layer
 from relight_torch.io.atomic import atomic_path
-from relight_torch.transfer.encoding import ENCODINGS, EncodedValues, encode
+from relight_torch.transfer.encoding import ENCODINGS, EncodedRows, EncodedValues, encode_rows
 from relight_torch.transfer.haar import haar2d
-from relight_torch.transfer.sparse import keep_top_k
+from relight_torch.transfer.sparse import SparseRows, concatenate, factor_colour, keep_top_k
 
 F_PREFIX, M_PREFIX = "finalGather", "bounce"
 _GATHER_FIELDS = ("position", "normal", "albedo", "emission", "area")
@@ -54,9 +57,13 @@ class TransferSettings:
         num_bounces: indirect bounces B; 1 bakes F only, B > 1 also M (applied B - 1 times).
         num_bounce_coefficients: coefficients kept per M row (the chapter: 40).
         encoding: 'float16' or 'uint8' (8-bit with per-row scale and offset).
+        factor_colour: store each row as scalar coefficients times one RGB colour
+            (`relight_torch.transfer.sparse.factor_colour`); False keeps RGB coefficients.
         seed: seed of the gather placement.
         rows_per_chunk: rows per resumable chunk file.
         pairs_per_batch: (row, gather) pairs evaluated together (bounds temporaries, ~100 B each).
+        num_threads: batches evaluated concurrently (Embree and torch release the GIL); None: the
+            CPUs this process may use.
     """
 
     num_gathers: int = 16384
@@ -64,9 +71,11 @@ class TransferSettings:
     num_bounces: int = 1
     num_bounce_coefficients: int = 40
     encoding: str = "float16"
+    factor_colour: bool = True
     seed: int = 0
     rows_per_chunk: int = 4096
     pairs_per_batch: int = 1 << 20
+    num_threads: int | None = None
 
     def check(self) -> None:
         """Raise ValueError naming the first bad setting."""
@@ -79,45 +88,52 @@ class TransferSettings:
             raise ValueError(f"bounces must be >= 1, got {self.num_bounces}")
         if self.encoding not in ENCODINGS:
             raise ValueError(f"encoding must be one of {ENCODINGS}, got {self.encoding!r}")
-        if self.rows_per_chunk < 1 or self.pairs_per_batch < 1:
-            raise ValueError("rows_per_chunk and pairs_per_batch must be >= 1")
+        if self.rows_per_chunk < 1 or self.pairs_per_batch < 1 or (self.num_threads or 1) < 1:
+            raise ValueError("rows_per_chunk, pairs_per_batch and num_threads must be >= 1")
 
     def parameters(self) -> dict[str, int | str]:
         """The settings that change the cache, as cache-layer parameters."""
         return {"gathers": self.num_gathers, "coefficients": self.num_coefficients, "bounces": self.num_bounces,
                 "bounceCoefficients": self.num_bounce_coefficients, "encoding": self.encoding,
-                "gatherSeed": self.seed}
+                "rowColour": int(self.factor_colour), "gatherSeed": self.seed}
+
+
+def compress_rows(dense: torch.Tensor, num_kept: int, factor: bool) -> SparseRows:
+    """(R, n, n, 3) dense matrix rows -> their top-k Haar coefficients, optionally colour-factored."""
+    coefficients = haar2d(dense)
+    if not factor:
+        return keep_top_k(coefficients, num_kept)
+    scalars, colour = factor_colour(coefficients)
+    return dataclasses.replace(keep_top_k(scalars, num_kept), row_colour=colour)
 
 
 def _bake_chunk(evaluate: Callable[[slice], torch.Tensor], rows: slice, side: int, num_kept: int,
                 settings: TransferSettings, update: Callable[[int], None]) -> dict[str, np.ndarray]:
     """Evaluate, transform, cull and encode the rows `rows`; arrays named as the payload parts."""
     batch = max(1, settings.pairs_per_batch // (side * side))
-    parts = []
-    for start in range(rows.start, rows.stop, batch):
+    starts = range(rows.start, rows.stop, batch)
+
+    def work(start: int) -> SparseRows:
         block = evaluate(slice(start, min(start + batch, rows.stop)))
-        parts.append(keep_top_k(haar2d(block.reshape(-1, side, side, 3)), num_kept))
-        update(min(start + batch, rows.stop) - rows.start)
-    values = torch.cat([p.values for p in parts])
-    counts = torch.cat([p.offsets.diff() for p in parts])
-    offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
-    encoded = encode(values, offsets, settings.encoding)
-    return {"Values": encoded.stored.numpy(), "Scale": encoded.scale.numpy(), "Low": encoded.low.numpy(),
-            "Indices": torch.cat([p.indices for p in parts]).numpy(), "Counts": counts.numpy()}
+        return compress_rows(block.reshape(-1, side, side, 3), num_kept, settings.factor_colour)
+
+    parts = []
+    with ThreadPoolExecutor(settings.num_threads or len(os.sched_getaffinity(0))) as pool:
+        for start, part in zip(starts, pool.map(work, starts)):
+            parts.append(part)
+            update(min(start + batch, rows.stop) - rows.start)
+    return encode_rows(concatenate(parts), settings.encoding).arrays()
 
 
 def bake_rows(evaluate: Callable[[slice], torch.Tensor], num_rows: int, side: int, num_kept: int,
-              settings: TransferSettings, chunk_dir: Path, name: str, progress: bool | None = None
-              ) -> tuple[EncodedValues, torch.Tensor, torch.Tensor]:
+              settings: TransferSettings, chunk_dir: Path, name: str, progress: bool | None = None) -> EncodedRows:
     """All rows of one matrix, chunk by chunk, reusing the chunks `chunk_dir` already holds.
 
     Args:
-        evaluate: rows (a slice) -> (R, G, 3) dense matrix rows, gathers in texture order.
+        evaluate: rows (a slice) -> (R, G, 3) dense matrix rows, gathers in texture order; called
+            from `settings.num_threads` threads at once.
         num_rows: rows of the matrix; side: n (G = n^2); num_kept: coefficients per row.
         chunk_dir: where finished chunks are saved (`<name>-<first row>.npz`, written atomically).
-
-    Returns:
-        (encoded values, indices (nnz,) int32, offsets (R + 1,) int64).
     """
     chunks = []
     with progress_bar(f"{name} rows", num_rows, "rows", progress) as update:
@@ -131,26 +147,27 @@ def bake_rows(evaluate: Callable[[slice], torch.Tensor], num_rows: int, side: in
                     with open(temp, "wb") as handle:
                         np.savez(handle, **arrays)
             with np.load(path, allow_pickle=False) as saved:
-                chunks.append({key: saved[key] for key in saved.files})
+                chunks.append(EncodedRows.from_arrays({key: saved[key] for key in saved.files}, side * side))
             update(rows.stop, num_rows)
+    starts = np.cumsum([0] + [int(c.offsets[-1]) for c in chunks[:-1]])
+    offsets = torch.cat([chunks[0].offsets[:1]] + [c.offsets[1:] + int(s) for c, s in zip(chunks, starts)])
 
-    def join(key: str) -> torch.Tensor:
-        return torch.from_numpy(np.concatenate([c[key] for c in chunks]))
+    def join(get: Callable[[EncodedRows], torch.Tensor]) -> torch.Tensor:
+        return torch.cat([get(c) for c in chunks])
 
-    counts = join("Counts")
-    offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
-    return EncodedValues(join("Values"), join("Scale"), join("Low")), join("Indices"), offsets
+    colour = None if chunks[0].row_colour is None else join(lambda c: c.row_colour)
+    values = EncodedValues(join(lambda c: c.values.stored), join(lambda c: c.values.scale),
+                           join(lambda c: c.values.low))
+    return EncodedRows(values, join(lambda c: c.indices), offsets, side * side, colour)
 
 
 def _payload(out_dir: Path, stem: str, name: str, array: np.ndarray) -> Payload:
     return dataclasses.replace(write_npy(out_dir / f"{stem}.{name}.npy", np.ascontiguousarray(array)), name=name)
 
 
-def _matrix_payloads(out_dir: Path, stem: str, prefix: str, encoded: EncodedValues, indices: torch.Tensor,
-                     offsets: torch.Tensor) -> list[Payload]:
-    arrays = {"Values": encoded.stored, "Scale": encoded.scale, "Low": encoded.low, "Indices": indices,
-              "Offsets": offsets}
-    return [_payload(out_dir, stem, prefix + part, array.numpy()) for part, array in arrays.items()]
+def matrix_payloads(out_dir: Path, stem: str, prefix: str, rows: EncodedRows) -> list[Payload]:
+    """Write the parts of one matrix as `<stem>.<prefix><Part>.npy`; their payload records."""
+    return [_payload(out_dir, stem, prefix + part, array) for part, array in rows.arrays().items()]
 
 
 def bake_transfer(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
@@ -186,11 +203,11 @@ def bake_transfer(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, 
                  for name in _GATHER_FIELDS]
     final_gather = bake_rows(lambda rows: final_gather_rows(view, rows, gathers, tracer), view.num_samples,
                              gathers.side, settings.num_coefficients, settings, chunk_dir, F_PREFIX, progress)
-    payloads += _matrix_payloads(out_dir, stem, F_PREFIX, *final_gather)
+    payloads += matrix_payloads(out_dir, stem, F_PREFIX, final_gather)
     if settings.num_bounces > 1:
         bounce = bake_rows(lambda rows: bounce_rows(rows, gathers, tracer), gathers.num_gathers, gathers.side,
                            settings.num_bounce_coefficients, settings, chunk_dir, M_PREFIX, progress)
-        payloads += _matrix_payloads(out_dir, stem, M_PREFIX, *bounce)
+        payloads += matrix_payloads(out_dir, stem, M_PREFIX, bounce)
     write_cache_layer(layer_path, dataclasses.replace(
         description, method="transfer", parameters=parameters, content_hash=digest,
         payloads=description.payloads + tuple(payloads)))
