@@ -16,6 +16,11 @@ inputs change:
     images      <- the above + ShapingAPI and Barzel controls            ('shading' counter)
         the shaping factor of each live sample times its transport, summed per point
     scale       <- intensity, exposure, color, colour temperature, diffuse, specular (a multiply)
+    mask        <- light link                                         ('masks' counter)
+        which shading points' objects the light illuminates (UsdLux `collection:lightLink`,
+        resolved against the cache's object paths): the images stay unmasked, so a light-link
+        edit recomputes only this (N,) mask. A shadow-link edit changes which occluders cast
+        the light's shadows: its transport is traced again.
 
 Shaping multiplies the radiance a light emits towards a receiver, and nothing else depends on it,
 so a shaping edit re-weights the cached transport without tracing or shading again (the
@@ -49,13 +54,14 @@ from relight_torch.light_samples import adaptive_sample_count, angular_radius, f
 from relight_torch.lights.emission import is_delta_light, light_radiance_scale, sample_light
 from relight_torch.lights.geometry import LightFrame
 from relight_torch.lights.light import Light, LightKind
+from relight_torch.lights.linking import decode_paths, linked_objects
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.lights.shaping import barzel_factor, shaping_factor
 from relight_torch.lights.usd import read_stage_lights
 from relight_torch.math.frame import to_local
 from relight_torch.stage import open_stage, time_code
 from relight_torch.visibility import Visibility
-from relight_torch.visibility.embree import EmbreeCaster
+from relight_torch.visibility.embree import EmbreeCaster, ShadowLinkCasters
 from relight_torch.visibility.rays import RayVisibility
 
 
@@ -102,11 +108,16 @@ def _key(light: Light, names: tuple[str, ...]) -> tuple:
 
 
 def _geometry_fields() -> tuple[str, ...]:
-    skip = set(_COLOUR_FIELDS) | set(_SHADING_FIELDS) | {"path", "light_group"}
+    skip = set(_COLOUR_FIELDS) | set(_SHADING_FIELDS) | {"path", "light_group", "light_link"}
     return tuple(f.name for f in dataclasses.fields(Light) if f.name not in skip)
 
 
 _GEOMETRY_FIELDS = _geometry_fields()
+
+
+def light_group(light: Light) -> str:
+    """The light-group AOV a light writes to: its `light_group`, else its prim's name."""
+    return light.light_group or light.path.rsplit("/", 1)[-1]
 
 
 def unit_light(light: Light) -> Light:
@@ -169,14 +180,17 @@ class Relighter:
         supersampling: s; the sub-sample image is box-filtered by s x s after shading.
         exposure_scale: the camera's linear exposure scale.
         settings: sampling settings.
+        object_paths: the prim path of each object id of the G-buffer, to resolve light links
+            against; None when unknown (lights with a light link are then refused).
 
     Attributes:
         description: the cache layer's description when opened with `open_relighter`.
-        counters: 'visibility' and 'shading' passes run so far (one per light and stage).
+        counters: 'visibility', 'shading' and 'masks' passes run so far (one per light and stage).
     """
 
     def __init__(self, gbuffer: GBuffer, visibility: Visibility, supersampling: int = 1,
-                 exposure_scale: float = 1.0, settings: RelightSettings = RelightSettings()):
+                 exposure_scale: float = 1.0, settings: RelightSettings = RelightSettings(),
+                 object_paths: list[str] | None = None):
         height, width = gbuffer.image_size
         if height % supersampling or width % supersampling:
             raise ValueError(f"image {width}x{height} is not a multiple of supersampling {supersampling}")
@@ -187,7 +201,9 @@ class Relighter:
         self.settings = settings
         self.counters: collections.Counter[str] = collections.Counter()
         self.description: CacheDescription | None = None
+        self.object_paths = object_paths
         self._lights: dict[str, _LightState] = {}
+        self._masks: dict[tuple[str, ...], torch.Tensor] = {}
         self._wo_local = to_local(gbuffer.wo_world(), gbuffer.tangent, gbuffer.bitangent, gbuffer.normal)
         self._u: dict[int, torch.Tensor] = {}
         # Every pixel covered in order: scattering into the image is a reshape.
@@ -268,6 +284,23 @@ class Relighter:
         """(H, W, 3) image of one light alone (for AOVs and tests)."""
         return self._to_image(self._add_light(torch.zeros_like(self.gbuffer.position), self._lights[path]))
 
+    def light_group_images(self) -> dict[str, torch.Tensor]:
+        """Light group (`light_group`) -> (H, W, 3) image of its lights, in the order groups first appear.
+
+        With `emission_image()` the groups' images sum to `render()` (within float rounding).
+        """
+        totals: dict[str, torch.Tensor] = {}
+        for state in self._lights.values():
+            group = light_group(state.light)
+            if group not in totals:
+                totals[group] = torch.zeros_like(self.gbuffer.position)
+            self._add_light(totals[group], state)
+        return {group: self._to_image(total) for group, total in totals.items()}
+
+    def emission_image(self) -> torch.Tensor:
+        """(H, W, 3) the surfaces' own emission (UsdPreviewSurface emissiveColor), no light's."""
+        return self._to_image(self.gbuffer.params.emissive_color)
+
     def _to_image(self, values: torch.Tensor) -> torch.Tensor:
         """Sub-sample values (N, 3) to the (H, W, 3) image: scattered, box-filtered, exposed."""
         height, width = self.gbuffer.image_size
@@ -286,10 +319,29 @@ class Relighter:
         diffuse, specular = self._images(state)
         diffuse_scale, specular_scale = (torch.as_tensor(scale * lobe, device=total.device, dtype=total.dtype)
                                          for lobe in (light.diffuse, light.specular))
+        mask = self._mask(light)
+        if mask is not None:
+            diffuse_scale, specular_scale = diffuse_scale * mask, specular_scale * mask
         total = total.addcmul_(diffuse, diffuse_scale) if in_place else torch.addcmul(total, diffuse, diffuse_scale)
         return total.addcmul_(specular, specular_scale)
 
     # -- per-light stages -----------------------------------------------------------------------
+
+    def _mask(self, light: Light) -> torch.Tensor | None:
+        """(N, 1) 1 where the light's light link includes the sample's object, 0 elsewhere; None
+        when it links every object. Cached per distinct link."""
+        link = light.light_link
+        if link is None:
+            return None
+        if link not in self._masks:
+            if self.object_paths is None:
+                raise ValueError(f"{light.path}: light linking needs the cache's object paths "
+                                 f"(re-bake the cache with this version)")
+            g = self.gbuffer
+            linked = torch.from_numpy(linked_objects(self.object_paths, link)).to(g.device)
+            self._masks[link] = linked[g.object_id.long()].to(g.position.dtype).unsqueeze(-1)
+            self.counters["masks"] += 1
+        return self._masks[link]
 
     def _chunks(self, num_samples: int) -> list[slice]:
         n, step = self.gbuffer.num_samples, max(1, self.settings.chunk_samples // num_samples)
@@ -425,8 +477,15 @@ def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", 
     check_inputs(layer_path, description)
     gbuffer = load_gbuffer(layer_path, description).to(device)
     occluders = np.ascontiguousarray(load_npy(layer_path, description, "occluders"))
+    linking = {payload.name for payload in description.payloads} >= {"objectPaths", "occluderObjects"}
+    object_paths = decode_paths(load_npy(layer_path, description, "objectPaths")) if linking else None
     if shadows == "embree":
-        visibility = RayVisibility(EmbreeCaster(occluders))
+        caster = EmbreeCaster(occluders)
+        shadow_link_caster = None
+        if linking:
+            occluder_objects = np.asarray(load_npy(layer_path, description, "occluderObjects"))
+            shadow_link_caster = ShadowLinkCasters(occluders, occluder_objects, object_paths, caster.epsilon)
+        visibility = RayVisibility(caster, shadow_link_caster)
     elif shadows == "shadowmaps":
         from relight_torch.visibility.shadow_maps import ShadowMapVisibility  # noqa: PLC0415 (being written)
         # Always cube maps for spot lights: a cone edit does not re-run visibility, and a perspective
@@ -435,7 +494,8 @@ def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", 
                                          max_spot_half_angle=0.0)
     else:
         raise RelightError(f"shadows must be 'embree' or 'shadowmaps', got {shadows!r}")
-    relighter = Relighter(gbuffer, visibility, description.supersampling, description.exposure_scale, settings)
+    relighter = Relighter(gbuffer, visibility, description.supersampling, description.exposure_scale, settings,
+                          object_paths)
     relighter.description = description
     relighter.set_lights(shot_lights(description, lights_layer))
     return relighter

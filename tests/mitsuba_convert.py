@@ -10,7 +10,8 @@ ValueError naming it):
   made two-sided with Mitsuba's `twosided`. Mitsuba's built-ins do not fit: 'diffuse' is
   Lambertian while the preview surface's diffuse lobe is scaled by 1 - F(E.h) and carries a
   Schlick specular lobe rising to 1 at grazing (even with specularColor 0), and 'roughconductor'
-  uses a complex-IOR Fresnel and the exact GGX D (Storm's D has a^2 + 0.001 on top).
+  uses a complex-IOR Fresnel and Smith masking, not Schlick F0/F90 and Schlick-GGX k = a/2.
+  D is the exact GGX, the project's documented departure from Storm's (a^2 + 0.001) numerator.
   Sampled as cosine-weighted diffuse and GGX visible normals half and half (GGX only for
   metals), a different strategy from ours.
 * Lights: RectLight as an area emitter on a 'rectangle', SphereLight as one on a 'sphere', with the
@@ -49,10 +50,15 @@ mi.set_variant(VARIANT)
 
 _MIN_ROUGHNESS = 0.001
 _STORM_EPSILON = 0.001
+"""Storm's EPSILON, kept in the specular denominator. Its NDF numerator a^2 + 0.001 is NOT kept:
+the project uses the exact GGX D on purpose (`relight_torch.brdf.preview_surface` module doc), and
+this converter follows the project's definition. With Storm's numerator the gold sphere (roughness
+0.2) reflects 1.6x the energy, which this comparison detects (block z down to -13 at one bounce)."""
 
 
 class StormPreviewSurface(mi.BSDF):
-    """Storm's UsdPreviewSurface `evaluateLight` (clearcoat included) as a one-sided Mitsuba BSDF.
+    """Storm's UsdPreviewSurface `evaluateLight` (clearcoat included; exact GGX D) as a one-sided
+    Mitsuba BSDF.
 
     Mitsuba's `si.wi` is our wo (towards the viewer, E) and its `wo` our wi (towards the light, L).
     `eval` returns f_r * N.L, as Mitsuba BSDFs do. Plain Python float arithmetic: in the scalar
@@ -88,10 +94,10 @@ class StormPreviewSurface(mi.BSDF):
 
     @staticmethod
     def _lobe(alpha: float, cos_l: float, cos_e: float, cos_h: float) -> float:
-        """Storm's D G / (4 N.L N.E + 0.001), without Fresnel."""
+        """D G / (4 N.L N.E + 0.001) without Fresnel: Storm's, with the exact GGX D (below)."""
         alpha2 = alpha * alpha
         denominator = cos_h * cos_h * (alpha2 - 1.0) + 1.0
-        d = (alpha2 + _STORM_EPSILON) / (math.pi * denominator * denominator)
+        d = alpha2 / (math.pi * denominator * denominator)
         k = 0.5 * alpha
         g = cos_e / (cos_e * (1.0 - k) + k) * cos_l / (cos_l * (1.0 - k) + k)
         return d * g / (4.0 * cos_l * cos_e + _STORM_EPSILON)

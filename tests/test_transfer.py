@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -11,10 +12,11 @@ import torch
 from pipeline.bake.transfer.gather_cloud import flatten_order, refine_triangles, split_budget, triangle_areas
 from pipeline.bake.transfer.rows import gather_transport
 from relight_torch.lights.light import Light, LightKind
-from relight_torch.transfer.encoding import decode, encode
+from pipeline.bake.transfer.bake import TransferSettings, bake_rows
+from relight_torch.transfer.encoding import EncodedRows, decode, decode_rows, encode, encode_rows
 from relight_torch.transfer.gathers import GatherSamples, gather_radiance
 from relight_torch.transfer.haar import haar2d, inverse_haar2d, support_area
-from relight_torch.transfer.sparse import SparseRows, concatenate, keep_top_k
+from relight_torch.transfer.sparse import SparseRows, concatenate, cull, factor_colour, keep_top_k
 from relight_torch.visibility.embree import EmbreeCaster
 from relight_torch.visibility.rays import RayVisibility
 
@@ -113,6 +115,92 @@ def test_sparse_product_matches_dense(device):
     expected = torch.einsum("rgc,gc->rc", matrix, vector)
     product = rows.to(device, torch.float64).matmul(vector.to(device))
     torch.testing.assert_close(product.cpu(), expected, rtol=1e-12, atol=1e-12)
+
+
+def _dense_matrix(rows: SparseRows) -> torch.Tensor:
+    """(R, D, 3) dense twin of `rows` (row colour applied)."""
+    matrix = torch.zeros(rows.num_rows, rows.num_columns, 3, dtype=rows.values.dtype)
+    row_of = torch.repeat_interleave(torch.arange(rows.num_rows), rows.offsets.diff())
+    matrix[row_of, rows.indices.long()] = rows.values
+    return matrix if rows.row_colour is None else matrix * rows.row_colour[:, None, :]
+
+
+def test_colour_factored_product_matches_dense(device):
+    generator = torch.Generator().manual_seed(7)
+    scalars = torch.randn((5, 8, 8, 1), generator=generator, dtype=torch.float64)
+    colour = torch.rand((5, 3), generator=generator, dtype=torch.float64)
+    rows = concatenate([dataclasses.replace(keep_top_k(scalars[:2], 9), row_colour=colour[:2]),
+                        dataclasses.replace(keep_top_k(scalars[2:], 30), row_colour=colour[2:])])
+    rows.check()
+    vector = torch.randn((64, 3), generator=generator, dtype=torch.float64)
+    expected = torch.einsum("rgc,gc->rc", _dense_matrix(rows), vector)
+    product = rows.to(device, torch.float64).matmul(vector.to(device))
+    torch.testing.assert_close(product.cpu(), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_factor_colour_is_exact_for_one_colour_and_optimal_otherwise():
+    generator = torch.Generator().manual_seed(8)
+    shape = torch.randn((1, 4, 4, 1), generator=generator, dtype=torch.float64)
+    albedo = torch.tensor([0.7, 0.2, 0.1], dtype=torch.float64)
+    scalars, colour = factor_colour(shape * albedo)
+    torch.testing.assert_close(scalars * colour[:, None, None, :], shape * albedo, rtol=1e-12, atol=1e-12)
+    assert bool((colour > 0).all())
+    # A mixed row: the residual is the best rank-1 residual (the SVD's trailing singular values).
+    mixed = torch.randn((3, 4, 4, 3), generator=generator, dtype=torch.float64)
+    scalars, colour = factor_colour(mixed)
+    residual = (mixed - scalars * colour[:, None, None, :]).square().sum(dim=(1, 2, 3))
+    singular = torch.linalg.svdvals(mixed.reshape(3, 16, 3))
+    torch.testing.assert_close(residual, singular[:, 1:].square().sum(-1), rtol=1e-9, atol=1e-12)
+
+
+def test_cull_equals_keeping_fewer_coefficients():
+    coefficients = torch.randn((6, 16, 16, 3), generator=torch.Generator().manual_seed(9), dtype=torch.float64)
+    coefficients[4, 2:] = 0.0  # a row with fewer than k non-zero values
+    culled = cull(keep_top_k(coefficients, 40), 12)
+    culled.check()
+    direct = keep_top_k(coefficients, 12)
+    torch.testing.assert_close(culled.offsets, direct.offsets, rtol=0, atol=0)
+    torch.testing.assert_close(culled.indices, direct.indices, rtol=0, atol=0)
+    torch.testing.assert_close(culled.values, direct.values, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("num_columns, index_dtype", [(1 << 16, np.uint16), (1 << 18, np.int32)])
+def test_stored_indices_are_narrow_where_they_fit(num_columns, index_dtype):
+    indices = torch.tensor([0, num_columns - 1, 5], dtype=torch.int32)
+    rows = SparseRows(torch.rand(3, 1), indices, torch.tensor([0, 2, 3]), num_columns, torch.rand(2, 3))
+    arrays = encode_rows(rows, "uint8").arrays()
+    assert arrays["Indices"].dtype == index_dtype and arrays["Colour"].shape == (2, 3)
+    back = decode_rows(EncodedRows.from_arrays(arrays, num_columns))
+    back.check()
+    assert back.indices.dtype == torch.int32 and back.indices.tolist() == indices.tolist()
+    torch.testing.assert_close(back.row_colour, rows.row_colour)
+    torch.testing.assert_close(back.values, rows.values, rtol=0, atol=0.5 / 255)
+
+
+def test_threaded_bake_equals_one_thread_and_resumes(tmp_path):
+    generator = torch.Generator().manual_seed(10)
+    matrix = torch.rand((37, 16, 3), generator=generator) * torch.rand((37, 1, 3), generator=generator)
+    calls = []
+
+    def evaluate(rows: slice) -> torch.Tensor:
+        calls.append(rows)
+        return matrix[rows]
+
+    baked = {}
+    for num_threads in (1, 2):
+        settings = TransferSettings(num_gathers=16, rows_per_chunk=16, pairs_per_batch=5 * 16, num_threads=num_threads)
+        chunk_dir = tmp_path / str(num_threads)
+        chunk_dir.mkdir()
+        baked[num_threads] = bake_rows(evaluate, 37, 4, 6, settings, chunk_dir, "F", progress=False)
+    for one, two in zip(baked[1].arrays().values(), baked[2].arrays().values()):
+        np.testing.assert_array_equal(one, two)
+    rows = decode_rows(baked[2])
+    rows.check()
+    assert rows.values.shape == (rows.indices.shape[0], 1)  # colour-factored by default
+    # A re-run finds every chunk on disk and evaluates nothing.
+    calls.clear()
+    again = bake_rows(evaluate, 37, 4, 6, settings, tmp_path / "2", "F", progress=False)
+    assert not calls and np.array_equal(again.arrays()["Values"], baked[2].arrays()["Values"])
 
 
 def test_sparse_check_names_broken_invariants():

@@ -4,6 +4,9 @@ Writes into OUT:
     <stem>.relight.usda     the cache layer (RelightCache prim, provenance, payload list)
     <stem>.dfb.exr          the deep framebuffer (channels in relight_torch.cache.gbuffer_exr)
     <stem>.occluders.npy    (T, 3, 3) float32 world triangles: shadows without the shot
+    <stem>.occluderObjects.npy  (T,) int32 object id of each occluder triangle
+    <stem>.objectPaths.npy  uint8 UTF-8 object prim paths by object id, newline-separated: light
+                            and shadow links are resolved against them at relight time
 Each file is written atomically; the layer last, so a cache layer never names a missing payload.
 """
 
@@ -22,14 +25,15 @@ from relight_torch.cache.layer import (SUFFIX, CacheDescription, Payload, conten
                                        write_cache_layer)
 from relight_torch.io.atomic import atomic_path
 from relight_torch.io.exr import write_exr
+from relight_torch.lights.linking import encode_paths
 
 
-def write_npy(path: Path, array: np.ndarray) -> Payload:
-    """Write a .npy payload atomically and describe it."""
+def write_npy(path: Path, array: np.ndarray, name: str = "") -> Payload:
+    """Write a .npy payload atomically and describe it (as payload `name`)."""
     with atomic_path(path) as temp:
         with open(temp, "wb") as handle:
             np.save(handle, array, allow_pickle=False)
-    return Payload(name="", file=path.name, format="npy", sha256=file_sha256(path),
+    return Payload(name=name, file=path.name, format="npy", sha256=file_sha256(path),
                    num_bytes=path.stat().st_size, shape=tuple(array.shape), dtype=array.dtype.name)
 
 
@@ -55,6 +59,10 @@ def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
                    num_bytes=dfb_path.stat().st_size, channels=tuple(sorted(channels)), constants=constants)
     occluders = write_npy(out_dir / f"{stem}.occluders.npy", scene.geometry.positions.astype(np.float32))
     occluders = Payload(**{**vars(occluders), "name": "occluders"})
+    occluder_objects = write_npy(out_dir / f"{stem}.occluderObjects.npy",
+                                 scene.geometry.object_ids.astype(np.int32), "occluderObjects")
+    object_paths = write_npy(out_dir / f"{stem}.objectPaths.npy",
+                             encode_paths([obj.path for obj in scene.objects]), "objectPaths")
     parameters: dict = {"supersampling": supersampling, "textureSamples": texture_samples}
     if time_code is not None:
         parameters["time"] = float(time_code)
@@ -64,7 +72,7 @@ def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
         resolution=(camera.width, camera.height), supersampling=supersampling,
         world_from_camera=camera.world_from_camera, exposure_scale=camera.exposure_scale,
         content_hash=content_hash(inputs, parameters, __version__), inputs=inputs,
-        parameters=parameters, payloads=(deep, occluders),
+        parameters=parameters, payloads=(deep, occluders, occluder_objects, object_paths),
     )
     write_cache_layer(layer_path, description)
     return layer_path

@@ -10,6 +10,8 @@ that invalidate different stages of `relight_torch.relighter.Relighter`:
     shaping edit           cone angle and focus of a spot: that light's images
     Barzel cookie edit     the cookie's offset: that light's images
     colour edit            one light's colour: a rescale, nothing shaded
+    light-link edit        one light's light link (every object but one, the one cycling):
+                           its (N,) mask from the G-buffer's object ids, nothing traced or shaded
 
 Rigs of 1, 4 and 16 lights are the shot's lights followed by generated sphere, rect and spot
 lights (round robin) on a ring above what the camera sees, aimed at its centre. Each row reports
@@ -191,6 +193,16 @@ def _recoloured(original: Light, parity: int) -> Light:
     return dataclasses.replace(original, color=(1.0, 0.8, 0.6) if parity else (0.6, 0.8, 1.0))
 
 
+def _relinked(relighter: Relighter, light: Light) -> Callable[[int], None]:
+    """edit(k): link `light` to every object of the cache but object k (mod their number)."""
+    paths = relighter.object_paths
+
+    def edit(k: int) -> None:
+        skipped = k % len(paths)
+        relighter.set_light(dataclasses.replace(light, light_link=tuple(p for i, p in enumerate(paths) if i != skipped)))
+    return edit
+
+
 def checker_cookie(size: int = 64, cells: int = 8) -> np.ndarray:
     """(size, size, 3) float32 checkerboard of 1 and 0.2: a gobo."""
     index = np.arange(size) * cells // size
@@ -275,6 +287,9 @@ def _timed_rows(relighter: Relighter, up: np.ndarray, repeats: int) -> tuple[lis
     for case, light, change in edits:
         rows.append(_row(case, relighter, _replacer(relighter, light, change), repeats))
         relighter.set_light(light)
+    if relighter.object_paths:
+        rows.append(_row("light-link edit (masks)", relighter, _relinked(relighter, lights[0]), repeats))
+        relighter.set_light(lights[0])
     return rows, rig_bytes
 
 

@@ -7,12 +7,13 @@ import time
 from pathlib import Path
 
 from pipeline.bake.direct import bake_direct
+from pipeline.bake.gather.bake import GatherSettings, bake_gather
 from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
 from pipeline.commands.common import add_camera_options
 from pipeline.errors import RelightError
 from pipeline.scene import find_camera, load_scene
 
-METHODS = ("direct", "transfer")
+METHODS = ("direct", "transfer", "gather")
 
 
 def add_parser(subparsers) -> None:
@@ -42,6 +43,14 @@ def add_parser(subparsers) -> None:
                           help=f"coefficients kept per gather-to-gather row (default {defaults.num_bounce_coefficients})")
     transfer.add_argument("--quantize", action="store_true",
                           help="store coefficients as 8 bits with a per-row scale and offset (default float16)")
+    gather = parser.add_argument_group("gather (--method gather)")
+    gather_defaults = GatherSettings()
+    gather.add_argument("--directions", type=int, default=gather_defaults.num_directions, metavar="N",
+                        help=f"QMC hemisphere directions per view representative (default {gather_defaults.num_directions})")
+    gather.add_argument("--clusters", type=int, default=gather_defaults.num_clusters, metavar="K",
+                        help=f"clustered gathers per view representative (default {gather_defaults.num_clusters})")
+    gather.add_argument("--representatives", type=int, default=None, metavar="R",
+                        help="view representatives (default: 40,000 at 400x400, scaled with the pixel count)")
     parser.set_defaults(run=run)
 
 
@@ -63,6 +72,15 @@ def run(args: argparse.Namespace) -> int:
             raise RelightError(f"bake --method transfer: {error}") from None
         layer = bake_transfer(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
                               time_code=args.time, settings=settings)
+    elif args.method == "gather":
+        settings = GatherSettings(num_directions=args.directions, num_clusters=args.clusters,
+                                  num_representatives=args.representatives)
+        try:
+            settings.check()
+        except ValueError as error:
+            raise RelightError(f"bake --method gather: {error}") from None
+        layer = bake_gather(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
+                            time_code=args.time, settings=settings)
     else:
         layer = bake_direct(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
                             time_code=args.time)

@@ -5,8 +5,11 @@ from __future__ import annotations
 import argparse
 import time
 
+import numpy as np
+
 from pipeline.commands.common import add_device_option, add_lights_option
-from relight_torch.io.exr import write_rgb_exr
+from pipeline.errors import RelightError
+from relight_torch.io.exr import exr_layer_names, write_rgb_exr
 from relight_torch.io.preview import write_png
 from relight_torch.transfer.open import open_cache_relighter
 
@@ -15,7 +18,10 @@ def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "render", help="relight a baked cache",
         description="Relight CACHE (a <stem>.relight.usda) with the shot's lights, with LAYER's light "
-                    "edits composed over them, and write a linear float EXR (R, G, B).")
+                    "edits composed over them, and write a linear float EXR (R, G, B). With --aov lightgroups "
+                    "the EXR also holds one layer <group>.R/G/B per light group (relight:lightGroup, default "
+                    "the light's name; <group>_direct and <group>_indirect for methods with indirect light) "
+                    "and an 'emission' layer when surfaces emit; the layers sum to R, G, B.")
     parser.add_argument("cache", metavar="CACHE", help="cache layer written by `relight bake`")
     add_lights_option(parser)
     add_device_option(parser)
@@ -23,6 +29,8 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--png", metavar="OUT.png", help="also write an 8-bit sRGB preview")
     parser.add_argument("--shadows", default="embree", choices=("embree", "shadowmaps"),
                         help="exact Embree shadow rays (CPU) or torch shadow maps (default: embree)")
+    parser.add_argument("--aov", action="append", default=[], choices=("lightgroups",),
+                        help="extra EXR layers: 'lightgroups' (one per light group)")
     parser.set_defaults(run=run)
 
 
@@ -30,9 +38,24 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     relighter = open_cache_relighter(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
     image = relighter.render().cpu().numpy()
-    write_rgb_exr(args.out, image)
+    write_rgb_exr(args.out, image, light_group_layers(relighter) if "lightgroups" in args.aov else None)
     if args.png:
         write_png(args.png, image)
     print(f"{args.out}: {image.shape[1]}x{image.shape[0]}, {len(relighter.lights)} lights, "
           f"{time.perf_counter() - start:.2f} s including load")
     return 0
+
+
+def light_group_layers(relighter) -> dict[str, np.ndarray]:
+    """EXR layer -> (H, W, 3) image of each light group, plus 'emission' where surfaces emit.
+
+    Raises:
+        RelightError: the cache's method does not split its image by light.
+    """
+    if not hasattr(relighter, "light_group_images"):
+        raise RelightError(f"--aov lightgroups: {type(relighter).__name__} does not split its image by light")
+    images = {name: image.cpu().numpy() for name, image in relighter.light_group_images().items()}
+    emission = relighter.emission_image().cpu().numpy()
+    if emission.any():
+        images = {"emission": emission} | images
+    return dict(zip(exr_layer_names(list(images)), images.values()))

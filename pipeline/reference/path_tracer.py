@@ -13,6 +13,10 @@ reflection only, as in the relighter, whose deep framebuffer holds surfaces only
 Lights are not occluders either: a ray passes through a light's surface to whatever lies behind
 it (so an area light mounted just below a ceiling lets that ceiling patch show through it).
 Surfaces are shaded on both sides; opacity is ignored (opaque), with a warning.
+UsdLux linking: a light reaches only the objects of its light link (next-event estimation and
+BSDF-sampled hits of the light are both dropped at vertices on other objects), and only the
+objects of its shadow link block it (its shadow rays, and the surfaces a BSDF-sampled ray must
+not meet before the light, are traced against those objects' triangles alone).
 
 Speed (see `pipeline.reference.bench`): batches of passes are traced on `num_workers` Python
 threads with torch held to one intra-op thread while rendering. Torch's OpenMP pool spin-waits
@@ -40,9 +44,11 @@ from pipeline.shading_points import ShadingPoints, shading_points
 from pipeline.tracing import Tracer
 from relight_torch.brdf import preview_surface
 from relight_torch.lights.emission import emitted_radiance, intersect_light, is_delta_light, light_pdf, sample_light
-from relight_torch.lights.light import LightKind
+from relight_torch.lights.light import Light, LightKind
+from relight_torch.lights.linking import linked_objects
 from relight_torch.math.frame import to_local, to_world
 from relight_torch.shading import reflected_radiance
+from relight_torch.visibility.embree import ShadowLinkCasters
 
 _INFINITE_KINDS = (LightKind.DOME, LightKind.DISTANT)
 
@@ -142,6 +148,12 @@ class PathTracer:
         self.tracer = Tracer(scene.geometry, num_threads=1 if self.num_workers > 1 else None)
         self.tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs)
         self.area_lights = [light for light in scene.lights if not is_delta_light(light)]
+        object_paths = [obj.path for obj in scene.objects]
+        # Per light with a light link: (num_objects,) float32, 1 for the objects it lights.
+        self.light_link_masks = {light.path: torch.from_numpy(linked_objects(object_paths, light.light_link)).float()
+                                 for light in scene.lights if light.light_link is not None}
+        self.shadow_link_casters = ShadowLinkCasters(self.tracer.corners, scene.geometry.object_ids, object_paths,
+                                                     self.tracer.epsilon, self.tracer.num_threads)
         if any(m.opacity.texture is not None or float(m.opacity.value[0]) < 1.0 for m in scene.materials):
             warn("reference: opacity is ignored; every surface is rendered opaque", scene.warnings)
 
@@ -201,11 +213,14 @@ class PathTracer:
         path = torch.arange(num_paths)          # which path each live ray belongs to
         bsdf_pdf = torch.zeros(num_paths)       # pdf of the direction just sampled (solid angle)
         previous_points = torch.from_numpy(origins)
+        previous_objects = torch.zeros(num_paths, dtype=torch.int64)  # unused at depth 0
         for depth in range(self.settings.max_bounces + 2):
+            if depth == self.settings.max_bounces + 1 and not self.area_lights:
+                break   # the last segment only looks for lights that BSDF rays can hit
             hits = self.tracer.intersect(origins, directions)
             if depth > 0 and self.area_lights:
                 emitted = self._emitters_hit(previous_points, torch.from_numpy(directions),
-                                             torch.from_numpy(hits.distance), bsdf_pdf)
+                                             torch.from_numpy(hits.distance), bsdf_pdf, previous_objects, origins)
                 radiance.index_add_(0, path, throughput * emitted)
             if depth == self.settings.max_bounces + 1:
                 break
@@ -226,6 +241,7 @@ class PathTracer:
                 throughput = throughput / survive_probability.clamp(min=1e-8)[:, None]
             path, throughput, bsdf_pdf = path[survive], throughput[survive], bsdf_pdf[survive]
             previous_points = vertex.position[survive]
+            previous_objects = torch.from_numpy(vertex.points.object_id).long()[survive]
             directions = wi_world[survive].numpy()
             origins = self.tracer.offset_origins(previous_points.numpy(), vertex.points.geometric_normal[survive.numpy()],
                                                  directions)
@@ -234,24 +250,29 @@ class PathTracer:
         return radiance, num_vertices
 
     def _emitters_hit(self, points: torch.Tensor, directions: torch.Tensor, surface_distance: torch.Tensor,
-                      bsdf_pdf: torch.Tensor) -> torch.Tensor:
+                      bsdf_pdf: torch.Tensor, objects: torch.Tensor, origins: np.ndarray) -> torch.Tensor:
         """Light (N, 3) seen along BSDF-sampled rays, MIS-weighted against next-event estimation.
 
         Every light met before the surface counts: lights do not occlude one another, exactly as
-        next-event estimation's shadow rays test the scene's surfaces only.
+        next-event estimation's shadow rays test the scene's surfaces only. `objects` (N,) are the
+        object ids of the rays' vertices (for light links) and `origins` (N, 3) the rays' offset
+        origins (to trace a light's shadow-link occluders).
         """
         total = torch.zeros_like(directions)
-        escaped = torch.isinf(surface_distance)
         for light in self.area_lights:
+            blocker_distance = surface_distance
+            if light.shadow_link is not None:
+                caster = self.shadow_link_casters(light.shadow_link)
+                blocker_distance = torch.from_numpy(caster.intersect(origins, directions.numpy()).distance)
             if light.kind in _INFINITE_KINDS:
-                reached = escaped
+                reached = torch.isinf(blocker_distance)
             else:
-                reached = intersect_light(light, points, directions) < surface_distance
+                reached = intersect_light(light, points, directions) < blocker_distance
             idx = torch.nonzero(reached).squeeze(1)
             if idx.numel() == 0:
                 continue
             p, d = points[idx], directions[idx]
-            weight = _power_heuristic(bsdf_pdf[idx], light_pdf(light, p, d))
+            weight = _power_heuristic(bsdf_pdf[idx], light_pdf(light, p, d)) * self._linked(light, objects[idx])
             total.index_add_(0, idx, emitted_radiance(light, p, d) * weight[:, None])
         return total
 
@@ -274,16 +295,22 @@ class PathTracer:
                                                  direction.numpy())
             t_far = np.where(np.isfinite(shadow_distance),
                              shadow_distance * (1.0 - 1e-4) - self.tracer.epsilon, np.inf).astype(np.float32)
-            visible = torch.from_numpy(~self.tracer.occluded(origins, direction.numpy(), t_far))
+            caster = self.tracer if light.shadow_link is None else self.shadow_link_casters(light.shadow_link)
+            visible = torch.from_numpy(~caster.occluded(origins, direction.numpy(), t_far))
             wi_local = to_local(direction, *(f[idx] for f in vertex.frame))
             wo_local = vertex.wo_local[idx]
             params = points.params.index(idx)
             contribution = reflected_radiance(params, wo_local, wi_local, arriving[idx], light.diffuse, light.specular)
-            scale = visible.float() / pdf[idx]
+            scale = visible.float() * self._linked(light, torch.from_numpy(points.object_id[idx_numpy]).long()) / pdf[idx]
             if not sample.is_delta:
                 scale = scale * _power_heuristic(pdf[idx], preview_surface.pdf(params, wo_local, wi_local))
             total.index_add_(0, idx, contribution * scale[:, None])
         return total
+
+    def _linked(self, light: Light, objects: torch.Tensor) -> torch.Tensor | float:
+        """(M,) 1 where the light's light link includes the objects (ids (M,)), else 0; 1.0 without a link."""
+        mask = self.light_link_masks.get(light.path)
+        return 1.0 if mask is None else mask[objects]
 
     def _sample_bsdf(self, vertex: _Vertex, rng: np.random.Generator):
         """Sample the next direction: (wi_world (N, 3), weight f cos / pdf (N, 3), pdf (N,)), tensors."""

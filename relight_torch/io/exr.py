@@ -7,6 +7,7 @@ ids are UINT. ZIP compression, never lossy codecs. Writes are atomic.
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,6 +78,25 @@ def write_rgb_exr(path: str | os.PathLike, rgb: np.ndarray,
         for i, c in enumerate("RGB"):
             channels[f"{layer}.{c}"] = image[..., i].astype(np.float32)
     write_exr(path, channels, attributes)
+
+
+def exr_layer_names(names: list[str], taken: tuple[str, ...] = ()) -> list[str]:
+    """EXR layer names for arbitrary names (light groups...), one each, distinct.
+
+    A layer name may not hold '.' (the layer separator); to keep names portable to compositing
+    tools, every character other than ASCII letters, digits, '_' and '-' becomes '_'. Names that
+    collide after that (or with `taken`) get '_2', '_3'... appended.
+    """
+    used, layers = set(taken), []
+    for name in names:
+        base = re.sub(r"[^A-Za-z0-9_-]", "_", name) or "_"
+        layer, suffix = base, 1
+        while layer in used:
+            suffix += 1
+            layer = f"{base}_{suffix}"
+        used.add(layer)
+        layers.append(layer)
+    return layers
 
 
 def _one_line(text: str) -> str:

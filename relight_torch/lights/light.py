@@ -109,6 +109,10 @@ class Light:
         barzel: RelightBarzelLightAPI values or None when the API is not applied.
         light_group: the light-group AOV this light writes to ('' = the prim's name; the USD reader
             always fills it in).
+        light_link: object prim paths the light illuminates (its `collection:lightLink`), or
+            None for every object (`relight_torch.lights.linking`).
+        shadow_link: object prim paths that cast this light's shadows (`collection:shadowLink`),
+            or None for every object.
     """
 
     path: str
@@ -136,3 +140,5 @@ class Light:
     pole_axis: str = "Y"
     barzel: BarzelShaping | None = None
     light_group: str = ""
+    light_link: tuple[str, ...] | None = None
+    shadow_link: tuple[str, ...] | None = None

@@ -23,6 +23,7 @@ from relight_torch.io.atomic import atomic_path
 from relight_torch.lights.emission import validate_light
 from relight_torch.lights.image import read_linear_rgb
 from relight_torch.lights.light import BarzelShaping, Light, LightKind, Shadow, Shaping
+from relight_torch.lights.linking import read_link, write_link
 from relight_torch.schema import register_schemas
 
 log = logging.getLogger("relight")
@@ -145,7 +146,7 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode = Usd.TimeCode.Default()) -> L
 
     Returns:
         The light; `texture` / `barzel.cookie` hold the decoded images, `light_group` defaults to
-        the prim's name.
+        the prim's name, `light_link` / `shadow_link` are the resolved link collections.
 
     Raises:
         ValueError: one line naming the prim and attribute, for an unsupported type, a non-finite or
@@ -174,8 +175,11 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode = Usd.TimeCode.Default()) -> L
             barzel["cookie"] = read_linear_rgb(barzel["cookie_file"])
         values["barzel"] = BarzelShaping(**barzel)
     light_group = prim.GetAttribute(LIGHT_GROUP_ATTRIBUTE).Get(time) if prim.HasAttribute(LIGHT_GROUP_ATTRIBUTE) else ""
+    light_api = UsdLux.LightAPI(prim)
     light = Light(path=path, kind=kind, world_from_light=_world_from_light(prim, time),
-                  light_group=light_group or prim.GetName(), **values)
+                  light_group=light_group or prim.GetName(),
+                  light_link=read_link(light_api.GetLightLinkCollectionAPI()),
+                  shadow_link=read_link(light_api.GetShadowLinkCollectionAPI()), **values)
     validate_light(light)
     return light
 
@@ -266,6 +270,9 @@ def write_light(stage: Usd.Stage, light: Light) -> Usd.Prim:
                            (light.barzel, _BARZEL_INPUTS)):
         if values is not None:
             _write_inputs(prim, values, inputs)
+    light_api = UsdLux.LightAPI(prim)
+    write_link(light_api.GetLightLinkCollectionAPI(), light.light_link)
+    write_link(light_api.GetShadowLinkCollectionAPI(), light.shadow_link)
     if light.light_group:
         prim.CreateAttribute(LIGHT_GROUP_ATTRIBUTE, Sdf.ValueTypeNames.String).Set(light.light_group)
     xformable = UsdGeom.Xformable(prim)

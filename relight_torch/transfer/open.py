@@ -11,6 +11,7 @@ import torch
 from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import load_npy
 from relight_torch.errors import RelightError
+from relight_torch.gather.open import open_gather_relighter
 from relight_torch.relighter import Relighter, RelightSettings, open_relighter
 from relight_torch.transfer.encoding import PARTS, EncodedRows, decode_rows
 from relight_torch.transfer.gathers import GatherSamples
@@ -75,4 +76,6 @@ def open_cache_relighter(path: str | os.PathLike, device: str | torch.device = "
         return open_relighter(path, device, shadows, lights_layer, settings)
     if method == "transfer":
         return open_transfer_relighter(path, device, shadows, lights_layer, settings)
-    raise RelightError(f"{path}: cannot relight a {method!r} cache (this build relights 'direct' and 'transfer')")
+    if method == "gather":
+        return open_gather_relighter(path, device, shadows, lights_layer, settings)
+    raise RelightError(f"{path}: cannot relight a {method!r} cache (this build relights 'direct', 'transfer' and 'gather')")

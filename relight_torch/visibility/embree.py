@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from embreex import mesh_construction, rtcore_scene
 
+from relight_torch.lights.linking import linked_objects
+
 # Rays per embreex call: bounds the temporary arrays of one chunk (~100 bytes per ray).
 CHUNK_RAYS = 1 << 20
 # Smallest chunk worth handing to another thread; below it the call overhead dominates.
@@ -63,13 +65,15 @@ class EmbreeCaster:
         corners: (T, 3, 3) float32 world-space triangle corners; kept by reference.
         num_threads: threads tracing chunks of a batch in parallel; default: the CPUs this
             process may use.
+        epsilon: the ray offset; default: from the corners (below). A caster over a subset of a
+            scene's triangles passes the whole scene's, so that its rays leave the same surfaces.
 
     Attributes:
         epsilon: ray offset in scene units: the larger of 1e-4 x the bounding-box diagonal and 32
             float32 ulps of the largest coordinate. Use it through `offset_origins`.
     """
 
-    def __init__(self, corners: np.ndarray, num_threads: int | None = None):
+    def __init__(self, corners: np.ndarray, num_threads: int | None = None, epsilon: float | None = None):
         if corners.dtype != np.float32 or corners.ndim != 3 or corners.shape[1:] != (3, 3):
             raise ValueError(f"corners must be float32 (T, 3, 3), got {corners.dtype} {corners.shape}")
         self.num_threads = num_threads or len(os.sched_getaffinity(0))
@@ -79,7 +83,7 @@ class EmbreeCaster:
             mesh_construction.TriangleMesh(self._scene, self.corners)
         # An empty query commits (builds) the scene now rather than on the first real batch.
         self._scene.run(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
-        self.epsilon = _scene_epsilon(self.corners)
+        self.epsilon = _scene_epsilon(self.corners) if epsilon is None else epsilon
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray,
                   t_far: np.ndarray | None = None) -> RayHits:
@@ -164,6 +168,33 @@ class EmbreeCaster:
             # list() re-raises the first exception of a chunk.
             list(pool.map(trace, chunks))
 
+
+class ShadowLinkCasters:
+    """Casters over the occluders of each UsdLux shadow link: one Embree scene per distinct link,
+    built when first asked for and kept.
+
+    Args:
+        corners: (T, 3, 3) float32 world-space occluder triangles.
+        object_ids: (T,) int index of each triangle's object into `object_paths`.
+        object_paths: the objects' prim paths, by object id.
+        epsilon: the whole scene's ray offset (`EmbreeCaster.epsilon`).
+        num_threads: as `EmbreeCaster`.
+    """
+
+    def __init__(self, corners: np.ndarray, object_ids: np.ndarray, object_paths: list[str], epsilon: float,
+                 num_threads: int | None = None):
+        if object_ids.shape != corners.shape[:1]:
+            raise ValueError(f"object_ids must be ({corners.shape[0]},), got {object_ids.shape}")
+        self.corners, self.object_ids, self.object_paths = corners, np.asarray(object_ids), object_paths
+        self.epsilon, self.num_threads = epsilon, num_threads
+        self._casters: dict[tuple[str, ...], EmbreeCaster] = {}
+
+    def __call__(self, link: tuple[str, ...]) -> EmbreeCaster:
+        """The caster over the triangles of the objects in `link` (a `Light.shadow_link`)."""
+        if link not in self._casters:
+            keep = linked_objects(self.object_paths, link)[self.object_ids]
+            self._casters[link] = EmbreeCaster(np.ascontiguousarray(self.corners[keep]), self.num_threads, self.epsilon)
+        return self._casters[link]
 
 
 def _scene_epsilon(corners: np.ndarray) -> float:

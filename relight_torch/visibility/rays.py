@@ -7,6 +7,7 @@ offset); `pipeline.tracing.Tracer` and `relight_torch.visibility.embree.EmbreeCa
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -24,16 +25,34 @@ class RayCaster(Protocol):
 
 
 class RayVisibility:
-    """Exact visibility: one shadow ray per light sample."""
+    """Exact visibility: one shadow ray per light sample.
 
-    def __init__(self, caster: RayCaster):
+    Args:
+        caster: the caster over every occluder.
+        shadow_link_caster: the caster over the occluders of a shadow link
+            (`embree.ShadowLinkCasters`), for lights with one; None when the occluders' objects
+            are unknown (such lights are then refused).
+    """
+
+    def __init__(self, caster: RayCaster, shadow_link_caster: Callable[[tuple[str, ...]], RayCaster] | None = None):
         self.caster = caster
+        self.shadow_link_caster = shadow_link_caster
         self.num_rays = 0
+
+    def caster_for(self, light: Light) -> RayCaster:
+        """The caster over the occluders that shadow `light` (its `shadow_link`)."""
+        if light.shadow_link is None:
+            return self.caster
+        if self.shadow_link_caster is None:
+            raise ValueError(f"{light.path}: shadow linking needs the occluders' object ids "
+                             f"(re-bake the cache with this version)")
+        return self.shadow_link_caster(light.shadow_link)
 
     def occluder_distance(self, light: Light, points: torch.Tensor, normals: torch.Tensor,
                           directions: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
         """(N, S) distance to the first occluder (inf where visible); see `Visibility`."""
-        eps = self.caster.epsilon
+        caster = self.caster_for(light)
+        eps = caster.epsilon
         num_points, num_samples = distances.shape
         # Leave the surface on the side the light sample is on.
         side = torch.sign((directions * normals.unsqueeze(1)).sum(-1, keepdim=True))
@@ -46,8 +65,8 @@ class RayVisibility:
         result = np.full(t.shape, np.inf, np.float32)
         self.num_rays += int(live.sum())
         if light.shadow.distance >= 0.0:
-            hits = self.caster.intersect(o[live], d[live], t[live])
+            hits = caster.intersect(o[live], d[live], t[live])
             result[live] = np.where(np.isfinite(hits.distance), hits.distance, np.inf)
         else:
-            result[live] = np.where(self.caster.occluded(o[live], d[live], t[live]), 0.0, np.inf)
+            result[live] = np.where(caster.occluded(o[live], d[live], t[live]), 0.0, np.inf)
         return torch.from_numpy(result).reshape(num_points, num_samples).to(distances.device, distances.dtype)

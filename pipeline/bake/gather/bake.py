@@ -1,0 +1,213 @@
+"""`relight bake --method gather`: the direct cache plus clustered gathers (seed paper, eq. 2-3).
+
+Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct`):
+    <stem>.viewPixels.npy             (P,) int64 pixel (row * W + col) of each view sample (one
+                                      per covered pixel centre; the direct part keeps the cache's
+                                      supersampling)
+    <stem>.viewAlbedo.npy             (P, 3) float32 diffuse albedo of each view sample
+and for each representative set S in ('diffuse', 'glossy') baked:
+    <stem>.<S>Gather<Field>.npy       (G, 3) float32 Position, Normal, Albedo, Weight of the
+                                      clustered gathers, representative-major (CSR values)
+    <stem>.<S>Offsets.npy             (R + 1,) int64 CSR offsets of the representatives
+    <stem>.<S>Neighbours.npy          (P, k) int32 each view sample's nearest representatives
+    <stem>.<S>Rbf.npy                 (P, k) float32 their radial-basis weights
+Representatives are gathered in chunks saved under `.<stem>.gather-<hash>/` as they finish; a
+killed bake re-run with the same inputs and settings skips the finished chunks. The cache layer
+is rewritten last (method 'gather'), then the chunk directory is removed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import shutil
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import torch
+
+from pipeline import __version__
+from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
+from pipeline.bake.direct import bake_direct, write_npy
+from pipeline.bake.gather.hemisphere import LOBES, ClusteredGathers, cluster_gathers, gather
+from pipeline.bake.gather.representatives import choose_representatives, glossy_share, reconstruction_weights
+from pipeline.progress import progress_bar
+from pipeline.scene.surface import triangle_tangents
+from pipeline.scene.types import Camera, Scene
+from pipeline.tracing import Tracer
+from relight_torch.brdf.preview_surface import diffuse_albedo
+from relight_torch.cache.layer import Payload, content_hash, read_cache_layer, write_cache_layer
+from relight_torch.gbuffer import GBuffer
+from relight_torch.io.atomic import atomic_path
+from relight_torch.math.sampling import sobol
+
+REFERENCE_PIXELS = 400 * 400
+_FIELDS = ("position", "normal", "albedo", "weight")
+
+
+@dataclass(frozen=True)
+class GatherSettings:
+    """What the gather bake keeps.
+
+    Attributes:
+        num_directions: QMC hemisphere directions per representative (the paper: 2000).
+        num_clusters: clustered gathers per representative (the paper: 120).
+        num_representatives: view representatives of both sets together; None scales the
+            paper's 40,000 at 400 x 400 with the pixel count.
+        num_neighbours: representatives each pixel is reconstructed from (the paper: 10).
+        tile: side in pixels of the tiles the view samples are clustered in.
+        seed: seed of the QMC scrambling and the per-representative rotations.
+        representatives_per_batch: representatives gathered and clustered together (bounds the
+            (batch, directions, clusters) distances).
+        representatives_per_chunk: representatives per resumable chunk file.
+        num_threads: batches gathered concurrently (Embree and torch release the GIL); None: the
+            CPUs this process may use.
+    """
+
+    num_directions: int = 2048
+    num_clusters: int = 120
+    num_representatives: int | None = None
+    num_neighbours: int = 10
+    tile: int = 8
+    seed: int = 0
+    representatives_per_batch: int = 32
+    representatives_per_chunk: int = 1024
+    num_threads: int | None = None
+
+    def check(self) -> None:
+        """Raise ValueError naming the first bad setting."""
+        for name in ("num_directions", "num_clusters", "num_neighbours", "tile", "representatives_per_batch",
+                     "representatives_per_chunk"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if (self.num_threads or 1) < 1:
+            raise ValueError(f"num_threads must be >= 1, got {self.num_threads}")
+        if self.num_representatives is not None and self.num_representatives < 1:
+            raise ValueError(f"representatives must be >= 1, got {self.num_representatives}")
+
+    def representatives(self, num_pixels: int) -> int:
+        """Representatives at a resolution of `num_pixels`."""
+        return self.num_representatives or max(1, round(40000 * num_pixels / REFERENCE_PIXELS))
+
+    def parameters(self) -> dict[str, int]:
+        """The settings that change the cache, as cache-layer parameters."""
+        return {"directions": self.num_directions, "clusters": self.num_clusters,
+                "representatives": self.num_representatives or 0, "neighbours": self.num_neighbours,
+                "tile": self.tile, "gatherSeed": self.seed}
+
+
+def set_sizes(view: GBuffer, settings: GatherSettings) -> dict[str, int]:
+    """Clusters per tile of each set, split by the camera's diffuse-to-specular energy ratio.
+
+    A set whose share rounds to no cluster is not baked (the diffuse set always gets one).
+    """
+    height, width = view.image_size
+    per_tile = settings.representatives(height * width) / (height * width) * settings.tile ** 2
+    glossy = round(per_tile * glossy_share(view))
+    sizes = {"diffuse": max(1, round(per_tile) - glossy), "glossy": glossy}
+    return {name: count for name, count in sizes.items() if count > 0}
+
+
+@contextlib.contextmanager
+def _single_threaded_torch() -> Iterator[None]:
+    """Run torch ops on one thread each: the bake parallelises over batches instead (the many
+    small ops of the clustering ran ~100x slower with intra-op threads on a busy machine)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+def _gather_chunk(scene: Scene, tracer: Tracer, tangents: np.ndarray, view: GBuffer, samples: np.ndarray,
+                  lobe: str, settings: GatherSettings, position_weight: float, update) -> dict[str, np.ndarray]:
+    """Gather and cluster the representatives `samples`, batches on `settings.num_threads` threads."""
+    directions_u = sobol(settings.num_directions, 2, settings.seed)
+    shifts = torch.from_numpy(np.random.default_rng(settings.seed).random((view.num_samples, 2), np.float32))
+    starts = range(0, samples.size, settings.representatives_per_batch)
+
+    def work(start: int) -> ClusteredGathers:
+        batch = torch.from_numpy(samples[start:start + settings.representatives_per_batch])
+        points = gather(scene, tracer, tangents, view, batch, lobe, directions_u, shifts[batch])
+        return cluster_gathers(points, settings.num_clusters, position_weight)
+
+    parts: list[ClusteredGathers] = []
+    with _single_threaded_torch(), ThreadPoolExecutor(settings.num_threads or len(os.sched_getaffinity(0))) as pool:
+        for start, part in zip(starts, pool.map(work, starts)):
+            parts.append(part)
+            update(min(start + settings.representatives_per_batch, samples.size))
+    arrays = {name: np.concatenate([getattr(p, name) for p in parts]) for name in _FIELDS}
+    arrays["counts"] = np.concatenate([p.counts for p in parts])
+    return arrays
+
+
+def _payload(out_dir: Path, stem: str, name: str, array: np.ndarray) -> Payload:
+    return dataclasses.replace(write_npy(out_dir / f"{stem}.{name}.npy", np.ascontiguousarray(array)), name=name)
+
+
+def bake_gather(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
+                texture_samples: int = 2, time_code: float | None = None,
+                settings: GatherSettings = GatherSettings(), progress: bool | None = None) -> Path:
+    """Bake the clustered-gather cache of `camera`; returns the cache layer's path.
+
+    Args:
+        supersampling: of the direct part (indirect light has one view sample per pixel centre).
+        texture_samples: material samples per sub-sample side (texture filtering).
+        time_code: the time the scene was read at.
+        settings: directions, clusters, representatives.
+        progress: show progress bars (None: when stderr is a terminal).
+
+    Raises:
+        ValueError: bad settings (see `GatherSettings.check`).
+    """
+    settings.check()
+    out_dir = Path(out_dir)
+    layer_path = bake_direct(scene, camera, out_dir, stem, supersampling=supersampling,
+                             texture_samples=texture_samples, time_code=time_code)
+    description = read_cache_layer(layer_path)
+    parameters = {**description.parameters, **settings.parameters()}
+    digest = content_hash(description.inputs, parameters, __version__)
+    chunk_dir = out_dir / f".{stem}.gather-{digest[:16]}"
+    chunk_dir.mkdir(parents=True, exist_ok=True)
+
+    tracer = Tracer(scene.geometry)
+    tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs)
+    view = bake_deep_framebuffer(scene, camera, 1, texture_samples, tracer=tracer).gbuffer
+    position_weight = 2.0 / max(scene.diagonal, 1e-12)
+    payloads = [_payload(out_dir, stem, "viewPixels", view.pixel_index.numpy()),
+                _payload(out_dir, stem, "viewAlbedo", diffuse_albedo(view.params).numpy().astype(np.float32))]
+    for lobe, clusters_per_tile in set_sizes(view, settings).items():
+        with _single_threaded_torch():
+            samples = choose_representatives(view, clusters_per_tile, settings.tile, position_weight)
+        chunks = []
+        with progress_bar(f"{lobe} gathers", samples.size, "reps", progress) as update:
+            for first in range(0, samples.size, settings.representatives_per_chunk):
+                block = samples[first:first + settings.representatives_per_chunk]
+                path = chunk_dir / f"{lobe}-{first:09d}.npz"
+                if not path.is_file():
+                    arrays = _gather_chunk(scene, tracer, tangents, view, block, lobe, settings, position_weight,
+                                           lambda done, first=first: update(first + done, samples.size))
+                    with atomic_path(path) as temp:
+                        with open(temp, "wb") as handle:
+                            np.savez(handle, **arrays)
+                with np.load(path, allow_pickle=False) as saved:
+                    chunks.append({key: saved[key] for key in saved.files})
+                update(first + block.size, samples.size)
+        for name in _FIELDS:
+            values = np.concatenate([c[name] for c in chunks]).astype(np.float32)
+            payloads.append(_payload(out_dir, stem, f"{lobe}Gather{name.capitalize()}", values))
+        offsets = np.concatenate([[0], np.cumsum(np.concatenate([c["counts"] for c in chunks]))]).astype(np.int64)
+        payloads.append(_payload(out_dir, stem, f"{lobe}Offsets", offsets))
+        weights = reconstruction_weights(view, samples, settings.num_neighbours, position_weight)
+        payloads.append(_payload(out_dir, stem, f"{lobe}Neighbours", weights.neighbours.astype(np.int32)))
+        payloads.append(_payload(out_dir, stem, f"{lobe}Rbf", weights.rbf))
+    write_cache_layer(layer_path, dataclasses.replace(
+        description, method="gather", parameters=parameters, content_hash=digest,
+        payloads=description.payloads + tuple(payloads)))
+    shutil.rmtree(chunk_dir)
+    return layer_path

@@ -1,0 +1,188 @@
+"""Sweep of the transfer method: kept coefficients x gather counts, against the reference.
+
+    python -m pipeline.benchmarks.transfer_sweep SCENE [SCENE...] --width W --height H
+        [--gathers 1024 4096 ...] [--coefficients 10 25 50 100 200] [--bounces B] [--spp N]
+        [--quantize] [--rgb] [--out DIR] [--csv FILE]
+
+Per scene and gather count it bakes once, keeping the largest coefficient count, and studies every
+smaller count by culling those rows (`relight_torch.transfer.sparse.cull`, the bake's own order):
+bake_s is that one bake's time for all of them (row evaluation dominates; culling takes < 1 %),
+cache_bytes the bytes the layer's payloads take with the culled matrix written in full. Each point
+is relit under the shot's lights and every example light edit and compared with
+`PathTracer(max_bounces=B)`; the indirect part with the reference's B-bounce minus 0-bounce
+images. relight_ms is the median time of a light move re-rendered (gather light, Haar transform,
+sparse products and the direct part). One CSV row per (scene, gathers, coefficients, edit), the
+columns shared with the other methods' sweeps.
+
+With `--timing` it measures relight_ms alone at the given size (640 x 480 for the issue's target)
+without the hours of F rows such a size costs: the real direct cache and gather cloud, and
+synthetic F rows (every pixel's `--coefficients` distinct random indices and values), both
+colour-factored and RGB; PSNR columns are empty.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pipeline.bake.direct import bake_direct
+from pipeline.bake.transfer.bake import F_PREFIX, TransferSettings, bake_transfer, matrix_payloads
+from pipeline.bake.transfer.gather_cloud import create_gathers
+from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
+from pipeline.scene import find_camera, load_scene
+from pipeline.scenes import SCENES, write_light_edits
+from relight_torch.cache.layer import read_cache_layer
+from relight_torch.lights.light import Light
+from relight_torch.metrics import psnr, rel_mse
+from relight_torch.relighter import open_relighter, shot_lights
+from relight_torch.transfer.encoding import decode_rows, encode_rows
+from relight_torch.transfer.open import open_transfer_relighter
+from relight_torch.transfer.relighter import TransferRelighter
+from relight_torch.transfer.sparse import SparseRows, cull
+
+COLUMNS = ("method,scene,width,height,light_edit,params,psnr_db,psnr_indirect_db,rel_mse,cache_bytes,bake_s,"
+           "relight_ms,device")
+
+
+def moved(light: Light, fraction: float) -> Light:
+    """`light` translated by `fraction` of its distance from the origin, along x (a light edit)."""
+    world_from_light = light.world_from_light.copy()
+    world_from_light[0, 3] += fraction * max(float(np.linalg.norm(world_from_light[:3, 3])), 1.0)
+    return dataclasses.replace(light, world_from_light=world_from_light)
+
+
+def relight_ms(relighter: TransferRelighter, repeats: int = 5) -> float:
+    """Median ms of re-rendering after moving the first light (its gather light and products redone)."""
+    lights = relighter.lights
+    times = []
+    for repeat in range(repeats):
+        edit = moved(lights[0], 0.01 * (1 + repeat % 2))
+        start = time.perf_counter()
+        relighter.set_light(edit)
+        relighter.render()
+        times.append(1e3 * (time.perf_counter() - start))
+    relighter.set_lights(lights)
+    return statistics.median(times)
+
+
+def references(shot: Path, layers: dict[str, Path | None], camera_path: str, width: int, height: int, spp: int,
+               num_bounces: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per light edit: (B-bounce reference, its indirect part = B-bounce minus 0-bounce)."""
+    out = {}
+    for edit, layer in layers.items():
+        scene = load_scene(shot, lights_layer=layer, width=width, height=height)
+        camera = find_camera(scene, camera_path)
+        full, direct = (PathTracer(scene, ReferenceSettings(spp=spp, max_bounces=b)).render(camera).mean
+                        for b in (num_bounces, 0))
+        out[edit] = (full, full - direct)
+    return out
+
+
+def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
+    """Print the CSV rows of one scene."""
+    bundled = SCENES[name]
+    (directory / "culled").mkdir(parents=True, exist_ok=True)
+    shot = bundled.write(directory)
+    layers = {"shot": None} | {p.name.split(".")[-2]: p for p in write_light_edits(name, directory)}
+    expected = references(shot, layers, bundled.camera, args.width, args.height, args.spp, args.bounces)
+    scene = load_scene(shot, width=args.width, height=args.height)
+    camera = find_camera(scene, bundled.camera)
+    for num_gathers in args.gathers:
+        settings = TransferSettings(num_gathers=num_gathers, num_coefficients=max(args.coefficients),
+                                    num_bounces=args.bounces, encoding="uint8" if args.quantize else "float16",
+                                    factor_colour=not args.rgb)
+        cache = directory / f"cache-{num_gathers}"
+        start = time.perf_counter()
+        layer = bake_transfer(scene, camera, cache, name, args.supersampling, args.texture_samples,
+                              settings=settings, progress=False)
+        bake_s = time.perf_counter() - start
+        description = read_cache_layer(layer)
+        base_bytes = sum(p.num_bytes for p in description.payloads if not p.name.startswith(F_PREFIX))
+        relighter = open_transfer_relighter(layer, shadows=args.shadows)
+        stored = relighter.final_gather
+        for num_kept in sorted(args.coefficients):
+            encoded = encode_rows(cull(stored, num_kept), settings.encoding)
+            payloads = matrix_payloads(directory / "culled", name, F_PREFIX, encoded)
+            rows = decode_rows(encoded).to("cpu", stored.values.dtype)
+            point = TransferRelighter(relighter.direct, relighter.gathers, relighter.view_pixels, rows,
+                                      relighter.bounce, relighter.num_bounces)
+            cache_bytes = base_bytes + sum(p.num_bytes for p in payloads)
+            params = " ".join(f"{key}={value}" for key, value in
+                              {**settings.parameters(), "coefficients": num_kept}.items())
+            for edit, layer_path in layers.items():
+                point.set_lights(shot_lights(description, layer_path))
+                image, indirect = point.render().numpy(), point.indirect_image().numpy()
+                full, reference_indirect = expected[edit]
+                timing = relight_ms(point) if edit == "shot" else float("nan")
+                print(f"transfer,{name},{args.width},{args.height},{edit},{params},{psnr(image, full):.2f},"
+                      f"{psnr(indirect, reference_indirect):.2f},{rel_mse(image, full):.4g},{cache_bytes},"
+                      f"{bake_s:.1f},{timing:.1f},cpu", flush=True)
+
+
+def synthetic_rows(num_rows: int, num_columns: int, num_kept: int, factored: bool, seed: int = 0) -> SparseRows:
+    """Random `SparseRows` of the given size (what the timing costs depends on, not the values)."""
+    generator = torch.Generator().manual_seed(seed)
+    # One random index per stratum of num_columns / num_kept columns: sorted and unique per row.
+    stratum = num_columns // num_kept
+    indices = torch.arange(num_kept) * stratum + torch.randint(stratum, (num_rows, num_kept), generator=generator)
+    channels = 1 if factored else 3
+    values = torch.rand((num_rows * num_kept, channels), generator=generator) * 1e-3
+    colour = torch.rand((num_rows, 3), generator=generator) if factored else None
+    offsets = torch.arange(num_rows + 1, dtype=torch.int64) * num_kept
+    return SparseRows(values, indices.reshape(-1).to(torch.int32), offsets, num_columns, colour)
+
+
+def time_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
+    """Print relight_ms rows of one scene at the given size with synthetic F rows."""
+    bundled = SCENES[name]
+    shot = bundled.write(directory)
+    scene = load_scene(shot, width=args.width, height=args.height)
+    layer = bake_direct(scene, find_camera(scene, bundled.camera), directory / "cache", name, args.supersampling,
+                        args.texture_samples)
+    direct = open_relighter(layer, shadows=args.shadows)
+    view_pixels = torch.arange(args.width * args.height)
+    for num_gathers in args.gathers:
+        gathers = create_gathers(scene, num_gathers)
+        for factored in (True, False):
+            rows = synthetic_rows(view_pixels.shape[0], num_gathers, max(args.coefficients), factored)
+            relighter = TransferRelighter(direct, gathers, view_pixels, rows.to("cpu", torch.float32))
+            relighter.render()
+            params = f"gathers={num_gathers} coefficients={max(args.coefficients)} rowColour={int(factored)} synthetic=1"
+            print(f"transfer,{name},{args.width},{args.height},shot,{params},,,,{rows.num_bytes},,"
+                  f"{relight_ms(relighter, repeats=7):.1f},cpu", flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("scenes", nargs="+", choices=sorted(SCENES))
+    parser.add_argument("--width", type=int, default=64)
+    parser.add_argument("--height", type=int, default=64)
+    parser.add_argument("--gathers", type=int, nargs="+", default=[1024, 4096])
+    parser.add_argument("--coefficients", type=int, nargs="+", default=[10, 25, 50, 100, 200])
+    parser.add_argument("--bounces", type=int, default=1)
+    parser.add_argument("--spp", type=int, default=512, help="reference samples per pixel")
+    parser.add_argument("--supersampling", type=int, default=2)
+    parser.add_argument("--texture-samples", type=int, default=2)
+    parser.add_argument("--shadows", default="embree", choices=("embree", "shadowmaps"))
+    parser.add_argument("--quantize", action="store_true", help="8-bit coefficients")
+    parser.add_argument("--rgb", action="store_true", help="RGB coefficients instead of one colour per row")
+    parser.add_argument("--timing", action="store_true", help="relight_ms only, synthetic F rows")
+    parser.add_argument("--out", help="directory for the scenes and caches (default: a temporary one)")
+    args = parser.parse_args(argv)
+    directory = Path(args.out or tempfile.mkdtemp(prefix="relight-transfer-sweep-"))
+    print(COLUMNS, flush=True)
+    for name in args.scenes:
+        (time_scene if args.timing else sweep_scene)(name, args, directory / name)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,2 @@
+"""Clustered gather samples (the seed paper's equations 2 and 3): one indirect bounce relit from
+clustered hemisphere gathers of clustered view samples."""

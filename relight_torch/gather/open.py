@@ -1,0 +1,42 @@
+"""Opening a 'gather' cache (written by `pipeline.bake.gather.bake`) for relighting."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from relight_torch.cache.load import load_npy
+from relight_torch.errors import RelightError
+from relight_torch.gather.relighter import SET_NAMES, GatherRelighter, GatherSet
+from relight_torch.relighter import RelightSettings, open_relighter
+
+
+def open_gather_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
+                          lights_layer: str | os.PathLike | None = None,
+                          settings: RelightSettings = RelightSettings()) -> GatherRelighter:
+    """A GatherRelighter for a 'gather' cache layer (arguments as `open_relighter`).
+
+    Raises:
+        RelightError: a payload is missing or the sets break their layout's invariants.
+    """
+    layer_path = Path(path)
+    direct = open_relighter(layer_path, device, shadows, lights_layer, settings)
+    description = direct.description
+    dtype = direct.gbuffer.position.dtype
+    names = {payload.name for payload in description.payloads}
+
+    def load(name: str) -> torch.Tensor:
+        return torch.from_numpy(np.array(load_npy(layer_path, description, name))).to(device)
+
+    try:
+        sets = {lobe: GatherSet(**{field: load(f"{lobe}Gather{field.capitalize()}")
+                                   for field in ("position", "normal", "albedo", "weight")},
+                                offsets=load(f"{lobe}Offsets"), neighbours=load(f"{lobe}Neighbours").long(),
+                                rbf=load(f"{lobe}Rbf")).to(device, dtype)
+                for lobe in SET_NAMES if f"{lobe}Offsets" in names}
+        return GatherRelighter(direct, sets, load("viewPixels"), load("viewAlbedo").to(dtype))
+    except ValueError as error:
+        raise RelightError(f"{layer_path}: {error}") from None
