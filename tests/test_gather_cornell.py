@@ -14,6 +14,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from pipeline.bake.gather import bake as gather_bake
 from pipeline.bake.gather.bake import GatherSettings, bake_gather
 from pipeline.cli import main
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
@@ -91,3 +92,30 @@ def test_cli_bakes_and_renders_a_gather_cache(tmp_path):
     assert np.isfinite(image).all() and image.mean() > 0
     assert main(["bake", str(path), "--camera", cornell_box.CAMERA, "--out", str(out), "--method", "gather",
                  "--clusters", "0"]) != 0
+
+
+def test_a_killed_bake_resumes_from_its_finished_chunks(tmp_path, monkeypatch):
+    path = cornell_box.write(tmp_path)
+    scene = load_scene(path, width=8, height=8)
+    camera = find_camera(scene, cornell_box.CAMERA)
+    settings = GatherSettings(num_directions=32, num_clusters=4, num_representatives=16, tile=4,
+                              representatives_per_chunk=4)
+    calls = []
+    real_chunk = gather_bake._gather_chunk
+
+    def dies_on_the_third_chunk(*args, **kwargs):
+        calls.append(args[4].size)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real_chunk(*args, **kwargs)
+
+    monkeypatch.setattr(gather_bake, "_gather_chunk", dies_on_the_third_chunk)
+    with pytest.raises(KeyboardInterrupt):
+        bake_gather(scene, camera, tmp_path / "cache", "cornell", supersampling=1, texture_samples=1,
+                    settings=settings, progress=False)
+    assert len(list((tmp_path / "cache").glob(".cornell.gather-*/*.npz"))) == 2
+    calls.clear()
+    layer = bake_gather(scene, camera, tmp_path / "cache", "cornell", supersampling=1, texture_samples=1,
+                        settings=settings, progress=False)
+    num_representatives = sum(s.num_representatives for s in open_cache_relighter(layer).sets.values())
+    assert sum(calls) == num_representatives - 8  # the two finished chunks of four were not re-gathered

@@ -88,3 +88,25 @@ def test_group_intensity_edit_is_a_rescale_of_its_layer(baked):
     fresh = open_relighter(cache, settings=SETTINGS)
     fresh.set_lights(edited)
     np.testing.assert_allclose(sum(after.values()).numpy(), fresh.render().numpy(), rtol=1e-5, atol=1e-7)
+
+
+def test_transfer_render_splits_each_group_into_direct_and_indirect(baked, tmp_path):
+    _, layer = baked
+    shot = SCENES["cornell_box"].write(tmp_path / "scene")
+    out = tmp_path / "cache"
+    assert cli.main(["bake", str(shot), "--camera", SCENES["cornell_box"].camera, "--out", str(out), "--width",
+                     str(SIZE), "--height", str(SIZE), "--supersampling", "1", "--method", "transfer",
+                     "--gathers", "256", "--coefficients", "30"]) == 0
+    exr = tmp_path / "groups.exr"
+    assert cli.main(["render", str(out / "cornell_box.relight.usda"), "--lights", str(layer), "-o", str(exr),
+                     "--aov", "lightgroups"]) == 0
+    image = oiio.ImageBuf(str(exr))
+    names = list(image.spec().channelnames)
+    layers = [f"{group}_{part}" for group in ("CeilingLight", "key_rim") for part in ("direct", "indirect")]
+    assert sorted(names) == sorted(["R", "G", "B"] + [f"{name}.{c}" for name in layers for c in "RGB"])
+    pixels = {name: image.get_pixels(oiio.FLOAT)[..., i] for i, name in enumerate(names)}
+    for channel in "RGB":
+        beauty = pixels[channel]
+        total = sum(pixels[f"{name}.{channel}"] for name in layers)
+        assert np.abs(total - beauty).max() <= 1e-5 * beauty.max()
+        assert pixels[f"key_rim_indirect.{channel}"].max() > 1e-3 * beauty.max()

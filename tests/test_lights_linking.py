@@ -154,7 +154,7 @@ def test_shadow_link_lets_light_through_the_excluded_object(cornell):
 
 
 def test_link_edits_invalidate_masks_or_visibility_only(cornell):
-    shot, cache, _ = cornell
+    _, cache, _ = cornell
     relighter = open_relighter(cache, settings=RelightSettings(area_samples=4))
     relighter.render()
     lamp = relighter.lights[0]

@@ -132,10 +132,11 @@ def split(
     e_dot_h = (wo_local * h_local).sum(-1, keepdim=True)
     f0, f90 = _specular_colors(params)
     fresnel = schlick_fresnel(f0, f90, e_dot_h)
-    coat_fresnel = schlick_fresnel(_dielectric_f0(params).unsqueeze(-1), 1.0, e_dot_h)
     specular = fresnel * _storm_lobe(storm_alpha(params.roughness), cos_l, cos_e, cos_h).unsqueeze(-1)
-    coat_lobe = _storm_lobe(storm_alpha(params.clearcoat_roughness), cos_l, cos_e, cos_h)
-    specular = specular + coat_fresnel * (params.clearcoat * coat_lobe).unsqueeze(-1)
+    if bool(params.clearcoat.any()):  # most materials have no coat: skip its lobe entirely
+        coat_fresnel = schlick_fresnel(_dielectric_f0(params).unsqueeze(-1), 1.0, e_dot_h)
+        coat_lobe = _storm_lobe(storm_alpha(params.clearcoat_roughness), cos_l, cos_e, cos_h)
+        specular = specular + coat_fresnel * (params.clearcoat * coat_lobe).unsqueeze(-1)
     diffuse = diffuse_albedo(params) / math.pi * (1.0 - fresnel)
     return where_above(diffuse, wo_local, wi_local), where_above(specular, wo_local, wi_local)
 

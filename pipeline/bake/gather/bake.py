@@ -6,8 +6,8 @@ Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct`):
                                       supersampling)
     <stem>.viewAlbedo.npy             (P, 3) float32 diffuse albedo of each view sample
 and for each representative set S in ('diffuse', 'glossy') baked:
-    <stem>.<S>Gather<Field>.npy       (G, 3) float32 Position, Normal, Albedo, Weight of the
-                                      clustered gathers, representative-major (CSR values)
+    <stem>.<S>Gather<Field>.npy       (G, 3) Position, Weight (float32), Normal, Albedo (float16)
+                                      of the clustered gathers, representative-major (CSR values)
     <stem>.<S>Offsets.npy             (R + 1,) int64 CSR offsets of the representatives
     <stem>.<S>Neighbours.npy          (P, k) int32 each view sample's nearest representatives
     <stem>.<S>Rbf.npy                 (P, k) float32 their radial-basis weights
@@ -33,7 +33,7 @@ import torch
 from pipeline import __version__
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
 from pipeline.bake.direct import bake_direct, write_npy
-from pipeline.bake.gather.hemisphere import LOBES, ClusteredGathers, cluster_gathers, gather
+from pipeline.bake.gather.hemisphere import ClusteredGathers, cluster_gathers, gather
 from pipeline.bake.gather.representatives import choose_representatives, glossy_share, reconstruction_weights
 from pipeline.progress import progress_bar
 from pipeline.scene.surface import triangle_tangents
@@ -46,7 +46,9 @@ from relight_torch.io.atomic import atomic_path
 from relight_torch.math.sampling import sobol
 
 REFERENCE_PIXELS = 400 * 400
-_FIELDS = ("position", "normal", "albedo", "weight")
+_FIELD_DTYPES = {"position": np.float32, "normal": np.float16, "albedo": np.float16, "weight": np.float32}
+"""Stored precision: positions and weights in full, unit normals and albedos in half (as the paper
+packs its samples in 16-bit floats; their rounding is ~1e-3 relative)."""
 
 
 @dataclass(frozen=True)
@@ -141,7 +143,7 @@ def _gather_chunk(scene: Scene, tracer: Tracer, tangents: np.ndarray, view: GBuf
         for start, part in zip(starts, pool.map(work, starts)):
             parts.append(part)
             update(min(start + settings.representatives_per_batch, samples.size))
-    arrays = {name: np.concatenate([getattr(p, name) for p in parts]) for name in _FIELDS}
+    arrays = {name: np.concatenate([getattr(p, name) for p in parts]) for name in _FIELD_DTYPES}
     arrays["counts"] = np.concatenate([p.counts for p in parts])
     return arrays
 
@@ -198,8 +200,8 @@ def bake_gather(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
                 with np.load(path, allow_pickle=False) as saved:
                     chunks.append({key: saved[key] for key in saved.files})
                 update(first + block.size, samples.size)
-        for name in _FIELDS:
-            values = np.concatenate([c[name] for c in chunks]).astype(np.float32)
+        for name, dtype in _FIELD_DTYPES.items():
+            values = np.concatenate([c[name] for c in chunks]).astype(dtype)
             payloads.append(_payload(out_dir, stem, f"{lobe}Gather{name.capitalize()}", values))
         offsets = np.concatenate([[0], np.cumsum(np.concatenate([c["counts"] for c in chunks]))]).astype(np.int64)
         payloads.append(_payload(out_dir, stem, f"{lobe}Offsets", offsets))
