@@ -371,6 +371,8 @@ class Relighter:
             return state.transport
         g = self.gbuffer
         light = dataclasses.replace(unit_light(state.light), shaping=None, barzel=None)
+        if light.shadow_link is not None and not isinstance(self.visibility, RayVisibility):
+            raise ValueError(f"{light.path}: shadow linking needs Embree shadow rays (shadows='embree')")
         num_samples = self.num_light_samples(light)
         parts = [self._chunk_transport(light, chunk, num_samples) for chunk in self._chunks(num_samples)]
         lobes = torch.cat([part.lobes for part in parts], dim=2)

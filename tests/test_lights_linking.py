@@ -178,3 +178,11 @@ def test_shot_lights_read_links_from_the_layer(cornell):
     relighter = open_relighter(cache, settings=SETTINGS)
     lights: list[Light] = shot_lights(relighter.description, layers["light_link"])
     assert [light.light_link for light in lights] == [(TALL,)]
+
+
+def test_shadow_maps_refuse_a_shadow_link(cornell):
+    _, cache, layers = cornell
+    relighter = open_relighter(cache, shadows="shadowmaps", lights_layer=layers["shadow_link"],
+                               settings=RelightSettings(area_samples=1))
+    with pytest.raises(ValueError, match="shadow linking needs Embree"):
+        relighter.render()
