@@ -107,9 +107,15 @@ def _fold_normal_spread(params: dict[str, np.ndarray], length: np.ndarray) -> No
     params["diffuse_color"] = params["diffuse_color"] * length[:, None]
     spread = 1.0 - length * length
     inverse_kappa = np.where(spread > 1e-6, spread / np.maximum(3.0 * length - length**3, 1e-6), 0.0)
-    for name in ("roughness", "clearcoat_roughness"):
+    # Only where the lobe exists, so that a material without it keeps a constant (elided) channel.
+    has_lobe = {
+        "roughness": ~(params["use_specular_workflow"] & np.all(params["specular_color"] == 0, axis=-1)),
+        "clearcoat_roughness": params["clearcoat"] > 0,
+    }
+    for name, lobe in has_lobe.items():
         alpha = np.square(params[name].astype(np.float64))
-        params[name] = np.power(alpha * alpha + 2.0 * inverse_kappa, 0.25).astype(np.float32)
+        widened = np.power(alpha * alpha + 2.0 * inverse_kappa, 0.25).astype(np.float32)
+        params[name] = np.where(lobe, widened, params[name])
 
 
 def _filter_materials(scene: Scene, tracer: Tracer, tangents: np.ndarray, camera: Camera, s: int, t: int,
