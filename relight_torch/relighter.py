@@ -478,7 +478,8 @@ def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", 
     description = read_cache_layer(layer_path)
     check_inputs(layer_path, description)
     gbuffer = load_gbuffer(layer_path, description).to(device)
-    occluders = np.ascontiguousarray(load_npy(layer_path, description, "occluders"))
+    # A writable copy: Embree and torch both keep references to it; the .npy is mapped read-only.
+    occluders = np.array(load_npy(layer_path, description, "occluders"), dtype=np.float32)
     linking = {payload.name for payload in description.payloads} >= {"objectPaths", "occluderObjects"}
     object_paths = decode_paths(load_npy(layer_path, description, "objectPaths")) if linking else None
     if shadows == "embree":
