@@ -9,7 +9,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from pipeline.scene.surface import evaluate_materials, shading_frame
 from pipeline.scene.types import Scene

@@ -151,7 +151,14 @@ class StormPreviewSurface(mi.BSDF):
         return f"StormPreviewSurface[diffuse={self.diffuse}, f0={self.f0}, alpha={self.alpha}]"
 
 
-mi.register_bsdf("storm_preview_surface", lambda props: StormPreviewSurface(props))
+def _use_variant() -> None:
+    """Select our variant and (re-)register the BSDF: another test in the same process may have
+    switched Mitsuba to another variant, which drops plugins registered for this one."""
+    mi.set_variant(VARIANT)
+    mi.register_bsdf("storm_preview_surface", lambda props: StormPreviewSurface(props))
+
+
+_use_variant()
 
 
 def _material_bsdf(material: Material) -> dict:
@@ -265,6 +272,7 @@ def scene_dict(scene: Scene, camera: Camera, max_bounces: int, spp: int, seed: i
 
 def render(scene: Scene, camera: Camera, max_bounces: int, spp: int, seed: int = 0) -> np.ndarray:
     """(H, W, 3) float32 Mitsuba render of our scene (linear radiance, row 0 at the top)."""
+    _use_variant()
     mitsuba_scene = mi.load_dict(scene_dict(scene, camera, max_bounces, spp, seed))
     return np.array(mi.render(mitsuba_scene, spp=spp, seed=seed), dtype=np.float32)
 

@@ -8,7 +8,7 @@ from pxr import Usd, UsdGeom, UsdShade
 
 from pipeline.scene.materials import MaterialLibrary
 from pipeline.scene.surface import evaluate_materials, shading_frame
-from pipeline.scene.textures import read_image, srgb_to_linear
+from relight_torch.io.images import read_image, srgb_to_linear
 
 DATA = Path(__file__).parent / "data" / "materials"
 

@@ -10,12 +10,11 @@ from pipeline.scene.textures import (
     expand_to_rgba,
     fit_channels,
     load_texture,
-    read_image,
     sample_texture,
     select_output,
-    srgb_to_linear,
 )
 from pipeline.scene.types import Texture
+from relight_torch.io.images import read_image, srgb_to_linear
 
 
 def write_image(path, pixels, type_name, attributes=()):

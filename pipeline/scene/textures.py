@@ -16,14 +16,13 @@ follows the UsdPreviewSurface spec (2.5) and Storm:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import numpy as np
 
 
 from pipeline.errors import RelightError
 from pipeline.scene.types import Texture
-from relight_torch.io.images import COLOR_SPACES, DecodedImage, read_image, srgb_to_linear
+from relight_torch.io.images import DecodedImage, read_image
 
 WRAP_MODES = ("black", "clamp", "repeat", "mirror")
 OUTPUTS = ("rgb", "r", "g", "b", "a")

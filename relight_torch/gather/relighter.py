@@ -22,7 +22,7 @@ import dataclasses
 import numpy as np
 import torch
 
-from relight_torch.gather.light import diffuse_radiance
+from relight_torch.diffuse_light import diffuse_radiance
 from relight_torch.gather.reconstruction import interpolate
 from relight_torch.lights.emission import is_delta_light
 from relight_torch.lights.light import Light, LightKind

@@ -12,10 +12,8 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from relight_torch.light_samples import fixed_light_samples
-from relight_torch.lights.emission import sample_light
+from relight_torch.diffuse_light import diffuse_radiance
 from relight_torch.lights.light import Light
-from relight_torch.lights.shadow import shadow_factor
 from relight_torch.visibility import Visibility
 
 
@@ -77,14 +75,5 @@ def gather_radiance(light: Light, gathers: GatherSamples, visibility: Visibility
         seed: seed of the fixed sample pattern.
         chunk_points: gathers processed together.
     """
-    u = fixed_light_samples(gathers.num_gathers, num_samples, seed, gathers.position.device, gathers.position.dtype)
-    irradiance = torch.zeros_like(gathers.position)
-    for start in range(0, gathers.num_gathers, chunk_points):
-        chunk = slice(start, start + chunk_points)
-        position, normal = gathers.position[chunk], gathers.normal[chunk]
-        sample = sample_light(light, position, u[chunk])
-        distance = visibility.occluder_distance(light, position, normal, sample.direction, sample.distance)
-        shadow = shadow_factor(light.shadow, torch.isfinite(distance), distance)
-        cosine = (sample.direction * normal.unsqueeze(1)).sum(-1).clamp(min=0.0)
-        irradiance[chunk] = (sample.weight() * shadow * cosine.unsqueeze(-1)).mean(dim=1)
-    return light.diffuse * gathers.albedo / math.pi * irradiance
+    return diffuse_radiance(light, gathers.position, gathers.normal, gathers.albedo, visibility, num_samples,
+                            seed, chunk_points)

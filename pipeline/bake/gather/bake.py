@@ -19,9 +19,7 @@ is rewritten last (method 'gather'), then the chunk directory is removed.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import os
-import shutil
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,9 +28,8 @@ from typing import Iterator
 import numpy as np
 import torch
 
-from pipeline import __version__
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
-from pipeline.bake.direct import bake_direct, write_npy
+from pipeline.bake.indirect import start_indirect_bake
 from pipeline.bake.gather.hemisphere import ClusteredGathers, cluster_gathers, gather
 from pipeline.bake.gather.representatives import choose_representatives, glossy_share, reconstruction_weights
 from pipeline.progress import progress_bar
@@ -40,7 +37,6 @@ from pipeline.scene.surface import triangle_tangents
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.brdf.preview_surface import diffuse_albedo
-from relight_torch.cache.layer import Payload, content_hash, read_cache_layer, write_cache_layer
 from relight_torch.gbuffer import GBuffer
 from relight_torch.io.atomic import atomic_path
 from relight_torch.math.sampling import sobol
@@ -148,10 +144,6 @@ def _gather_chunk(scene: Scene, tracer: Tracer, tangents: np.ndarray, view: GBuf
     return arrays
 
 
-def _payload(out_dir: Path, stem: str, name: str, array: np.ndarray) -> Payload:
-    return dataclasses.replace(write_npy(out_dir / f"{stem}.{name}.npy", np.ascontiguousarray(array)), name=name)
-
-
 def bake_gather(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
                 texture_samples: int = 2, time_code: float | None = None,
                 settings: GatherSettings = GatherSettings(), progress: bool | None = None) -> Path:
@@ -168,21 +160,16 @@ def bake_gather(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
         ValueError: bad settings (see `GatherSettings.check`).
     """
     settings.check()
-    out_dir = Path(out_dir)
-    layer_path = bake_direct(scene, camera, out_dir, stem, supersampling=supersampling,
-                             texture_samples=texture_samples, time_code=time_code)
-    description = read_cache_layer(layer_path)
-    parameters = {**description.parameters, **settings.parameters()}
-    digest = content_hash(description.inputs, parameters, __version__)
-    chunk_dir = out_dir / f".{stem}.gather-{digest[:16]}"
-    chunk_dir.mkdir(parents=True, exist_ok=True)
+    bake = start_indirect_bake(scene, camera, out_dir, stem, "gather", settings.parameters(), supersampling,
+                               texture_samples, time_code)
+    chunk_dir = bake.chunk_dir
 
     tracer = Tracer(scene.geometry)
     tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs)
     view = bake_deep_framebuffer(scene, camera, 1, texture_samples, tracer=tracer).gbuffer
     position_weight = 2.0 / max(scene.diagonal, 1e-12)
-    payloads = [_payload(out_dir, stem, "viewPixels", view.pixel_index.numpy()),
-                _payload(out_dir, stem, "viewAlbedo", diffuse_albedo(view.params).numpy().astype(np.float32))]
+    payloads = [bake.payload(stem, "viewPixels", view.pixel_index.numpy()),
+                bake.payload(stem, "viewAlbedo", diffuse_albedo(view.params).numpy().astype(np.float32))]
     for lobe, clusters_per_tile in set_sizes(view, settings).items():
         with _single_threaded_torch():
             samples = choose_representatives(view, clusters_per_tile, settings.tile, position_weight)
@@ -202,14 +189,10 @@ def bake_gather(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
                 update(first + block.size, samples.size)
         for name, dtype in _FIELD_DTYPES.items():
             values = np.concatenate([c[name] for c in chunks]).astype(dtype)
-            payloads.append(_payload(out_dir, stem, f"{lobe}Gather{name.capitalize()}", values))
+            payloads.append(bake.payload(stem, f"{lobe}Gather{name.capitalize()}", values))
         offsets = np.concatenate([[0], np.cumsum(np.concatenate([c["counts"] for c in chunks]))]).astype(np.int64)
-        payloads.append(_payload(out_dir, stem, f"{lobe}Offsets", offsets))
+        payloads.append(bake.payload(stem, f"{lobe}Offsets", offsets))
         weights = reconstruction_weights(view, samples, settings.num_neighbours, position_weight)
-        payloads.append(_payload(out_dir, stem, f"{lobe}Neighbours", weights.neighbours.astype(np.int32)))
-        payloads.append(_payload(out_dir, stem, f"{lobe}Rbf", weights.rbf))
-    write_cache_layer(layer_path, dataclasses.replace(
-        description, method="gather", parameters=parameters, content_hash=digest,
-        payloads=description.payloads + tuple(payloads)))
-    shutil.rmtree(chunk_dir)
-    return layer_path
+        payloads.append(bake.payload(stem, f"{lobe}Neighbours", weights.neighbours.astype(np.int32)))
+        payloads.append(bake.payload(stem, f"{lobe}Rbf", weights.rbf))
+    return bake.finish(payloads)

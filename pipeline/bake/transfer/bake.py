@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import shutil
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,15 +28,15 @@ from typing import Callable
 import numpy as np
 import torch
 
-from pipeline import __version__
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
-from pipeline.bake.direct import bake_direct, write_npy
+from pipeline.bake.indirect import start_indirect_bake
+from pipeline.bake.direct import write_npy
 from pipeline.bake.transfer.gather_cloud import create_gathers
 from pipeline.bake.transfer.rows import bounce_rows, final_gather_rows
 from pipeline.progress import progress_bar
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
-from relight_torch.cache.layer import Payload, content_hash, read_cache_layer, write_cache_layer
+from relight_torch.cache.layer import Payload
 from relight_torch.io.atomic import atomic_path
 from relight_torch.transfer.encoding import ENCODINGS, EncodedRows, EncodedValues, encode_rows
 from relight_torch.transfer.haar import haar2d
@@ -161,13 +160,10 @@ def bake_rows(evaluate: Callable[[slice], torch.Tensor], num_rows: int, side: in
     return EncodedRows(values, join(lambda c: c.indices), offsets, side * side, colour)
 
 
-def _payload(out_dir: Path, stem: str, name: str, array: np.ndarray) -> Payload:
-    return dataclasses.replace(write_npy(out_dir / f"{stem}.{name}.npy", np.ascontiguousarray(array)), name=name)
-
-
 def matrix_payloads(out_dir: Path, stem: str, prefix: str, rows: EncodedRows) -> list[Payload]:
     """Write the parts of one matrix as `<stem>.<prefix><Part>.npy`; their payload records."""
-    return [_payload(out_dir, stem, prefix + part, array) for part, array in rows.arrays().items()]
+    return [write_npy(Path(out_dir) / f"{stem}.{prefix}{part}.npy", np.ascontiguousarray(array), name=prefix + part)
+            for part, array in rows.arrays().items()]
 
 
 def bake_transfer(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
@@ -186,30 +182,21 @@ def bake_transfer(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, 
         ValueError: bad settings (see `TransferSettings.check`, `create_gathers`).
     """
     settings.check()
-    out_dir = Path(out_dir)
-    layer_path = bake_direct(scene, camera, out_dir, stem, supersampling=supersampling,
-                             texture_samples=texture_samples, time_code=time_code)
-    description = read_cache_layer(layer_path)
-    parameters = {**description.parameters, **settings.parameters()}
-    digest = content_hash(description.inputs, parameters, __version__)
-    chunk_dir = out_dir / f".{stem}.transfer-{digest[:16]}"
-    chunk_dir.mkdir(parents=True, exist_ok=True)
+    bake = start_indirect_bake(scene, camera, out_dir, stem, "transfer", settings.parameters(), supersampling,
+                               texture_samples, time_code)
+    chunk_dir = bake.chunk_dir
 
     tracer = Tracer(scene.geometry)
     view = bake_deep_framebuffer(scene, camera, 1, texture_samples, tracer=tracer).gbuffer
     gathers = create_gathers(scene, settings.num_gathers, settings.seed)
-    payloads = [_payload(out_dir, stem, "viewPixels", view.pixel_index.numpy())]
-    payloads += [_payload(out_dir, stem, "gather" + name.capitalize(), getattr(gathers, name).numpy())
+    payloads = [bake.payload(stem, "viewPixels", view.pixel_index.numpy())]
+    payloads += [bake.payload(stem, "gather" + name.capitalize(), getattr(gathers, name).numpy())
                  for name in _GATHER_FIELDS]
     final_gather = bake_rows(lambda rows: final_gather_rows(view, rows, gathers, tracer), view.num_samples,
                              gathers.side, settings.num_coefficients, settings, chunk_dir, F_PREFIX, progress)
-    payloads += matrix_payloads(out_dir, stem, F_PREFIX, final_gather)
+    payloads += matrix_payloads(bake.out_dir, stem, F_PREFIX, final_gather)
     if settings.num_bounces > 1:
         bounce = bake_rows(lambda rows: bounce_rows(rows, gathers, tracer), gathers.num_gathers, gathers.side,
                            settings.num_bounce_coefficients, settings, chunk_dir, M_PREFIX, progress)
-        payloads += matrix_payloads(out_dir, stem, M_PREFIX, bounce)
-    write_cache_layer(layer_path, dataclasses.replace(
-        description, method="transfer", parameters=parameters, content_hash=digest,
-        payloads=description.payloads + tuple(payloads)))
-    shutil.rmtree(chunk_dir)
-    return layer_path
+        payloads += matrix_payloads(bake.out_dir, stem, M_PREFIX, bounce)
+    return bake.finish(payloads)

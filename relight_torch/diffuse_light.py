@@ -1,4 +1,8 @@
-"""Direct light reflected by diffuse gather points: D(g) of the seed paper's equations 2 and 3."""
+"""Direct light reflected once by diffuse points: the light the indirect methods' gathers re-emit.
+
+Shared by the transfer method (its gather cloud, g_d) and the clustered-gather method (D(g) of
+seed 000's equations 2 and 3), through the same light kernels and visibility as the view samples.
+"""
 
 from __future__ import annotations
 
@@ -20,8 +24,7 @@ def diffuse_radiance(light: Light, position: torch.Tensor, normal: torch.Tensor,
 
     L = diffuse * albedo / pi * E, E the irradiance from `num_samples` fixed light samples per
     point through the view samples' kernels and visibility (`sample_light`, `occluder_distance`,
-    `shadow_factor`), on the side `normal` points to. The same estimate as
-    `relight_torch.transfer.gathers.gather_radiance`, for any number of points.
+    `shadow_factor`), on the side `normal` points to.
 
     Args:
         light: the light (a unit light to cache per light).
