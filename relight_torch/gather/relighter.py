@@ -25,6 +25,7 @@ import torch
 from relight_torch.diffuse_light import diffuse_radiance
 from relight_torch.gather.reconstruction import interpolate
 from relight_torch.lights.emission import is_delta_light
+from relight_torch.indirect import IndirectRelighter
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.relighter import Relighter, colour_scale, unit_light
 
@@ -103,7 +104,7 @@ def light_key(light: Light) -> object:
     return frozen(light)
 
 
-class GatherRelighter:
+class GatherRelighter(IndirectRelighter):
     """Direct + clustered-gather indirect relighting of one 'gather' cache.
 
     Args:
@@ -129,35 +130,14 @@ class GatherRelighter:
                                  f"expected {view_pixels.shape[0]}")
         if view_albedo.shape != (view_pixels.shape[0], 3):
             raise ValueError(f"view_albedo must be ({view_pixels.shape[0]}, 3), got {tuple(view_albedo.shape)}")
-        self.direct = direct
+        super().__init__(direct)
         self.sets = sets
         self.view_pixels = view_pixels
         self.view_albedo = view_albedo
         self.counters: collections.Counter[str] = collections.Counter()
-        self._unit_rows: dict[str, tuple[object, torch.Tensor]] = {}
         self._position = torch.cat([s.position for s in sets.values()])
         self._normal = torch.cat([s.normal for s in sets.values()])
         self._albedo = torch.cat([s.albedo for s in sets.values()])
-
-    # -- lights (the direct relighter holds them) -----------------------------------------------
-
-    @property
-    def lights(self) -> list[Light]:
-        return self.direct.lights
-
-    def set_lights(self, lights: list[Light]) -> None:
-        """Replace the whole rig; unchanged lights keep their cached gathers."""
-        self.direct.set_lights(lights)
-        for path in set(self._unit_rows) - {light.path for light in lights}:
-            del self._unit_rows[path]
-
-    def set_light(self, light: Light) -> None:
-        """Add or edit a light (matched by path)."""
-        self.direct.set_light(light)
-
-    def remove_light(self, path: str) -> None:
-        self.direct.remove_light(path)
-        self._unit_rows.pop(path, None)
 
     @property
     def cache_bytes(self) -> int:
@@ -165,10 +145,6 @@ class GatherRelighter:
         return sum(s.num_bytes for s in self.sets.values())
 
     # -- rendering ------------------------------------------------------------------------------
-
-    def render(self) -> torch.Tensor:
-        """(H, W, 3) linear image: direct (supersampled) + indirect (per pixel), exposure applied."""
-        return self.direct.render() + self.indirect_image()
 
     def indirect_image(self) -> torch.Tensor:
         """(H, W, 3) indirect light alone, camera exposure applied."""
@@ -200,7 +176,7 @@ class GatherRelighter:
     def _unit_indirect(self, light: Light) -> torch.Tensor:
         unit = unit_light(light)
         key = light_key(unit)
-        cached = self._unit_rows.get(light.path)
+        cached = self._per_light.get(light.path)
         if cached is None or cached[0] != key:
             settings = self.direct.settings
             num_samples = 1 if is_delta_light(unit) else (
@@ -209,5 +185,5 @@ class GatherRelighter:
                                         num_samples, settings.seed)
             self.counters["gather_light"] += 1
             cached = (key, self.reconstruct(radiance))
-            self._unit_rows[light.path] = cached
+            self._per_light[light.path] = cached
         return cached[1]

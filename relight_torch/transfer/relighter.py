@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from relight_torch.lights.emission import is_delta_light
+from relight_torch.indirect import IndirectRelighter
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.relighter import Relighter, colour_scale, light_group, unit_light
 from relight_torch.transfer.gathers import GatherSamples, gather_radiance
@@ -38,7 +39,7 @@ class _IndirectState:
     unit_indirect: torch.Tensor  # (R, 3) indirect radiance of the unit light at the F rows
 
 
-class TransferRelighter:
+class TransferRelighter(IndirectRelighter):
     """Direct + indirect relighting of one transfer cache.
 
     Args:
@@ -68,7 +69,7 @@ class TransferRelighter:
                              f"{None if bounce is None else bounce.num_rows})")
         if gather_samples is not None and gather_samples < 1:
             raise ValueError(f"gather_samples must be >= 1, got {gather_samples}")
-        self.direct = direct
+        super().__init__(direct)
         self.gathers = gathers
         self.view_pixels = view_pixels
         self.final_gather = final_gather
@@ -76,34 +77,9 @@ class TransferRelighter:
         self.num_bounces = num_bounces
         self.gather_samples = gather_samples
         self.counters: collections.Counter[str] = collections.Counter()
-        self._states: dict[str, _IndirectState] = {}
         self._emission_indirect: torch.Tensor | None = None
 
-    # -- lights (the direct relighter holds them) -----------------------------------------------
-
-    @property
-    def lights(self) -> list[Light]:
-        return self.direct.lights
-
-    def set_lights(self, lights: list[Light]) -> None:
-        """Replace the whole rig; unchanged lights keep their cached work."""
-        self.direct.set_lights(lights)
-        for path in set(self._states) - {light.path for light in lights}:
-            del self._states[path]
-
-    def set_light(self, light: Light) -> None:
-        """Add or edit a light (matched by path)."""
-        self.direct.set_light(light)
-
-    def remove_light(self, path: str) -> None:
-        self.direct.remove_light(path)
-        self._states.pop(path, None)
-
     # -- rendering ------------------------------------------------------------------------------
-
-    def render(self) -> torch.Tensor:
-        """(H, W, 3) linear image: direct (supersampled) + indirect (per pixel), exposure applied."""
-        return self.direct.render() + self.indirect_image()
 
     def indirect_image(self) -> torch.Tensor:
         """(H, W, 3) indirect light alone, camera exposure applied."""
@@ -170,7 +146,7 @@ class TransferRelighter:
     def _unit_indirect(self, light: Light) -> torch.Tensor:
         unit = unit_light(light)
         key = _frozen(unit)
-        state = self._states.get(light.path)
+        state = self._per_light.get(light.path)
         if state is None or state.key != key:
             settings = self.direct.settings
             num_samples = 1 if is_delta_light(unit) else (
@@ -178,5 +154,5 @@ class TransferRelighter:
             radiance = gather_radiance(unit, self.gathers, self.direct.visibility, num_samples, settings.seed)
             self.counters["gather_light"] += 1
             state = _IndirectState(key, self.transfer(radiance))
-            self._states[light.path] = state
+            self._per_light[light.path] = state
         return state.unit_indirect
