@@ -240,6 +240,13 @@ class Relighter:
         if light.path != self._active:
             self._active, self._others = light.path, None
 
+    @classmethod
+    def from_cache(cls, path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
+                   lights_layer: str | os.PathLike | None = None,
+                   settings: RelightSettings = RelightSettings()) -> "Relighter":
+        """The direct relighter of a cache layer, checked before loading: see `open_relighter`."""
+        return open_relighter(path, device, shadows, lights_layer, settings)
+
     def remove_light(self, path: str) -> None:
         if path not in self._lights:
             raise KeyError(f"no light {path!r} in the relighter (has {sorted(self._lights)})")

@@ -16,7 +16,7 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, write_light_edits
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.metrics import psnr
-from relight_torch.relighter import open_relighter, shot_lights
+from relight_torch.relighter import Relighter, shot_lights
 
 # scene -> (width, height, reference spp, PSNR threshold in dB). Thresholds are what the method
 # reaches at these sizes, measured (docs/ACCURACY.md): the Cornell box (40.1-43.1 dB) is limited by
@@ -59,7 +59,7 @@ def _psnr_or_images(image, reference, threshold, tmp_path, label) -> float:
 
 def test_direct_relight_matches_reference_under_light_edits(baked, tmp_path):
     name, shot, edits, cache, (width, height, spp, threshold) = baked
-    relighter = open_relighter(cache)
+    relighter = Relighter.from_cache(cache, device="cpu")
     figures = {}
     for edit, layer in edits.items():
         relighter.set_lights(shot_lights(relighter.description, layer))
