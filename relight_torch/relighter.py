@@ -56,7 +56,7 @@ from relight_torch.lights.geometry import LightFrame
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import decode_paths, linked_objects
 from relight_torch.lights.shadow import shadow_factor
-from relight_torch.lights.shaping import barzel_factor, shaping_factor
+from relight_torch.lights.shaping import emission_factor
 from relight_torch.lights.usd import read_stage_lights
 from relight_torch.math.frame import to_local
 from relight_torch.stage import open_stage, time_code
@@ -454,16 +454,11 @@ class Relighter:
         """(S, P, 3) ShapingAPI x Barzel factor of each cached sample; None when nothing applies."""
         if transport.emission_local is None:
             return None
-        factor = None
-        if light.shaping is not None:
-            factor = shaping_factor(light.shaping, transport.emission_local)
-        if light.barzel is not None:
-            position = self.gbuffer.position
-            position = position if transport.points is None else position[transport.points]
-            origin = torch.as_tensor(light.world_from_light[:3, 3], device=position.device, dtype=position.dtype)
-            barzel = barzel_factor(light.barzel, transport.emission_local, (position - origin).norm(dim=-1))
-            factor = barzel if factor is None else factor * barzel
-        return factor
+        position = self.gbuffer.position
+        if light.barzel is not None and transport.points is not None:  # receivers matter to Barzel only
+            position = position[transport.points]
+        origin = torch.as_tensor(light.world_from_light[:3, 3], device=position.device, dtype=position.dtype)
+        return emission_factor(light, transport.emission_local, position, origin)
 
 
 def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",

@@ -64,7 +64,7 @@ from relight_torch.lights.geometry import (LightFrame, check_transform, intersec
                                            surface_area, world_radius)
 from relight_torch.lights.image import image_tensors, lookup_bilinear
 from relight_torch.lights.light import Light, LightKind
-from relight_torch.lights.shaping import barzel_factor, shaping_factor
+from relight_torch.lights.shaping import emission_factor
 from relight_torch.math.checks import check_last_dim
 from relight_torch.math.frame import orthonormal_basis, to_world
 from relight_torch.math.sampling import concentric_disk, uniform_cone, uniform_sphere
@@ -263,12 +263,8 @@ def _trace(light: Light, frame: LightFrame, points: torch.Tensor, directions: to
 def _shape(light: Light, frame: LightFrame, emission_world: torch.Tensor, receivers: torch.Tensor) -> torch.Tensor:
     """(..., 3) ShapingAPI x Barzel factor of an area light for world emission directions (..., 3)."""
     emission_local = torch.nn.functional.normalize(frame.vector_to_local(emission_world), dim=-1)
-    factor = torch.ones_like(emission_local)
-    if light.shaping is not None:
-        factor = factor * shaping_factor(light.shaping, emission_local)
-    if light.barzel is not None:
-        factor = factor * barzel_factor(light.barzel, emission_local, (receivers - frame.origin).norm(dim=-1))
-    return factor
+    factor = emission_factor(light, emission_local, receivers, frame.origin)
+    return torch.ones_like(emission_local) if factor is None else factor
 
 
 def _sphere_hits(light: Light, frame: LightFrame, points: torch.Tensor, directions: torch.Tensor):

@@ -12,7 +12,7 @@ import math
 import torch
 
 from relight_torch.lights.image import image_tensors, lookup_bilinear
-from relight_torch.lights.light import BarzelShaping, Shaping
+from relight_torch.lights.light import BarzelShaping, Light, Shaping
 
 
 def smoothstep(edge0: float, edge1: float, x: torch.Tensor) -> torch.Tensor:
@@ -104,4 +104,27 @@ def barzel_factor(barzel: BarzelShaping, emission_local: torch.Tensor, receiver_
         scale = torch.as_tensor(barzel.cookie_scale, device=x.device, dtype=x.dtype)
         st = 0.5 + (projected - offset) / (2.0 * scale)
         factor = factor * lookup_bilinear(cookie, st) * in_front.unsqueeze(-1)
+    return factor
+
+
+def emission_factor(light: Light, emission_local: torch.Tensor, receivers: torch.Tensor,
+                    origin: torch.Tensor) -> torch.Tensor | None:
+    """ShapingAPI x Barzel factor (..., 3) of a light for unit emission directions in its frame.
+
+    Args:
+        light: the light (its `shaping` and `barzel`, either may be None).
+        emission_local: (..., 3) unit directions from the light towards the receivers, light space.
+        receivers: (..., 3) world receiver positions (broadcasting against `emission_local`), used
+            only by the Barzel near/far fall-off.
+        origin: (3,) the light's world origin.
+
+    Returns:
+        The factor, or None when neither control applies (the caller skips the multiply).
+    """
+    factor = None
+    if light.shaping is not None:
+        factor = shaping_factor(light.shaping, emission_local)
+    if light.barzel is not None:
+        barzel = barzel_factor(light.barzel, emission_local, (receivers - origin).norm(dim=-1))
+        factor = barzel if factor is None else factor * barzel
     return factor
