@@ -21,6 +21,7 @@ from pipeline.errors import RelightError
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, write_light_edits
+from pipeline.tracing_bench import median_seconds
 from relight_torch.io.atomic import atomic_path
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.io.preview import write_png
@@ -39,16 +40,6 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--spp", type=int, default=64, help="reference samples per pixel (default 64)")
     add_device_option(parser)
     parser.set_defaults(run=run)
-
-
-def _timed_ms(function, repeats: int = 5) -> float:
-    """Median wall time of `function()` in milliseconds."""
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append((time.perf_counter() - start) * 1e3)
-    return float(np.median(times))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -72,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         relighter.set_lights(lights)
         image = relighter.render()
         edit_ms = (time.perf_counter() - start) * 1e3
-        warm_ms = _timed_ms(relighter.render)
+        warm_ms = median_seconds(relighter.render, repeats=5) * 1e3
         image = image.cpu().numpy()
         reference_scene = load_scene(shot, lights_layer=layer, width=args.width, height=args.height)
         tracer = PathTracer(reference_scene, ReferenceSettings(spp=args.spp, max_bounces=0))
