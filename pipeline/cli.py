@@ -14,7 +14,7 @@ import sys
 from pipeline.errors import RelightError
 
 # Subcommand modules, in the order `relight --help` lists them.
-COMMANDS = ("demo", "scenes", "info", "bake", "render", "reference", "trace_bench", "bench_direct")
+COMMANDS = ("demo", "scenes", "info", "bake", "render", "reference", "trace_bench", "bench_direct", "bench")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,25 +1,32 @@
 """Direct light reflected once by diffuse points: the light the indirect methods' gathers re-emit.
 
 Shared by the transfer method (its gather cloud, g_d) and the clustered-gather method (D(g) of
-seed 000's equations 2 and 3), through the same light kernels and visibility as the view samples.
+seed 000's equations 2 and 3), through the same light kernels and visibility as the view samples,
+and the same UsdLux linking: a light's light link masks the points of the objects it does not
+light (as `Relighter._mask` does for view samples), and its shadow link picks the occluders its
+shadow rays see (`visibility.occluder_distance` honours `Light.shadow_link`).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 
+from relight_torch.errors import RelightError
 from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light
 from relight_torch.lights.light import Light
+from relight_torch.lights.linking import linked_objects
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.visibility import Visibility
 
 
 def diffuse_radiance(light: Light, position: torch.Tensor, normal: torch.Tensor, albedo: torch.Tensor,
                      visibility: Visibility, num_samples: int, seed: int = 0,
-                     chunk_points: int = 1 << 16) -> torch.Tensor:
+                     chunk_points: int = 1 << 16, object_id: torch.Tensor | None = None,
+                     object_paths: Sequence[str] | None = None) -> torch.Tensor:
     """Radiance (G, 3) leaving G diffuse points after one reflection of `light`.
 
     L = diffuse * albedo / pi * E, E the irradiance from `num_samples` fixed light samples per
@@ -33,11 +40,21 @@ def diffuse_radiance(light: Light, position: torch.Tensor, normal: torch.Tensor,
         num_samples: light samples per point (1 for delta lights).
         seed: seed of the fixed sample pattern.
         chunk_points: points processed together.
+        object_id: (G,) int index of each point's object into `object_paths`; needed only by a
+            light with a light link (points of objects outside it get no light).
+        object_paths: the scene's object prim paths, by object id.
+
+    Raises:
+        RelightError: the light has a light link and the points' objects are unknown.
     """
     num_points = position.shape[0]
     u = fixed_light_samples(num_points, num_samples, seed, position.device, position.dtype)
+    linked = link_mask(light, object_id, object_paths)
+    if linked is not None:  # unlinked points get no light and cast no shadow rays
+        lit = torch.nonzero(linked).squeeze(-1)
+        position, normal, u = position[lit], normal[lit], u[lit]
     irradiance = torch.zeros_like(position)
-    for start in range(0, num_points, chunk_points):
+    for start in range(0, position.shape[0], chunk_points):
         chunk = slice(start, start + chunk_points)
         sample = sample_light(light, position[chunk], u[chunk])
         distance = visibility.occluder_distance(light, position[chunk], normal[chunk], sample.direction,
@@ -45,4 +62,19 @@ def diffuse_radiance(light: Light, position: torch.Tensor, normal: torch.Tensor,
         shadow = shadow_factor(light.shadow, torch.isfinite(distance), distance)
         cosine = (sample.direction * normal[chunk].unsqueeze(1)).sum(-1).clamp(min=0.0)
         irradiance[chunk] = (sample.weight() * shadow * cosine.unsqueeze(-1)).mean(dim=1)
+    if linked is not None:
+        irradiance = irradiance.new_zeros(num_points, 3).index_copy_(0, lit, irradiance)
     return light.diffuse * albedo / math.pi * irradiance
+
+
+def link_mask(light: Light, object_id: torch.Tensor | None,
+              object_paths: Sequence[str] | None) -> torch.Tensor | None:
+    """(G,) bool on `object_id`'s device: whether the light's light link includes each point's
+    object; None when the light links every object."""
+    if light.light_link is None:
+        return None
+    if object_id is None or object_paths is None:
+        raise RelightError(f"{light.path}: light linking of indirect light needs the gathers' object ids "
+                           f"(re-bake the cache with this version)")
+    linked = torch.from_numpy(linked_objects(object_paths, light.light_link)).to(object_id.device)
+    return linked[object_id.long()]

@@ -1,23 +1,32 @@
 """What the indirect relighters share: the direct Relighter holds the lights; each method adds an
-indirect image and keeps per-light work keyed by light path, dropped when a light goes away."""
+indirect image and keeps per-light work keyed by light path, dropped when a light goes away.
+
+Indirect light is linear in the lights like direct light: a method supplies, per light, the
+indirect radiance of the unit light (`unit_light`: intensity 1, white) at its R view samples, and
+the base scales and sums them, per light for the image and per light group for the AOVs.
+"""
 
 from __future__ import annotations
 
 import torch
 
 from relight_torch.lights.light import Light
-from relight_torch.relighter import Relighter
+from relight_torch.relighter import Relighter, colour_scale, light_group
 
 
 class IndirectRelighter:
     """Base of `TransferRelighter` and `GatherRelighter`.
 
-    Subclasses set `self._per_light` (light path -> cached indirect work) and implement
-    `indirect_image()`.
+    Subclasses set `self.view_pixels` ((R,) int64 pixel row * W + col of each view sample of the
+    indirect image) and `self._per_light` (light path -> cached indirect work), and implement
+    `_unit_indirect(light)`; they may override `_emission_rows()` (light-independent indirect
+    light, zero by default).
 
     Args:
         direct: the direct relighter of the same cache; it owns the light rig.
     """
+
+    view_pixels: torch.Tensor
 
     def __init__(self, direct: Relighter):
         self.direct = direct
@@ -47,4 +56,55 @@ class IndirectRelighter:
 
     def indirect_image(self) -> torch.Tensor:
         """(H, W, 3) indirect light alone, camera exposure applied."""
+        return self._rows_to_image(self.indirect_rows())
+
+    def indirect_rows(self) -> torch.Tensor:
+        """(R, 3) indirect radiance at the view samples (exposure not applied)."""
+        total = self._emission_rows()
+        for light in self.lights:
+            scale = self._scale(light, total)
+            if bool((scale != 0).any()):
+                total = total + scale * self._unit_indirect(light)
+        return total
+
+    def light_group_images(self) -> dict[str, torch.Tensor]:
+        """'<group>_direct' and '<group>_indirect' -> (H, W, 3) images of each light group's lights
+        (`relighter.light_group`), exposure applied; with `emission_image()` they sum to `render()`
+        within float rounding."""
+        emission = self._emission_rows()
+        indirect: dict[str, torch.Tensor] = {}
+        for light in self.lights:
+            rows = indirect.setdefault(light_group(light), torch.zeros_like(emission))
+            scale = self._scale(light, rows)
+            if bool((scale != 0).any()):
+                rows.add_(scale * self._unit_indirect(light))
+        images = {}
+        for group, direct in self.direct.light_group_images().items():
+            images[f"{group}_direct"] = direct
+            images[f"{group}_indirect"] = self._rows_to_image(indirect[group])
+        return images
+
+    def emission_image(self) -> torch.Tensor:
+        """(H, W, 3) the surfaces' own emission, seen directly and through the indirect transport."""
+        return self.direct.emission_image() + self._rows_to_image(self._emission_rows())
+
+    def _unit_indirect(self, light: Light) -> torch.Tensor:
+        """(R, 3) indirect radiance of `unit_light(light)` at the view samples (cached per light)."""
         raise NotImplementedError
+
+    def _emission_rows(self) -> torch.Tensor:
+        """(R, 3) indirect light of the surfaces' own emission; zero unless a method carries it."""
+        return torch.zeros((self.view_pixels.shape[0], 3), device=self.view_pixels.device,
+                           dtype=self.direct.gbuffer.position.dtype)
+
+    @staticmethod
+    def _scale(light: Light, like: torch.Tensor) -> torch.Tensor:
+        """(3,) the light's colour factor (`colour_scale`) as a tensor like `like`."""
+        return torch.as_tensor(colour_scale(light), device=like.device, dtype=like.dtype)
+
+    def _rows_to_image(self, rows: torch.Tensor) -> torch.Tensor:
+        """(R, 3) values at the view samples -> (H, W, 3) image, camera exposure applied."""
+        height, width = (size // self.direct.supersampling for size in self.direct.gbuffer.image_size)
+        image = rows.new_zeros((height * width, 3))
+        image[self.view_pixels] = rows
+        return image.reshape(height, width, 3) * self.direct.exposure_scale

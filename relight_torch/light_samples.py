@@ -21,7 +21,11 @@ from relight_torch.math.sampling import sobol
 
 def fixed_light_samples(num_points: int, num_samples: int, seed: int = 0,
                         device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """(N, S, 2) sample positions in [0, 1), deterministic in (N, S, seed)."""
+    """(N, S, 2) sample positions in [0, 1), deterministic in (N, S, seed).
+
+    Laid out samples first in memory (a transposed (S, N, 2) tensor), the layout `sample_light`
+    works in.
+    """
     if num_samples < 1:
         raise ValueError(f"num_samples must be >= 1, got {num_samples}")
     generator = torch.Generator().manual_seed(seed)
@@ -32,8 +36,8 @@ def fixed_light_samples(num_points: int, num_samples: int, seed: int = 0,
     else:
         pattern = sobol(num_samples, 2, seed=seed, dtype=torch.float64)
     rotation = torch.rand((num_points, 1, 2), generator=generator, dtype=torch.float64)
-    u = torch.remainder(pattern.unsqueeze(0) + rotation, 1.0)
-    return u.clamp(max=1.0 - 1e-7).to(device=device, dtype=dtype)
+    u = torch.remainder(pattern.unsqueeze(1) + rotation.transpose(0, 1), 1.0)
+    return u.clamp(max=1.0 - 1e-7).to(device=device, dtype=dtype).transpose(0, 1)
 
 
 def angular_radius(light: Light, points: torch.Tensor) -> float:

@@ -382,11 +382,14 @@ class Relighter:
             raise ValueError(f"{light.path}: shadow linking needs Embree shadow rays (shadows='embree')")
         num_samples = self.num_light_samples(light)
         parts = [self._chunk_transport(light, chunk, num_samples) for chunk in self._chunks(num_samples)]
-        lobes = torch.cat([part.lobes for part in parts], dim=2)
         shaped = parts[0].emission_local is not None
-        emission_local = torch.cat([part.emission_local for part in parts], dim=1) if shaped else None
-        points = None
-        if any(part.points is not None for part in parts):
+        if len(parts) == 1:
+            lobes, emission_local = parts[0].lobes, parts[0].emission_local
+        else:
+            lobes = torch.cat([part.lobes for part in parts], dim=2)
+            emission_local = torch.cat([part.emission_local for part in parts], dim=1) if shaped else None
+        points = parts[0].points if len(parts) == 1 else None
+        if len(parts) > 1 and any(part.points is not None for part in parts):
             points = torch.cat([torch.arange(chunk.start, chunk.stop, device=g.device) if part.points is None
                                 else part.points for chunk, part in zip(self._chunks(num_samples), parts)])
             if 2 * points.shape[0] > g.num_samples:
@@ -406,31 +409,41 @@ class Relighter:
         Points that no sample can light (facing away, inside the light, outside its cone of
         directions) cast no shadow rays and are dropped, unless they are fewer than half the
         chunk: then the whole chunk is kept, its rows read as views rather than gathered.
+        Everything runs samples first, (S, P, ...): per-point values broadcast over whole slabs.
         """
         g = self.gbuffer
         sample = sample_light(light, g.position[chunk], self._fixed_u(num_samples)[chunk])
-        wi_local = to_local(sample.direction, g.tangent[chunk, None], g.bitangent[chunk, None], g.normal[chunk, None])
-        facing = (sample.direction * g.geometric_normal[chunk, None]).sum(-1) > 0
-        weight = sample.weight() * ((wi_local[..., 2] > 0) & facing).unsqueeze(-1)
-        lit = (weight != 0).flatten(1).any(-1) & (self._wo_local[chunk, 2] > 0)
+        direction = sample.direction.transpose(0, 1)  # (S, C, 3), contiguous: see sample_light
+        wi_local = to_local(direction, g.tangent[chunk], g.bitangent[chunk], g.normal[chunk])
+        facing = (direction * g.geometric_normal[chunk]).sum(-1) > 0
+        # Every per-sample scalar in one (S, C) factor: 1 / pdf, both hemispheres, cos / S.
+        cosine = wi_local[..., 2]
+        scalar = sample.inverse_pdf().transpose(0, 1) * ((cosine > 0) & facing) * (cosine / num_samples)
+        radiance = sample.radiance.transpose(0, 1)
+        lit = ((scalar != 0) & (radiance != 0).any(-1)).any(0) & (self._wo_local[chunk, 2] > 0)
         if 2 * int(lit.sum()) > lit.shape[0]:
             local, rows, points = slice(None), chunk, None
         else:
             local = torch.nonzero(lit).squeeze(-1)
             rows = points = local + chunk.start
-        direction, wi_local, weight = sample.direction[local], wi_local[local], weight[local]
+        direction, wi_local = direction[:, local], wi_local[:, local]
+        scalar, radiance = scalar[:, local], radiance[:, local]
         distance = self.visibility.occluder_distance(light, g.position[rows], g.geometric_normal[rows],
-                                                     direction, sample.distance[local])
-        weight = weight * shadow_factor(light.shadow, torch.isfinite(distance), distance)
-        weight = weight * (wi_local[..., 2:] / num_samples)
-        lobes = torch.stack(preview_surface.split(g.params.index(rows).with_sample_axis(),
-                                                  self._wo_local[rows, None], wi_local))
-        lobes = (lobes * weight).transpose(1, 2)
+                                                     direction.transpose(0, 1),
+                                                     sample.distance.transpose(0, 1)[:, local].transpose(0, 1))
+        distance = distance.transpose(0, 1)
+        weight = radiance * scalar.unsqueeze(-1)
+        if light.shadow.enable:
+            weight = weight * shadow_factor(light.shadow, torch.isfinite(distance), distance)
+        diffuse, specular = preview_surface.split(g.params.index(rows), self._wo_local[rows], wi_local)
+        lobes = weight.new_empty(2, *weight.shape)
+        torch.mul(diffuse, weight, out=lobes[0])
+        torch.mul(specular, weight, out=lobes[1])
         if light.kind not in _SHAPED_KINDS:
             return _Transport(points, None, lobes.sum(1, keepdim=True))
         emission_local = torch.nn.functional.normalize(LightFrame.of(light, direction).vector_to_local(-direction),
                                                        dim=-1)
-        return _Transport(points, emission_local.transpose(0, 1), lobes)
+        return _Transport(points, emission_local, lobes)
 
     def _images(self, state: _LightState) -> torch.Tensor:
         """The light's diffuse and specular unit images (2, N, 3): transport x shaping, per point."""

@@ -69,8 +69,9 @@ SABOTAGE = {
 
 
 def _assert_nothing_half_written(directory: Path) -> None:
-    """No temp files; every cache layer present names payloads that exist."""
-    assert [p.name for p in directory.iterdir() if p.name.startswith(".")] == []
+    """No temp files (a bake's hidden chunk folders stay, to resume from, with whole chunks only);
+    every cache layer present names payloads that exist."""
+    assert [p.name for p in directory.rglob(".*") if p.is_file()] == []
     for layer in directory.glob(f"*{SUFFIX}"):
         assert is_cache_layer(layer)
         for payload in read_cache_layer(layer).payloads:

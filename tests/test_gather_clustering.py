@@ -135,23 +135,23 @@ def test_interpolation_reproduces_a_constant():
     torch.testing.assert_close(interpolate(values, neighbours, weights), torch.full((2, 3), 2.5))
 
 
-def _gather_set(offsets, neighbours, rbf) -> GatherSet:
+def _gather_set(offsets, neighbours, rbf, num_points=4) -> GatherSet:
     num_gathers = offsets[-1]
     generator = torch.Generator().manual_seed(1)
-    return GatherSet(position=torch.rand(num_gathers, 3, generator=generator),
-                     normal=torch.nn.functional.normalize(torch.rand(num_gathers, 3, generator=generator), dim=-1),
-                     albedo=torch.rand(num_gathers, 3, generator=generator),
+    return GatherSet(index=torch.randint(0, num_points, (num_gathers,), generator=generator),
                      weight=torch.rand(num_gathers, 3, generator=generator),
                      offsets=torch.tensor(offsets), neighbours=torch.tensor(neighbours), rbf=torch.tensor(rbf))
 
 
 def test_representative_values_are_equation_3s_inner_sums():
     gather_set = _gather_set([0, 2, 2, 5], [[0, 2], [2, 1]], [[0.5, 0.5], [1.0, 0.0]])
-    radiance = torch.rand(5, 3, generator=torch.Generator().manual_seed(2))
+    radiance = torch.rand(4, 3, generator=torch.Generator().manual_seed(2))
     values = gather_set.representative_values(radiance)
-    contributions = radiance * gather_set.weight
+    contributions = radiance[gather_set.index] * gather_set.weight
     expected = torch.stack([contributions[0:2].sum(0), torch.zeros(3), contributions[2:5].sum(0)])
     torch.testing.assert_close(values, expected)
+    pixels = interpolate(values, gather_set.neighbours, gather_set.rbf)
+    torch.testing.assert_close(pixels, torch.stack([0.5 * values[0] + 0.5 * values[2], values[2]]))
 
 
 @pytest.mark.parametrize("offsets, neighbours", [([1, 2, 5], [[0, 1]]), ([0, 3, 2, 5], [[0, 1]]),

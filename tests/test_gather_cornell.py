@@ -10,9 +10,12 @@ loses the Fresnel-reflected share of its diffuse lobe; the mean-ratio bounds rec
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+from pxr import Gf, Usd, UsdGeom, UsdLux
 
 from pipeline.bake.gather import bake as gather_bake
 from pipeline.bake.gather.bake import GatherSettings, bake_gather
@@ -20,8 +23,11 @@ from pipeline.cli import main
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import cornell_box
+from pipeline.scenes.authoring import set_light, shape_spot
 from relight_torch.io.exr import read_exr
+from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr
+from relight_torch.relighter import shot_lights
 from relight_torch.gather.relighter import GatherRelighter
 from relight_torch.transfer.open import open_cache_relighter
 
@@ -68,13 +74,79 @@ def test_light_edits_recompute_only_what_they_touch(cornell):
     assert relighter.counters["gather_light"] == 1  # a colour edit is a rescale
     scale = 2.0 * np.array([1.0, 0.5, 0.25]) / np.asarray(light.color)
     np.testing.assert_allclose(edited.numpy(), scale * before.numpy(), rtol=1e-5, atol=1e-7)
+    # A shaping edit re-weights the remembered shadow answers: no shadow ray is traced again, and
+    # the result is what a fresh relighter traces.
+    shaped = dataclasses.replace(light, shaping=Shaping(focus=3.0))
+    relighter.set_light(shaped)
+    traced = relighter.visibility.counters["queries"]
+    reshaped = relighter.indirect_image()
+    assert relighter.counters["gather_light"] == 2 and relighter.visibility.counters["queries"] == traced
+    fresh = open_cache_relighter(layer)
+    fresh.set_light(shaped)
+    np.testing.assert_allclose(reshaped.numpy(), fresh.indirect_image().numpy(), rtol=1e-5, atol=1e-7)
+    assert float(reshaped.sum()) < float(before.sum())  # focus narrows the lamp's emission
     moved = light.world_from_light.copy()
     moved[0, 3] -= 100.0
     relighter.set_light(dataclasses.replace(light, world_from_light=moved))
     assert not np.allclose(relighter.indirect_image().numpy(), before.numpy())
-    assert relighter.counters["gather_light"] == 2
+    assert relighter.counters["gather_light"] == 3 and relighter.visibility.counters["queries"] > traced
     relighter.remove_light(light.path)
     assert float(relighter.indirect_image().abs().max()) == 0.0
+
+
+def test_light_and_shadow_links_reach_the_gathers(cornell):
+    layer, _ = cornell
+    relighter = open_cache_relighter(layer)
+    light = relighter.lights[0]
+    points, paths = relighter.points, relighter.direct.object_paths
+    unlinked = relighter.surface_radiance(light)
+    excluded = int(torch.bincount(points.object_id, unlinked.sum(1)).argmax())  # the most lit object
+    linked = relighter.surface_radiance(dataclasses.replace(
+        light, light_link=tuple(p for i, p in enumerate(paths) if i != excluded)))
+    on_excluded = points.object_id == excluded
+    assert float(linked[on_excluded].abs().max()) == 0.0 and float(unlinked[on_excluded].max()) > 0.0
+    torch.testing.assert_close(linked[~on_excluded], unlinked[~on_excluded], rtol=1e-5, atol=1e-7)
+    unshadowed = relighter.surface_radiance(dataclasses.replace(light, shadow_link=()))
+    assert bool((unshadowed >= unlinked - 1e-6).all()) and float((unshadowed - unlinked).max()) > 0.0
+
+
+def _small_strong_lights(path: Path) -> Path:
+    """A lights layer: the lamp off, a point light 22 mm from the red wall and a narrow (8 degree)
+    spot on the floor; both make small, strong secondary sources."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdLux.LightAPI(stage.OverridePrim(cornell_box.LIGHT)).CreateIntensityAttr(0.0)
+    for name, position, intensity, cone in (("Point", (530.0, 300.0, 300.0), 5000.0, None),
+                                            ("Spot", (278.0, 540.0, 280.0), 50000.0, 8.0)):
+        light = UsdLux.SphereLight.Define(stage, f"/World/Lights/{name}")
+        light.CreateRadiusAttr(5.0)
+        light.CreateTreatAsPointAttr(True)
+        set_light(light.LightAPI(), intensity=intensity)
+        UsdGeom.Xformable(light.GetPrim()).AddTranslateOp().Set(Gf.Vec3d(*position))
+        if cone is not None:
+            UsdGeom.Xformable(light.GetPrim()).AddRotateXOp().Set(-90.0)  # -Z (the cone's axis) down
+            shape_spot(light.GetPrim(), cone_angle=cone, softness=0.0, focus=0.0)
+    stage.Save()
+    return path
+
+
+def test_small_strong_secondary_sources_are_the_methods_failure_mode(cornell, tmp_path):
+    """The seed paper's failure mode, measured: a point light near a wall and a narrow spot light
+    a few gathers brightly; clustering averages them with dim neighbours, so the indirect part's
+    error is many times the area lamp's. Bounds: measured, less ~1 dB."""
+    layer, _ = cornell
+    lights_layer = _small_strong_lights(tmp_path / "small_lights.usda")
+    scene = load_scene(layer.parent.parent / "cornell_box.usda", lights_layer=lights_layer, width=SIZE, height=SIZE)
+    camera = find_camera(scene, cornell_box.CAMERA)
+    full, direct = (PathTracer(scene, ReferenceSettings(spp=128, max_bounces=b)).render(camera).mean for b in (1, 0))
+    relighter = open_cache_relighter(layer)
+    relighter.set_lights(shot_lights(relighter.direct.description, lights_layer))
+    image, indirect = relighter.render().numpy(), relighter.indirect_image().numpy()
+    assert np.isfinite(image).all() and np.isfinite(indirect).all()
+    # Measured 17.7 dB full, 19.6 dB indirect, mean ratio 0.91 (the reference's own noise at 128
+    # paths is ~24 dB on the indirect part near the point light; the area lamp's is 35+ dB).
+    assert psnr(image, full) >= 16.5
+    assert psnr(indirect, full - direct) >= 18.5
+    assert 0.8 <= indirect.mean() / (full - direct).mean() <= 1.05
 
 
 def test_cli_bakes_and_renders_a_gather_cache(tmp_path):
@@ -104,7 +176,7 @@ def test_a_killed_bake_resumes_from_its_finished_chunks(tmp_path, monkeypatch):
     real_chunk = gather_bake._gather_chunk
 
     def dies_on_the_third_chunk(*args, **kwargs):
-        calls.append(args[4].size)
+        calls.append(args[0].stop - args[0].start)
         if len(calls) == 3:
             raise KeyboardInterrupt
         return real_chunk(*args, **kwargs)

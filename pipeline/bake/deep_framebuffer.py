@@ -38,22 +38,24 @@ class DeepFramebuffer:
     supersampling: int
 
 
-def grid_rays(camera: Camera, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Rays through an n x n regular grid inside every pixel, as (H n W n, 3) origins and directions
-    in image order of the (H n, W n) sub-sample image."""
-    height, width = camera.height, camera.width
+def grid_rays(camera: Camera, n: int, rows: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Rays through an n x n regular grid inside every pixel of pixel rows `rows` = [first, last)
+    (None: all), as (h n W n, 3) origins and directions in image order of the (h n, W n)
+    sub-sample image of those h rows."""
+    first, last = rows or (0, camera.height)
+    height, width = last - first, camera.width
     origins = np.empty((height * n, width * n, 3), np.float32)
     directions = np.empty_like(origins)
     grid = (np.arange(n, dtype=np.float32) + 0.5) / n
     for i in range(n):
         for j in range(n):
             offset = np.broadcast_to(np.array([grid[j], grid[i]], np.float32), (height, width, 2)).copy()
-            origins[i::n, j::n], directions[i::n, j::n] = camera_rays(camera, offset)
+            origins[i::n, j::n], directions[i::n, j::n] = camera_rays(camera, offset, (first, last))
     return origins.reshape(-1, 3), directions.reshape(-1, 3)
 
 
 def bake_deep_framebuffer(scene: Scene, camera: Camera, supersampling: int = 1, texture_samples: int = 2,
-                          tracer: Tracer | None = None) -> DeepFramebuffer:
+                          tracer: Tracer | None = None, rows: tuple[int, int] | None = None) -> DeepFramebuffer:
     """Trace the camera's sub-sample rays and record the visible surfaces.
 
     Textures are filtered over each sub-sample's footprint, as a production renderer filters them:
@@ -67,20 +69,26 @@ def bake_deep_framebuffer(scene: Scene, camera: Camera, supersampling: int = 1, 
         supersampling: s >= 1 sub-samples per pixel side.
         texture_samples: t >= 1 material samples per sub-sample side (1 = point-sampled textures).
         tracer: reuse a built tracer (the BVH is built otherwise).
+        rows: bake only the pixel rows [first, last) (a chunk of a bake; the sub-samples keep
+            their indices in the whole (H s, W s) image); None: every row.
     """
     if supersampling < 1 or texture_samples < 1:
         raise ValueError(f"supersampling and texture_samples must be >= 1, got {supersampling}, {texture_samples}")
     tracer = tracer or Tracer(scene.geometry)
+    first, last = rows or (0, camera.height)
+    if not 0 <= first < last <= camera.height:
+        raise ValueError(f"rows must lie in [0, {camera.height}), got [{first}, {last})")
     height, width, s = camera.height, camera.width, supersampling
     tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs)
-    origins, directions = grid_rays(camera, s)
+    origins, directions = grid_rays(camera, s, (first, last))
     hits = tracer.intersect(origins, directions)
     points = shading_points(scene, tangents, hits, directions)
-    pixel_index = np.flatnonzero(hits.hit)
+    band_index = np.flatnonzero(hits.hit)
     params, normal, tangent, bitangent = points.params, points.normal, points.tangent, points.bitangent
     if texture_samples > 1:
         params, normal, tangent, bitangent = _filter_materials(
-            scene, tracer, tangents, camera, s, texture_samples, pixel_index, points)
+            scene, tracer, tangents, camera, s, texture_samples, (first, last), band_index, points)
+    pixel_index = band_index + first * s * width * s
     camera_position = camera.world_from_camera[:3, 3]
     forward = -camera.world_from_camera[:3, 2] / np.linalg.norm(camera.world_from_camera[:3, 2])
     depth = (points.position - camera_position) @ forward
@@ -119,14 +127,18 @@ def _fold_normal_spread(params: dict[str, np.ndarray], length: np.ndarray) -> No
 
 
 def _filter_materials(scene: Scene, tracer: Tracer, tangents: np.ndarray, camera: Camera, s: int, t: int,
-                      pixel_index: np.ndarray, centre: ShadingPoints):
+                      rows: tuple[int, int], pixel_index: np.ndarray, centre: ShadingPoints):
     """Average material parameters and shading normals of t x t rays per covered sub-sample.
+
+    Args:
+        rows: the pixel rows [first, last) baked; pixel_index: (N,) the covered sub-samples'
+            indices in the (h s, W s) sub-sample image of those h rows.
 
     Returns (params, normal, tangent, bitangent) for the N covered sub-samples, the frame
     re-orthonormalised around the averaged normal.
     """
-    height, width = camera.height, camera.width
-    origins, directions = grid_rays(camera, s * t)
+    height, width = rows[1] - rows[0], camera.width
+    origins, directions = grid_rays(camera, s * t, rows)
     hits = tracer.intersect(origins, directions)
     fine = shading_points(scene, tangents, hits, directions)
     fine_index = np.flatnonzero(hits.hit)

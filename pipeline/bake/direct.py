@@ -7,25 +7,39 @@ Writes into OUT:
     <stem>.occluderObjects.npy  (T,) int32 object id of each occluder triangle
     <stem>.objectPaths.npy  uint8 UTF-8 object prim paths by object id, newline-separated: light
                             and shadow links are resolved against them at relight time
-Each file is written atomically; the layer last, so a cache layer never names a missing payload.
+The deep framebuffer is traced in bands of ROWS_PER_CHUNK pixel rows, chunks of
+`pipeline.bake.scheduler` kept in `.<stem>.direct-<hash>/` until the layer is written, so a killed
+bake resumes from its finished bands. Each file is written atomically; the layer last, so a cache
+layer never names a missing payload.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import shutil
 from pathlib import Path
 
 import numpy as np
 
-from pipeline import __version__
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
-from pipeline.bake.inputs import hash_inputs, input_files
+from pipeline.bake.inputs import code_version, hash_inputs, input_files
+from pipeline.bake.scheduler import (ChunkSpec, ShotSpec, chunk_folder, chunk_ranges, chunk_threads, load_chunk, load_shot,
+                                     per_process, run_chunks)
 from pipeline.scene.types import Camera, Scene
+from pipeline.tracing import Tracer
+from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.cache.gbuffer_exr import gbuffer_to_channels
 from relight_torch.cache.layer import (SUFFIX, CacheDescription, Payload, content_hash, file_sha256,
                                        write_cache_layer)
-from relight_torch.io.atomic import atomic_path
+from relight_torch.gbuffer import GBuffer
+from relight_torch.io.atomic import atomic_path, remove_temp_files
 from relight_torch.io.exr import write_exr
 from relight_torch.lights.linking import encode_paths
+
+ROWS_PER_CHUNK = 64
+"""Pixel rows per deep-framebuffer chunk: at 2048 px wide, supersampling 2 and 2 x 2 texture
+samples, 64 rows are 524,288 sub-samples and 2.1 M texture rays per chunk."""
+_PARAM_PREFIX = "param_"
 
 
 def write_npy(path: Path, array: np.ndarray, name: str = "") -> Payload:
@@ -37,6 +51,74 @@ def write_npy(path: Path, array: np.ndarray, name: str = "") -> Payload:
                    num_bytes=path.stat().st_size, shape=tuple(array.shape), dtype=array.dtype.name)
 
 
+@per_process
+def shot_tracer(shot: ShotSpec) -> Tracer:
+    """The shot's BVH, built once per process."""
+    scene, _ = load_shot(shot)
+    return Tracer(scene.geometry, num_threads=chunk_threads())
+
+
+def _direct_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
+    """The deep framebuffer of pixel rows [start, stop): the GBuffer's per-sample arrays, material
+    parameters prefixed with _PARAM_PREFIX."""
+    scene, camera = load_shot(spec.shot)
+    gbuffer = bake_deep_framebuffer(scene, camera, spec.param("supersampling"), spec.param("textureSamples"),
+                                    tracer=shot_tracer(spec.shot), rows=(spec.start, spec.stop)).gbuffer
+    arrays = {f.name: getattr(gbuffer, f.name).numpy() for f in dataclasses.fields(GBuffer)
+              if f.name not in ("image_size", "params", "camera_position")}
+    arrays.update({_PARAM_PREFIX + f.name: getattr(gbuffer.params, f.name).numpy()
+                   for f in dataclasses.fields(PreviewSurfaceParams)})
+    return arrays
+
+
+def _join_bands(chunks: list[dict[str, np.ndarray]], image_size: tuple[int, int],
+                camera_position: np.ndarray) -> GBuffer:
+    """The bands' arrays (`_direct_chunk`, in row order) as one GBuffer of the whole image."""
+    joined = {name: np.concatenate([c[name] for c in chunks]) for name in chunks[0]}
+    params = PreviewSurfaceParams.from_numpy({name[len(_PARAM_PREFIX):]: joined.pop(name)
+                                              for name in list(joined) if name.startswith(_PARAM_PREFIX)})
+    return GBuffer.from_numpy(image_size=image_size, params=params, camera_position=camera_position, **joined)
+
+
+def direct_payloads(scene: Scene, camera: Camera, out_dir: Path, stem: str, supersampling: int,
+                    texture_samples: int, time_code: float | None) -> tuple[CacheDescription, Path]:
+    """Write the direct payloads; the cache's description (not yet written) and the chunk folder
+    to remove once its layer is written."""
+    parameters: dict = {"supersampling": supersampling, "textureSamples": texture_samples}
+    if time_code is not None:
+        parameters["time"] = float(time_code)
+    inputs = hash_inputs(input_files(scene))
+    digest = content_hash(inputs, parameters, code_version())
+    chunk_dir = chunk_folder(out_dir, stem, "direct", digest)
+    shot = ShotSpec.of(scene, camera, time_code)
+    specs = [ChunkSpec(shot, "deepFramebuffer", (("supersampling", supersampling),
+                                                 ("textureSamples", texture_samples)), first, last)
+             for first, last in chunk_ranges(camera.height, ROWS_PER_CHUNK)]
+    paths = run_chunks(_direct_chunk, specs, chunk_dir, "deep framebuffer", "rows")
+    camera_position = camera.world_from_camera[:3, 3]
+    gbuffer = _join_bands([load_chunk(path) for path in paths],
+                          (camera.height * supersampling, camera.width * supersampling), camera_position)
+    channels, constants = gbuffer_to_channels(gbuffer)
+    dfb_path = out_dir / f"{stem}.dfb.exr"
+    write_exr(dfb_path, channels, {"relight:supersampling": supersampling})
+    deep = Payload(name="deepFramebuffer", file=dfb_path.name, format="exr", sha256=file_sha256(dfb_path),
+                   num_bytes=dfb_path.stat().st_size, channels=tuple(sorted(channels)), constants=constants)
+    occluders = write_npy(out_dir / f"{stem}.occluders.npy", scene.geometry.positions.astype(np.float32),
+                          "occluders")
+    occluder_objects = write_npy(out_dir / f"{stem}.occluderObjects.npy",
+                                 scene.geometry.object_ids.astype(np.int32), "occluderObjects")
+    object_paths = write_npy(out_dir / f"{stem}.objectPaths.npy",
+                             encode_paths([obj.path for obj in scene.objects]), "objectPaths")
+    description = CacheDescription(
+        method="direct", source=scene.source, camera_path=camera.path,
+        resolution=(camera.width, camera.height), supersampling=supersampling,
+        world_from_camera=camera.world_from_camera, exposure_scale=camera.exposure_scale,
+        content_hash=digest, inputs=inputs, parameters=parameters,
+        payloads=(deep, occluders, occluder_objects, object_paths), code_version=code_version(),
+    )
+    return description, chunk_dir
+
+
 def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
                 texture_samples: int = 2, time_code: float | None = None) -> Path:
     """Bake the direct-lighting cache of `camera`; returns the cache layer's path.
@@ -46,33 +128,16 @@ def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
         texture_samples: material samples per sub-sample side (texture filtering).
         time_code: the time the scene was read at (recorded so lights are read at the same time).
     """
+    if supersampling < 1 or texture_samples < 1:
+        raise ValueError(f"supersampling and texture_samples must be >= 1, got {supersampling}, {texture_samples}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     layer_path = out_dir / f"{stem}{SUFFIX}"
     # An old layer must not survive beside new payloads if this bake dies midway.
     layer_path.unlink(missing_ok=True)
-    dfb = bake_deep_framebuffer(scene, camera, supersampling, texture_samples)
-    channels, constants = gbuffer_to_channels(dfb.gbuffer)
-    dfb_path = out_dir / f"{stem}.dfb.exr"
-    write_exr(dfb_path, channels, {"relight:supersampling": supersampling})
-    deep = Payload(name="deepFramebuffer", file=dfb_path.name, format="exr", sha256=file_sha256(dfb_path),
-                   num_bytes=dfb_path.stat().st_size, channels=tuple(sorted(channels)), constants=constants)
-    occluders = write_npy(out_dir / f"{stem}.occluders.npy", scene.geometry.positions.astype(np.float32))
-    occluders = Payload(**{**vars(occluders), "name": "occluders"})
-    occluder_objects = write_npy(out_dir / f"{stem}.occluderObjects.npy",
-                                 scene.geometry.object_ids.astype(np.int32), "occluderObjects")
-    object_paths = write_npy(out_dir / f"{stem}.objectPaths.npy",
-                             encode_paths([obj.path for obj in scene.objects]), "objectPaths")
-    parameters: dict = {"supersampling": supersampling, "textureSamples": texture_samples}
-    if time_code is not None:
-        parameters["time"] = float(time_code)
-    inputs = hash_inputs(input_files(scene))
-    description = CacheDescription(
-        method="direct", source=scene.source, camera_path=camera.path,
-        resolution=(camera.width, camera.height), supersampling=supersampling,
-        world_from_camera=camera.world_from_camera, exposure_scale=camera.exposure_scale,
-        content_hash=content_hash(inputs, parameters, __version__), inputs=inputs,
-        parameters=parameters, payloads=(deep, occluders, occluder_objects, object_paths),
-    )
+    remove_temp_files(out_dir, f"{stem}.")
+    description, chunk_dir = direct_payloads(scene, camera, out_dir, stem, supersampling, texture_samples,
+                                              time_code)
     write_cache_layer(layer_path, description)
+    shutil.rmtree(chunk_dir, ignore_errors=True)
     return layer_path

@@ -1,9 +1,10 @@
 """What every indirect bake shares: the direct cache it extends, its chunk folder, its payloads.
 
-An indirect bake (transfer, gather) first bakes the direct cache, then computes its own payloads
-in resumable chunks kept in a hidden folder named after the content hash (so a changed shot or
-setting never reuses stale chunks), and finally rewrites the cache layer with its method, its
-parameters and all payloads.
+An indirect bake (transfer, gather) first writes the direct payloads, then computes its own
+payloads in resumable chunks (`pipeline.bake.scheduler`) kept in a hidden folder named after the
+content hash (so a changed shot or setting never reuses stale chunks), and finally writes the
+cache layer with its method, its parameters and all payloads; no layer exists before that, so a
+killed bake never leaves a cache that looks finished.
 """
 
 from __future__ import annotations
@@ -15,10 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import __version__
-from pipeline.bake.direct import bake_direct, write_npy
+from pipeline.bake.direct import direct_payloads, write_npy
+from pipeline.bake.scheduler import chunk_folder
 from pipeline.scene.types import Camera, Scene
-from relight_torch.cache.layer import CacheDescription, Payload, content_hash, read_cache_layer, write_cache_layer
+from relight_torch.io.atomic import remove_temp_files
+from relight_torch.cache.layer import SUFFIX, CacheDescription, Payload, content_hash, write_cache_layer
 
 
 @dataclass(frozen=True)
@@ -30,8 +32,9 @@ class IndirectBake:
         description: the direct cache's description.
         method: 'transfer' or 'gather'.
         parameters: the direct parameters plus the method's.
-        content_hash: over the inputs and `parameters`.
+        content_hash: over the inputs, `parameters` and the code version.
         chunk_dir: where finished chunks are kept until `finish`.
+        direct_chunk_dir: the direct payloads' chunks, also removed by `finish`.
     """
 
     layer_path: Path
@@ -40,6 +43,7 @@ class IndirectBake:
     parameters: dict
     content_hash: str
     chunk_dir: Path
+    direct_chunk_dir: Path
 
     @property
     def out_dir(self) -> Path:
@@ -50,23 +54,31 @@ class IndirectBake:
         return write_npy(self.out_dir / f"{stem}.{name}.npy", np.ascontiguousarray(array), name=name)
 
     def finish(self, payloads: list[Payload]) -> Path:
-        """Rewrite the cache layer with the method's payloads, drop the chunks; the layer's path."""
+        """Write the cache layer with the method's payloads, drop the chunks; the layer's path."""
         write_cache_layer(self.layer_path, dataclasses.replace(
             self.description, method=self.method, parameters=self.parameters, content_hash=self.content_hash,
             payloads=self.description.payloads + tuple(payloads)))
-        shutil.rmtree(self.chunk_dir)
+        shutil.rmtree(self.chunk_dir, ignore_errors=True)
+        shutil.rmtree(self.direct_chunk_dir, ignore_errors=True)
         return self.layer_path
 
 
 def start_indirect_bake(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, method: str,
                         method_parameters: dict, supersampling: int, texture_samples: int,
                         time_code: float | None) -> IndirectBake:
-    """Bake the direct cache and prepare the chunk folder of an indirect method."""
-    layer_path = bake_direct(scene, camera, Path(out_dir), stem, supersampling=supersampling,
-                             texture_samples=texture_samples, time_code=time_code)
-    description = read_cache_layer(layer_path)
+    """Write the direct payloads (no layer yet) and name the chunk folder of an indirect method."""
+    if supersampling < 1 or texture_samples < 1:
+        raise ValueError(f"supersampling and texture_samples must be >= 1, got {supersampling}, {texture_samples}")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    layer_path = out_dir / f"{stem}{SUFFIX}"
+    # An old layer must not survive beside new payloads if this bake dies midway.
+    layer_path.unlink(missing_ok=True)
+    remove_temp_files(out_dir, f"{stem}.")
+    description, direct_chunk_dir = direct_payloads(scene, camera, out_dir, stem, supersampling, texture_samples,
+                                                    time_code)
     parameters = {**description.parameters, **method_parameters}
-    digest = content_hash(description.inputs, parameters, __version__)
-    chunk_dir = Path(out_dir) / f".{stem}.{method}-{digest[:16]}"
+    digest = content_hash(description.inputs, parameters, description.code_version)
+    chunk_dir = chunk_folder(out_dir, stem, method, digest)
     chunk_dir.mkdir(parents=True, exist_ok=True)
-    return IndirectBake(layer_path, description, method, parameters, digest, chunk_dir)
+    return IndirectBake(layer_path, description, method, parameters, digest, chunk_dir, direct_chunk_dir)

@@ -8,9 +8,15 @@ what is on disk, and what changes when anything inside it does.
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import os
 from pathlib import Path
 
 from pxr import Ar
+
+import pipeline
+import relight_torch
 
 from pipeline.scene.types import Scene
 from relight_torch.cache.layer import file_sha256
@@ -35,6 +41,28 @@ def input_files(scene: Scene) -> list[str]:
             if texture is not None and Path(file_on_disk(texture.file)).is_file():
                 files.add(file_on_disk(texture.file))
     return sorted(str(Path(f).resolve()) for f in files)
+
+
+CODE_VERSION_VARIABLE = "RELIGHT_CODE_VERSION"
+
+
+def code_version() -> str:
+    """The code version a bake records and hashes: $RELIGHT_CODE_VERSION when set (a farm's
+    release tag, the same on every worker), else '<package version>+<digest>' with the digest
+    (16 hex) over the sources of `pipeline` and `relight_torch`, so that chunks and content hashes
+    change with any code that could change a result, not only with the version number."""
+    return os.environ.get(CODE_VERSION_VARIABLE) or f"{pipeline.__version__}+{_source_digest()}"
+
+
+@functools.lru_cache(maxsize=1)
+def _source_digest() -> str:
+    digest = hashlib.sha256()
+    for package in (pipeline, relight_torch):
+        root = Path(package.__file__).parent
+        for source in sorted(root.rglob("*.py")):
+            digest.update(f"{source.relative_to(root.parent)}\0".encode())
+            digest.update(source.read_bytes())
+    return digest.hexdigest()[:16]
 
 
 def hash_inputs(files: list[str]) -> dict[str, str]:

@@ -23,8 +23,6 @@ colour-factored and RGB; PSNR columns are empty.
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import statistics
 import sys
 import tempfile
 import time
@@ -36,42 +34,18 @@ import torch
 from pipeline.bake.direct import bake_direct
 from pipeline.bake.transfer.bake import F_PREFIX, TransferSettings, bake_transfer, matrix_payloads
 from pipeline.bake.transfer.gather_cloud import create_gathers
+from pipeline.benchmarks.bench.measure import relight_ms
+from pipeline.benchmarks.rows import COLUMNS
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, write_light_edits
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.lights.light import Light
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.relighter import open_relighter, shot_lights
 from relight_torch.transfer.encoding import decode_rows, encode_rows
 from relight_torch.transfer.open import open_transfer_relighter
 from relight_torch.transfer.relighter import TransferRelighter
 from relight_torch.transfer.sparse import SparseRows, cull
-
-COLUMNS = ("method,scene,width,height,light_edit,params,psnr_db,psnr_indirect_db,rel_mse,cache_bytes,bake_s,"
-           "relight_ms,device")
-
-
-def moved(light: Light, fraction: float) -> Light:
-    """`light` translated by `fraction` of its distance from the origin, along x (a light edit)."""
-    world_from_light = light.world_from_light.copy()
-    world_from_light[0, 3] += fraction * max(float(np.linalg.norm(world_from_light[:3, 3])), 1.0)
-    return dataclasses.replace(light, world_from_light=world_from_light)
-
-
-def relight_ms(relighter: TransferRelighter, repeats: int = 5) -> float:
-    """Median ms of re-rendering after moving the first light (its gather light and products redone)."""
-    lights = relighter.lights
-    times = []
-    for repeat in range(repeats):
-        edit = moved(lights[0], 0.01 * (1 + repeat % 2))
-        start = time.perf_counter()
-        relighter.set_light(edit)
-        relighter.render()
-        times.append(1e3 * (time.perf_counter() - start))
-    relighter.set_lights(lights)
-    return statistics.median(times)
-
 
 def references(shot: Path, layers: dict[str, Path | None], camera_path: str, width: int, height: int, spp: int,
                num_bounces: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -178,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", help="directory for the scenes and caches (default: a temporary one)")
     args = parser.parse_args(argv)
     directory = Path(args.out or tempfile.mkdtemp(prefix="relight-transfer-sweep-"))
-    print(COLUMNS, flush=True)
+    print(",".join(COLUMNS), flush=True)
     for name in args.scenes:
         (time_scene if args.timing else sweep_scene)(name, args, directory / name)
     return 0

@@ -6,14 +6,22 @@ import argparse
 import time
 from pathlib import Path
 
+import numpy as np
+
+from pipeline.bake import scheduler
+from pipeline.bake.cuts.bake import MODES as CUTS_MODES
+from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
 from pipeline.bake.direct import bake_direct
 from pipeline.bake.gather.bake import GatherSettings, bake_gather
+from pipeline.bake.quality import bake_for_quality
+from pipeline.bake.multiview.bake import bake_multiview
+from pipeline.bake.multiview.placement import PlacementSettings
 from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
 from pipeline.commands.common import add_camera_options
 from pipeline.errors import RelightError
 from pipeline.scene import find_camera, load_scene
 
-METHODS = ("direct", "transfer", "gather")
+METHODS = ("direct", "transfer", "gather", "multiview", "cuts")
 
 
 def add_parser(subparsers) -> None:
@@ -31,6 +39,15 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--texture-samples", type=int, default=2, metavar="T",
                         help="T x T material samples per sub-sample, averaged: texture filtering (default 2)")
     parser.add_argument("--stem", help="file name stem (default: the scene file's stem)")
+    parser.add_argument("--quality", type=float, metavar="PSNR",
+                        help="size the method (supersampling; gathers and coefficients; clusters and representatives) "
+                             "for this PSNR in dB against the path tracer, from pilot bakes at a small size; the "
+                             "choice and the predicted and measured PSNR go into the cache (overrides those options)")
+    parser.add_argument("--scheduler", metavar="ADDRESS",
+                        help="run the bake's chunks on a Dask cluster: tcp://HOST:PORT, or 'dask' for the address "
+                             "in Dask's configuration (default: this machine; see docs/DISTRIBUTED.md)")
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
+                        help="local worker processes for the chunks (default: this process, all CPUs as threads)")
     transfer = parser.add_argument_group("transfer (--method transfer)")
     defaults = TransferSettings()
     transfer.add_argument("--gathers", type=int, default=defaults.num_gathers, metavar="G",
@@ -51,6 +68,29 @@ def add_parser(subparsers) -> None:
                         help=f"clustered gathers per view representative (default {gather_defaults.num_clusters})")
     gather.add_argument("--representatives", type=int, default=None, metavar="R",
                         help="view representatives (default: 40,000 at 400x400, scaled with the pixel count)")
+    gather.add_argument("--point-cells", type=int, default=gather_defaults.point_cells, metavar="C",
+                        help="cells across the scene diagonal of the grid the clustered gathers share lit surface "
+                             f"points on; 0 shares identical points only (default {gather_defaults.point_cells})")
+    multiview = parser.add_argument_group("multiview (--method multiview)")
+    multiview_defaults = PlacementSettings()
+    multiview.add_argument("--coverage", type=float, default=multiview_defaults.coverage, metavar="F",
+                           help="add caching cameras until less than this fraction of the surfaces' importance is "
+                                f"uncovered (default {multiview_defaults.coverage})")
+    multiview.add_argument("--box", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
+                           help="workspace box for the caching cameras (default: the scene's bounds)")
+    multiview.add_argument("--caching-resolution", type=int, default=multiview_defaults.max_resolution, metavar="R",
+                           help=f"largest caching image side (default {multiview_defaults.max_resolution})")
+    cuts = parser.add_argument_group("cuts (--method cuts)")
+    cuts_defaults = CutsSettings()
+    cuts.add_argument("--mode", default=cuts_defaults.mode, choices=CUTS_MODES,
+                      help="light points: 'env' = directions on the sphere, for dome lights (default env)")
+    cuts.add_argument("--cut-lights", type=int, default=cuts_defaults.num_lights, metavar="L",
+                      help=f"point lights in the light tree, a power of two (default {cuts_defaults.num_lights})")
+    cuts.add_argument("--sigma", type=float, default=cuts_defaults.sigma, metavar="SIGMA",
+                      help=f"visibility cut threshold |C| var <= SIGMA^2 (default {cuts_defaults.sigma})")
+    cuts.add_argument("--lattice-edge", type=float, default=cuts_defaults.lattice_edge, metavar="F",
+                      help="longest edge of the refined triangles carrying visibility cuts, as a fraction of the "
+                           f"scene diagonal (default {cuts_defaults.lattice_edge:.4g})")
     parser.set_defaults(run=run)
 
 
@@ -58,10 +98,24 @@ def run(args: argparse.Namespace) -> int:
     if args.supersampling < 1 or args.texture_samples < 1:
         raise RelightError(f"--supersampling and --texture-samples must be >= 1, "
                            f"got {args.supersampling} and {args.texture_samples}")
+    if args.workers is not None and args.workers < 1:
+        raise RelightError(f"--workers must be >= 1, got {args.workers}")
+    with scheduler.using(scheduler.Scheduler(address=args.scheduler, workers=args.workers)):
+        return _bake(args)
+
+
+def _bake(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     scene = load_scene(args.scene, time=args.time, width=args.width, height=args.height)
     camera = find_camera(scene, args.camera)
     stem = args.stem or Path(args.scene).name.split(".")[0]
+    if args.quality is not None:
+        result = bake_for_quality(scene, camera, args.out, stem, args.method, args.quality, args.supersampling,
+                                  args.texture_samples, args.time,
+                                  fixed={"bounces": args.bounces} if args.method == "transfer" else None)
+        print(f"{result.layer}: {args.method} cache sized for {args.quality:g} dB: {result.point} (pilot "
+              f"{result.predicted_db:.1f} dB, measured {result.measured_db:.1f} dB) in {time.perf_counter() - start:.1f} s")
+        return 0
     if args.method == "transfer":
         settings = TransferSettings(num_gathers=args.gathers, num_coefficients=args.coefficients,
                                     num_bounces=args.bounces, num_bounce_coefficients=args.bounce_coefficients,
@@ -74,13 +128,34 @@ def run(args: argparse.Namespace) -> int:
                               time_code=args.time, settings=settings)
     elif args.method == "gather":
         settings = GatherSettings(num_directions=args.directions, num_clusters=args.clusters,
-                                  num_representatives=args.representatives)
+                                  num_representatives=args.representatives, point_cells=args.point_cells)
         try:
             settings.check()
         except ValueError as error:
             raise RelightError(f"bake --method gather: {error}") from None
         layer = bake_gather(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
                             time_code=args.time, settings=settings)
+    elif args.method == "multiview":
+        settings = PlacementSettings(coverage=args.coverage, max_resolution=args.caching_resolution,
+                                     min_resolution=min(PlacementSettings().min_resolution, args.caching_resolution))
+        try:
+            settings.check()
+        except ValueError as error:
+            raise RelightError(f"bake --method multiview: {error}") from None
+        box = None if args.box is None else (np.array(args.box[:3]), np.array(args.box[3:]))
+        if box is not None and not np.all(box[0] < box[1]):
+            raise RelightError(f"bake --box: need X0 < X1, Y0 < Y1, Z0 < Z1, got {args.box}")
+        layer = bake_multiview(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
+                               time_code=args.time, settings=settings, box=box)
+    elif args.method == "cuts":
+        settings = CutsSettings(mode=args.mode, num_lights=args.cut_lights, sigma=args.sigma,
+                                lattice_edge=args.lattice_edge)
+        try:
+            settings.check()
+        except ValueError as error:
+            raise RelightError(f"bake --method cuts: {error}") from None
+        layer = bake_cuts(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
+                          time_code=args.time, settings=settings)
     else:
         layer = bake_direct(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
                             time_code=args.time)

@@ -1,9 +1,10 @@
 """`relight info`: what the walker sees in a stage, or what a cache layer holds and whether it is usable.
 
 For a stage: counts, lights, cameras, the walker's warnings. For a cache layer (a layer with a
-RelightCache prim, whatever its name): provenance (source, camera, content hash, input files),
-method and parameters, each payload's size, format and channels, and the verdict — valid, stale
-(an input changed since the bake) or corrupt (a payload missing, truncated, replaced or edited).
+RelightCache prim, whatever its name): provenance (source, camera, content hash, code version,
+input files), method and parameters, each payload's size, format and channels, and the verdict —
+valid, stale (an input changed since the bake) or corrupt (a payload missing, truncated, replaced
+or edited).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import tracemalloc
 from collections import Counter
 from pathlib import Path
 
+from pipeline.bake.inputs import code_version
 from pipeline.commands.common import add_camera_options, add_lights_option
 from pipeline.errors import RelightError
 from pipeline.scene.load import find_camera, read_scene
@@ -78,6 +80,8 @@ def _describe_cache(status: CacheStatus) -> list[str]:
         f"  camera: {d.camera_path}, {width}x{height}, supersampling {d.supersampling}, "
         f"exposure scale {d.exposure_scale:g}",
         f"  content hash: {d.content_hash}",
+        f"  code version: {d.code_version or 'not recorded'}"
+        + ("" if not d.code_version or d.code_version == code_version() else f" (this code: {code_version()})"),
         "  parameters: " + (", ".join(f"{k} = {v}" for k, v in sorted(d.parameters.items())) or "none"),
         f"  inputs: {len(d.inputs)}",
     ]

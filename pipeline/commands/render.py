@@ -9,8 +9,11 @@ import numpy as np
 
 from pipeline.commands.common import add_device_option, add_lights_option
 from pipeline.errors import RelightError
+from pipeline.bake.multiview.frames import render_frames
+from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.exr import exr_layer_names, write_rgb_exr
 from relight_torch.io.preview import write_png
+from relight_torch.multiview.relighter import MultiviewRelighter
 from relight_torch.transfer.open import open_cache_relighter
 
 
@@ -31,11 +34,23 @@ def add_parser(subparsers) -> None:
                         help="exact Embree shadow rays (CPU) or torch shadow maps (default: embree)")
     parser.add_argument("--aov", action="append", default=[], choices=("lightgroups",),
                         help="extra EXR layers: 'lightgroups' (one per light group)")
+    view = parser.add_argument_group("moving camera (multiview caches)")
+    view.add_argument("--camera", metavar="PRIM",
+                      help="render from this camera prim, in the shot or in the --lights layer (default: the "
+                           "cache's camera)")
+    view.add_argument("--time", type=float, action="append", metavar="T",
+                      help="time code to read the camera at; repeat for a camera path (OUT gets .<T> per frame)")
+    view.add_argument("--width", type=int, metavar="W", help="image width (default: the cache's)")
+    view.add_argument("--height", type=int, metavar="H", help="image height (default: the cache's)")
+    view.add_argument("--fill-holes", action="store_true",
+                      help="bake the surfaces no caching camera saw, on demand (loads the shot)")
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
+    if args.camera or read_cache_layer(args.cache).method == "multiview":
+        return run_views(args, start)
     relighter = open_cache_relighter(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
     image = relighter.render().cpu().numpy()
     write_rgb_exr(args.out, image, light_group_layers(relighter) if "lightgroups" in args.aov else None)
@@ -43,6 +58,20 @@ def run(args: argparse.Namespace) -> int:
         write_png(args.png, image)
     print(f"{args.out}: {image.shape[1]}x{image.shape[0]}, {len(relighter.lights)} lights, "
           f"{time.perf_counter() - start:.2f} s including load")
+    return 0
+
+
+def run_views(args: argparse.Namespace, start: float) -> int:
+    """`relight render` of a multiview cache: one frame per --time from --camera (or the cache's camera)."""
+    relighter = open_cache_relighter(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
+    if not isinstance(relighter, MultiviewRelighter):
+        raise RelightError(f"--camera: {args.cache} is a {relighter.description.method!r} cache, baked for its "
+                           f"camera only; bake it with --method multiview to move the camera")
+    width, height = relighter.description.resolution
+    render_frames(relighter, args.camera or relighter.description.camera_path, args.time or [None], args.out,
+                  args.width or width, args.height or height, args.lights, args.png, args.fill_holes,
+                  light_group_layers if "lightgroups" in args.aov else None)
+    print(f"{time.perf_counter() - start:.2f} s including load")
     return 0
 
 

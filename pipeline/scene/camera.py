@@ -109,25 +109,28 @@ def _film_from_pixel(camera: Camera, x: np.ndarray, y: np.ndarray) -> tuple[np.n
     return x_film, y_film
 
 
-def camera_rays(camera: Camera, pixel_offsets: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def camera_rays(camera: Camera, pixel_offsets: np.ndarray | None = None,
+                rows: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One primary ray per pixel.
 
     Args:
         camera: the camera and its image size H x W.
         pixel_offsets: (H, W, 2) sample position within each pixel in [0, 1): [..., 0] along
             the row (rightwards), [..., 1] down the column; None means the centre (0.5, 0.5).
+        rows: only the pixel rows [first, last) (H = last - first above); None: all rows.
 
     Returns:
         origins (H, W, 3) float32 world-space camera position,
         directions (H, W, 3) float32 unit world-space directions.
     """
-    shape = (camera.height, camera.width)
+    first, last = rows or (0, camera.height)
+    shape = (last - first, camera.width)
     if pixel_offsets is None:
         pixel_offsets = np.full(shape + (2,), 0.5)
     elif pixel_offsets.shape != shape + (2,):
         raise ValueError(f"pixel_offsets must have shape {shape + (2,)}, got {pixel_offsets.shape}")
     x = np.arange(camera.width)[None, :] + pixel_offsets[..., 0]
-    y = np.arange(camera.height)[:, None] + pixel_offsets[..., 1]
+    y = np.arange(first, last)[:, None] + pixel_offsets[..., 1]
     x_film, y_film = _film_from_pixel(camera, x, y)
     directions_camera = np.stack(np.broadcast_arrays(x_film, y_film, -camera.focal_length), axis=-1)
     directions = directions_camera @ camera.world_from_camera[:3, :3].T

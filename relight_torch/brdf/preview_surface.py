@@ -37,9 +37,9 @@ from dataclasses import dataclass
 
 import torch
 
-from relight_torch.brdf.common import check_pair, check_sample_args, where_above
+from relight_torch.brdf.common import above_horizon, check_pair, check_sample_args, where_above
 from relight_torch.brdf.params import BrdfParams, colour, flag, scalar
-from relight_torch.math.frame import half_vector
+from relight_torch.math.frame import dot
 from relight_torch.math.microfacet import (
     STORM_EPSILON,
     ggx_d,
@@ -127,18 +127,25 @@ def split(
     check_pair(wo_local, wi_local)
     cos_e = wo_local[..., 2].clamp_min(0.0)
     cos_l = wi_local[..., 2].clamp_min(0.0)
-    h_local = half_vector(wo_local, wi_local)
-    cos_h = h_local[..., 2].clamp_min(0.0)
-    e_dot_h = (wo_local * h_local).sum(-1, keepdim=True)
+    # The half vector h = (wo + wi) / max(|wo + wi|, 1e-12) (`half_vector`) enters only through
+    # N.h and E.h: computed as scalars, since on the CPU (..., 3) vector ops cost several times
+    # as much. Likewise the horizon rule multiplies scalars before they meet the colours.
+    h = wo_local + wi_local
+    length = dot(h, h).sqrt().clamp_min(1e-12)
+    cos_h = (h[..., 2] / length).clamp_min(0.0)
+    e_dot_h = dot(wo_local, h) / length
+    above = above_horizon(wo_local, wi_local)
+    e_dot_h = torch.where(above, e_dot_h, 0.0)  # what is masked below may be anything, even NaN
     f0, f90 = _specular_colors(params)
-    fresnel = schlick_fresnel(f0, f90, e_dot_h)
-    specular = fresnel * _storm_lobe(storm_alpha(params.roughness), cos_l, cos_e, cos_h).unsqueeze(-1)
+    fresnel = schlick_fresnel(f0, f90, e_dot_h.unsqueeze(-1))
+    lobe = _storm_lobe(storm_alpha(params.roughness), cos_l, cos_e, cos_h)
+    specular = fresnel * torch.where(above, lobe, 0.0).unsqueeze(-1)
     if bool(params.clearcoat.any()):  # most materials have no coat: skip its lobe entirely
-        coat_fresnel = schlick_fresnel(_dielectric_f0(params).unsqueeze(-1), 1.0, e_dot_h)
         coat_lobe = _storm_lobe(storm_alpha(params.clearcoat_roughness), cos_l, cos_e, cos_h)
-        specular = specular + coat_fresnel * (params.clearcoat * coat_lobe).unsqueeze(-1)
-    diffuse = diffuse_albedo(params) / math.pi * (1.0 - fresnel)
-    return where_above(diffuse, wo_local, wi_local), where_above(specular, wo_local, wi_local)
+        coat_fresnel = schlick_fresnel(_dielectric_f0(params).unsqueeze(-1), 1.0, e_dot_h.unsqueeze(-1))
+        specular = specular + coat_fresnel * torch.where(above, params.clearcoat * coat_lobe, 0.0).unsqueeze(-1)
+    diffuse = diffuse_albedo(params) / math.pi * (1.0 - fresnel) * above.to(fresnel.dtype).unsqueeze(-1)
+    return diffuse, specular
 
 
 def eval(params: PreviewSurfaceParams, wo_local: torch.Tensor, wi_local: torch.Tensor) -> torch.Tensor:

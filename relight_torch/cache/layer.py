@@ -84,6 +84,8 @@ class CacheDescription:
         inputs: input file (absolute path) -> sha256 of its bytes.
         parameters: the method's parameters (bool, int, float or str values).
         payloads: the payload files.
+        code_version: the code that baked it (package version + digest of its sources); ''
+            when not recorded.
     """
 
     method: str
@@ -97,6 +99,7 @@ class CacheDescription:
     inputs: dict[str, str]
     parameters: dict[str, bool | int | float | str]
     payloads: tuple[Payload, ...]
+    code_version: str = ""
 
     def payload(self, name: str) -> Payload:
         for payload in self.payloads:
@@ -189,6 +192,7 @@ def write_cache_layer(path: str | os.PathLike, description: CacheDescription) ->
     cache.GetAttribute("relight:worldFromCamera").Set(Gf.Matrix4d(description.world_from_camera.T.tolist()))
     cache.GetAttribute("relight:exposureScale").Set(description.exposure_scale)
     cache.GetAttribute("relight:contentHash").Set(description.content_hash)
+    cache.GetAttribute("relight:codeVersion").Set(description.code_version)
     files = sorted(description.inputs)
     cache.GetAttribute("relight:inputFiles").Set(Vt.StringArray([os.path.relpath(f, directory) for f in files]))
     cache.GetAttribute("relight:inputHashes").Set(Vt.StringArray([description.inputs[f] for f in files]))
@@ -335,4 +339,5 @@ def read_cache_layer(path: str | os.PathLike) -> CacheDescription:
         inputs={str((directory / f).resolve()): h for f, h in zip(files, hashes)},
         parameters=parameters,
         payloads=payloads,
+        code_version=str(cache.GetAttribute("relight:codeVersion").Get() or ""),
     )

@@ -8,28 +8,73 @@ representative sets are kept: 'diffuse' stores weights without the receiver's di
 (it interpolates irradiance, and each pixel multiplies by its own albedo, so textures stay
 sharp) and 'glossy' stores the specular lobes' weights (it interpolates radiance).
 
-Per light, linear as the direct part: D on every clustered gather point of both sets is computed
-in one batched pass for the unit light, reduced per representative and reconstructed per pixel;
+The clustered gathers of both sets index U shared surface points (`pipeline.bake.gather.
+surface_points`: gathers of neighbouring representatives land on the same surfaces), so D is
+computed once per point. Per light, linear as the direct part: D on every shared point in one
+batched pass for the unit light (`diffuse_radiance`, light links and shadow links applied per
+point object), reduced per representative by weighted embedding bags and reconstructed per pixel;
 the (P, 3) result is cached and scaled by the light's colour factor, so a colour edit recomputes
-nothing and a move or reshape recomputes that light's gathers only.
+nothing. The shadow answers are remembered per light geometry (`RememberedVisibility`), so a
+shaping edit re-weights the same samples without tracing; only a move or resize traces again.
 """
 
 from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 
 import numpy as np
 import torch
 
 from relight_torch.diffuse_light import diffuse_radiance
 from relight_torch.gather.reconstruction import interpolate
+from relight_torch.gather.remembered import RememberedVisibility
 from relight_torch.lights.emission import is_delta_light
 from relight_torch.indirect import IndirectRelighter
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.relighter import Relighter, colour_scale, unit_light
 
 SET_NAMES = ("diffuse", "glossy")
+DEFAULT_GATHER_SAMPLES = 4
+"""Light samples per shared surface point for area lights (see `GatherRelighter`)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SurfacePoints:
+    """The U surface points the clustered gathers of every set share (lit once per light edit).
+
+    Attributes:
+        position: (U, 3) world positions.
+        normal: (U, 3) unit receiving normals.
+        albedo: (U, 3) diffuse albedo.
+        object_id: (U,) int64 object of each point (index into the cache's object paths).
+    """
+
+    position: torch.Tensor
+    normal: torch.Tensor
+    albedo: torch.Tensor
+    object_id: torch.Tensor
+
+    def __post_init__(self) -> None:
+        num_points = self.position.shape[0]
+        for name in ("position", "normal", "albedo"):
+            if getattr(self, name).shape != (num_points, 3):
+                raise ValueError(f"SurfacePoints.{name} must be ({num_points}, 3), got {tuple(getattr(self, name).shape)}")
+        if self.object_id.shape != (num_points,):
+            raise ValueError(f"SurfacePoints.object_id must be ({num_points},), got {tuple(self.object_id.shape)}")
+
+    @property
+    def num_points(self) -> int:
+        return int(self.position.shape[0])
+
+    @property
+    def num_bytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in dataclasses.astuple(self))
+
+    def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> "SurfacePoints":
+        return SurfacePoints(*(t.to(device, dtype) for t in (self.position, self.normal, self.albedo)),
+                             object_id=self.object_id.to(device, torch.int64))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,28 +82,27 @@ class GatherSet:
     """One set of view representatives with their clustered gathers (CSR by representative).
 
     Attributes:
-        position: (G, 3) world position of each clustered gather point.
-        normal: (G, 3) unit normal of its receiving side (facing its representative).
-        albedo: (G, 3) mean diffuse albedo of its members.
-        weight: (G, 3) summed gather weights w = rho cos / (pdf N) of its members (unitless).
-        offsets: (R + 1,) int64: representative k owns gathers offsets[k]:offsets[k + 1].
+        index: (G,) int64 shared surface point of each clustered gather (CSR columns).
+        weight: (G, 3) its gather weight w = rho cos / (pdf N), summed over the gathers merged into
+            it (unitless; CSR values).
+        offsets: (R + 1,) int64: representative k owns entries offsets[k]:offsets[k + 1].
         neighbours: (P, k) int64 representatives of each view pixel.
         rbf: (P, k) their radial-basis weights (rows sum to 1, or 0 for pixels outside the set).
     """
 
-    position: torch.Tensor
-    normal: torch.Tensor
-    albedo: torch.Tensor
+    index: torch.Tensor
     weight: torch.Tensor
     offsets: torch.Tensor
     neighbours: torch.Tensor
     rbf: torch.Tensor
 
     def __post_init__(self) -> None:
-        num_gathers = self.position.shape[0]
-        for name in ("position", "normal", "albedo", "weight"):
-            if getattr(self, name).shape != (num_gathers, 3):
-                raise ValueError(f"GatherSet.{name} must be ({num_gathers}, 3), got {tuple(getattr(self, name).shape)}")
+        num_gathers = self.index.shape[0]
+        if self.index.ndim != 1 or self.weight.shape != (num_gathers, 3):
+            raise ValueError(f"GatherSet.index must be (G,) and .weight (G, 3), got {tuple(self.index.shape)} "
+                             f"and {tuple(self.weight.shape)}")
+        if num_gathers and int(self.index.min()) < 0:
+            raise ValueError("GatherSet.index must not be negative")
         if self.offsets.ndim != 1 or int(self.offsets[0]) != 0 or int(self.offsets[-1]) != num_gathers \
                 or bool((self.offsets[1:] < self.offsets[:-1]).any()):
             raise ValueError(f"GatherSet.offsets must rise from 0 to {num_gathers}")
@@ -74,7 +118,7 @@ class GatherSet:
 
     @property
     def num_gathers(self) -> int:
-        return int(self.position.shape[0])
+        return int(self.index.shape[0])
 
     @property
     def num_bytes(self) -> int:
@@ -82,15 +126,25 @@ class GatherSet:
 
     def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> "GatherSet":
         moved = {f.name: getattr(self, f.name).to(device) for f in dataclasses.fields(self)}
-        for name in ("position", "normal", "albedo", "weight", "rbf"):
+        for name in ("weight", "rbf"):
             moved[name] = moved[name].to(dtype)
+        for name in ("index", "offsets", "neighbours"):
+            moved[name] = moved[name].long()
         return GatherSet(**moved)
 
     def representative_values(self, radiance: torch.Tensor) -> torch.Tensor:
-        """(R, 3) sum_j D(g_kj) w_kj from (G, 3) radiance D leaving this set's gathers."""
-        owner = torch.repeat_interleave(torch.arange(self.num_representatives, device=radiance.device),
-                                        self.offsets[1:] - self.offsets[:-1])
-        return radiance.new_zeros(self.num_representatives, 3).index_add_(0, owner, radiance * self.weight)
+        """(R, 3) sum_j D(g_kj) w_kj from (U, 3) radiance D leaving the shared surface points."""
+        # One weighted embedding bag per colour: ~5x faster on CPU than indexing (G, 3) rows and
+        # adding them per representative (index_add_), and faster than a CSR sparse product.
+        return torch.stack([torch.nn.functional.embedding_bag(
+            self.index, radiance[:, c:c + 1].contiguous(), self.offsets, mode="sum",
+            per_sample_weights=weight.to(radiance.dtype), include_last_offset=True)[:, 0]
+            for c, weight in enumerate(self._channel_weights)], dim=-1)
+
+    @functools.cached_property
+    def _channel_weights(self) -> torch.Tensor:
+        """(3, G) the weights channel-major: the per-colour bags read contiguous rows."""
+        return self.weight.t().contiguous()
 
 
 def light_key(light: Light) -> object:
@@ -109,40 +163,59 @@ class GatherRelighter(IndirectRelighter):
 
     Args:
         direct: the direct relighter of the cache's deep framebuffer (it holds the lights; its
-            visibility answers the gathers' shadow queries).
-        sets: {'diffuse': GatherSet, 'glossy': GatherSet} (either may be absent), on the direct
-            relighter's device and dtype.
+            visibility, remembered per light (`RememberedVisibility`), answers the gathers'
+            shadow queries).
+        points: the surface points the sets' gathers share, on the direct relighter's device and dtype.
+        sets: {'diffuse': GatherSet, 'glossy': GatherSet} (either may be absent), likewise.
         view_pixels: (P,) int64 pixel (row * W + col) of each view sample.
         view_albedo: (P, 3) diffuse albedo of each view sample (multiplies the diffuse set).
+        gather_samples: light samples per surface point for area lights and domes (delta lights
+            take one). Each representative sums ~100 points, whose fixed samples are rotated
+            differently, so a few samples per point suffice (`DEFAULT_GATHER_SAMPLES`).
 
     Attributes:
-        counters: 'gather_light' passes run so far (one per light edit that moves its light).
+        counters: 'gather_light' passes run so far (one per light edit that is more than a colour edit).
+        visibility: the remembered visibility of the gathers (its counters say how many queries traced).
     """
 
-    def __init__(self, direct: Relighter, sets: dict[str, GatherSet], view_pixels: torch.Tensor,
-                 view_albedo: torch.Tensor):
+    def __init__(self, direct: Relighter, points: SurfacePoints, sets: dict[str, GatherSet],
+                 view_pixels: torch.Tensor, view_albedo: torch.Tensor, gather_samples: int = DEFAULT_GATHER_SAMPLES):
         unknown = set(sets) - set(SET_NAMES)
         if unknown or not sets:
             raise ValueError(f"gather sets must be among {SET_NAMES}, got {sorted(sets)}")
+        if gather_samples < 1:
+            raise ValueError(f"gather_samples must be >= 1, got {gather_samples}")
         for name, gather_set in sets.items():
             if gather_set.neighbours.shape[0] != view_pixels.shape[0]:
                 raise ValueError(f"the {name} set reconstructs {gather_set.neighbours.shape[0]} pixels, "
                                  f"expected {view_pixels.shape[0]}")
+            if gather_set.num_gathers and int(gather_set.index.max()) >= points.num_points:
+                raise ValueError(f"the {name} set indexes past the {points.num_points} surface points")
         if view_albedo.shape != (view_pixels.shape[0], 3):
             raise ValueError(f"view_albedo must be ({view_pixels.shape[0]}, 3), got {tuple(view_albedo.shape)}")
         super().__init__(direct)
+        self.points = points
         self.sets = sets
         self.view_pixels = view_pixels
         self.view_albedo = view_albedo
+        self.gather_samples = gather_samples
+        self.visibility = RememberedVisibility(direct.visibility)
         self.counters: collections.Counter[str] = collections.Counter()
-        self._position = torch.cat([s.position for s in sets.values()])
-        self._normal = torch.cat([s.normal for s in sets.values()])
-        self._albedo = torch.cat([s.albedo for s in sets.values()])
 
     @property
     def cache_bytes(self) -> int:
-        """Bytes of the baked sets held in memory."""
-        return sum(s.num_bytes for s in self.sets.values())
+        """Bytes of the baked points and sets held in memory."""
+        return self.points.num_bytes + sum(s.num_bytes for s in self.sets.values())
+
+    def remove_light(self, path: str) -> None:
+        super().remove_light(path)
+        self.visibility.forget(path)
+
+    def set_lights(self, lights: list[Light]) -> None:
+        """Replace the whole rig; unchanged lights keep their cached work."""
+        for path in {light.path for light in self.lights} - {light.path for light in lights}:
+            self.visibility.forget(path)
+        super().set_lights(lights)
 
     # -- rendering ------------------------------------------------------------------------------
 
@@ -165,25 +238,28 @@ class GatherRelighter(IndirectRelighter):
         return total
 
     def reconstruct(self, radiance: torch.Tensor) -> torch.Tensor:
-        """Equation 3: (G, 3) radiance leaving all sets' gathers (concatenated) -> (P, 3) per pixel."""
+        """Equation 3: (U, 3) radiance leaving the shared surface points -> (P, 3) per pixel."""
         total = torch.zeros_like(self.view_albedo)
-        for (name, gather_set), part in zip(self.sets.items(),
-                                            radiance.split([s.num_gathers for s in self.sets.values()])):
-            pixels = interpolate(gather_set.representative_values(part), gather_set.neighbours, gather_set.rbf)
+        for name, gather_set in self.sets.items():
+            pixels = interpolate(gather_set.representative_values(radiance), gather_set.neighbours, gather_set.rbf)
             total = total + (pixels * self.view_albedo if name == "diffuse" else pixels)
         return total
+
+    def surface_radiance(self, light: Light) -> torch.Tensor:
+        """(U, 3) radiance D leaving the shared surface points, lit by `light` (its colour included)."""
+        settings = self.direct.settings
+        num_samples = 1 if is_delta_light(light) else (
+            settings.dome_samples if light.kind is LightKind.DOME else self.gather_samples)
+        p = self.points
+        return diffuse_radiance(light, p.position, p.normal, p.albedo, self.visibility, num_samples, settings.seed,
+                                object_id=p.object_id, object_paths=self.direct.object_paths)
 
     def _unit_indirect(self, light: Light) -> torch.Tensor:
         unit = unit_light(light)
         key = light_key(unit)
         cached = self._per_light.get(light.path)
         if cached is None or cached[0] != key:
-            settings = self.direct.settings
-            num_samples = 1 if is_delta_light(unit) else (
-                settings.dome_samples if unit.kind is LightKind.DOME else settings.area_samples)
-            radiance = diffuse_radiance(unit, self._position, self._normal, self._albedo, self.direct.visibility,
-                                        num_samples, settings.seed)
             self.counters["gather_light"] += 1
-            cached = (key, self.reconstruct(radiance))
+            cached = (key, self.reconstruct(self.surface_radiance(unit)))
             self._per_light[light.path] = cached
         return cached[1]

@@ -33,6 +33,18 @@ def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
             temp.unlink()
 
 
+def remove_temp_files(directory: str | os.PathLike, stem: str = "") -> list[Path]:
+    """Delete the temp files `atomic_path` left in `directory` for targets named `<stem>...` (all
+    with stem ''): a process killed while writing (SIGKILL, power loss) never removes its own.
+    Call it only where no other live writer is at work; returns what was removed."""
+    removed = []
+    for temp in Path(directory).glob(f".{stem}*.tmp-*"):
+        if temp.is_file():
+            temp.unlink(missing_ok=True)
+            removed.append(temp)
+    return removed
+
+
 def write_bytes_atomic(target: str | os.PathLike, data: bytes) -> None:
     """Write `data` to `target` atomically."""
     with atomic_path(target) as temp:

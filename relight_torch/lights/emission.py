@@ -66,7 +66,7 @@ from relight_torch.lights.image import image_tensors, lookup_bilinear
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.shaping import emission_factor
 from relight_torch.math.checks import check_last_dim
-from relight_torch.math.frame import orthonormal_basis, to_world
+from relight_torch.math.frame import dot, orthonormal_basis, to_world
 from relight_torch.math.sampling import concentric_disk, uniform_cone, uniform_sphere
 
 _AREA_KINDS = (LightKind.SPHERE, LightKind.RECT, LightKind.DISK, LightKind.CYLINDER)
@@ -95,8 +95,12 @@ class LightSample:
 
     def weight(self) -> torch.Tensor:
         """(N, S, 3) radiance / pdf, 0 where pdf is 0: the Monte Carlo weight of each sample."""
+        return self.radiance * self.inverse_pdf().unsqueeze(-1)
+
+    def inverse_pdf(self) -> torch.Tensor:
+        """(N, S) 1 / pdf, 0 where pdf is 0 (a sample carrying no light has zero radiance)."""
         safe_pdf = torch.where(self.pdf > 0, self.pdf, torch.ones_like(self.pdf))
-        return torch.where((self.pdf > 0).unsqueeze(-1), self.radiance / safe_pdf.unsqueeze(-1), 0.0)
+        return (self.pdf > 0) / safe_pdf
 
 
 def size_factor(light: Light) -> float:
@@ -172,34 +176,45 @@ def sample_light(light: Light, points: torch.Tensor, u: torch.Tensor) -> LightSa
         u: (N, S, 2) uniform numbers in [0, 1), same device and dtype as `points` (and the results).
 
     Returns:
-        LightSample with (N, S) leading dimensions.
+        LightSample with (N, S) leading dimensions. The work runs with the samples leading, (S, N),
+        so that per-point values broadcast over whole slabs (torch's CPU kernels vectorise that;
+        a broadcast over the middle axis of (N, S, 3) runs 10-30x slower): the results are
+        (N, S, ...) views of (S, N, ...) memory. u laid out that way too (a transposed (S, N, 2)
+        tensor, see `light_samples.fixed_light_samples`) is read without a copy.
     """
     check_last_dim(points, 3, "points")
     check_last_dim(u, 2, "u")
     if u.dtype != points.dtype or u.shape[:-2] != points.shape[:-1]:
         raise ValueError(f"u must be (N, S, 2) of the points' dtype {points.dtype} for points {tuple(points.shape)}; "
                          f"got {u.dtype} {tuple(u.shape)}")
-    receivers = points.unsqueeze(-2)
+    u = u.movedim(-2, 0).contiguous()
+    receivers = points.unsqueeze(0)
     frame = LightFrame.of(light, points)
     if is_delta_light(light):
-        return _sample_delta(light, frame, receivers, u)
+        sample = _sample_delta(light, frame, receivers, u)
+    else:
+        directions = _sample_directions(light, frame, receivers, u)
+        sample = LightSample(directions, *_trace(light, frame, receivers, directions), False)
+    return LightSample(sample.direction.movedim(0, -2), sample.distance.movedim(0, -1),
+                       sample.radiance.movedim(0, -2), sample.pdf.movedim(0, -1), sample.is_delta)
+
+
+def _sample_directions(light: Light, frame: LightFrame, receivers: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """(S, N, 3) unit world directions from receivers (1, N, 3) towards a non-delta light, u (S, N, 2)."""
     if light.kind is LightKind.SPHERE:
         to_centre = frame.origin - receivers
         distance = to_centre.norm(dim=-1)
         sin2_max = (world_radius(light) / distance).square()
         cos_max = torch.where(sin2_max < 1.0, torch.sqrt((1.0 - sin2_max).clamp_min(0.0)), -1.0)
-        directions = _cone_directions(u, torch.nn.functional.normalize(to_centre, dim=-1), cos_max)
-    elif light.kind is LightKind.DISTANT:
+        return _cone_directions(u, torch.nn.functional.normalize(to_centre, dim=-1), cos_max)
+    if light.kind is LightKind.DISTANT:
         cos_max = torch.full_like(u[..., 0], math.cos(_distant_theta_max(light)))
-        directions = _cone_directions(u, _to_distant_light(frame).expand_as(receivers), cos_max)
-    elif light.kind is LightKind.DOME:
-        directions = _dome_directions(light, frame, u)
-    else:
-        disk_points, _ = concentric_disk(u)
-        emitting_points = frame.point_to_world(sample_area_local(light, disk_points, u))
-        directions = torch.nn.functional.normalize(emitting_points - receivers, dim=-1)
-    distance, radiance, pdf = _trace(light, frame, receivers, directions)
-    return LightSample(directions, distance, radiance, pdf, False)
+        return _cone_directions(u, _to_distant_light(frame).expand_as(receivers), cos_max)
+    if light.kind is LightKind.DOME:
+        return _dome_directions(light, frame, u)
+    disk_points, _ = concentric_disk(u)
+    emitting_points = frame.point_to_world(sample_area_local(light, disk_points, u))
+    return torch.nn.functional.normalize(emitting_points - receivers, dim=-1)
 
 
 def emitted_radiance(light: Light, points: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
@@ -233,8 +248,11 @@ def _checked_trace(light: Light, points: torch.Tensor, directions: torch.Tensor)
 
 
 def _trace(light: Light, frame: LightFrame, points: torch.Tensor, directions: torch.Tensor):
-    """(distance (...), radiance (..., 3), pdf (...)) of rays from `points` along `directions`."""
-    points, directions = torch.broadcast_tensors(points, directions)
+    """(distance (...), radiance (..., 3), pdf (...)) of rays from `points` along `directions`.
+
+    `points` stay unbroadcast, so that per-point work is done once per point.
+    """
+    directions = directions.expand(torch.broadcast_shapes(points.shape, directions.shape))
     scale = torch.as_tensor(light_radiance_scale(light), device=directions.device, dtype=directions.dtype)
     miss = torch.full_like(directions[..., 0], math.inf)
     if is_delta_light(light) or not bool((scale > 0).any()):
@@ -256,26 +274,33 @@ def _trace(light: Light, frame: LightFrame, points: torch.Tensor, directions: to
         texture = _rect_texture(light, hits.point_local) if has_texture else 1.0
         distance = torch.where(hits.cos_light > 0, distance, math.inf)
     lit = torch.isfinite(distance).unsqueeze(-1)
-    radiance = torch.where(lit, scale * texture * _shape(light, frame, -directions, points), 0.0)
-    return distance, radiance, pdf
+    factor = _shape(light, frame, -directions, points)
+    if factor is None and not torch.is_tensor(texture):  # a constant: a multiply, not a 3-channel where
+        return distance, lit * scale, pdf
+    factor = texture if factor is None else factor * texture
+    return distance, torch.where(lit, scale * factor, 0.0), pdf
 
 
-def _shape(light: Light, frame: LightFrame, emission_world: torch.Tensor, receivers: torch.Tensor) -> torch.Tensor:
-    """(..., 3) ShapingAPI x Barzel factor of an area light for world emission directions (..., 3)."""
+def _shape(light: Light, frame: LightFrame, emission_world: torch.Tensor,
+           receivers: torch.Tensor) -> torch.Tensor | None:
+    """(..., 3) ShapingAPI x Barzel factor of an area light for world emission directions (..., 3);
+    None when neither applies."""
+    if light.shaping is None and light.barzel is None:
+        return None
     emission_local = torch.nn.functional.normalize(frame.vector_to_local(emission_world), dim=-1)
-    factor = emission_factor(light, emission_local, receivers, frame.origin)
-    return torch.ones_like(emission_local) if factor is None else factor
+    return emission_factor(light, emission_local, receivers, frame.origin)
 
 
 def _sphere_hits(light: Light, frame: LightFrame, points: torch.Tensor, directions: torch.Tensor):
     """(distance inf on a miss, cap-sampling pdf) of rays from outside a sphere light."""
     radius = world_radius(light)
     to_centre = frame.origin - points
-    along = (to_centre * directions).sum(-1)
+    along = dot(to_centre, directions)
     # The perpendicular offset from the ray, not d^2 - along^2, keeps small caps accurate (pbrt-v4).
-    offset2 = (to_centre - along.unsqueeze(-1) * directions).square().sum(-1)
+    offset = [(to_centre[..., i] - along * directions[..., i]).square() for i in range(3)]
+    offset2 = offset[0] + offset[1] + offset[2]
     discriminant = radius**2 - offset2
-    centre_distance2 = to_centre.square().sum(-1)
+    centre_distance2 = dot(to_centre, to_centre)
     hit = (discriminant >= 0) & (centre_distance2 > radius**2) & (along > 0)
     distance = torch.where(hit, along - torch.sqrt(discriminant.clamp_min(0.0)), math.inf)
     sin2_max = (radius**2 / centre_distance2).clamp(max=1.0)
@@ -301,7 +326,7 @@ def _dome_radiance_pdf(light: Light, frame: LightFrame, directions: torch.Tensor
 
 
 def _dome_directions(light: Light, frame: LightFrame, u: torch.Tensor) -> torch.Tensor:
-    """(N, S, 3) world directions towards a dome light, importance-sampled when textured."""
+    """(S, N, 3) world directions towards a dome light from u (S, N, 2), importance-sampled when textured."""
     if light.texture is None:
         directions_local, _ = uniform_sphere(u)
     else:
@@ -311,7 +336,8 @@ def _dome_directions(light: Light, frame: LightFrame, u: torch.Tensor) -> torch.
 
 
 def _sample_delta(light: Light, frame: LightFrame, receivers: torch.Tensor, u: torch.Tensor) -> LightSample:
-    """Point or zero-angle distant light: one direction per point, repeated S times."""
+    """Point or zero-angle distant light: one direction per point, repeated S times; receivers
+    (1, N, 3), u (S, N, 2), results (S, N, ...)."""
     scale = torch.as_tensor(light_radiance_scale(light), device=u.device, dtype=u.dtype)
     ones = torch.ones_like(u[..., 0])
     if light.kind is LightKind.DISTANT:
@@ -320,12 +346,13 @@ def _sample_delta(light: Light, frame: LightFrame, receivers: torch.Tensor, u: t
     to_light = (frame.origin - receivers) * ones.unsqueeze(-1)
     distance = to_light.norm(dim=-1)
     direction = to_light / distance.unsqueeze(-1)
-    irradiance = scale * _shape(light, frame, -direction, receivers) / distance.square().unsqueeze(-1)
+    factor = _shape(light, frame, -direction, receivers)
+    irradiance = (scale if factor is None else scale * factor) / distance.square().unsqueeze(-1)
     return LightSample(direction, distance, irradiance, ones, True)
 
 
 def _cone_directions(u: torch.Tensor, axis: torch.Tensor, cos_max: torch.Tensor) -> torch.Tensor:
-    """Uniform directions (N, S, 3) in cones around unit world axes (N, 1, 3) or (N, S, 3).
+    """Uniform directions (S, N, 3) in cones around unit world axes (1, N, 3) or (S, N, 3).
 
     The warp runs in float64: a small cap (a distant sun, a far sphere) has 1 - cos_max below
     float32's resolution near 1, which would misplace its edge.

@@ -30,13 +30,20 @@ def orthonormal_basis(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]
     return tangent, bitangent
 
 
+def dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Dot products (...) of broadcasting vectors (..., 3), summed by components.
+
+    On the CPU, `(a * b).sum(-1)` reduces over a last axis of 3 and costs several times the three
+    products; the components broadcast like scalars.
+    """
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
 def to_local(
     v_world: torch.Tensor, tangent: torch.Tensor, bitangent: torch.Tensor, normal: torch.Tensor
 ) -> torch.Tensor:
     """Express world vectors (..., 3) in the frame (tangent, bitangent, normal), each (..., 3)."""
-    return torch.stack(
-        ((v_world * tangent).sum(-1), (v_world * bitangent).sum(-1), (v_world * normal).sum(-1)), dim=-1
-    )
+    return torch.stack((dot(v_world, tangent), dot(v_world, bitangent), dot(v_world, normal)), dim=-1)
 
 
 def to_world(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -10,15 +11,15 @@ import torch
 
 from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import load_npy
+from relight_torch.cuts.open import open_cuts_relighter
 from relight_torch.errors import RelightError
 from relight_torch.gather.open import open_gather_relighter
+from relight_torch.multiview.relighter import MultiviewRelighter, open_multiview_relighter
 from relight_torch.relighter import Relighter, RelightSettings, open_relighter
 from relight_torch.transfer.encoding import PARTS, EncodedRows, decode_rows
-from relight_torch.transfer.gathers import GatherSamples
+from relight_torch.transfer.gathers import GatherSamples, gather_payload_name
 from relight_torch.transfer.relighter import TransferRelighter
 from relight_torch.transfer.sparse import SparseRows
-
-_GATHER_FIELDS = ("position", "normal", "albedo", "emission", "area")
 
 
 def _load(layer_path: Path, description: CacheDescription, name: str) -> torch.Tensor:
@@ -44,13 +45,17 @@ def load_sparse_rows(layer_path: Path, description: CacheDescription, prefix: st
 
 def open_transfer_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
                             lights_layer: str | os.PathLike | None = None,
-                            settings: RelightSettings = RelightSettings()) -> TransferRelighter:
-    """A TransferRelighter for a 'transfer' cache layer (arguments as `open_relighter`)."""
+                            settings: RelightSettings = RelightSettings(),
+                            cull_tolerance: float = 0.0) -> TransferRelighter:
+    """A TransferRelighter for a 'transfer' cache layer (arguments as `open_relighter`; culling of
+    weak wavelet lights as `TransferRelighter`)."""
     layer_path = Path(path)
     direct = open_relighter(layer_path, device, shadows, lights_layer, settings)
     description = direct.description
-    gathers = GatherSamples(**{name: _load(layer_path, description, "gather" + name.capitalize())
-                               for name in _GATHER_FIELDS}).to(device)
+    stored = {payload.name for payload in description.payloads}
+    gathers = GatherSamples(**{field.name: _load(layer_path, description, gather_payload_name(field.name))
+                               for field in dataclasses.fields(GatherSamples)
+                               if gather_payload_name(field.name) in stored or field.name != "object_id"}).to(device)
     dtype = direct.gbuffer.position.dtype
     final_gather = load_sparse_rows(layer_path, description, "finalGather", gathers.num_gathers).to(device, dtype)
     num_bounces = int(description.parameters["bounces"])
@@ -58,15 +63,18 @@ def open_transfer_relighter(path: str | os.PathLike, device: str | torch.device 
               if num_bounces > 1 else None)
     view_pixels = _load(layer_path, description, "viewPixels").to(device)
     try:
-        return TransferRelighter(direct, gathers, view_pixels, final_gather, bounce, num_bounces)
+        return TransferRelighter(direct, gathers, view_pixels, final_gather, bounce, num_bounces,
+                                 cull_tolerance=cull_tolerance)
     except ValueError as error:
         raise RelightError(f"{layer_path}: {error}") from None
 
 
 def open_cache_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
                          lights_layer: str | os.PathLike | None = None,
-                         settings: RelightSettings = RelightSettings()) -> Relighter | TransferRelighter:
-    """The relighter of a cache layer's method ('direct' or 'transfer'); arguments as `open_relighter`.
+                         settings: RelightSettings = RelightSettings()
+                         ) -> Relighter | TransferRelighter | MultiviewRelighter:
+    """The relighter of a cache layer's method; arguments as `open_relighter`. A 'multiview'
+    relighter has no view until `set_view` (`pipeline.bake.multiview.view.view_points`).
 
     Raises:
         RelightError: the layer is unreadable, of another method, stale or corrupt.
@@ -78,4 +86,9 @@ def open_cache_relighter(path: str | os.PathLike, device: str | torch.device = "
         return open_transfer_relighter(path, device, shadows, lights_layer, settings)
     if method == "gather":
         return open_gather_relighter(path, device, shadows, lights_layer, settings)
-    raise RelightError(f"{path}: cannot relight a {method!r} cache (this build relights 'direct', 'transfer' and 'gather')")
+    if method == "multiview":
+        return open_multiview_relighter(path, device, shadows, lights_layer, settings)
+    if method == "cuts":
+        return open_cuts_relighter(path, device, shadows, lights_layer, settings)
+    raise RelightError(f"{path}: cannot relight a {method!r} cache "
+                       f"(this build relights 'direct', 'transfer', 'gather', 'multiview' and 'cuts')")

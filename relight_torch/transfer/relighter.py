@@ -4,7 +4,9 @@ Per light, linear as the direct part: the unit light's gather radiance g_d (one 
 the gathers, `gather_radiance`) and its indirect image F (I + M + ... + M^(B-1)) g_d are cached,
 and scaled by the light's colour factor at render time. A colour edit therefore re-renders
 nothing; a move or a reshape recomputes that light's gather light and one pass of sparse
-products; other lights keep theirs. Emissive gathers add a light-independent term, computed once.
+products; a light-link edit re-masks the cached gather light (UsdLux linking on the gathers, as
+`diffuse_light` applies it) and redoes the products only; other lights keep theirs. Emissive
+gathers add a light-independent term, computed once.
 """
 
 from __future__ import annotations
@@ -15,13 +17,14 @@ import dataclasses
 import numpy as np
 import torch
 
-from relight_torch.lights.emission import is_delta_light
+from relight_torch.diffuse_light import link_mask
 from relight_torch.indirect import IndirectRelighter
+from relight_torch.lights.emission import is_delta_light
 from relight_torch.lights.light import Light, LightKind
-from relight_torch.relighter import Relighter, colour_scale, light_group, unit_light
+from relight_torch.relighter import Relighter, unit_light
 from relight_torch.transfer.gathers import GatherSamples, gather_radiance
 from relight_torch.transfer.haar import haar2d
-from relight_torch.transfer.sparse import SparseRows
+from relight_torch.transfer.sparse import SparseRows, column_norms, cull_light
 
 
 def _frozen(value) -> object:
@@ -35,8 +38,10 @@ def _frozen(value) -> object:
 
 @dataclasses.dataclass
 class _IndirectState:
-    key: object                 # `_frozen(unit_light(light))`: what the cached work depends on
-    unit_indirect: torch.Tensor  # (R, 3) indirect radiance of the unit light at the F rows
+    gather_key: object           # `_frozen` of the unit light less its group, link and specular
+    radiance: torch.Tensor       # (G, 3) its gather light g_d, no light link applied
+    light_link: tuple[str, ...] | None = None     # the link `unit_indirect` was masked with
+    unit_indirect: torch.Tensor | None = None     # (R, 3) its indirect radiance at the F rows
 
 
 class TransferRelighter(IndirectRelighter):
@@ -56,11 +61,18 @@ class TransferRelighter(IndirectRelighter):
             Cornell box, 16,384 gathers: 1 / 4 / 16 samples put the indirect image 2.5 / 0.7 / 0.4 %
             RMS from 64 samples) but not near one: with a lamp 10 mm from a wall the indirect mean
             fell from 0.95 to 0.70 of the reference at 4 samples, so the default keeps the direct count.
+        cull_tolerance: on-the-fly culling of weak wavelet lights in the F product (the chapter's
+            section 9.8.3, `sparse.cull_light`): the Haar coefficients of the gather light whose
+            weight |l_c| ||F_c|| sums to at most this fraction of the total are zeroed, bounding
+            the dropped indirect light's L2 norm by that fraction of the summed weights. It
+            changes accuracy, not speed, on the CPU: the row product's embedding_bag touches every
+            stored entry, and a product over the kept columns alone (gather, multiply,
+            index_add_) cost 30-40x more per entry there, more than any culling saved (docs/TRANSFER.md).
     """
 
     def __init__(self, direct: Relighter, gathers: GatherSamples, view_pixels: torch.Tensor,
                  final_gather: SparseRows, bounce: SparseRows | None = None, num_bounces: int = 1,
-                 gather_samples: int | None = None):
+                 gather_samples: int | None = None, cull_tolerance: float = 0.0):
         if final_gather.num_columns != gathers.num_gathers or final_gather.num_rows != view_pixels.shape[0]:
             raise ValueError(f"F is {final_gather.num_rows}x{final_gather.num_columns}; expected "
                              f"{view_pixels.shape[0]} view rows x {gathers.num_gathers} gathers")
@@ -69,6 +81,8 @@ class TransferRelighter(IndirectRelighter):
                              f"{None if bounce is None else bounce.num_rows})")
         if gather_samples is not None and gather_samples < 1:
             raise ValueError(f"gather_samples must be >= 1, got {gather_samples}")
+        if not 0.0 <= cull_tolerance < 1.0:
+            raise ValueError(f"cull_tolerance must lie in [0, 1), got {cull_tolerance}")
         super().__init__(direct)
         self.gathers = gathers
         self.view_pixels = view_pixels
@@ -76,51 +90,10 @@ class TransferRelighter(IndirectRelighter):
         self.bounce = bounce
         self.num_bounces = num_bounces
         self.gather_samples = gather_samples
+        self.cull_tolerance = cull_tolerance
+        self._column_norms = column_norms(final_gather) if cull_tolerance > 0 else None
         self.counters: collections.Counter[str] = collections.Counter()
         self._emission_indirect: torch.Tensor | None = None
-
-    # -- rendering ------------------------------------------------------------------------------
-
-    def indirect_image(self) -> torch.Tensor:
-        """(H, W, 3) indirect light alone, camera exposure applied."""
-        return self._rows_to_image(self.indirect_rows())
-
-    def light_group_images(self) -> dict[str, torch.Tensor]:
-        """'<group>_direct' and '<group>_indirect' -> (H, W, 3) images of each light group's lights
-        (`relighter.light_group`); with `emission_image()` they sum to `render()` (within rounding)."""
-        emission = self._emission_rows()
-        indirect: dict[str, torch.Tensor] = {}
-        for light in self.lights:
-            rows = indirect.setdefault(light_group(light), torch.zeros_like(emission))
-            scale = torch.as_tensor(colour_scale(light), device=rows.device, dtype=rows.dtype)
-            if bool((scale != 0).any()):
-                rows.add_(scale * self._unit_indirect(light))
-        images = {}
-        for group, direct in self.direct.light_group_images().items():
-            images[f"{group}_direct"] = direct
-            images[f"{group}_indirect"] = self._rows_to_image(indirect[group])
-        return images
-
-    def emission_image(self) -> torch.Tensor:
-        """(H, W, 3) the surfaces' own emission, seen directly and through the gathers."""
-        return self.direct.emission_image() + self._rows_to_image(self._emission_rows())
-
-    def _rows_to_image(self, rows: torch.Tensor) -> torch.Tensor:
-        """(R, 3) values at the F rows' view samples -> (H, W, 3) image, camera exposure applied."""
-        height, width = (size // self.direct.supersampling for size in self.direct.gbuffer.image_size)
-        image = rows.new_zeros((height * width, 3))
-        image[self.view_pixels] = rows
-        return image.reshape(height, width, 3) * self.direct.exposure_scale
-
-    def indirect_rows(self) -> torch.Tensor:
-        """(R, 3) indirect radiance at the F rows' view samples (exposure not applied)."""
-        total = self._emission_rows()
-        for light in self.lights:
-            scale = torch.as_tensor(colour_scale(light), device=total.device, dtype=total.dtype)
-            if bool((scale == 0).all()):
-                continue
-            total = total + scale * self._unit_indirect(light)
-        return total
 
     def transfer(self, radiance: torch.Tensor) -> torch.Tensor:
         """F (I + M + ... + M^(B-1)) radiance: (G, 3) gather radiance -> (R, 3) at the view rows."""
@@ -129,7 +102,10 @@ class TransferRelighter(IndirectRelighter):
             bounced = self.bounce.matmul(self._wavelet(bounced))
             total = total + bounced
         self.counters["transfer"] += 1
-        return self.final_gather.matmul(self._wavelet(total))
+        light = self._wavelet(total)
+        if self.cull_tolerance == 0.0:
+            return self.final_gather.matmul(light)
+        return self.final_gather.matmul(cull_light(light, self._column_norms, self.cull_tolerance))
 
     def _wavelet(self, radiance: torch.Tensor) -> torch.Tensor:
         """(G, 3) gather values in texture order -> (G, 3) Haar coefficients, flattened row-major."""
@@ -144,15 +120,22 @@ class TransferRelighter(IndirectRelighter):
         return self._emission_indirect
 
     def _unit_indirect(self, light: Light) -> torch.Tensor:
+        """F (I + M + ...) g_d of the unit light: its gather light is traced again only when what
+        it depends on changes; a light-link edit re-masks the cached gather light and transfers."""
         unit = unit_light(light)
-        key = _frozen(unit)
+        gather_light = dataclasses.replace(unit, light_link=None)
+        key = _frozen(dataclasses.replace(gather_light, light_group="", specular=1.0))
         state = self._per_light.get(light.path)
-        if state is None or state.key != key:
+        if state is None or state.gather_key != key:
             settings = self.direct.settings
             num_samples = 1 if is_delta_light(unit) else (
                 settings.dome_samples if unit.kind is LightKind.DOME else self.gather_samples or settings.area_samples)
-            radiance = gather_radiance(unit, self.gathers, self.direct.visibility, num_samples, settings.seed)
+            radiance = gather_radiance(gather_light, self.gathers, self.direct.visibility, num_samples, settings.seed)
             self.counters["gather_light"] += 1
-            state = _IndirectState(key, self.transfer(radiance))
+            state = _IndirectState(key, radiance)
             self._per_light[light.path] = state
+        if state.unit_indirect is None or state.light_link != light.light_link:
+            linked = link_mask(light, self.gathers.object_id, self.direct.object_paths)
+            radiance = state.radiance if linked is None else state.radiance * linked.unsqueeze(-1).to(state.radiance)
+            state.unit_indirect, state.light_link = self.transfer(radiance), light.light_link
         return state.unit_indirect

@@ -205,3 +205,34 @@ def concatenate(parts: list[SparseRows]) -> SparseRows:
     colour = None if parts[0].row_colour is None else torch.cat([p.row_colour for p in parts])
     return SparseRows(torch.cat([p.values for p in parts]), torch.cat([p.indices for p in parts]), offsets,
                       parts[0].num_columns, colour)
+
+
+def column_norms(rows: SparseRows) -> torch.Tensor:
+    """(D,) L2 norm of each column of the rows (over rows and channels, row colours applied).
+
+    Column c is the image that wavelet light c (Haar basis function c of the gather light) casts
+    on the view samples (the chapter's Figure 9-3); `cull_light` weighs lights by these norms.
+    """
+    row_of = torch.repeat_interleave(torch.arange(rows.num_rows, device=rows.offsets.device), rows.offsets.diff())
+    squares = rows.values.square().sum(-1)
+    if rows.row_colour is not None:
+        squares = squares * rows.row_colour.square().sum(-1)[row_of]
+    norms = torch.zeros(rows.num_columns, device=squares.device, dtype=squares.dtype)
+    return norms.index_add_(0, rows.indices.long(), squares).sqrt()
+
+
+def cull_light(dense: torch.Tensor, norms: torch.Tensor, tolerance: float) -> torch.Tensor:
+    """On-the-fly culling of weak wavelet lights (the chapter's section 9.8.3): `dense` (D, 3)
+    with the coefficients of its weakest columns zeroed.
+
+    A column's weight is |dense_c| ||F_c|| (`norms`, the chapter's per-block test); the weakest
+    are dropped while their summed weight stays within `tolerance` (in [0, 1)) of the total, so
+    that by the triangle inequality the product loses at most `tolerance` times that total in L2
+    norm (over rows and channels). Zero-weight columns contribute nothing either way.
+    """
+    weight = dense.norm(dim=-1) * norms
+    order = torch.argsort(weight)
+    dropped = order[weight[order].cumsum(0) <= tolerance * weight.sum()]
+    culled = dense.clone()
+    culled[dropped] = 0.0
+    return culled

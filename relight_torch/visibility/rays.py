@@ -50,23 +50,41 @@ class RayVisibility:
 
     def occluder_distance(self, light: Light, points: torch.Tensor, normals: torch.Tensor,
                           directions: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
-        """(N, S) distance to the first occluder (inf where visible); see `Visibility`."""
+        """(N, S) distance to the first occluder (inf where visible); see `Visibility`.
+
+        The rays go to the caster samples first, in the memory layout `sample_light` returns
+        (a transposed (S, N, ...) tensor: no copy); so does the result.
+        """
         caster = self.caster_for(light)
         eps = caster.epsilon
         num_points, num_samples = distances.shape
+        directions, distances = directions.transpose(0, 1), distances.transpose(0, 1)  # (S, N, ...)
         # Leave the surface on the side the light sample is on.
-        side = torch.sign((directions * normals.unsqueeze(1)).sum(-1, keepdim=True))
-        origins = points.unsqueeze(1) + normals.unsqueeze(1) * (side * eps)
+        side = torch.sign((directions * normals).sum(-1, keepdim=True))
+        origins = points + normals * eps * side
         t_far = torch.where(torch.isfinite(distances), distances - 2.0 * eps, torch.full_like(distances, np.inf))
-        o = origins.expand(num_points, num_samples, 3).reshape(-1, 3).detach().cpu().numpy().astype(np.float32, copy=False)
-        d = directions.reshape(-1, 3).detach().cpu().numpy().astype(np.float32, copy=False)
-        t = t_far.reshape(-1).detach().cpu().numpy().astype(np.float32, copy=False)
+        o = _float32_rows(origins.reshape(-1, 3))
+        d = _float32_rows(directions.reshape(-1, 3))
+        t = _float32_rows(t_far.reshape(-1))
         live = t > 0
-        result = np.full(t.shape, np.inf, np.float32)
-        self.num_rays += int(live.sum())
+        num_live = int(live.sum())
+        self.num_rays += num_live
+        if num_live < t.shape[0]:
+            o, d, t = o[live], d[live], t[live]
         if light.shadow.distance >= 0.0:
-            hits = caster.intersect(o[live], d[live], t[live])
-            result[live] = np.where(np.isfinite(hits.distance), hits.distance, np.inf)
+            hits = caster.intersect(o, d, t)
+            found = np.where(np.isfinite(hits.distance), hits.distance, np.inf)
         else:
-            result[live] = np.where(caster.occluded(o[live], d[live], t[live]), 0.0, np.inf)
-        return torch.from_numpy(result).reshape(num_points, num_samples).to(distances.device, distances.dtype)
+            found = np.where(caster.occluded(o, d, t), np.float32(0.0), np.float32(np.inf))
+        if num_live < live.shape[0]:
+            result = np.full(live.shape, np.inf, np.float32)
+            result[live] = found
+        else:
+            result = found.astype(np.float32, copy=False)
+        result = torch.from_numpy(np.ascontiguousarray(result)).reshape(num_samples, num_points)
+        return result.transpose(0, 1).to(distances.device, distances.dtype)
+
+
+def _float32_rows(values: torch.Tensor) -> np.ndarray:
+    """A C-contiguous float32 numpy array of a tensor (a view where it already is one)."""
+    return np.ascontiguousarray(values.detach().cpu().numpy(), dtype=np.float32)

@@ -5,9 +5,14 @@ Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct`):
                                       per covered pixel centre; the direct part keeps the cache's
                                       supersampling)
     <stem>.viewAlbedo.npy             (P, 3) float32 diffuse albedo of each view sample
+    <stem>.gather<Field>.npy          (U, 3) Position (float32), Normal, Albedo (float16) of the
+                                      surface points the clustered gathers of both sets share
+                                      (`pipeline.bake.gather.surface_points`)
+    <stem>.gatherObject.npy           (U,) int32 their object ids (into objectPaths, for light links)
 and for each representative set S in ('diffuse', 'glossy') baked:
-    <stem>.<S>Gather<Field>.npy       (G, 3) Position, Weight (float32), Normal, Albedo (float16)
-                                      of the clustered gathers, representative-major (CSR values)
+    <stem>.<S>Index.npy               (G,) int32 shared point of each clustered gather,
+                                      representative-major (CSR columns, ascending per row)
+    <stem>.<S>Weight.npy              (G, 3) float32 their summed gather weights (CSR values)
     <stem>.<S>Offsets.npy             (R + 1,) int64 CSR offsets of the representatives
     <stem>.<S>Neighbours.npy          (P, k) int32 each view sample's nearest representatives
     <stem>.<S>Rbf.npy                 (P, k) float32 their radial-basis weights
@@ -19,7 +24,6 @@ is rewritten last (method 'gather'), then the chunk directory is removed.
 from __future__ import annotations
 
 import contextlib
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,20 +33,23 @@ import numpy as np
 import torch
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
-from pipeline.bake.indirect import start_indirect_bake
+from pipeline.bake.indirect import IndirectBake, start_indirect_bake
 from pipeline.bake.gather.hemisphere import ClusteredGathers, cluster_gathers, gather
 from pipeline.bake.gather.representatives import choose_representatives, glossy_share, reconstruction_weights
-from pipeline.progress import progress_bar
+from pipeline.bake.gather.surface_points import merge_entries, share_points
+from pipeline.bake.scheduler import (ChunkSpec, ShotSpec, chunk_ranges, chunk_threads, load_chunk, load_shot,
+                                     per_process, run_chunks)
 from pipeline.scene.surface import triangle_tangents
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.brdf.preview_surface import diffuse_albedo
+from relight_torch.cache.layer import Payload
 from relight_torch.gbuffer import GBuffer
-from relight_torch.io.atomic import atomic_path
 from relight_torch.math.sampling import sobol
 
 REFERENCE_PIXELS = 400 * 400
-_FIELD_DTYPES = {"position": np.float32, "normal": np.float16, "albedo": np.float16, "weight": np.float32}
+_FIELD_DTYPES = {"position": np.float32, "normal": np.float16, "albedo": np.float16, "weight": np.float32,
+                 "object": np.int32}
 """Stored precision: positions and weights in full, unit normals and albedos in half (as the paper
 packs its samples in 16-bit floats; their rounding is ~1e-3 relative)."""
 
@@ -64,6 +71,8 @@ class GatherSettings:
         representatives_per_chunk: representatives per resumable chunk file.
         num_threads: batches gathered concurrently (Embree and torch release the GIL); None: the
             CPUs this process may use.
+        point_cells: cells across the scene diagonal of the grid the clustered gathers share
+            surface points on (`surface_points.share_points`); 0 shares identical points only.
     """
 
     num_directions: int = 2048
@@ -75,6 +84,7 @@ class GatherSettings:
     representatives_per_batch: int = 32
     representatives_per_chunk: int = 1024
     num_threads: int | None = None
+    point_cells: int = 64
 
     def check(self) -> None:
         """Raise ValueError naming the first bad setting."""
@@ -82,6 +92,8 @@ class GatherSettings:
                      "representatives_per_chunk"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.point_cells < 0:
+            raise ValueError(f"point_cells must be >= 0, got {self.point_cells}")
         if (self.num_threads or 1) < 1:
             raise ValueError(f"num_threads must be >= 1, got {self.num_threads}")
         if self.num_representatives is not None and self.num_representatives < 1:
@@ -95,7 +107,7 @@ class GatherSettings:
         """The settings that change the cache, as cache-layer parameters."""
         return {"directions": self.num_directions, "clusters": self.num_clusters,
                 "representatives": self.num_representatives or 0, "neighbours": self.num_neighbours,
-                "tile": self.tile, "gatherSeed": self.seed}
+                "tile": self.tile, "gatherSeed": self.seed, "pointCells": self.point_cells}
 
 
 def set_sizes(view: GBuffer, settings: GatherSettings) -> dict[str, int]:
@@ -122,23 +134,34 @@ def _single_threaded_torch() -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
-def _gather_chunk(scene: Scene, tracer: Tracer, tangents: np.ndarray, view: GBuffer, samples: np.ndarray,
-                  lobe: str, settings: GatherSettings, position_weight: float, update) -> dict[str, np.ndarray]:
-    """Gather and cluster the representatives `samples`, batches on `settings.num_threads` threads."""
-    directions_u = sobol(settings.num_directions, 2, settings.seed)
-    shifts = torch.from_numpy(np.random.default_rng(settings.seed).random((view.num_samples, 2), np.float32))
-    starts = range(0, samples.size, settings.representatives_per_batch)
+@per_process
+def gather_inputs(shot: ShotSpec, texture_samples: int) -> tuple[Tracer, np.ndarray, GBuffer]:
+    """The shot's BVH, triangle tangents and view samples (one per pixel centre), built once per process."""
+    scene, camera = load_shot(shot)
+    tracer = Tracer(scene.geometry)
+    tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs)
+    view = bake_deep_framebuffer(scene, camera, 1, texture_samples, tracer=tracer).gbuffer
+    return tracer, tangents, view
+
+
+def _gather_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
+    """Gather and cluster the representatives of chunk `spec` (set `spec.name`, view samples in
+    parameter 'samples'); batches on `chunk_threads()` threads."""
+    scene, _ = load_shot(spec.shot)
+    tracer, tangents, view = gather_inputs(spec.shot, spec.param("textureSamples"))
+    samples = np.asarray(spec.param("samples"), np.int64)
+    seed, per_batch = spec.param("gatherSeed"), spec.param("representativesPerBatch")
+    position_weight = 2.0 / max(scene.diagonal, 1e-12)
+    directions_u = sobol(spec.param("directions"), 2, seed)
+    shifts = torch.from_numpy(np.random.default_rng(seed).random((view.num_samples, 2), np.float32))
 
     def work(start: int) -> ClusteredGathers:
-        batch = torch.from_numpy(samples[start:start + settings.representatives_per_batch])
-        points = gather(scene, tracer, tangents, view, batch, lobe, directions_u, shifts[batch])
-        return cluster_gathers(points, settings.num_clusters, position_weight)
+        batch = torch.from_numpy(samples[start:start + per_batch])
+        points = gather(scene, tracer, tangents, view, batch, spec.name, directions_u, shifts[batch])
+        return cluster_gathers(points, spec.param("clusters"), position_weight)
 
-    parts: list[ClusteredGathers] = []
-    with _single_threaded_torch(), ThreadPoolExecutor(settings.num_threads or len(os.sched_getaffinity(0))) as pool:
-        for start, part in zip(starts, pool.map(work, starts)):
-            parts.append(part)
-            update(min(start + settings.representatives_per_batch, samples.size))
+    with _single_threaded_torch(), ThreadPoolExecutor(spec.option("threads") or chunk_threads()) as pool:
+        parts = list(pool.map(work, range(0, samples.size, per_batch)))
     arrays = {name: np.concatenate([getattr(p, name) for p in parts]) for name in _FIELD_DTYPES}
     arrays["counts"] = np.concatenate([p.counts for p in parts])
     return arrays
@@ -164,35 +187,42 @@ def bake_gather(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
                                texture_samples, time_code)
     chunk_dir = bake.chunk_dir
 
-    tracer = Tracer(scene.geometry)
-    tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs)
-    view = bake_deep_framebuffer(scene, camera, 1, texture_samples, tracer=tracer).gbuffer
+    shot = ShotSpec.of(scene, camera, time_code)
+    _, _, view = gather_inputs(shot, texture_samples)
+    parameters = (("textureSamples", texture_samples), ("directions", settings.num_directions),
+                  ("clusters", settings.num_clusters), ("gatherSeed", settings.seed),
+                  ("representativesPerBatch", settings.representatives_per_batch))
     position_weight = 2.0 / max(scene.diagonal, 1e-12)
     payloads = [bake.payload(stem, "viewPixels", view.pixel_index.numpy()),
                 bake.payload(stem, "viewAlbedo", diffuse_albedo(view.params).numpy().astype(np.float32))]
+    clustered: dict[str, dict[str, np.ndarray]] = {}
     for lobe, clusters_per_tile in set_sizes(view, settings).items():
         with _single_threaded_torch():
             samples = choose_representatives(view, clusters_per_tile, settings.tile, position_weight)
-        chunks = []
-        with progress_bar(f"{lobe} gathers", samples.size, "reps", progress) as update:
-            for first in range(0, samples.size, settings.representatives_per_chunk):
-                block = samples[first:first + settings.representatives_per_chunk]
-                path = chunk_dir / f"{lobe}-{first:09d}.npz"
-                if not path.is_file():
-                    arrays = _gather_chunk(scene, tracer, tangents, view, block, lobe, settings, position_weight,
-                                           lambda done, first=first: update(first + done, samples.size))
-                    with atomic_path(path) as temp:
-                        with open(temp, "wb") as handle:
-                            np.savez(handle, **arrays)
-                with np.load(path, allow_pickle=False) as saved:
-                    chunks.append({key: saved[key] for key in saved.files})
-                update(first + block.size, samples.size)
-        for name, dtype in _FIELD_DTYPES.items():
-            values = np.concatenate([c[name] for c in chunks]).astype(dtype)
-            payloads.append(bake.payload(stem, f"{lobe}Gather{name.capitalize()}", values))
-        offsets = np.concatenate([[0], np.cumsum(np.concatenate([c["counts"] for c in chunks]))]).astype(np.int64)
-        payloads.append(bake.payload(stem, f"{lobe}Offsets", offsets))
+        specs = [ChunkSpec(shot, lobe, parameters + (("samples", tuple(samples[first:last].tolist())),), first, last,
+                           (("threads", settings.num_threads),))
+                 for first, last in chunk_ranges(samples.size, settings.representatives_per_chunk)]
+        chunks = [load_chunk(path) for path in run_chunks(_gather_chunk, specs, chunk_dir, f"{lobe} gathers", "reps",
+                                                           progress)]
+        clustered[lobe] = {name: np.concatenate([c[name] for c in chunks]) for name in (*_FIELD_DTYPES, "counts")}
         weights = reconstruction_weights(view, samples, settings.num_neighbours, position_weight)
         payloads.append(bake.payload(stem, f"{lobe}Neighbours", weights.neighbours.astype(np.int32)))
         payloads.append(bake.payload(stem, f"{lobe}Rbf", weights.rbf))
-    return bake.finish(payloads)
+    cell_size = scene.diagonal / settings.point_cells if settings.point_cells else 0.0
+    return bake.finish(payloads + _shared_point_payloads(bake, stem, clustered, cell_size))
+
+
+def _shared_point_payloads(bake: IndirectBake, stem: str, clustered: dict[str, dict[str, np.ndarray]],
+                           cell_size: float) -> list[Payload]:
+    """Both sets' clustered gathers (chunk fields, concatenated) -> shared points and CSR payloads."""
+    fields = {name: np.concatenate([c[name] for c in clustered.values()]) for name in _FIELD_DTYPES}
+    points, index = share_points(fields["position"], fields["normal"], fields["albedo"], fields["object"], cell_size)
+    payloads = [bake.payload(stem, f"gather{name.capitalize()}", getattr(points, name).astype(_FIELD_DTYPES[name]))
+                for name in ("position", "normal", "albedo", "object")]
+    sizes = [c["object"].size for c in clustered.values()]
+    for (lobe, arrays), part in zip(clustered.items(), np.split(index, np.cumsum(sizes)[:-1])):
+        offsets, columns, weight = merge_entries(arrays["counts"], part, arrays["weight"], points.object.size)
+        payloads += [bake.payload(stem, f"{lobe}Offsets", offsets),
+                     bake.payload(stem, f"{lobe}Index", columns.astype(np.int32)),
+                     bake.payload(stem, f"{lobe}Weight", weight)]
+    return payloads

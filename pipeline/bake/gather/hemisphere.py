@@ -7,7 +7,7 @@ weight w = rho cos / (pdf N), so that I(v) ~ sum_j D(g_j) w_j (equation 2). The 
 weights hold the diffuse lobe divided by v's diffuse albedo (per-pixel albedo is applied at
 relight time); the glossy set's hold the specular lobes. The N gathers are then clustered to K
 (`relight_torch.gather.clustering`): a cluster's weight is the sum of its members', its normal
-and albedo their averages, its position the member nearest its mean.
+and albedo their averages, its position and object the member nearest its mean.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ class GatherPoints:
 
     Attributes:
         position, normal, albedo, weight: (B, N, 3) float32.
+        object_id: (B, N) int64 object hit (index into `Scene.objects`; 0 where not valid).
         valid: (B, N) bool.
     """
 
@@ -41,6 +42,7 @@ class GatherPoints:
     normal: torch.Tensor
     albedo: torch.Tensor
     weight: torch.Tensor
+    object_id: torch.Tensor
     valid: torch.Tensor
 
 
@@ -87,9 +89,12 @@ def gather(scene: Scene, tracer: Tracer, tangents: np.ndarray, view: GBuffer, sa
         full[torch.from_numpy(hits.hit)] = torch.as_tensor(values, dtype=torch.float32)
         return full.reshape(num_reps, num_directions, 3)
 
+    object_id = torch.zeros(num_reps * num_directions, dtype=torch.int64)
+    object_id[torch.from_numpy(hits.hit)] = torch.from_numpy(points.object_id.astype(np.int64))
     return GatherPoints(position=scatter(points.position), normal=scatter(points.normal),
                         albedo=scatter(preview_surface.diffuse_albedo(points.params)),
-                        weight=torch.where(valid.unsqueeze(-1), weight, 0.0).float(), valid=valid)
+                        weight=torch.where(valid.unsqueeze(-1), weight, 0.0).float(),
+                        object_id=object_id.reshape(num_reps, num_directions), valid=valid)
 
 
 @dataclass(frozen=True)
@@ -98,6 +103,7 @@ class ClusteredGathers:
 
     Attributes:
         position, normal, albedo, weight: (G, 3) float32 clustered points, representative-major.
+        object: (G,) int32 object id of the member at `position`.
         counts: (B,) int64 clustered points of each representative.
     """
 
@@ -105,6 +111,7 @@ class ClusteredGathers:
     normal: np.ndarray
     albedo: np.ndarray
     weight: np.ndarray
+    object: np.ndarray
     counts: np.ndarray
 
 
@@ -118,7 +125,8 @@ def cluster_gathers(points: GatherPoints, num_clusters: int, position_weight: fl
     weight = sums["weight"] * counts.unsqueeze(-1)
     member = nearest_members(points.position, points.valid, labels, num_clusters)
     position = points.position.gather(1, member.clamp(min=0).unsqueeze(-1).expand(-1, -1, 3))
+    object_id = points.object_id.gather(1, member.clamp(min=0))
     kept = counts > 0
     return ClusteredGathers(position=position[kept].numpy(), normal=normal[kept].numpy(),
                             albedo=sums["albedo"][kept].numpy(), weight=weight[kept].numpy(),
-                            counts=kept.sum(1).numpy().astype(np.int64))
+                            object=object_id[kept].numpy().astype(np.int32), counts=kept.sum(1).numpy().astype(np.int64))

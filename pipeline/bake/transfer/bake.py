@@ -4,7 +4,8 @@ Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct`):
     <stem>.viewPixels.npy          (R,) int64 pixel (row * W + col) of each F row: one view
                                    sample per pixel centre (indirect light is smooth; the direct
                                    part keeps the cache's supersampling, as in the chapter)
-    <stem>.gather<Field>.npy       the gather cloud (`GatherSamples` fields), texture order
+    <stem>.gather<Field>.npy       the gather cloud (`GatherSamples` fields), texture order;
+                                   gatherObjectId (G,) int64 indexes the objectPaths payload
     <stem>.finalGather<Part>.npy   F: Values (nnz, C) float16 | uint8, Scale and Low (R, C)
                                    float32, Indices (nnz,) uint16 (int32 over 65,536 gathers),
                                    Offsets (R + 1,) int64 and, colour-factored (C = 1), Colour
@@ -19,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,17 +33,18 @@ from pipeline.bake.indirect import start_indirect_bake
 from pipeline.bake.direct import write_npy
 from pipeline.bake.transfer.gather_cloud import create_gathers
 from pipeline.bake.transfer.rows import bounce_rows, final_gather_rows
-from pipeline.progress import progress_bar
+from pipeline.bake.scheduler import (ChunkSpec, ShotSpec, chunk_ranges, chunk_threads, load_chunk, load_shot,
+                                     per_process, run_chunks)
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.cache.layer import Payload
-from relight_torch.io.atomic import atomic_path
+from relight_torch.gbuffer import GBuffer
 from relight_torch.transfer.encoding import ENCODINGS, EncodedRows, EncodedValues, encode_rows
+from relight_torch.transfer.gathers import GatherSamples, gather_payload_name
 from relight_torch.transfer.haar import haar2d
 from relight_torch.transfer.sparse import SparseRows, concatenate, factor_colour, keep_top_k
 
 F_PREFIX, M_PREFIX = "finalGather", "bounce"
-_GATHER_FIELDS = ("position", "normal", "albedo", "emission", "area")
 
 
 @dataclass(frozen=True)
@@ -106,48 +107,55 @@ def compress_rows(dense: torch.Tensor, num_kept: int, factor: bool) -> SparseRow
     return dataclasses.replace(keep_top_k(scalars, num_kept), row_colour=colour)
 
 
-def _bake_chunk(evaluate: Callable[[slice], torch.Tensor], rows: slice, side: int, num_kept: int,
-                settings: TransferSettings, update: Callable[[int], None]) -> dict[str, np.ndarray]:
-    """Evaluate, transform, cull and encode the rows `rows`; arrays named as the payload parts."""
-    batch = max(1, settings.pairs_per_batch // (side * side))
-    starts = range(rows.start, rows.stop, batch)
+@per_process
+def transfer_inputs(shot: ShotSpec, texture_samples: int, num_gathers: int, seed: int) -> tuple[Tracer, GBuffer,
+                                                                                                GatherSamples]:
+    """The shot's BVH, view samples (one per pixel centre) and gathers, built once per process."""
+    scene, camera = load_shot(shot)
+    tracer = Tracer(scene.geometry)
+    view = bake_deep_framebuffer(scene, camera, 1, texture_samples, tracer=tracer).gbuffer
+    return tracer, view, create_gathers(scene, num_gathers, seed)
+
+
+def _bake_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
+    """Evaluate, transform, cull and encode rows [start, stop) of matrix `spec.name` (F_PREFIX or
+    M_PREFIX); arrays named as the payload parts. Batches of rows run on `chunk_threads()` threads."""
+    tracer, view, gathers = transfer_inputs(spec.shot, spec.param("textureSamples"), spec.param("gathers"),
+                                            spec.param("gatherSeed"))
+    side, num_kept = gathers.side, spec.param("coefficients")
+    batch = max(1, spec.option("pairsPerBatch", TransferSettings.pairs_per_batch) // (side * side))
 
     def work(start: int) -> SparseRows:
-        block = evaluate(slice(start, min(start + batch, rows.stop)))
-        return compress_rows(block.reshape(-1, side, side, 3), num_kept, settings.factor_colour)
+        rows = slice(start, min(start + batch, spec.stop))
+        block = (final_gather_rows(view, rows, gathers, tracer) if spec.name == F_PREFIX
+                 else bounce_rows(rows, gathers, tracer))
+        return compress_rows(block.reshape(-1, side, side, 3), num_kept, bool(spec.param("rowColour")))
 
-    parts = []
-    with ThreadPoolExecutor(settings.num_threads or len(os.sched_getaffinity(0))) as pool:
-        for start, part in zip(starts, pool.map(work, starts)):
-            parts.append(part)
-            update(min(start + batch, rows.stop) - rows.start)
-    return encode_rows(concatenate(parts), settings.encoding).arrays()
+    with ThreadPoolExecutor(spec.option("threads") or chunk_threads()) as pool:
+        parts = list(pool.map(work, range(spec.start, spec.stop, batch)))
+    return encode_rows(concatenate(parts), spec.param("encoding")).arrays()
 
 
-def bake_rows(evaluate: Callable[[slice], torch.Tensor], num_rows: int, side: int, num_kept: int,
-              settings: TransferSettings, chunk_dir: Path, name: str, progress: bool | None = None) -> EncodedRows:
-    """All rows of one matrix, chunk by chunk, reusing the chunks `chunk_dir` already holds.
+def bake_rows(shot: ShotSpec, name: str, num_rows: int, num_kept: int, texture_samples: int,
+              settings: TransferSettings, chunk_dir: Path, progress: bool | None = None) -> EncodedRows:
+    """All rows of matrix `name` (F_PREFIX or M_PREFIX) in chunks on the ambient scheduler
+    (`pipeline.bake.scheduler`), reusing the valid chunks `chunk_dir` already holds.
 
     Args:
-        evaluate: rows (a slice) -> (R, G, 3) dense matrix rows, gathers in texture order; called
-            from `settings.num_threads` threads at once.
-        num_rows: rows of the matrix; side: n (G = n^2); num_kept: coefficients per row.
-        chunk_dir: where finished chunks are saved (`<name>-<first row>.npz`, written atomically).
+        shot: the shot the rows are of (workers read it and build `transfer_inputs`).
+        num_rows: rows of the matrix; num_kept: coefficients per row.
+        texture_samples: of the view samples.
+        chunk_dir: where finished chunks are saved.
     """
-    chunks = []
-    with progress_bar(f"{name} rows", num_rows, "rows", progress) as update:
-        for first in range(0, num_rows, settings.rows_per_chunk):
-            rows = slice(first, min(first + settings.rows_per_chunk, num_rows))
-            path = chunk_dir / f"{name}-{first:09d}.npz"
-            if not path.is_file():
-                arrays = _bake_chunk(evaluate, rows, side, num_kept, settings,
-                                     lambda done, first=first: update(first + done, num_rows))
-                with atomic_path(path) as temp:
-                    with open(temp, "wb") as handle:
-                        np.savez(handle, **arrays)
-            with np.load(path, allow_pickle=False) as saved:
-                chunks.append(EncodedRows.from_arrays({key: saved[key] for key in saved.files}, side * side))
-            update(rows.stop, num_rows)
+    parameters = (("textureSamples", texture_samples), ("gathers", settings.num_gathers),
+                  ("gatherSeed", settings.seed), ("coefficients", num_kept), ("encoding", settings.encoding),
+                  ("rowColour", settings.factor_colour))
+    options = (("pairsPerBatch", settings.pairs_per_batch), ("threads", settings.num_threads))
+    specs = [ChunkSpec(shot, name, parameters, start, stop, options)
+             for start, stop in chunk_ranges(num_rows, settings.rows_per_chunk)]
+    num_gathers = settings.num_gathers
+    chunks = [EncodedRows.from_arrays(load_chunk(path), num_gathers)
+              for path in run_chunks(_bake_chunk, specs, chunk_dir, f"{name} rows", "rows", progress)]
     starts = np.cumsum([0] + [int(c.offsets[-1]) for c in chunks[:-1]])
     offsets = torch.cat([chunks[0].offsets[:1]] + [c.offsets[1:] + int(s) for c, s in zip(chunks, starts)])
 
@@ -157,7 +165,7 @@ def bake_rows(evaluate: Callable[[slice], torch.Tensor], num_rows: int, side: in
     colour = None if chunks[0].row_colour is None else join(lambda c: c.row_colour)
     values = EncodedValues(join(lambda c: c.values.stored), join(lambda c: c.values.scale),
                            join(lambda c: c.values.low))
-    return EncodedRows(values, join(lambda c: c.indices), offsets, side * side, colour)
+    return EncodedRows(values, join(lambda c: c.indices), offsets, num_gathers, colour)
 
 
 def matrix_payloads(out_dir: Path, stem: str, prefix: str, rows: EncodedRows) -> list[Payload]:
@@ -186,17 +194,16 @@ def bake_transfer(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, 
                                texture_samples, time_code)
     chunk_dir = bake.chunk_dir
 
-    tracer = Tracer(scene.geometry)
-    view = bake_deep_framebuffer(scene, camera, 1, texture_samples, tracer=tracer).gbuffer
-    gathers = create_gathers(scene, settings.num_gathers, settings.seed)
+    shot = ShotSpec.of(scene, camera, time_code)
+    _, view, gathers = transfer_inputs(shot, texture_samples, settings.num_gathers, settings.seed)
     payloads = [bake.payload(stem, "viewPixels", view.pixel_index.numpy())]
-    payloads += [bake.payload(stem, "gather" + name.capitalize(), getattr(gathers, name).numpy())
-                 for name in _GATHER_FIELDS]
-    final_gather = bake_rows(lambda rows: final_gather_rows(view, rows, gathers, tracer), view.num_samples,
-                             gathers.side, settings.num_coefficients, settings, chunk_dir, F_PREFIX, progress)
+    payloads += [bake.payload(stem, gather_payload_name(name), getattr(gathers, name).numpy())
+                 for name in (f.name for f in dataclasses.fields(GatherSamples))]
+    final_gather = bake_rows(shot, F_PREFIX, view.num_samples, settings.num_coefficients, texture_samples,
+                             settings, chunk_dir, progress)
     payloads += matrix_payloads(bake.out_dir, stem, F_PREFIX, final_gather)
     if settings.num_bounces > 1:
-        bounce = bake_rows(lambda rows: bounce_rows(rows, gathers, tracer), gathers.num_gathers, gathers.side,
-                           settings.num_bounce_coefficients, settings, chunk_dir, M_PREFIX, progress)
+        bounce = bake_rows(shot, M_PREFIX, gathers.num_gathers, settings.num_bounce_coefficients, texture_samples,
+                           settings, chunk_dir, progress)
         payloads += matrix_payloads(bake.out_dir, stem, M_PREFIX, bounce)
     return bake.finish(payloads)

@@ -164,7 +164,7 @@ def flatten_order(position: np.ndarray, normal: np.ndarray, diagonal: float) -> 
 
 
 def create_gathers(scene: Scene, num_gathers: int, seed: int = 0) -> GatherSamples:
-    """The scene's gather cloud, in texture order (CPU float32 tensors).
+    """The scene's gather cloud, in texture order (CPU float32 tensors; object ids int64).
 
     Args:
         scene: the shot (its triangle soup and materials).
@@ -205,5 +205,6 @@ def create_gathers(scene: Scene, num_gathers: int, seed: int = 0) -> GatherSampl
     order = flatten_order(position, normal, diagonal)
     columns = {"position": position, "normal": normal, "albedo": diffuse_albedo(params).numpy(),
                "emission": values["emissive_color"], "area": sample_area}
+    object_id = torch.from_numpy(geometry.object_ids[parent[triangle]][order].astype(np.int64))
     return GatherSamples(**{name: torch.from_numpy(np.ascontiguousarray(np.asarray(a)[order], np.float32))
-                            for name, a in columns.items()})
+                            for name, a in columns.items()}, object_id=object_id)

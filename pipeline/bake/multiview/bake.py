@@ -1,0 +1,112 @@
+"""`relight bake --method multiview`: caching cameras and their deep framebuffers, as one cache.
+
+Writes into OUT:
+    <stem>.relight.usda         the cache layer (method 'multiview'); its camera, resolution and
+                                supersampling are the shot camera's: the default view to render
+    <stem>.view000.exr ...      one deep framebuffer per caching camera (supersampling 1, each at
+                                its own square resolution; channels as `relight_torch.cache.gbuffer_exr`)
+    <stem>.cameras.npy          (K, C) float64 camera table (`relight_torch.multiview.views.CAMERA_COLUMNS`)
+    <stem>.occluders.npy, .occluderObjects.npy, .objectPaths.npy   as the direct cache's
+    <stem>.cornerNormals.npy    (T, 3, 3) float16 shading normals of the occluders' corners
+    <stem>.normalMapped.npy     (num_materials,) bool: the material perturbs its normal (a normal
+                                map or a constant other than +Z): its cached normals are kept
+The coverage statistics are cache parameters: coverage (the threshold), uncoveredFraction,
+primaryFraction, numPrimary, numSecondary, numViews, numSamples, numUnreachable, numSpheres.
+Each file is written atomically; the layer last.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline import __version__
+from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
+from pipeline.bake.direct import write_npy
+from pipeline.bake.inputs import hash_inputs, input_files
+from pipeline.bake.multiview.cameras import camera_row
+from pipeline.bake.multiview.placement import Placement, PlacementSettings, place_cameras
+from pipeline.errors import RelightError
+from pipeline.scene.types import Camera, Scene
+from pipeline.tracing import Tracer
+from relight_torch.cache.gbuffer_exr import gbuffer_to_channels
+from relight_torch.cache.layer import SUFFIX, CacheDescription, Payload, content_hash, file_sha256, write_cache_layer
+from relight_torch.io.exr import write_exr
+from relight_torch.lights.linking import encode_paths
+from relight_torch.multiview.load import view_payload_name
+
+
+def coverage_parameters(placement: Placement, settings: PlacementSettings) -> dict:
+    """The placement's statistics and settings as cache parameters."""
+    return {
+        "coverage": float(settings.coverage), "uncoveredFraction": placement.uncovered_fraction,
+        "primaryFraction": placement.primary_fraction, "numPrimary": placement.num_primary,
+        "numSecondary": placement.num_secondary, "numViews": len(placement.cameras),
+        "numSamples": placement.num_samples, "numUnreachable": placement.num_unreachable, "numSpheres": placement.num_spheres,
+        "maxResolution": settings.max_resolution, "seed": settings.seed,
+        "box": " ".join(f"{v:.9g}" for v in np.concatenate(placement.box)),
+    }
+
+
+def normal_mapped(scene: Scene) -> np.ndarray:
+    """(num_materials,) bool: the material's normal input is a texture or a constant other than +Z."""
+    return np.array([m.normal.texture is not None or not np.allclose(m.normal.value, (0.0, 0.0, 1.0))
+                     for m in scene.materials], bool).reshape(-1)
+
+
+def bake_multiview(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 1,
+                   texture_samples: int = 2, time_code: float | None = None,
+                   settings: PlacementSettings = PlacementSettings(),
+                   box: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
+    """Place caching cameras, bake a deep framebuffer for each, write the cache; returns the layer's path.
+
+    Args:
+        camera: the shot camera: the default view of `relight render` (and its supersampling).
+        supersampling: sub-samples per pixel side of the rendered views (caching views use 1).
+        texture_samples: material samples per caching-view pixel side (texture filtering).
+        settings: the placement's parameters.
+        box: (lo, hi) workspace; default the scene's bounds.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    layer_path = out_dir / f"{stem}{SUFFIX}"
+    layer_path.unlink(missing_ok=True)
+    tracer = Tracer(scene.geometry)
+    placement = place_cameras(scene, settings, box, tracer)
+    if not placement.cameras:
+        raise RelightError(f"{scene.source}: no caching camera sees the surfaces inside the box")
+    payloads = []
+    rows = []
+    for k, placed in enumerate(placement.cameras):
+        dfb = bake_deep_framebuffer(scene, placed.camera, 1, texture_samples, tracer)
+        channels, constants = gbuffer_to_channels(dfb.gbuffer)
+        path = out_dir / f"{stem}.{view_payload_name(k)}.exr"
+        write_exr(path, channels, {"relight:supersampling": 1})
+        payloads.append(Payload(name=view_payload_name(k), file=path.name, format="exr", sha256=file_sha256(path),
+                                num_bytes=path.stat().st_size, channels=tuple(sorted(channels)),
+                                constants=constants))
+        rows.append(camera_row(placed.camera, placed.kind, placed.group))
+    payloads += [
+        write_npy(out_dir / f"{stem}.cameras.npy", np.array(rows, np.float64).reshape(len(rows), -1), "cameras"),
+        write_npy(out_dir / f"{stem}.occluders.npy", scene.geometry.positions.astype(np.float32), "occluders"),
+        write_npy(out_dir / f"{stem}.occluderObjects.npy", scene.geometry.object_ids.astype(np.int32),
+                  "occluderObjects"),
+        write_npy(out_dir / f"{stem}.objectPaths.npy", encode_paths([obj.path for obj in scene.objects]),
+                  "objectPaths"),
+        write_npy(out_dir / f"{stem}.cornerNormals.npy", scene.geometry.normals.astype(np.float16), "cornerNormals"),
+        write_npy(out_dir / f"{stem}.normalMapped.npy", normal_mapped(scene), "normalMapped"),
+    ]
+    parameters: dict = {"textureSamples": texture_samples} | coverage_parameters(placement, settings)
+    if time_code is not None:
+        parameters["time"] = float(time_code)
+    inputs = hash_inputs(input_files(scene))
+    description = CacheDescription(
+        method="multiview", source=scene.source, camera_path=camera.path,
+        resolution=(camera.width, camera.height), supersampling=supersampling,
+        world_from_camera=camera.world_from_camera, exposure_scale=camera.exposure_scale,
+        content_hash=content_hash(inputs, parameters, __version__), inputs=inputs,
+        parameters=parameters, payloads=tuple(payloads),
+    )
+    write_cache_layer(layer_path, description)
+    return layer_path

@@ -1,0 +1,243 @@
+"""Quality-driven sizing: `relight bake ... --quality PSNR` picks the method's sizes from pilot bakes.
+
+1. Pilot: the shot at a reduced size (long side `pilot_side`, aspect kept) and its path-tracer
+   reference at the method's bounce count, with enough spp that the reference's own noise is
+   NOISE_HEADROOM_DB below the target (`reference_for`).
+2. The method's LADDERS steps, cheapest first, are baked at the pilot size through the bench
+   adapters (`pipeline.benchmarks.bench`) and relit under the shot's lights; a step may give
+   several variants from one bake (transfer's kept coefficients). The first step with a variant
+   whose pilot PSNR reaches target + margin stops the search, and its smallest such variant (cache
+   bytes) is chosen. Steps grow every size that costs cache bytes, so a later step cannot be
+   smaller at equal accuracy; transfer's 4x more gathers per step is the exception taken as a
+   heuristic: it stops at the first gather count that reaches the target.
+3. The chosen sizes are baked at the full size into OUT and measured against a full-size
+   reference (same noise rule). If that misses the target, the threshold is raised by the miss and
+   the search goes on (once).
+4. The cache layer's parameters record the choice (the method's own parameters hold the sizes)
+   and: qualityTarget, qualityPredicted (pilot PSNR), qualityMeasured (full size), qualityRawPsnr,
+   qualityReferenceSpp and qualityPilot ('WxH').
+
+PSNRs here are noise-corrected: the reference's variance (`ReferenceImage.variance`, over pixels
+it does not saturate) is subtracted from the squared error, which it adds on average; the raw
+PSNR (`qualityRawPsnr`) is kept beside it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.benchmarks.bench.methods import MethodAdapter, adapters
+from pipeline.bake.gather.bake import GatherSettings
+from pipeline.errors import RelightError
+from pipeline.reference.path_tracer import PathTracer, ReferenceImage, ReferenceSettings
+from pipeline.scene.types import Camera, Scene
+from relight_torch.cache.layer import content_hash, read_cache_layer, write_cache_layer
+from relight_torch.metrics import psnr_from_mse
+
+log = logging.getLogger(__name__)
+
+NOISE_HEADROOM_DB = 10.0
+"""How far below the target the reference's own noise must be (its MSE then adds ~0.4 dB)."""
+MAX_REFERENCE_SPP = 4096
+START_SPP = 32
+
+LADDERS: dict[str, list[dict[str, object]]] = {
+    "direct": [{"supersampling": s} for s in (1, 2, 3, 4)],
+    "transfer": [{"gathers": g, "coefficients": (10, 25, 50, 100, 200)} for g in (1024, 4096, 16384)],
+    # representatives as a fraction of the default count at the size baked (see `_at_size`).
+    "gather": [{"clusters": c, "representatives": f} for c, f in
+               ((8, 0.25), (16, 0.25), (16, 0.5), (32, 0.5), (32, 1.0), (64, 1.0), (120, 1.0))],
+}
+"""Per method, the bake points tried, cheapest first (tuples: variants of one bake)."""
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One pilot measurement: the full-size point, its pilot PSNR (noise-corrected) and cache bytes."""
+
+    point: dict[str, object]
+    psnr_db: float
+    cache_bytes: float
+
+
+@dataclass(frozen=True)
+class QualityResult:
+    """What `bake_for_quality` chose and measured.
+
+    Attributes:
+        layer: the cache layer written.
+        point: the chosen sizes (the adapter's bake point).
+        predicted_db: the pilot's PSNR of that point.
+        measured_db: the full-size PSNR (noise-corrected); raw_db: without the correction.
+        reference_spp: spp of the full-size reference.
+        pilot: (width, height) of the pilot.
+        candidates: every pilot measurement, in the order made.
+    """
+
+    layer: Path
+    point: dict[str, object]
+    predicted_db: float
+    measured_db: float
+    raw_db: float
+    reference_spp: int
+    pilot: tuple[int, int]
+    candidates: tuple[Candidate, ...]
+
+
+def pilot_size(width: int, height: int, pilot_side: int) -> tuple[int, int]:
+    """(width, height) scaled so the long side is at most `pilot_side`, aspect kept, each >= 1."""
+    scale = min(1.0, pilot_side / max(width, height))
+    return max(1, round(width * scale)), max(1, round(height * scale))
+
+
+def _resized(scene: Scene, camera: Camera, width: int, height: int) -> tuple[Scene, Camera]:
+    """The scene and camera at another image size (cameras are looked up by path)."""
+    resized = dataclasses.replace(camera, width=width, height=height)
+    return dataclasses.replace(scene, cameras={**scene.cameras, camera.path: resized}), resized
+
+
+def noise_mse(reference: ReferenceImage) -> float:
+    """The MSE the reference's own noise adds to a clamped comparison (pixels it does not saturate)."""
+    unsaturated = reference.mean < 1.0
+    return float(np.mean(np.where(unsaturated, reference.variance, 0.0)))
+
+
+def corrected_psnr(image: np.ndarray, reference: ReferenceImage) -> tuple[float, float]:
+    """(noise-corrected PSNR, raw PSNR) of `image` against `reference` (see the module doc).
+
+    The corrected MSE is floored at a tenth of the noise MSE: below that the reference cannot tell.
+    """
+    raw = float(np.mean((np.clip(image, 0.0, 1.0) - np.clip(reference.mean, 0.0, 1.0)) ** 2))
+    noise = noise_mse(reference)
+    return psnr_from_mse(max(raw - noise, 0.1 * noise, 1e-12)), psnr_from_mse(raw)
+
+
+def reference_for(scene: Scene, camera: Camera, bounces: int, target_db: float) -> ReferenceImage:
+    """The path tracer's image at START_SPP, re-rendered once with more spp if its noise floor is
+    less than NOISE_HEADROOM_DB above `target_db` (at most MAX_REFERENCE_SPP)."""
+    spp = START_SPP
+    while True:
+        reference = PathTracer(scene, ReferenceSettings(spp=spp, max_bounces=bounces)).render(camera)
+        floor_db = psnr_from_mse(noise_mse(reference))
+        wanted = target_db + NOISE_HEADROOM_DB
+        if floor_db >= wanted or spp >= MAX_REFERENCE_SPP:
+            return reference
+        spp = min(MAX_REFERENCE_SPP, math.ceil(spp * 10 ** ((wanted - floor_db) / 10) * 1.1))
+
+
+def _at_size(method: str, point: dict[str, object], num_pixels: int) -> dict[str, object]:
+    """A ladder point made concrete at a size (gather: representatives from a fraction of the default)."""
+    if method != "gather":
+        return dict(point)
+    count = max(1, round(float(point["representatives"]) * GatherSettings().representatives(num_pixels)))
+    return {**point, "representatives": count}
+
+
+def _measure(adapter: MethodAdapter, scene: Scene, camera: Camera, directory: Path, stem: str,
+             point: dict[str, object], reference: ReferenceImage, supersampling: int, texture_samples: int,
+             time_code: float | None) -> list[tuple[dict[str, object], float, float, float, Path]]:
+    """Bake `point` into `directory`; per variant (parameters, corrected PSNR, raw PSNR, cache bytes, layer)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    layer = adapter.bake(scene, camera, directory, stem, point, supersampling, texture_samples, time_code)
+    out = []
+    for variant in adapter.variants(layer, point, "cpu"):
+        image = variant.relighter.render().cpu().numpy()
+        corrected, raw = corrected_psnr(image, reference)
+        out.append((variant.parameters, corrected, raw, variant.cache_bytes, layer))
+    return out
+
+
+def _variant_point(method: str, ladder_point: dict[str, object], parameters: dict[str, object]) -> dict[str, object]:
+    """The single-variant bake point of one measured variant (tuple axes resolved from its parameters)."""
+    return {key: (int(parameters[key]) if isinstance(value, tuple) else value) for key, value in ladder_point.items()}
+
+
+def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, method: str, target_db: float,
+                     supersampling: int = 2, texture_samples: int = 2, time_code: float | None = None,
+                     fixed: dict[str, object] | None = None, pilot_side: int = 64,
+                     margin_db: float = 0.5) -> QualityResult:
+    """Bake `method` sized to reach `target_db` PSNR on the shot (see the module doc).
+
+    Args:
+        scene, camera: the shot at its full size.
+        supersampling: the direct part's (transfer, gather); direct sizes its own.
+        fixed: bake-point entries kept as given on every step (e.g. transfer's {'bounces': 2}).
+        pilot_side: the pilot's long side in pixels.
+        margin_db: added to the target for the pilot (its size differs from the full one).
+
+    Raises:
+        RelightError: the method has no ladder, or no step reaches the target.
+    """
+    if method not in LADDERS:
+        raise RelightError(f"bake --quality: no sizing ladder for method {method!r} (have {', '.join(LADDERS)})")
+    adapter = adapters((method,))[method]
+    out_dir = Path(out_dir)
+    pilot_dir = out_dir / f".{stem}.quality-pilot"
+    width, height = pilot_size(camera.width, camera.height, pilot_side)
+    pilot_scene, pilot_camera = _resized(scene, camera, width, height)
+    ladder = [{**step, **(fixed or {})} for step in LADDERS[method]]
+    bounces = adapter.bounces(ladder[0])
+    pilot_reference = reference_for(pilot_scene, pilot_camera, bounces, target_db + margin_db)
+    candidates: list[Candidate] = []
+    steps = iter(enumerate(ladder))
+
+    def cheapest_passing(threshold: float) -> Candidate:
+        """The smallest measured candidate reaching `threshold`, measuring further steps until one does."""
+        passing = [c for c in candidates if c.psnr_db >= threshold]
+        while not passing:
+            index, step = next(steps, (None, None))
+            if step is None:
+                best = max(candidates, key=lambda c: c.psnr_db)
+                raise RelightError(f"bake --quality {target_db:g}: no {method} size reaches it on the pilot "
+                                   f"(best {best.psnr_db:.1f} dB with {best.point})")
+            measured = _measure(adapter, pilot_scene, pilot_camera, pilot_dir / f"step-{index}", stem,
+                                _at_size(method, step, width * height), pilot_reference, supersampling,
+                                texture_samples, time_code)
+            new = [Candidate(_variant_point(method, step, parameters), corrected, num_bytes)
+                   for parameters, corrected, _, num_bytes, _ in measured]
+            for candidate in new:
+                log.info("quality pilot %s: %.2f dB, %d bytes", candidate.point, candidate.psnr_db, candidate.cache_bytes)
+            candidates.extend(new)
+            passing = [c for c in new if c.psnr_db >= threshold]
+        return min(passing, key=lambda c: c.cache_bytes)
+
+    try:
+        chosen = cheapest_passing(target_db + margin_db)
+        full_reference = reference_for(scene, camera, bounces, target_db)
+        for attempt in range(2):
+            point = _at_size(method, chosen.point, camera.width * camera.height)
+            ((_, measured_db, raw_db, _, layer),) = _measure(adapter, scene, camera, out_dir, stem, point,
+                                                              full_reference, supersampling, texture_samples, time_code)
+            log.info("quality: %s measured %.2f dB at full size (pilot %.2f dB)", point, measured_db, chosen.psnr_db)
+            if measured_db >= target_db or attempt == 1:
+                break
+            # Missed: ask the pilot for the miss more than the chosen point gave, among the others.
+            candidates.remove(chosen)
+            chosen = cheapest_passing(chosen.psnr_db + (target_db - measured_db) + margin_db)
+    finally:
+        shutil.rmtree(pilot_dir, ignore_errors=True)
+    if measured_db < target_db:
+        log.warning("bake --quality %g: %s measured %.2f dB at full size after a retry", target_db, point, measured_db)
+    reference_spp = round(full_reference.num_paths / (camera.width * camera.height))
+    _record(layer, target_db, chosen.psnr_db, measured_db, raw_db, reference_spp, (width, height))
+    return QualityResult(layer, point, chosen.psnr_db, measured_db, raw_db, reference_spp, (width, height),
+                         tuple(candidates))
+
+
+def _record(layer: Path, target_db: float, predicted_db: float, measured_db: float, raw_db: float,
+            reference_spp: int, pilot: tuple[int, int]) -> None:
+    """Add the quality parameters to the cache layer (and re-hash them into its content hash)."""
+    description = read_cache_layer(layer)
+    parameters = {**description.parameters, "qualityTarget": float(target_db), "qualityPredicted": float(predicted_db),
+                  "qualityMeasured": float(measured_db), "qualityRawPsnr": float(raw_db),
+                  "qualityReferenceSpp": int(reference_spp), "qualityPilot": f"{pilot[0]}x{pilot[1]}"}
+    write_cache_layer(layer, dataclasses.replace(
+        description, parameters=parameters,
+        content_hash=content_hash(description.inputs, parameters, description.code_version)))

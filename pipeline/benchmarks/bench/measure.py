@@ -1,0 +1,94 @@
+"""Relighting a baked cache under every light edit of a bench scene: one SweepRow per edit.
+
+relight_ms is the median wall time of a light move re-rendered (the first light translated by
+1 % or 2 % of its distance from the origin along x, alternating, so every call recomputes that
+light), warm (after one untimed call), synchronised on CUDA. It is measured under the shot's
+lights; the other edits' rows carry the same time (one relighter, one rig size).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pipeline.benchmarks.bench.methods import BenchScene
+from pipeline.benchmarks.rows import NAN, SweepRow, format_params
+from pipeline.tracing_bench import median_seconds
+from relight_torch.cache.layer import read_cache_layer
+from relight_torch.lights.light import Light
+from relight_torch.metrics import psnr, rel_mse
+from relight_torch.relighter import shot_lights
+
+
+def moved(light: Light, fraction: float) -> Light:
+    """`light` translated by `fraction` of its distance from the origin, along x (a light edit)."""
+    world_from_light = light.world_from_light.copy()
+    world_from_light[0, 3] += fraction * max(float(np.linalg.norm(world_from_light[:3, 3])), 1.0)
+    return dataclasses.replace(light, world_from_light=world_from_light)
+
+
+def relight_ms(relighter, repeats: int = 5, device: str = "cpu") -> float:
+    """Median ms of moving the relighter's first light and re-rendering (see the module doc).
+
+    `relighter` is any relighter of the shared API (`lights`, `set_light`, `set_lights`, `render`).
+    """
+    lights = relighter.lights
+    sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
+    calls = iter(range(1 << 30))
+
+    def edit_and_render() -> None:
+        relighter.set_light(moved(lights[0], 0.01 * (1 + next(calls) % 2)))
+        relighter.render()
+        sync()
+
+    seconds = median_seconds(edit_and_render, repeats)
+    relighter.set_lights(lights)
+    return 1e3 * seconds
+
+
+def device_name(device: str) -> str:
+    """The `device` column: 'cpu' or 'cuda:0 <GPU name>'."""
+    if device.startswith("cuda"):
+        return f"{device} {torch.cuda.get_device_name(torch.device(device))}"
+    return "cpu"
+
+
+def cache_bytes(layer: Path) -> int:
+    """Bytes of a cache layer's payloads."""
+    return sum(payload.num_bytes for payload in read_cache_layer(layer).payloads)
+
+
+def relit_rows(relighter, layer: Path, scene: BenchScene, method: str, parameters: dict[str, object],
+               bounces: int, num_bytes: float, bake_s: float) -> list[SweepRow]:
+    """Relight under every edit of `scene` and compare with the `bounces`-bounce reference.
+
+    Args:
+        relighter: opened on `layer`'s cache (on `scene.device`).
+        layer: the cache layer (its lights are read per edit with `shot_lights`).
+        method, parameters: the row's method and params columns ('bounces' is added to params
+            when absent: the comparison rows read it).
+        bounces: indirect bounces the method computes (0: direct only, no indirect PSNR).
+        num_bytes, bake_s: the row's cache_bytes and bake_s.
+
+    Returns:
+        one row per edit, in `scene.edits` order.
+    """
+    description = read_cache_layer(layer)
+    params = format_params({**parameters, "bounces": parameters.get("bounces", bounces)})
+    rows = []
+    timing = NAN
+    for edit, lights_layer in scene.edits.items():
+        relighter.set_lights(shot_lights(description, lights_layer))
+        image = relighter.render().cpu().numpy()
+        reference = scene.references.full(edit, bounces)
+        indirect = (psnr(relighter.indirect_image().cpu().numpy(), scene.references.indirect(edit, bounces))
+                    if bounces > 0 else NAN)
+        if edit == "shot":
+            timing = relight_ms(relighter, scene.repeats, scene.device)
+        rows.append(SweepRow(method, scene.name, scene.width, scene.height, edit, params,
+                             psnr(image, reference), indirect, rel_mse(image, reference), float(num_bytes),
+                             bake_s, timing, device_name(scene.device)))
+    return rows

@@ -1,0 +1,77 @@
+"""Bench adapter of the transfer method: gathers x kept coefficients, one bake per gather count.
+
+Each gather count is baked once keeping the largest coefficient count; every smaller count is
+studied by culling those rows (`relight_torch.transfer.sparse.cull`, the bake's own order), so
+bake_s is that one bake's time for all of them and cache_bytes counts the culled matrix as the
+layer would store it (its parts written under `<cache>/culled`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.bake.transfer.bake import F_PREFIX, TransferSettings, bake_transfer, matrix_payloads
+from pipeline.benchmarks.bench.methods import Variant
+from pipeline.scene.types import Camera, Scene
+from relight_torch.cache.layer import read_cache_layer
+from relight_torch.transfer.encoding import decode_rows, encode_rows
+from relight_torch.transfer.open import open_transfer_relighter
+from relight_torch.transfer.relighter import TransferRelighter
+from relight_torch.transfer.sparse import cull
+
+
+def kept_counts(point: dict[str, object]) -> list[int]:
+    """The point's coefficient counts, increasing (an int or a tuple of them; default the bake's)."""
+    value = point.get("coefficients", TransferSettings().num_coefficients)
+    return sorted(value) if isinstance(value, tuple) else [int(value)]
+
+
+def settings(point: dict[str, object]) -> TransferSettings:
+    """The bake settings of a point (keys gathers, coefficients, bounces), keeping the most coefficients."""
+    defaults = TransferSettings()
+    return TransferSettings(num_gathers=int(point.get("gathers", defaults.num_gathers)),
+                            num_coefficients=kept_counts(point)[-1],
+                            num_bounces=int(point.get("bounces", defaults.num_bounces)))
+
+
+class TransferAdapter:
+    """Precomputed wavelet transfer (final gather F, bounce matrix M for bounces > 1)."""
+
+    name = "transfer"
+    chart_axes = ("coefficients", "gathers")
+
+    def grid(self, quick: bool) -> list[dict[str, object]]:
+        if quick:
+            return [{"gathers": 1024, "coefficients": (10, 50), "bounces": 1}]
+        return [{"gathers": gathers, "coefficients": (10, 25, 50, 100, 200), "bounces": 1}
+                for gathers in (1024, 4096, 16384)]
+
+    def bounces(self, point: dict[str, object]) -> int:
+        return settings(point).num_bounces
+
+    def bake(self, scene: Scene, camera: Camera, directory: Path, stem: str, point: dict[str, object],
+             supersampling: int, texture_samples: int, time_code: float | None = None) -> Path:
+        return bake_transfer(scene, camera, directory, stem, supersampling, texture_samples, time_code=time_code,
+                             settings=settings(point), progress=False)
+
+    def variants(self, layer: Path, point: dict[str, object], device: str) -> list[Variant]:
+        baked_settings = settings(point)
+        description = read_cache_layer(layer)
+        base_bytes = sum(p.num_bytes for p in description.payloads if not p.name.startswith(F_PREFIX))
+        baked = open_transfer_relighter(layer, device=device)
+        stored = baked.final_gather.to("cpu", baked.final_gather.values.dtype)
+        culled_dir = layer.parent / "culled"
+        culled_dir.mkdir(exist_ok=True)
+        out = []
+        for num_kept in kept_counts(point):
+            encoded = encode_rows(cull(stored, num_kept), baked_settings.encoding)
+            payloads = matrix_payloads(culled_dir, f"{layer.name.split('.')[0]}-{num_kept}", F_PREFIX, encoded)
+            final_gather = decode_rows(encoded).to(device, stored.values.dtype)
+            relighter = TransferRelighter(baked.direct, baked.gathers, baked.view_pixels, final_gather, baked.bounce,
+                                          baked.num_bounces)
+            out.append(Variant({**baked_settings.parameters(), "coefficients": num_kept}, relighter,
+                               base_bytes + sum(p.num_bytes for p in payloads)))
+        return out
+
+
+ADAPTER = TransferAdapter()

@@ -1,0 +1,134 @@
+"""Sweep of the cuts method (seed 004, environment mode): lights x sigma x illumination cut size.
+
+    python -m pipeline.benchmarks.cuts_sweep [SCENE...] --width W --height H [--lights 1024 4096 ...]
+        [--sigmas 1.5 2 3] [--cut-sizes 128 256 512] [--spp N] [--repeats R] [--csv FILE]
+
+Per scene, light count and sigma it bakes once (bake_s, cache_bytes: that bake's payloads) and
+relights with every illumination cut size, under the shot's lights and every example light edit,
+against `PathTracer(max_bounces=0)` (PSNR, relMSE). relight_ms is the median of a dome edit
+re-rendered (`pipeline.benchmarks.bench.measure.relight_ms`: the illumination cut and every pixel's
+merge and shading run again). params also record what the cost follows: `vis` = mean visibility
+cut size per lattice vertex, `merged` = mean merged-cut entries per sub-sample and `dark` = mean
+dark visibility clusters skipped per sub-sample, so relight_ms can be read against the merged cut
+size at different light counts. One CSV row per (scene, lights, sigma, cut size, light edit), the
+columns shared with the other methods' sweeps (`pipeline.benchmarks.rows`).
+
+With `--timing` only the shot's lights are relit (no references: PSNR columns NaN): for the
+640 x 480, cut size 256 figure of the issue.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
+from pipeline.benchmarks.bench.measure import cache_bytes, device_name, relight_ms
+from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, format_params, write_csv
+from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
+from pipeline.scene import find_camera, load_scene
+from pipeline.scenes import SCENES, write_light_edits
+from relight_torch.cache.layer import read_cache_layer
+from relight_torch.cuts.open import open_cuts_relighter
+from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
+from relight_torch.metrics import psnr, rel_mse
+from relight_torch.relighter import shot_lights
+
+
+def references(shot: Path, layers: dict[str, Path | None], camera_path: str, width: int, height: int,
+               spp: int) -> dict:
+    """Light edit -> (H, W, 3) direct-only reference (`PathTracer(max_bounces=0)`)."""
+    out = {}
+    for edit, layer in layers.items():
+        scene = load_scene(shot, lights_layer=layer, width=width, height=height)
+        out[edit] = PathTracer(scene, ReferenceSettings(spp=spp, max_bounces=0)).render(
+            find_camera(scene, camera_path)).mean
+    return out
+
+
+def cut_rows(relighter: CutsRelighter, layer: Path, scene_name: str, args: argparse.Namespace,
+             parameters: dict[str, object], bake_s: float, expected: dict | None,
+             layers: dict[str, Path | None]) -> list[SweepRow]:
+    """Rows of one bake, one per (cut size, light edit)."""
+    description = read_cache_layer(layer)
+    num_bytes = float(cache_bytes(layer))
+    num_samples = relighter.cuts.sample_vertices.shape[0]
+    mean_vis = float(relighter.cuts.visibility.sizes().double().mean())
+    rows = []
+    for cut_size in args.cut_sizes:
+        relighter.set_settings(CutsRelightSettings(max_cut=cut_size))
+        for edit, lights_layer in layers.items():
+            relighter.set_lights(shot_lights(description, lights_layer))
+            image = relighter.render().cpu().numpy()
+            stats = dict(relighter.stats)
+            timing = relight_ms(relighter, args.repeats) if edit == "shot" else NAN
+            params = format_params({**parameters, "cut": cut_size, "vis": f"{mean_vis:.1f}",
+                                    "merged": f"{stats['merged'] / num_samples:.1f}",
+                                    "dark": f"{stats['dark'] / num_samples:.1f}"})
+            quality = ((psnr(image, expected[edit]), rel_mse(image, expected[edit])) if expected is not None
+                       else (NAN, NAN))
+            row = SweepRow("cuts", scene_name, args.width, args.height, edit, params, quality[0], NAN, quality[1],
+                           num_bytes, bake_s, timing, device_name("cpu"))
+            print(f"{row.method},{row.scene},{row.light_edit},{row.params},psnr={row.psnr_db:.2f},"
+                  f"bytes={num_bytes:.0f},bake_s={bake_s:.1f},relight_ms={timing:.1f}", file=sys.stderr, flush=True)
+            rows.append(row)
+    return rows
+
+
+def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[SweepRow]:
+    """Every (lights, sigma) bake of one scene and its rows."""
+    bundled = SCENES[name]
+    shot = bundled.write(directory)
+    layers = {"shot": None}
+    if not args.timing:
+        layers |= {path.name.split(".")[-2]: path for path in write_light_edits(name, directory)}
+    expected = None if args.timing else references(shot, layers, bundled.camera, args.width, args.height, args.spp)
+    scene = load_scene(shot, width=args.width, height=args.height)
+    camera = find_camera(scene, bundled.camera)
+    rows = []
+    for num_lights in args.lights:
+        for sigma in args.sigmas:
+            settings = CutsSettings(num_lights=num_lights, sigma=sigma, lattice_edge=args.lattice_edge)
+            start = time.perf_counter()
+            layer = bake_cuts(scene, camera, directory / f"cache-{num_lights}-{sigma}", name, args.supersampling,
+                              args.texture_samples, settings=settings)
+            bake_s = time.perf_counter() - start
+            relighter = open_cuts_relighter(layer)
+            parameters = {"mode": settings.mode, "lights": num_lights, "sigma": sigma,
+                          "latticeEdge": f"{args.lattice_edge:.4g}", "supersampling": args.supersampling}
+            rows += cut_rows(relighter, layer, name, args, parameters, bake_s, expected, layers)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("scenes", nargs="*", default=["dome"], choices=sorted(SCENES))
+    parser.add_argument("--width", type=int, default=64)
+    parser.add_argument("--height", type=int, default=48)
+    parser.add_argument("--lights", type=int, nargs="+", default=[4096])
+    parser.add_argument("--sigmas", type=float, nargs="+", default=[1.5, 2.0, 3.0])
+    parser.add_argument("--cut-sizes", type=int, nargs="+", default=[128, 256, 512])
+    parser.add_argument("--lattice-edge", type=float, default=CutsSettings().lattice_edge)
+    parser.add_argument("--supersampling", type=int, default=2)
+    parser.add_argument("--texture-samples", type=int, default=2)
+    parser.add_argument("--spp", type=int, default=256)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--timing", action="store_true", help="relight the shot's lights only, no references")
+    parser.add_argument("--out", type=Path, help="working directory (default: a temporary one)")
+    parser.add_argument("--csv", type=Path, help="write the rows here (default: stdout)")
+    args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory() as temporary:
+        directory = args.out or Path(temporary)
+        rows = [row for name in args.scenes for row in sweep_scene(name, args, directory / name)]
+    if args.csv:
+        write_csv(rows, args.csv)
+    else:
+        print(",".join(COLUMNS), *map(csv_line, rows), sep="\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

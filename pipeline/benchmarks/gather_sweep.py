@@ -1,0 +1,184 @@
+"""Sweep of the clustered-gather method: clusters per representative x view representatives x the
+shared-point grid, against the one-bounce reference.
+
+    python -m pipeline.benchmarks.gather_sweep SCENE [SCENE...] --width W --height H
+        [--clusters 15 30 60 120 240] [--representatives 0 ...] [--point-cells 64 ...]
+        [--directions N] [--gather-samples S ...] [--spp N] [--shadows embree|shadowmaps]
+        [--out DIR] [--csv FILE]
+    python -m pipeline.benchmarks.gather_sweep SCENE --timing --width 400 --height 400 [...]
+
+Per scene and (clusters, representatives, point cells) it bakes once (bake_s) and relights the
+cache under the shot's lights and every example light edit (`pipeline.scenes.write_light_edits`),
+once per `--gather-samples` count, comparing with `PathTracer(max_bounces=1)`: psnr_db on the full
+image, psnr_indirect_db on the indirect part against the reference's 1-bounce minus 0-bounce
+image (references are kept on disk under OUT and re-used, `bench.references`). cache_bytes counts every payload of the layer (the direct part included); relight_ms is the
+median time of re-rendering (direct + indirect) after a light move. Representatives 0 means the
+default (40,000 at 400 x 400, scaled with the pixel count). One CSV row per (scene, setting,
+edit), in the columns every method's sweep shares (`pipeline.benchmarks.rows`).
+
+With `--timing` it bakes one cache per scene with the first value of each setting and prints the
+median ms of each kind of edit (`edit_timings`) with both visibilities and every gather-sample
+count, the cache bytes, the bake seconds and the bake's peak resident memory (this process's,
+`resource.getrusage`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import itertools
+import resource
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from pipeline.bake.gather.bake import GatherSettings, bake_gather
+from pipeline.benchmarks.rows import COLUMNS, SweepRow, csv_line, format_params, write_csv
+from pipeline.benchmarks.bench.measure import moved
+from pipeline.benchmarks.bench.references import References
+from pipeline.scene import find_camera, load_scene
+from pipeline.scenes import SCENES, write_light_edits
+from relight_torch.cache.layer import read_cache_layer
+from relight_torch.gather.open import open_gather_relighter
+from relight_torch.gather.relighter import DEFAULT_GATHER_SAMPLES, GatherRelighter
+from relight_torch.lights.light import Shaping
+from relight_torch.metrics import psnr, rel_mse
+from relight_torch.relighter import shot_lights
+
+
+def _median_ms(relighter: GatherRelighter, edits: list, repeats: int) -> float:
+    """Median ms of `set_light(edit)` + `render()` over `repeats` edits cycled from `edits`."""
+    times = []
+    for edit in itertools.islice(itertools.cycle(edits), repeats):
+        start = time.perf_counter()
+        relighter.set_light(edit)
+        relighter.render()
+        times.append(1e3 * (time.perf_counter() - start))
+    return statistics.median(times)
+
+
+def edit_timings(relighter: GatherRelighter, repeats: int = 5) -> dict[str, float]:
+    """Median ms of a full re-render (direct + indirect) after each kind of edit of the first light.
+
+    'colour': intensity and colour; 'shaping': ShapingAPI focus (no new shadow rays); 'move': a
+    translation (the light's direct transport and its gathers' light recomputed). The rig is
+    restored afterwards.
+    """
+    lights = relighter.lights
+    light = lights[0]
+    relighter.render()
+    shaping = light.shaping or Shaping()
+    timings = {
+        "colour": _median_ms(relighter, [dataclasses.replace(light, intensity=light.intensity * f, color=(1.0, f, 0.5))
+                                         for f in (0.5, 0.75)], repeats),
+        "shaping": _median_ms(relighter, [dataclasses.replace(light, shaping=dataclasses.replace(shaping, focus=f))
+                                          for f in (1.0, 2.0)], repeats),
+        "move": _median_ms(relighter, [moved(light, 0.01 * (1 + i % 2)) for i in range(repeats)], repeats),
+    }
+    relighter.set_lights(lights)
+    return timings
+
+
+def _bake(name: str, args: argparse.Namespace, directory: Path, settings: GatherSettings) -> tuple[Path, float]:
+    bundled = SCENES[name]
+    scene = load_scene(directory / f"{name}.usda", width=args.width, height=args.height)
+    start = time.perf_counter()
+    layer = bake_gather(scene, find_camera(scene, bundled.camera), directory / "cache", name, args.supersampling,
+                        args.texture_samples, settings=settings, progress=False)
+    return layer, time.perf_counter() - start
+
+
+def _settings(args: argparse.Namespace, clusters: int, representatives: int, point_cells: int) -> GatherSettings:
+    return GatherSettings(num_directions=args.directions, num_clusters=clusters,
+                          num_representatives=representatives or None, point_cells=point_cells)
+
+
+def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[SweepRow]:
+    """The sweep's rows of one scene (printed as CSV lines as they are measured)."""
+    shot = SCENES[name].write(directory)
+    layers = {"shot": None} | {p.name.split(".")[-2]: p for p in write_light_edits(name, directory)}
+    expected = References(shot, SCENES[name].camera, args.width, args.height, layers, args.spp,
+                          directory / "references")
+    rows = []
+    for clusters, representatives, point_cells in itertools.product(args.clusters, args.representatives,
+                                                                     args.point_cells):
+        settings = _settings(args, clusters, representatives, point_cells)
+        layer, bake_s = _bake(name, args, directory, settings)
+        cache_bytes = sum(p.num_bytes for p in read_cache_layer(layer).payloads)
+        for gather_samples in args.gather_samples:
+            relighter = open_gather_relighter(layer, shadows=args.shadows, gather_samples=gather_samples)
+            params = format_params({**settings.parameters(), "gatherSamples": gather_samples,
+                                    "numRepresentatives": sum(s.num_representatives for s in relighter.sets.values()),
+                                    "surfacePoints": relighter.points.num_points, "shadows": args.shadows})
+            relight_ms = edit_timings(relighter, args.repeats)["move"]
+            for edit, layer_path in layers.items():
+                relighter.set_lights(shot_lights(relighter.direct.description, layer_path))
+                image, indirect = relighter.render().numpy(), relighter.indirect_image().numpy()
+                full = expected.full(edit, 1)
+                row = SweepRow("gather", name, args.width, args.height, edit, params, psnr(image, full),
+                               psnr(indirect, expected.indirect(edit, 1)), rel_mse(image, full), cache_bytes,
+                               bake_s, relight_ms)
+                print(csv_line(row), flush=True)
+                rows.append(row)
+    return rows
+
+
+def time_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
+    """Print the edit timings of one default-sized cache with both visibilities."""
+    SCENES[name].write(directory)
+    settings = _settings(args, args.clusters[0], args.representatives[0], args.point_cells[0])
+    layer, bake_s = _bake(name, args, directory, settings)
+    peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    cache_bytes = sum(p.num_bytes for p in read_cache_layer(layer).payloads)
+    print(f"{name} {args.width}x{args.height} {format_params(settings.parameters())}: bake {bake_s:.1f} s, "
+          f"peak RSS {peak_mib:.0f} MiB, cache {cache_bytes / 2**20:.1f} MiB", flush=True)
+    for shadows, gather_samples in itertools.product(("embree", "shadowmaps"), args.gather_samples):
+        relighter = open_gather_relighter(layer, shadows=shadows, gather_samples=gather_samples)
+        sizes = {n: (s.num_representatives, s.num_gathers) for n, s in relighter.sets.items()}
+        timings = edit_timings(relighter, args.repeats)
+        print(f"  {shadows}, {gather_samples} gather samples: "
+              + ", ".join(f"{kind} {ms:.0f} ms" for kind, ms in timings.items())
+              + f" (median of {args.repeats}; sets (reps, entries) {sizes}, "
+              f"{relighter.points.num_points} surface points, {relighter.cache_bytes / 2**20:.1f} MiB in memory)",
+              flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    defaults = GatherSettings()
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("scenes", nargs="+", choices=sorted(SCENES))
+    parser.add_argument("--width", type=int, default=32)
+    parser.add_argument("--height", type=int, default=32)
+    parser.add_argument("--clusters", type=int, nargs="+", default=[15, 30, 60, 120, 240])
+    parser.add_argument("--representatives", type=int, nargs="+", default=[0], help="0: the default count")
+    parser.add_argument("--point-cells", type=int, nargs="+", default=[defaults.point_cells])
+    parser.add_argument("--directions", type=int, default=defaults.num_directions)
+    parser.add_argument("--gather-samples", type=int, nargs="+", default=[DEFAULT_GATHER_SAMPLES])
+    parser.add_argument("--spp", type=int, default=512, help="reference samples per pixel")
+    parser.add_argument("--supersampling", type=int, default=1)
+    parser.add_argument("--texture-samples", type=int, default=1)
+    parser.add_argument("--shadows", default="embree", choices=("embree", "shadowmaps"))
+    parser.add_argument("--repeats", type=int, default=5, help="timed edits per median")
+    parser.add_argument("--timing", action="store_true", help="edit timings of one cache per scene, no PSNR")
+    parser.add_argument("--out", help="directory for the scenes and caches (default: a temporary one)")
+    parser.add_argument("--csv", help="also write the rows to this CSV file")
+    args = parser.parse_args(argv)
+    directory = Path(args.out or tempfile.mkdtemp(prefix="relight-gather-sweep-"))
+    rows = []
+    if not args.timing:
+        print(",".join(COLUMNS), flush=True)
+    for name in args.scenes:
+        (directory / name).mkdir(parents=True, exist_ok=True)
+        if args.timing:
+            time_scene(name, args, directory / name)
+        else:
+            rows += sweep_scene(name, args, directory / name)
+    if args.csv:
+        write_csv(rows, args.csv)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

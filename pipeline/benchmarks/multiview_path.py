@@ -1,0 +1,204 @@
+"""Moving-camera relighting along a camera path, against the reference, per coverage threshold.
+
+    python -m pipeline.benchmarks.multiview_path SCENE [SCENE...] [--width 640 --height 480]
+        [--views 8] [--coverage 0.1 0.05 0.02] [--caching-resolution 512] [--spp 16]
+        [--fill-holes] [--no-reference] [--out DIR] [--csv FILE] [--table FILE]
+
+Per scene and coverage threshold it bakes a multiview cache (placement and one deep framebuffer
+per caching camera), then renders a path of `--views` novel views: the shot camera orbited about
+the point its centre pixel sees, by yaw angles spread over +-`--yaw` degrees and a rise of up to
+5 % of the scene's extent. Per view: PSNR against `PathTracer(max_bounces=0)` over all pixels and
+over the covered ones (pixels whose every sub-sample found a cache sample, or was baked on
+demand), the PSNR of a direct cache baked for that very view (the ceiling: what the view's own
+deep framebuffer, same supersampling, two texture samples, reaches), the hole fraction before and after the small holes are filled, and median times of
+the three steps of a camera move: primary rays (Embree, CPU), the correspondence map (eq. 5,
+hole filling, GBuffer gather) and the re-render (a fresh direct Relighter shading the view: light
+samples, shadow rays, BRDF), and of a light move re-rendered at that view (`relight_ms`, the
+shared measure). Timings are warm medians of `--repeats` runs.
+
+Output: the shared sweep CSV (one row per scene and threshold, light edit 'shot': psnr_db and
+rel_mse averaged over the path, cache_bytes, bake_s, relight_ms the median light move over the
+views; params name the threshold, the cameras chosen and the path) and a per-view CSV table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import io
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
+from pipeline.bake.multiview.bake import bake_multiview
+from pipeline.bake.multiview.frames import FrameRenderer
+from pipeline.bake.multiview.placement import PlacementSettings
+from pipeline.bake.multiview.view import view_points
+from pipeline.benchmarks.bench.measure import cache_bytes, relight_ms
+from pipeline.benchmarks.rows import SweepRow, format_params, write_csv
+from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
+from pipeline.scene import find_camera, load_scene
+from pipeline.scene.types import Camera, Scene
+from pipeline.scenes import SCENES
+from pipeline.tracing import Tracer
+from pipeline.tracing_bench import median_seconds
+from relight_torch.cache.layer import read_cache_layer
+from relight_torch.io.atomic import write_text_atomic
+from relight_torch.metrics import psnr, rel_mse
+from relight_torch.multiview.relighter import open_multiview_relighter, view_gbuffer
+from relight_torch.relighter import Relighter
+
+TABLE_COLUMNS = ("scene", "coverage", "view", "psnr_db", "psnr_covered_db", "psnr_direct_db", "rel_mse", "hole_fraction_before",
+                 "hole_fraction_after", "large_holes", "rays_ms", "correspondence_ms", "rerender_ms",
+                 "light_edit_ms")
+
+
+def camera_path(scene: Scene, camera: Camera, num_views: int, yaw_degrees: float) -> list[Camera]:
+    """`num_views` cameras orbiting the shot camera's centre-pixel point (see the module docstring)."""
+    tracer = Tracer(scene.geometry)
+    origin = camera.world_from_camera[:3, 3]
+    forward = -camera.world_from_camera[:3, 2] / np.linalg.norm(camera.world_from_camera[:3, 2])
+    hit = tracer.intersect(origin[None].astype(np.float32), forward[None].astype(np.float32))
+    distance = float(hit.distance[0]) if hit.hit[0] else 0.5 * scene.diagonal
+    pivot = origin + distance * forward
+    up = np.array([0.0, 0.0, 1.0]) if scene.up_axis == "Z" else np.array([0.0, 1.0, 0.0])
+    lo, hi = scene.bounds
+    cameras = []
+    for i, t in enumerate(np.linspace(-1.0, 1.0, num_views)):
+        angle = np.radians(yaw_degrees * t)
+        c, s = np.cos(angle), np.sin(angle)
+        k = np.array([[0, -up[2], up[1]], [up[2], 0, -up[0]], [-up[1], up[0], 0]])
+        rotation = np.eye(3) + s * k + (1 - c) * (k @ k)                        # Rodrigues, about `up`
+        matrix = camera.world_from_camera.copy()
+        matrix[:3, :3] = rotation @ matrix[:3, :3]
+        matrix[:3, 3] = pivot + rotation @ (origin - pivot) + up * 0.05 * float(np.max(hi - lo)) * np.sin(np.pi * i
+                                                                                                        / num_views)
+        cameras.append(dataclasses.replace(camera, world_from_camera=matrix, path=f"{camera.path}.path{i}"))
+    return cameras
+
+
+def _ms(function, repeats: int) -> float:
+    return 1000.0 * median_seconds(function, repeats)
+
+
+def measure_view(scene: Scene, relighter, renderer: FrameRenderer, camera: Camera, reference: np.ndarray | None,
+                 repeats: int) -> dict[str, float]:
+    """One path view: accuracy against `reference` (None: timings only) and timings."""
+    frame = renderer.render(camera)
+    report = frame.report
+    row = {"hole_fraction_before": report.hole_fraction_before, "hole_fraction_after": report.hole_fraction_after,
+           "large_holes": report.num_large_holes}
+    if reference is not None:
+        s = relighter.supersampling
+        height, width = camera.height, camera.width
+        found = torch.zeros(height * s * width * s)
+        found[relighter.relighter.gbuffer.pixel_index] = 1.0
+        empty = torch.ones(height * s * width * s)
+        empty[view_points(relighter.caster, relighter.occluder_objects, camera, s).pixel_index] = 0.0
+        complete = ((found + empty).reshape(height, s, width, s).amin(dim=(1, 3)) > 0).numpy()
+        own = Relighter(bake_deep_framebuffer(scene, camera, s).gbuffer, relighter.visibility, s,
+                        camera.exposure_scale, relighter.settings, relighter.object_paths)
+        own.set_lights(relighter.lights)
+        row |= {"psnr_db": psnr(frame.image, reference), "rel_mse": rel_mse(frame.image, reference),
+                "psnr_covered_db": psnr(frame.image[complete], reference[complete]),
+                "psnr_direct_db": psnr(own.render().numpy(), reference)}
+    state = {}
+
+    def rays():
+        state["view"] = view_points(relighter.caster, relighter.occluder_objects, camera, relighter.supersampling,
+                                    relighter.corner_normals)
+
+    def correspondence():
+        state["gbuffer"] = view_gbuffer(relighter.views, state["view"], normal_mapped=relighter.normal_mapped)[0]
+
+    def rerender():
+        fresh = Relighter(state["gbuffer"], relighter.visibility, relighter.supersampling, relighter.exposure_scale,
+                          relighter.settings, relighter.object_paths)
+        fresh.set_lights(relighter.lights)
+        fresh.render()
+
+    row |= {"rays_ms": _ms(rays, repeats), "correspondence_ms": _ms(correspondence, repeats),
+            "rerender_ms": _ms(rerender, repeats), "light_edit_ms": relight_ms(relighter, repeats)}
+    return row
+
+
+def run_scene(name: str, args: argparse.Namespace, out: Path) -> tuple[list[SweepRow], list[dict]]:
+    shot = SCENES[name].write(out / name)
+    scene = load_scene(shot, width=args.width, height=args.height)
+    camera = find_camera(scene, SCENES[name].camera)
+    path = camera_path(scene, camera, args.views, args.yaw)
+    references = [None] * len(path)
+    if not args.no_reference:
+        tracer = PathTracer(scene, ReferenceSettings(spp=args.spp, max_bounces=0, seed=11))
+        references = [tracer.render(view).mean for view in path]
+    rows, table = [], []
+    for coverage in args.coverage:
+        settings = PlacementSettings(coverage=coverage, max_resolution=args.caching_resolution)
+        start = time.perf_counter()
+        layer = bake_multiview(scene, camera, out / name / f"coverage{coverage:g}", name, args.supersampling,
+                               settings=settings)
+        bake_s = time.perf_counter() - start
+        parameters = read_cache_layer(layer).parameters
+        relighter = open_multiview_relighter(layer)
+        renderer = FrameRenderer(relighter, fill_holes=args.fill_holes)
+        views = []
+        for i, (view, reference) in enumerate(zip(path, references)):
+            measured = measure_view(scene, relighter, renderer, view, reference, args.repeats)
+            views.append(measured)
+            table.append({"scene": name, "coverage": coverage, "view": i} | measured)
+            print(f"{name} coverage {coverage:g} view {i}: " + " ".join(
+                f"{k}={v:.4g}" for k, v in measured.items()), file=sys.stderr)
+        mean = {key: float(np.mean([v[key] for v in views])) for key in ("psnr_db", "rel_mse") if key in views[0]}
+        rows.append(SweepRow(
+            method="multiview", scene=name, width=args.width, height=args.height, light_edit="shot",
+            params=format_params({"coverage": coverage, "cameras": parameters["numViews"],
+                                  "primary": parameters["numPrimary"], "secondary": parameters["numSecondary"],
+                                  "uncovered": round(parameters["uncoveredFraction"], 4),
+                                  "maxResolution": args.caching_resolution, "views": args.views,
+                                  "supersampling": args.supersampling, "fillHoles": int(args.fill_holes)}),
+            psnr_db=mean.get("psnr_db", float("nan")), rel_mse=mean.get("rel_mse", float("nan")),
+            cache_bytes=float(cache_bytes(layer)), bake_s=bake_s,
+            relight_ms=float(np.median([v["light_edit_ms"] for v in views]))))
+    return rows, table
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("scenes", nargs="+", choices=sorted(SCENES))
+    parser.add_argument("--width", type=int, default=640)
+    parser.add_argument("--height", type=int, default=480)
+    parser.add_argument("--views", type=int, default=8, help="novel views on the path (default 8)")
+    parser.add_argument("--yaw", type=float, default=20.0, help="path yaw range +-degrees (default 20)")
+    parser.add_argument("--coverage", type=float, nargs="+", default=[0.1, 0.05, 0.02])
+    parser.add_argument("--caching-resolution", type=int, default=512)
+    parser.add_argument("--supersampling", type=int, default=1)
+    parser.add_argument("--spp", type=int, default=16, help="reference samples per pixel (default 16)")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--fill-holes", action="store_true", help="bake large holes on demand")
+    parser.add_argument("--no-reference", action="store_true", help="timings only")
+    parser.add_argument("--out", type=Path, default=Path("multiview_path"))
+    parser.add_argument("--csv", type=Path, help="shared sweep CSV (default OUT/multiview.csv)")
+    parser.add_argument("--table", type=Path, help="per-view CSV (default OUT/multiview_views.csv)")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows, table = [], []
+    for name in args.scenes:
+        scene_rows, scene_table = run_scene(name, args, args.out)
+        rows += scene_rows
+        table += scene_table
+    write_csv(rows, args.csv or args.out / "multiview.csv")
+    text = io.StringIO()
+    writer = csv.DictWriter(text, TABLE_COLUMNS, restval="nan", lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(table)
+    write_text_atomic(args.table or args.out / "multiview_views.csv", text.getvalue())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

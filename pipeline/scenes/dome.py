@@ -1,0 +1,91 @@
+"""The glossy scene under a textured DomeLight: environment lighting for the cuts method (seed 004).
+
+DIR/dome.usda sublayers DIR/glossy.usda (written beside it, `pipeline.scenes.glossy`), deactivates
+its Key and Spot lights and adds /World/Lights/Dome, a DomeLight with a generated lat-long HDR
+texture (DIR/textures/dome_sky.exr, float32 linear RGB, row 0 = zenith):
+
+    sky      blue-to-white gradient over the upper hemisphere, radiance ~0.35-0.6
+    ground   a dim brown below the horizon, radiance 0.08
+    sun      a disk of 6 degrees radius at elevation 40 degrees, radiance 40 (a soft edge of 2
+             degrees): the "high-frequency" light that the illumination cut must refine
+    window   a warm rectangle low on the opposite side (radiance 4), for a second shadow
+
+Intensity 1 (radiance = texture), camera, materials and geometry are the glossy scene's.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from pxr import Gf, UsdLux
+
+from pipeline.scenes import authoring, glossy
+from pipeline.scenes.bundled import BundledScene, LightEdit, LightOverride
+from relight_torch.io.exr import write_rgb_exr
+
+NAME = "dome"
+DOME = "/World/Lights/Dome"
+TEXTURE = "textures/dome_sky.exr"
+TEXTURE_SIZE = (128, 256)
+SUN_DIRECTION = (0.55, 0.643, 0.533)
+"""Unit world direction towards the sun (elevation 40 degrees, in front-right of the camera's view)."""
+
+
+def sky_texture(height: int = TEXTURE_SIZE[0], width: int = TEXTURE_SIZE[1]) -> np.ndarray:
+    """(H, W, 3) float32 lat-long radiance (row 0 = +Y pole; `relight_torch.lights.dome` convention)."""
+    v = (np.arange(height) + 0.5) / height
+    u = (np.arange(width) + 0.5) / width
+    theta = v[:, None] * math.pi
+    longitude = (0.5 - u[None, :]) * 2.0 * math.pi
+    direction = np.stack(np.broadcast_arrays(np.sin(theta) * np.sin(longitude), np.cos(theta),
+                                             np.sin(theta) * np.cos(longitude)), axis=-1)
+    up = direction[..., 1:2]
+    zenith, horizon = np.array([0.25, 0.4, 0.8]), np.array([0.6, 0.62, 0.65])
+    sky = horizon + (zenith - horizon) * np.clip(up, 0.0, 1.0) ** 0.5
+    image = np.where(up > 0, sky, np.array([0.08, 0.06, 0.04]))
+    sun_angle = np.degrees(np.arccos(np.clip(direction @ np.asarray(SUN_DIRECTION), -1.0, 1.0)))
+    sun = np.clip((8.0 - sun_angle) / 2.0, 0.0, 1.0)[..., None]
+    image = image + sun * np.array([40.0, 38.0, 34.0])
+    window = (np.abs(direction[..., 0] + 0.8) < 0.25) & (up[..., 0] > 0.05) & (up[..., 0] < 0.35)
+    image = image + window[..., None] * np.array([4.0, 3.0, 2.0])
+    return image.astype(np.float32)
+
+
+def write(directory: Path) -> Path:
+    """Write DIR/dome.usda (and the glossy scene and textures it uses); return the layer's path."""
+    directory = Path(directory)
+    glossy_layer = glossy.write(directory)
+    write_rgb_exr(directory / TEXTURE, sky_texture())
+    stage = authoring.create_stage(0.01, "The glossy scene under a textured dome light (centimetres).")
+    stage.GetRootLayer().subLayerPaths.append(f"./{glossy_layer.name}")
+    stage.SetDefaultPrim(stage.GetPrimAtPath(authoring.WORLD))
+    for light in (glossy.KEY, glossy.SPOT):
+        stage.OverridePrim(light).SetActive(False)
+    dome = UsdLux.DomeLight.Define(stage, DOME)
+    authoring.set_light(dome.LightAPI(), intensity=1.0)
+    dome.CreateTextureFileAttr(f"./{TEXTURE}")
+    dome.CreateTextureFormatAttr(UsdLux.Tokens.latlong)
+    authoring.place(dome, (0.0, 0.0, 0.0), rotate_xyz=(0.0, 0.0, 0.0))
+    stage.SetMetadata("renderSettingsPrimPath", authoring.RENDER_SETTINGS)
+    return authoring.save_stage(stage, directory / f"{NAME}.usda")
+
+
+LIGHT_EDITS = (
+    LightEdit("rotate", "turn the dome 120 degrees about +Y (the sun moves round to the left)",
+              (LightOverride(DOME, {"xformOp:rotateXYZ": ("float3", Gf.Vec3f(0.0, 120.0, 0.0))}),)),
+    LightEdit("warm", "warm the dome's colour and raise its exposure",
+              (LightOverride(DOME, {"inputs:color": ("color3f", Gf.Vec3f(1.0, 0.8, 0.6)),
+                                    "inputs:exposure": ("float", 0.5)}),)),
+    LightEdit("dim", "halve the dome's intensity",
+              (LightOverride(DOME, {"inputs:intensity": ("float", 0.5)}),)),
+)
+
+SCENE = BundledScene(
+    name=NAME,
+    camera=glossy.CAMERA,
+    description="the glossy scene lit only by a textured dome (generated lat-long EXR sky with a sun)",
+    write=write,
+    light_edits=LIGHT_EDITS,
+)

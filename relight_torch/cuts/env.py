@@ -1,0 +1,61 @@
+"""The environment mode's per-frame light: each leaf light's share of the dome lights.
+
+A leaf light stands for the directions of its cell (solid angle w). Its value is the dome's
+radiance integrated over the cell, estimated from a fixed pattern of `CELL_SAMPLES` directions
+spread over a disk of the cell's area around the leaf direction, through the light model
+(`relight_torch.lights.emission.emitted_radiance`: texture, rotation, colour, exposure):
+
+    l = w x mean over the pattern of L_dome(direction)
+
+so a texture finer than the leaf spacing is filtered, not point-sampled.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from relight_torch.lights.emission import emitted_radiance
+from relight_torch.lights.light import Light
+from relight_torch.math.frame import orthonormal_basis, to_world
+
+CELL_SAMPLES = 16
+"""Directions averaged per leaf cell (a Fibonacci spiral over the cell's disk)."""
+
+
+def _cell_pattern(directions: torch.Tensor, solid_angles: torch.Tensor) -> torch.Tensor:
+    """(L, S, 3) unit directions spread over equal-area disks around (L, 3) `directions`."""
+    k = torch.arange(CELL_SAMPLES, device=directions.device, dtype=directions.dtype) + 0.5
+    radius = torch.sqrt(k / CELL_SAMPLES)
+    angle = k * math.pi * (3.0 - math.sqrt(5.0))
+    cap = torch.sqrt(solid_angles / math.pi).unsqueeze(-1)     # disk radius (radians, small cells)
+    offset = torch.stack((radius * torch.cos(angle), radius * torch.sin(angle)), dim=-1)
+    tangent, bitangent = orthonormal_basis(directions)
+    local = torch.cat((cap.unsqueeze(-1) * offset, torch.ones_like(offset[..., :1]).expand(directions.shape[0], -1, 1)),
+                      dim=-1)
+    world = to_world(local, tangent.unsqueeze(1), bitangent.unsqueeze(1), directions.unsqueeze(1))
+    return torch.nn.functional.normalize(world, dim=-1)
+
+
+def dome_leaf_light(lights: list[Light], directions: torch.Tensor, solid_angles: torch.Tensor,
+                    lobe: str) -> torch.Tensor:
+    """(L, 3) light of every leaf from the given dome lights, for one BRDF lobe.
+
+    Args:
+        lights: dome lights (their `diffuse` or `specular` multiplier is applied per `lobe`).
+        directions: (L, 3) unit world directions of the leaves; solid_angles: (L,) their cells.
+        lobe: 'diffuse' or 'specular'.
+    """
+    total = torch.zeros_like(directions)
+    if not lights:
+        return total
+    pattern = _cell_pattern(directions, solid_angles)
+    origin = torch.zeros_like(pattern)
+    for light in lights:
+        multiplier = light.diffuse if lobe == "diffuse" else light.specular
+        if multiplier == 0.0:
+            continue
+        radiance = emitted_radiance(light, origin, pattern).mean(dim=1)
+        total = total + multiplier * radiance * solid_angles.unsqueeze(-1)
+    return total

@@ -1,0 +1,107 @@
+"""The cut merge of seed 004 (section 3.2), batched over many rows (pixels) with sorted sparse arrays.
+
+The paper merges N cuts in one traversal: it repeatedly takes the smallest current index, and
+where all current nodes overlap (max leftleaf <= min index) emits the deepest of them, the one
+with the smallest index. The emitted nodes form the merged cut: the union of the cuts' nodes
+less those with a strict descendant in the union. Batched, for every row at once:
+
+    keys = row * (2L - 1) + node for every entry of the row's cuts; sort, drop duplicates
+    keep a key iff its predecessor (in the same row) is below row * (2L - 1) + leftleaf(node):
+         a strict descendant of `node` would lie in [leftleaf(node), node)
+    cover_j = searchsorted(keys of cut j, merged key): the node of cut j at or above the merged
+         node (cut j's first node at or after it in post-order)
+
+A cut shared by every row (the frame's illumination cut) is merged in a second step, `refine`,
+without copying it per row: a merged node the shared cut covers keeps one entry; a node above the
+shared cut is replaced by the shared cut's nodes inside it, [leftleaf(node), node), a contiguous
+slice of the sorted shared cut. No per-row Python loop; cost grows with the merged cut size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from relight_torch.cuts.cuts import Cuts
+from relight_torch.cuts.tree import LightTree
+
+
+@dataclass(frozen=True)
+class MergedCuts:
+    """The merged cuts of P rows, flattened.
+
+    Attributes:
+        row: (Q,) int64 row of each merged node, ascending.
+        node: (Q,) int64 merged node (post-order), ascending within a row.
+        cover: per source cut, (Q,) int64 index into that source's entries (`Cuts.nodes`) of
+            the node covering the merged node.
+    """
+
+    row: torch.Tensor
+    node: torch.Tensor
+    cover: tuple[torch.Tensor, ...]
+
+    def select(self, keep: torch.Tensor) -> MergedCuts:
+        """The merged nodes where the (Q,) boolean mask `keep` is True."""
+        return MergedCuts(self.row[keep], self.node[keep], tuple(c[keep] for c in self.cover))
+
+
+def _row_entries(cuts: Cuts, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(owner (E,), entry (E,)): the entries of cuts `rows` (P,), concatenated in row order."""
+    start = cuts.offsets[rows]
+    counts = cuts.offsets[rows + 1] - start
+    owner = torch.repeat_interleave(torch.arange(rows.shape[0], device=rows.device), counts)
+    first = torch.cumsum(counts, 0) - counts
+    entry = start[owner] + torch.arange(owner.shape[0], device=rows.device) - first[owner]
+    return owner, entry
+
+
+def merge(tree: LightTree, sources: list[tuple[Cuts, torch.Tensor]]) -> MergedCuts:
+    """Merge, for each of P rows, the cuts `cuts.rows[p]` of every source.
+
+    Args:
+        sources: (cuts, rows (P,) int64) per source: row p merges cut rows[p] of each.
+
+    Returns:
+        the merged cuts, `cover` in the order of `sources`.
+    """
+    num_nodes = tree.num_nodes
+    keys, entries = [], []
+    for cuts, rows in sources:
+        owner, entry = _row_entries(cuts, rows)
+        keys.append(owner * num_nodes + cuts.nodes[entry])
+        entries.append(entry)
+    merged = torch.unique(torch.cat(keys), sorted=True)
+    row, node = merged // num_nodes, merged % num_nodes
+    previous = torch.cat((merged.new_full((1,), -1), merged[:-1]))
+    keep = previous < row * num_nodes + tree.leftleaf[node]
+    merged, row, node = merged[keep], row[keep], node[keep]
+    cover = tuple(entry[torch.searchsorted(key, merged)] for key, entry in zip(keys, entries))
+    return MergedCuts(row, node, cover)
+
+
+def refine(tree: LightTree, merged: MergedCuts, shared: torch.Tensor) -> MergedCuts:
+    """Merge a cut shared by every row into `merged`.
+
+    Args:
+        shared: (K,) int64 sorted node indices of the shared cut (a partition of the leaves).
+
+    Returns:
+        the merged cuts with the shared cut's index (into `shared`) appended to `cover`.
+    """
+    node = merged.node
+    at_or_after = torch.searchsorted(shared, node).clamp_max(shared.shape[0] - 1)
+    covered = (shared[at_or_after] >= node) & (tree.leftleaf[shared[at_or_after]] <= node)
+    first_inside = torch.searchsorted(shared, tree.leftleaf[node])
+    counts = torch.where(covered, torch.ones_like(node), at_or_after - first_inside)
+    # Above the shared cut, `at_or_after` is the first shared node after `node`: its end is exact
+    # unless `node` is past the last shared node (then every shared node inside it precedes it).
+    past_end = ~covered & (shared[-1] < node)
+    counts = torch.where(past_end, shared.shape[0] - first_inside, counts)
+    parent = torch.repeat_interleave(torch.arange(node.shape[0], device=node.device), counts)
+    start = torch.where(covered, at_or_after, first_inside)
+    offset = torch.arange(parent.shape[0], device=node.device) - (torch.cumsum(counts, 0) - counts)[parent]
+    shared_index = start[parent] + offset
+    new_node = torch.where(covered[parent], node[parent], shared[shared_index])
+    return MergedCuts(merged.row[parent], new_node, tuple(c[parent] for c in merged.cover) + (shared_index,))

@@ -1,0 +1,337 @@
+"""Relighting with seed 004's nonlinear cut approximation: precomputed visibility cuts merged per
+pixel with a per-frame illumination cut, the BRDF evaluated per merged cluster so materials stay
+editable.
+
+Per frame, every leaf light gets its light (`CutsRelighter.leaf_light`: environment mode, the dome
+lights integrated over each leaf's cell; indirect mode, the direct light reflected by each
+surface point) and the illumination cut refines the tree by intensity up to `max_cut` nodes. Per
+covered sub-sample, the cuts of its three lattice vertices are merged with the illumination cut
+(`merge.merge`, `merge.refine`) and
+
+    B = sum_k |C_k| <l_k> f_r(wo, <x_k>) cos(<x_k>) (w1 <v1_k> + w2 <v2_k> + w3 <v3_k>)
+
+with <x_k> the direction to the merged cluster (its mean direction, or its mean position in
+indirect mode, where the geometry term is folded into <v_k>), f_r UsdPreviewSurface from the
+sub-sample's current parameters (`relight_torch.brdf.preview_surface.split`; a dome's diffuse and
+specular multipliers apply per lobe). Everything else is the direct relighter's.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import torch
+
+from relight_torch.brdf import preview_surface
+from relight_torch.brdf.preview_surface import PreviewSurfaceParams
+from relight_torch.cuts.cuts import Cuts, intensity_cut
+from relight_torch.cuts.env import dome_leaf_light
+from relight_torch.cuts.merge import MergedCuts, merge, refine
+from relight_torch.cuts.tree import LightTree
+from relight_torch.lights.dome import REC709_LUMINANCE
+from relight_torch.lights.light import Light, LightKind
+from relight_torch.math.frame import to_local
+from relight_torch.relighter import Relighter, light_group
+from relight_torch.transfer.gathers import GatherSamples, gather_radiance
+
+
+@dataclass(frozen=True)
+class CutsRelightSettings:
+    """Per-frame settings.
+
+    Attributes:
+        max_cut: illumination cut size (seed 004: 128, 256 or 512).
+        rows_per_batch: sub-samples merged together (bounds the merged arrays' memory).
+    """
+
+    max_cut: int = 256
+    rows_per_batch: int = 8192
+
+
+@dataclass(frozen=True)
+class CutsCache:
+    """What a cuts cache holds, as tensors on one device.
+
+    Attributes:
+        tree: the light tree over L leaves.
+        visibility: the lattice vertices' visibility cuts, values (nnz,) mean visibility.
+        sample_vertices: (N, 3) int64 lattice vertices of each covered sub-sample.
+        sample_weights: (N, 3) their barycentric weights.
+        leaf_directions, leaf_weights: environment mode: (L, 3) unit world directions of the
+            leaves (tree order) and (L,) their solid angles; None in indirect mode.
+        leaf_points: indirect mode: the leaves as surface points (tree order); None in env mode.
+    """
+
+    tree: LightTree
+    visibility: Cuts
+    sample_vertices: torch.Tensor
+    sample_weights: torch.Tensor
+    leaf_directions: torch.Tensor | None = None
+    leaf_weights: torch.Tensor | None = None
+    leaf_points: GatherSamples | None = None
+
+    @property
+    def mode(self) -> str:
+        """'env' (dome lights) or 'indirect' (one diffuse bounce of every light)."""
+        return "env" if self.leaf_points is None else "indirect"
+
+
+class CutsRelighter:
+    """Light by cuts plus the direct relighter, on one deep framebuffer.
+
+    Environment mode: dome lights by cuts, every other light by the direct relighter. Indirect
+    mode: every light direct, plus its one-bounce indirect light by cuts (seed 004's second mode):
+    the leaves are surface points lit with `relight_torch.transfer.gathers.gather_radiance` (the
+    direct relighter's light kernels and visibility), re-emitting diffusely, and a merged cluster
+    stands for its leaves at their mean position and mean normal:
+
+        B = sum_k |C_k| <L_k A_k> f_r(wo, wi_k) cos(wi_k) cos_k / max(d_k^2, |C_k| <A_k> / 2 pi) <v_k>
+
+    (the bound keeps a near cluster's solid angle below a hemisphere's).
+
+    Args:
+        direct: the direct relighter of the cache (its G-buffer, exposure and supersampling).
+        cuts: the cache's tree, leaves, visibility cuts and sub-sample interpolation.
+        settings: illumination cut size, batch size.
+
+    Attributes:
+        params: the current material parameters of every sub-sample (edit with `set_params` or
+            `edit_material`; no re-bake). Only the cuts' light follows them.
+        stats: of the last cuts render, summed over the sub-samples: 'merged' (entries of the
+            merged cuts built with the illumination cut), 'dark' (visibility clusters dark at all
+            three vertices, dropped before the illumination cut is merged in), 'shaded' (entries
+            whose BRDF was evaluated: lit, above the horizon), and 'illumination_cut' (its size).
+    """
+
+    def __init__(self, direct: Relighter, cuts: CutsCache, settings: CutsRelightSettings = CutsRelightSettings()):
+        if cuts.sample_vertices.shape[0] != direct.gbuffer.num_samples:
+            raise ValueError(f"the cuts interpolate {cuts.sample_vertices.shape[0]} sub-samples, the deep "
+                             f"framebuffer has {direct.gbuffer.num_samples}")
+        self.direct = direct
+        self.cuts = cuts
+        self.settings = settings
+        self.params = direct.gbuffer.params
+        self.stats: collections.Counter[str] = collections.Counter()
+        g, tree = direct.gbuffer, cuts.tree
+        self._wo_local = to_local(g.wo_world(), g.tangent, g.bitangent, g.normal)
+        if cuts.mode == "env":
+            self._node_directions = torch.nn.functional.normalize(tree.aggregate(cuts.leaf_directions), dim=-1)
+        else:
+            points = cuts.leaf_points
+            self._node_position = tree.aggregate(points.position) / tree.size.to(g.position.dtype).unsqueeze(-1)
+            self._node_normal = torch.nn.functional.normalize(tree.aggregate(points.normal), dim=-1)
+            self._node_area = tree.aggregate(points.area)
+        self._domes: dict[str, Light] = {}
+        self._leaf_radiance: dict[str, tuple[Light, torch.Tensor]] = {}
+        self._samples: torch.Tensor | None = None
+        self.set_lights(direct.lights)
+
+    @property
+    def mode(self) -> str:
+        return self.cuts.mode
+
+    # -- lights and materials -------------------------------------------------------------------
+
+    def _by_cuts(self, light: Light) -> bool:
+        """Whether the cuts (rather than the direct relighter) give this light's direct light."""
+        return self.mode == "env" and light.kind is LightKind.DOME
+
+    @property
+    def lights(self) -> list[Light]:
+        return self.direct.lights + list(self._domes.values())
+
+    def set_lights(self, lights: list[Light]) -> None:
+        """Replace the whole rig (env mode: domes go to the cuts, the rest to the direct relighter)."""
+        self.direct.set_lights([light for light in lights if not self._by_cuts(light)])
+        self._domes = {light.path: light for light in lights if self._by_cuts(light)}
+        self._samples = None
+
+    def set_light(self, light: Light) -> None:
+        """Add or edit a light (matched by path)."""
+        if self._by_cuts(light):
+            self._domes[light.path] = light
+        else:
+            self.direct.set_light(light)
+        self._samples = None
+
+    def remove_light(self, path: str) -> None:
+        if path in self._domes:
+            del self._domes[path]
+        else:
+            self.direct.remove_light(path)
+            self._leaf_radiance.pop(path, None)
+        self._samples = None
+
+    def set_settings(self, settings: CutsRelightSettings) -> None:
+        """Change the illumination cut size or batch size (the next render recomputes the cuts' light)."""
+        self.settings = settings
+        self._samples = None
+
+    def set_params(self, params: PreviewSurfaceParams) -> None:
+        """Replace the material parameters of every sub-sample (rows as the G-buffer's).
+
+        Only the cuts' light follows: the direct relighter keeps the baked materials.
+        """
+        if params.diffuse_color.shape != self.params.diffuse_color.shape:
+            raise ValueError(f"material parameters must have {self.params.diffuse_color.shape[0]} rows")
+        self.params = params.to(self.params.diffuse_color.device, self.params.diffuse_color.dtype)
+        self._samples = None
+
+    def edit_material(self, material_id: int, **values: object) -> None:
+        """Set UsdPreviewSurface inputs (field names of `PreviewSurfaceParams`, constants) on the
+        sub-samples of one material, e.g. `edit_material(3, diffuse_color=(0.1, 0.5, 0.1), roughness=0.6)`."""
+        rows = self.direct.gbuffer.material_id == material_id
+        changes = {}
+        for name, value in values.items():
+            field = getattr(self.params, name)
+            new = torch.as_tensor(value, dtype=field.dtype, device=field.device).expand_as(field)
+            mask = rows.reshape(-1, *([1] * (field.dim() - 1)))
+            changes[name] = torch.where(mask, new, field)
+        self.set_params(dataclasses.replace(self.params, **changes))
+
+    # -- rendering ------------------------------------------------------------------------------
+
+    def render(self) -> torch.Tensor:
+        """(H, W, 3) linear image: the direct relighter's lights plus the cuts' light."""
+        return self.direct.render() + self.cuts_image()
+
+    def cuts_image(self) -> torch.Tensor:
+        """(H, W, 3) the light computed by cuts alone (env: the domes; indirect: the bounce),
+        box-filtered, camera exposure applied."""
+        if self._samples is None:
+            self._samples = self.cut_samples(self._cut_lights(), emission=True)
+        return self.direct._to_image(self._samples)
+
+    def indirect_image(self) -> torch.Tensor:
+        """(H, W, 3) indirect light alone (indirect mode; zero in env mode), exposure applied."""
+        if self.mode == "indirect":
+            return self.cuts_image()
+        height, width = self.direct.gbuffer.image_size
+        s = self.direct.supersampling
+        return self.direct.gbuffer.position.new_zeros((height // s, width // s, 3))
+
+    def light_group_images(self) -> dict[str, torch.Tensor]:
+        """Light group -> (H, W, 3) image of its lights (env: domes by cuts, the rest direct;
+        indirect: '<group>_direct' and '<group>_indirect'); with `emission_image()` they sum to
+        `render()`."""
+        direct = self.direct.light_group_images()
+        if self.mode == "indirect":
+            images = {}
+            for group, image in direct.items():
+                lights = [light for light in self.direct.lights if light_group(light) == group]
+                images[f"{group}_direct"] = image
+                images[f"{group}_indirect"] = self.direct._to_image(self.cut_samples(lights))
+            return images
+        images = dict(direct)
+        groups: dict[str, list[Light]] = {}
+        for light in self._domes.values():
+            groups.setdefault(light_group(light), []).append(light)
+        for group, lights in groups.items():
+            image = self.direct._to_image(self.cut_samples(lights))
+            images[group] = images[group] + image if group in images else image
+        return images
+
+    def emission_image(self) -> torch.Tensor:
+        """(H, W, 3) the surfaces' own emission (indirect mode: also seen through one bounce)."""
+        if self.mode == "env":
+            return self.direct.emission_image()
+        return self.direct.emission_image() + self.direct._to_image(self.cut_samples([], emission=True))
+
+    def _cut_lights(self) -> list[Light]:
+        return list(self._domes.values()) if self.mode == "env" else self.direct.lights
+
+    def leaf_light(self, lights: list[Light], emission: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """(diffuse, specular) light (L, 3) of every leaf for the receivers' two BRDF lobes.
+
+        Env: the domes' radiance integrated over each leaf's cell (`env.dome_leaf_light`), times
+        the lights' per-lobe multipliers. Indirect: radiance x area of each surface point after one
+        diffuse reflection of `lights` (plus its emission with `emission`), the same for both lobes.
+        """
+        cuts = self.cuts
+        if self.mode == "env":
+            return (dome_leaf_light(lights, cuts.leaf_directions, cuts.leaf_weights, "diffuse"),
+                    dome_leaf_light(lights, cuts.leaf_directions, cuts.leaf_weights, "specular"))
+        points = cuts.leaf_points
+        radiance = points.emission.clone() if emission else torch.zeros_like(points.position)
+        for light in lights:
+            cached = self._leaf_radiance.get(light.path)
+            if cached is None or cached[0] is not light:
+                leaf = gather_radiance(light, points, self.direct.visibility, self.direct.num_light_samples(light),
+                                       object_paths=self.direct.object_paths)
+                cached = self._leaf_radiance[light.path] = (light, leaf)
+            radiance = radiance + cached[1]
+        light = radiance * points.area.unsqueeze(-1)
+        return light, light
+
+    def illumination_cut(self, lights: list[Light], emission: bool = False
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(nodes (K,), diffuse means (K, 3), specular means (K, 3)) of the illumination cut of
+        `lights`: refined by the nodes' luminance up to `settings.max_cut` nodes."""
+        tree = self.cuts.tree
+        diffuse, specular = (tree.aggregate(light) for light in self.leaf_light(lights, emission))
+        luminance = torch.as_tensor(REC709_LUMINANCE, device=diffuse.device, dtype=diffuse.dtype)
+        nodes = intensity_cut(tree, (diffuse + specular) @ luminance, self.settings.max_cut)
+        size = tree.size[nodes].to(diffuse.dtype).unsqueeze(-1)
+        return nodes, diffuse[nodes] / size, specular[nodes] / size
+
+    def _incident(self, node: torch.Tensor, sample: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(unit world directions (Q, 3) from the sub-samples towards the merged clusters, the
+        geometry factor (Q,) cos_k / d^2 in indirect mode or None in env mode)."""
+        if self.mode == "env":
+            return self._node_directions[node], None
+        offset = self._node_position[node] - self.direct.gbuffer.position[sample]
+        distance2 = offset.square().sum(-1)
+        direction = offset / distance2.sqrt().clamp_min(1e-30).unsqueeze(-1)
+        cosine = -(direction * self._node_normal[node]).sum(-1)
+        bound = self._node_area[node] / (2.0 * math.pi)
+        return direction, cosine.clamp_min(0.0) / torch.maximum(distance2, bound)
+
+    def cut_samples(self, lights: list[Light], emission: bool = False) -> torch.Tensor:
+        """(N, 3) radiance of every covered sub-sample from `lights` by cuts (env: their domes;
+        indirect: their bounce, plus the surfaces' emission bounced with `emission`), camera
+        exposure not applied."""
+        g = self.direct.gbuffer
+        out = torch.zeros_like(g.position)
+        self.stats.clear()
+        if self.mode == "env" and not lights:
+            return out
+        nodes, diffuse_light, specular_light = self.illumination_cut(lights, emission)
+        self.stats["illumination_cut"] = int(nodes.shape[0])
+        cuts, tree = self.cuts, self.cuts.tree
+        for start in range(0, g.num_samples, self.settings.rows_per_batch):
+            rows = torch.arange(start, min(start + self.settings.rows_per_batch, g.num_samples), device=g.device)
+            merged = self.merged_visibility(rows)
+            weights = cuts.sample_weights[rows]
+            # Clusters all three vertices see as dark stay dark however the illumination cut would
+            # split them: they are dropped before the illumination cut is merged in.
+            lit = self._visibility(merged, weights) > 0
+            self.stats["dark"] += int((~lit).sum())
+            merged = refine(tree, merged.select(lit), nodes)
+            self.stats["merged"] += int(merged.node.shape[0])
+            visibility = self._visibility(merged, weights)
+            sample = rows[merged.row]
+            direction, geometry = self._incident(merged.node, sample)
+            if geometry is not None:
+                visibility = visibility * geometry
+            wi_local = to_local(direction, g.tangent[sample], g.bitangent[sample], g.normal[sample])
+            live = (visibility > 0) & (wi_local[:, 2] > 0)
+            sample, wi_local, visibility = sample[live], wi_local[live], visibility[live]
+            node, light = merged.node[live], merged.cover[-1][live]
+            self.stats["shaded"] += int(sample.shape[0])
+            diffuse, specular = preview_surface.split(self.params.index(sample), self._wo_local[sample], wi_local)
+            weight = (tree.size[node].to(out.dtype) * visibility * wi_local[:, 2]).unsqueeze(-1)
+            out.index_add_(0, sample, (diffuse * diffuse_light[light] + specular * specular_light[light]) * weight)
+        return out
+
+    def _visibility(self, merged: MergedCuts, weights: torch.Tensor) -> torch.Tensor:
+        """(Q,) barycentric blend of the three vertices' cluster means; `weights` (P, 3) per row."""
+        values = self.cuts.visibility.values
+        return sum(weights[merged.row, j] * values[merged.cover[j]] for j in range(3))
+
+    def merged_visibility(self, rows: torch.Tensor) -> MergedCuts:
+        """The merged visibility cuts of the three lattice vertices of sub-samples `rows` (P,)."""
+        vertices = self.cuts.sample_vertices[rows]
+        return merge(self.cuts.tree, [(self.cuts.visibility, vertices[:, j]) for j in range(3)])

@@ -1,0 +1,180 @@
+"""The caching cameras of a multiview cache and their deep framebuffers, as one pool of samples.
+
+A cache records K pinhole cameras in a (K, C) float64 table (`CAMERA_COLUMNS`) and one deep
+framebuffer per camera. `CachingViews` concatenates the K G-buffers into one pool of samples
+(view k's covered sub-samples at rows offsets[k]:offsets[k + 1]) and keeps, per camera, a flat
+image of pool rows (-1 where nothing was hit) and of depths (inf there): the correspondence map
+projects a point into camera k and reads both at the pixel it lands in.
+
+Projection follows `pipeline.scene.camera` (the tests check the two agree): the camera looks down
+its local -Z with +Y up; x_film = focal x / depth, pixel column = ((x_film - x_offset) /
+horizontal_aperture + 0.5) W, row = (0.5 - (y_film - y_offset) / vertical_aperture) H.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from relight_torch.brdf.preview_surface import PreviewSurfaceParams
+from relight_torch.gbuffer import GBuffer
+
+CAMERA_COLUMNS = tuple(f"worldFromCamera{r}{c}" for r in range(4) for c in range(4)) + (
+    "focalLength", "horizontalAperture", "verticalAperture", "horizontalApertureOffset",
+    "verticalApertureOffset", "near", "far", "width", "height", "kind", "group")
+"""Columns of the (K, C) float64 camera table: the (4, 4) column-vector world_from_camera row by
+row, the film (tenths of a scene unit), clipping range, image size in pixels, kind (`PRIMARY` or
+`SECONDARY`) and group (the cube of a primary camera's six faces; the camera itself otherwise)."""
+PRIMARY, SECONDARY = 0, 1
+_COLUMN = {name: i for i, name in enumerate(CAMERA_COLUMNS)}
+
+
+def camera_column(table: np.ndarray, name: str) -> np.ndarray:
+    """(K,) column `name` of a (K, C) camera table."""
+    return table[:, _COLUMN[name]]
+
+
+def world_from_camera(table: np.ndarray) -> np.ndarray:
+    """(K, 4, 4) float64 world_from_camera of a (K, C) camera table."""
+    return np.asarray(table[:, :16], np.float64).reshape(-1, 4, 4)
+
+
+def check_camera_table(table: np.ndarray, source: str) -> None:
+    """Raise ValueError unless `table` is a finite (K, C) camera table with positive image sizes."""
+    if table.ndim != 2 or table.shape[1] != len(CAMERA_COLUMNS):
+        raise ValueError(f"{source}: camera table must be (K, {len(CAMERA_COLUMNS)}), got {table.shape}")
+    if not np.all(np.isfinite(table)):
+        raise ValueError(f"{source}: camera table has non-finite values")
+    size = table[:, [_COLUMN["width"], _COLUMN["height"]]]
+    if np.any(size < 1) or np.any(size != np.round(size)):
+        raise ValueError(f"{source}: camera image sizes must be positive integers")
+    film = table[:, [_COLUMN["focalLength"], _COLUMN["horizontalAperture"], _COLUMN["verticalAperture"]]]
+    if np.any(film <= 0):
+        raise ValueError(f"{source}: focal lengths and apertures must be > 0")
+
+
+def _concat_params(parts: list[PreviewSurfaceParams]) -> PreviewSurfaceParams:
+    names = [f.name for f in dataclasses.fields(PreviewSurfaceParams)]
+    return PreviewSurfaceParams(**{name: torch.cat([getattr(p, name) for p in parts]) for name in names})
+
+
+def concat_gbuffers(parts: list[GBuffer], image_size: tuple[int, int], pixel_index: torch.Tensor,
+                    camera_position: torch.Tensor) -> GBuffer:
+    """The samples of several G-buffers as one G-buffer of `image_size` at `pixel_index` (N,)."""
+    tensors = {name: torch.cat([getattr(p, name) for p in parts])
+               for name in ("position", "normal", "tangent", "bitangent", "geometric_normal", "material_id",
+                            "object_id", "depth")}
+    return GBuffer(image_size=image_size, pixel_index=pixel_index, params=_concat_params([p.params for p in parts]),
+                   camera_position=camera_position, **tensors)
+
+
+def gather_gbuffer(pool: GBuffer, rows: torch.Tensor) -> GBuffer:
+    """The pool's samples at `rows` (N,), as a GBuffer with the pool's (meaningless) image fields."""
+    return dataclasses.replace(
+        pool, pixel_index=pool.pixel_index[rows], position=pool.position[rows], normal=pool.normal[rows],
+        tangent=pool.tangent[rows], bitangent=pool.bitangent[rows], geometric_normal=pool.geometric_normal[rows],
+        params=pool.params.index(rows), material_id=pool.material_id[rows], object_id=pool.object_id[rows],
+        depth=pool.depth[rows])
+
+
+@dataclass(frozen=True)
+class CachingViews:
+    """K caching cameras with their deep framebuffers pooled (see the module docstring).
+
+    Attributes:
+        table: (K, C) float64 camera table (`CAMERA_COLUMNS`), on the CPU.
+        pool: every view's covered samples, concatenated: R rows, as a (1, R) image (the image
+            fields and camera_position mean nothing; the views' own are in the table).
+        camera_from_world: (K, 4, 4) float64 tensor.
+        sizes: (K, 2) int64 sub-sample image (height, width) of each view.
+        image_offsets: (K + 1,) int64 start of each view's flat image in `pool_row` and `depth`.
+        pool_row: (sum H W,) int64 pool row of each view pixel, -1 where the view hit nothing.
+        depth: (sum H W,) float32 cached depth along each view's axis, inf where it hit nothing.
+        pixel_angle: (K,) float32 angle one sub-sample pixel subtends at the image centre (radians).
+    """
+
+    table: np.ndarray
+    pool: GBuffer
+    camera_from_world: torch.Tensor
+    sizes: torch.Tensor
+    image_offsets: torch.Tensor
+    pool_row: torch.Tensor
+    depth: torch.Tensor
+    pixel_angle: torch.Tensor
+
+    @property
+    def num_views(self) -> int:
+        return int(self.table.shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        return self.pool.device
+
+    @staticmethod
+    def build(table: np.ndarray, gbuffers: list[GBuffer]) -> "CachingViews":
+        """Pool K views (`gbuffers[k]` baked by camera row k; all on one device).
+
+        Raises:
+            ValueError: the table is malformed or disagrees with the G-buffers.
+        """
+        check_camera_table(table, "caching views")
+        if len(gbuffers) != table.shape[0]:
+            raise ValueError(f"{table.shape[0]} cameras but {len(gbuffers)} deep framebuffers")
+        device = gbuffers[0].device if gbuffers else torch.device("cpu")
+        sizes, rows, depths = [], [], []
+        start = 0
+        for gbuffer in gbuffers:
+            height, width = gbuffer.image_size
+            sizes.append((height, width))
+            row = torch.full((height * width,), -1, dtype=torch.int64, device=device)
+            row[gbuffer.pixel_index] = torch.arange(start, start + gbuffer.num_samples, device=device)
+            depth = torch.full((height * width,), torch.inf, dtype=torch.float32, device=device)
+            depth[gbuffer.pixel_index] = gbuffer.depth.float()
+            rows.append(row)
+            depths.append(depth)
+            start += gbuffer.num_samples
+        size_tensor = torch.tensor(sizes, dtype=torch.int64, device=device).reshape(-1, 2)
+        offsets = torch.zeros(len(gbuffers) + 1, dtype=torch.int64, device=device)
+        offsets[1:] = torch.cumsum(size_tensor[:, 0] * size_tensor[:, 1], 0)
+        focal = camera_column(table, "focalLength")
+        aperture = camera_column(table, "horizontalAperture")
+        pixel_angle = aperture / focal / np.maximum(size_tensor[:, 1].cpu().numpy(), 1)
+        rows_all = torch.arange(start, device=device)
+        pool = concat_gbuffers(gbuffers, (1, start), rows_all, torch.zeros(3, device=device))
+        return CachingViews(
+            table=np.asarray(table, np.float64), pool=pool,
+            camera_from_world=torch.from_numpy(np.linalg.inv(world_from_camera(table))).to(device),
+            sizes=size_tensor, image_offsets=offsets, pool_row=torch.cat(rows), depth=torch.cat(depths),
+            pixel_angle=torch.as_tensor(pixel_angle, dtype=torch.float32, device=device))
+
+    def camera_position(self, k: int) -> torch.Tensor:
+        """(3,) float32 world position of camera k."""
+        position = world_from_camera(self.table[k:k + 1])[0, :3, 3]
+        return torch.as_tensor(position, dtype=torch.float32, device=self.device)
+
+    def project(self, k: int, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Points (N, 3) into camera k's sub-sample image.
+
+        Returns:
+            pixels (N, 2) float32 continuous (column, row) coordinates, NaN behind the camera;
+            depth (N,) float32 distance along the view axis (<= 0 behind).
+        """
+        matrix = self.camera_from_world[k].to(points.dtype)
+        local = points @ matrix[:3, :3].T + matrix[:3, 3]
+        depth = -local[:, 2]
+        row = self.table[k]
+        focal = float(row[_COLUMN["focalLength"]])
+        safe = torch.where(depth > 0, depth, torch.ones_like(depth))
+        x_film = focal * local[:, 0] / safe
+        y_film = focal * local[:, 1] / safe
+        height, width = (int(v) for v in self.sizes[k])
+        column = ((x_film - float(row[_COLUMN["horizontalApertureOffset"]])) / float(row[_COLUMN["horizontalAperture"]])
+                  + 0.5) * width
+        line = (0.5 - (y_film - float(row[_COLUMN["verticalApertureOffset"]])) / float(row[_COLUMN["verticalAperture"]])
+                ) * height
+        pixels = torch.stack((column, line), -1)
+        pixels = torch.where((depth > 0)[:, None], pixels, torch.full_like(pixels, torch.nan))
+        return pixels, depth

@@ -1,0 +1,64 @@
+"""`relight bake --quality PSNR`: sizes chosen from pilot bakes meet the target on the Cornell box."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pipeline.bake.direct import bake_direct
+from pipeline.bake.quality import corrected_psnr, pilot_size
+from pipeline.cli import main
+from pipeline.reference.path_tracer import PathTracer, ReferenceImage, ReferenceSettings
+from pipeline.scene import find_camera, load_scene
+from pipeline.scenes import SCENES
+from relight_torch.cache.layer import read_cache_layer
+from relight_torch.metrics import psnr
+from relight_torch.relighter import open_relighter
+
+TARGET_DB = 30.0
+
+
+def test_direct_sized_for_a_target_meets_it_with_a_smaller_cache_than_the_default(tmp_path):
+    bundled = SCENES["cornell_box"]
+    shot = bundled.write(tmp_path / "scene")
+    assert main(["bake", str(shot), "--camera", bundled.camera, "--width", "32", "--height", "32",
+                 "--out", str(tmp_path / "sized"), "--quality", str(TARGET_DB)]) == 0
+    layer = tmp_path / "sized" / "cornell_box.relight.usda"
+    description = read_cache_layer(layer)
+    parameters = description.parameters
+    assert parameters["qualityTarget"] == TARGET_DB and parameters["qualityPilot"] == "32x32"
+    assert parameters["qualityMeasured"] >= TARGET_DB and math.isfinite(parameters["qualityPredicted"])
+    assert parameters["qualityReferenceSpp"] >= 32
+    assert not any(path.name.startswith(".") for path in layer.parent.iterdir())  # pilot bakes removed
+
+    # An independent check: another seed, more spp, raw PSNR (the reference's noise not subtracted).
+    scene = load_scene(shot, width=32, height=32)
+    camera = find_camera(scene, bundled.camera)
+    reference = PathTracer(scene, ReferenceSettings(spp=512, max_bounces=0, seed=7)).render(camera).mean
+    assert psnr(open_relighter(layer).render().numpy(), reference) >= TARGET_DB
+
+    # The simple scene needs fewer sub-samples than the default 2 x 2: a smaller cache.
+    default = bake_direct(scene, camera, tmp_path / "default", "cornell_box")
+    assert parameters["supersampling"] < 2
+    assert (sum(p.num_bytes for p in description.payloads)
+            < sum(p.num_bytes for p in read_cache_layer(default).payloads))
+
+
+def test_pilot_size_keeps_the_aspect_and_never_grows():
+    assert pilot_size(640, 480, 64) == (64, 48)
+    assert pilot_size(32, 32, 64) == (32, 32)
+    assert pilot_size(1000, 10, 50) == (50, 1)
+
+
+def test_corrected_psnr_removes_the_reference_noise_on_average():
+    rng = np.random.default_rng(0)
+    truth = np.full((64, 64, 3), 0.5, np.float32)
+    variance = np.full_like(truth, 1e-3)
+    reference = ReferenceImage(truth + rng.normal(0.0, math.sqrt(1e-3), truth.shape).astype(np.float32), variance,
+                               0.0, 1)
+    image = truth + 0.01  # a true MSE of 1e-4: 40 dB
+    corrected, raw = corrected_psnr(image, reference)
+    assert raw == pytest.approx(10 * math.log10(1 / 1.1e-3), abs=0.2)
+    assert corrected == pytest.approx(40.0, abs=1.0)

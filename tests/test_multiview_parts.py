@@ -1,0 +1,145 @@
+"""The parts of the multiview method: projection, eq. 5 against its slow twin, hole filling,
+maximal spheres, importance sampling (no full bake)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from pxr import Usd
+
+from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
+from pipeline.bake.multiview.cameras import camera_from_row, camera_row, look_camera, resolution_from_coverage
+from pipeline.bake.multiview.samples import SurfaceSamples, object_importance, sample_surfaces
+from pipeline.bake.multiview.spheres import maximal_spheres
+from pipeline.bake.multiview.view import view_points
+from pipeline.scene import find_camera, load_scene
+from pipeline.scene.camera import project
+from pipeline.scenes import SCENES
+from pipeline.tracing import Tracer
+from relight_torch.multiview.correspondence import ViewPoints, correspondence_map, correspondence_map_reference
+from relight_torch.multiview.holes import fill_small_holes
+from relight_torch.multiview.views import PRIMARY, SECONDARY, CachingViews
+
+
+@pytest.fixture(scope="module")
+def cornell(tmp_path_factory):
+    shot = SCENES["cornell_box"].write(tmp_path_factory.mktemp("cornell"))
+    scene = load_scene(shot, width=32, height=24)
+    return shot, scene, Tracer(scene.geometry)
+
+
+@pytest.fixture(scope="module")
+def views(cornell):
+    """Three small caching cameras inside the Cornell box and their deep framebuffers."""
+    _, scene, tracer = cornell
+    lo, hi = scene.bounds
+    centre = (lo + hi) / 2
+    cameras = [look_camera("/C/0", centre, (0, 0, 1), (0, 1, 0), 90.0, 24, 1.0, 2000.0),
+               look_camera("/C/1", centre + [150, 100, -150], (-1, -1, 1), (0, 1, 0), 100.0, 32, 1.0, 2000.0),
+               look_camera("/C/2", centre + [-180, -120, 0], (1, -0.3, 0.5), (0, 1, 0), 60.0, 16, 1.0, 2000.0)]
+    table = np.stack([camera_row(c, PRIMARY if i == 0 else SECONDARY, i) for i, c in enumerate(cameras)])
+    gbuffers = [bake_deep_framebuffer(scene, c, 1, 1, tracer).gbuffer for c in cameras]
+    return CachingViews.build(table, gbuffers), cameras
+
+
+def test_camera_rows_round_trip_and_project_as_the_pipeline_does(views):
+    caching, cameras = views
+    rng = np.random.default_rng(0)
+    points = rng.uniform(0, 550, (500, 3))
+    for k, camera in enumerate(cameras):
+        again = camera_from_row(caching.table[k], camera.path)
+        np.testing.assert_allclose(again.world_from_camera, camera.world_from_camera)
+        expected_pixels, expected_depth = project(camera, points)
+        pixels, depth = caching.project(k, torch.from_numpy(points))
+        np.testing.assert_allclose(depth.numpy(), expected_depth, rtol=1e-9)
+        front = expected_depth > 0
+        np.testing.assert_allclose(pixels.numpy()[front], expected_pixels[front], rtol=1e-7, atol=1e-6)
+        assert np.isnan(pixels.numpy()[~front]).all()
+
+
+def test_correspondence_map_matches_its_slow_twin(cornell, views):
+    _, scene, tracer = cornell
+    caching, _ = views
+    camera = find_camera(scene, SCENES["cornell_box"].camera)
+    view = view_points(tracer, scene.geometry.object_ids, camera)
+    pick = torch.from_numpy(np.random.default_rng(1).choice(view.num_points, 150, replace=False))
+    position, normal, objects = view.position[pick], view.geometric_normal[pick], view.object_id[pick]
+    fast = correspondence_map(caching, position, normal, objects)
+    slow = correspondence_map_reference(caching, position.numpy(), normal.numpy(), objects.numpy())
+    # float32 against float64: scores may tie within rounding, so compare where they are distinct.
+    distinct = (fast.score - slow.score).abs() <= 1e-5 * slow.score.abs()
+    assert distinct.float().mean() > 0.98
+    assert torch.equal(fast.pool_row[distinct], slow.pool_row[distinct])
+    assert torch.equal(fast.view[distinct], slow.view[distinct])
+    assert 0.3 < float(fast.covered.float().mean()) < 1.0  # both covered and uncovered points are exercised
+
+
+def _grid_view(height, width, holes):
+    """A (height, width) view on one plane z = 0 facing +z, every pixel covered, `holes` flat pixels unmatched."""
+    index = torch.arange(height * width)
+    rows = index.clone()
+    rows[holes] = -1
+    position = torch.stack([index % width, index // width, torch.zeros_like(index)], -1).float()
+    normal = torch.tensor([[0.0, 0.0, 1.0]]).expand(height * width, 3)
+    view = ViewPoints((height, width), index, position, normal, torch.zeros(height * width, dtype=torch.int64),
+                      torch.ones(height * width), torch.tensor([0.0, 0.0, 10.0]))
+    return view, rows
+
+
+def test_small_holes_are_filled_from_neighbours_and_large_ones_reported(views):
+    caching, _ = views
+    pool = caching.pool
+    height, width = 8, 10
+    single, pair = [2 * width + 2], [5 * width + 1, 5 * width + 2]
+    block = [r * width + c for r in range(1, 4) for c in range(6, 9)]
+    view, rows = _grid_view(height, width, torch.tensor(single + pair + block))
+    # Every pool row used here: on object 0 facing +z, except row 11 (another object).
+    pool = pool.__class__(**{**pool.__dict__, "object_id": torch.zeros(pool.num_samples, dtype=torch.int32),
+                             "geometric_normal": torch.tensor([[0.0, 0.0, 1.0]]).expand(pool.num_samples, 3)})
+    pool.object_id[11] = 5
+    filled, report = fill_small_holes(view, rows, pool)
+    assert report.num_holes == 12 and report.num_large_holes == 1 and report.num_filled == 3
+    assert sorted(report.large_pixel_index.tolist()) == block
+    assert int(filled[single[0]]) in {single[0] + d for d in (-width - 1, -width, -width + 1, -1, 1, width - 1, width,
+                                                          width + 1)}
+    assert filled[single[0]] != 11 and (filled[block] == -1).all()
+    assert report.hole_fraction_before == pytest.approx(12 / 80) and report.hole_fraction_after == pytest.approx(9 / 80)
+
+
+def _cube_samples(count: int, rng) -> SurfaceSamples:
+    """Samples on the inside of the unit cube's six faces, normals pointing in."""
+    axis = rng.integers(0, 3, count)
+    side = rng.integers(0, 2, count)
+    position = rng.random((count, 3))
+    position[np.arange(count), axis] = side
+    normal = np.zeros((count, 3))
+    normal[np.arange(count), axis] = 1 - 2 * side
+    return SurfaceSamples(position.astype(np.float32), normal.astype(np.float32), np.ones(count),
+                          np.zeros(count, np.int32))
+
+
+def test_maximal_sphere_of_an_empty_cube_is_its_inscribed_sphere():
+    rng = np.random.default_rng(2)
+    samples = _cube_samples(6000, rng)
+    spheres = maximal_spheres(samples, np.full(3, -0.5), np.full(3, 1.5), 0.02, patience=4, rng=rng)
+    assert spheres, "no sphere found"
+    best = spheres[0]
+    np.testing.assert_allclose(best.centre, 0.5, atol=0.06)
+    assert 0.44 < best.radius <= 0.5
+
+
+def test_importance_attribute_weights_the_samples(cornell, tmp_path):
+    shot, scene, _ = cornell
+    layer = Usd.Stage.Open(str(shot))
+    tall = layer.GetPrimAtPath("/World/Geometry/TallBlock")
+    tall.ApplyAPI("RelightImportanceAPI")
+    tall.GetAttribute("relight:importance").Set(0.0)
+    layer.GetRootLayer().Export(str(tmp_path / "weighted.usda"))
+    weighted = load_scene(tmp_path / "weighted.usda", width=32, height=24)
+    importance = object_importance(weighted)
+    paths = [obj.path for obj in weighted.objects]
+    assert importance[paths.index("/World/Geometry/TallBlock")] == 0.0 and importance.sum() == len(paths) - 1
+    samples = sample_surfaces(weighted, 2000, np.random.default_rng(0), importance)
+    assert paths.index("/World/Geometry/TallBlock") not in set(samples.object_id.tolist())
+    assert resolution_from_coverage(1.0, 32, 256) == 256 and resolution_from_coverage(0.01, 32, 256) == 32

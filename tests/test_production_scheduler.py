@@ -1,0 +1,115 @@
+"""The chunk scheduler: valid chunks are kept, anything else is recomputed; stale bakes say what changed."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import production_support
+from pipeline.bake import scheduler
+from pipeline.bake.direct import bake_direct
+from pipeline.bake.scheduler import ChunkSpec, ShotSpec, chunk_folder, chunk_ranges, load_chunk, run_chunks
+from pipeline.cli import main
+from pipeline.scene import find_camera, load_scene
+from pipeline.scenes import SCENES
+from relight_torch.cache.layer import read_cache_layer
+from relight_torch.cache.status import cache_status
+
+SHOT = ShotSpec("/nonexistent/shot.usda", "/Camera", 4, 4)
+CALLS: list[tuple[int, int]] = []
+
+
+def squares(spec: ChunkSpec) -> dict[str, np.ndarray]:
+    """A chunk: the squares of its range times parameter 'scale'."""
+    CALLS.append((spec.start, spec.stop))
+    return {"values": np.arange(spec.start, spec.stop) ** 2 * spec.param("scale")}
+
+
+def _specs(scale: int = 1) -> list[ChunkSpec]:
+    return [ChunkSpec(SHOT, "squares", (("scale", scale),), start, stop, (("threads", 1),))
+            for start, stop in chunk_ranges(10, 4)]
+
+
+def test_chunk_ranges_cover_the_work_once():
+    assert chunk_ranges(10, 4) == [(0, 4), (4, 8), (8, 10)]
+    assert chunk_ranges(0, 4) == []
+    with pytest.raises(ValueError, match="chunk size"):
+        chunk_ranges(10, 0)
+
+
+def test_valid_chunks_are_kept_and_bad_ones_recomputed(tmp_path):
+    CALLS.clear()
+    paths = run_chunks(squares, _specs(), tmp_path, progress=False)
+    assert [p.name for p in paths] == [f"squares-{a:09d}-{b:09d}.npz" for a, b in chunk_ranges(10, 4)]
+    assert np.concatenate([load_chunk(p)["values"] for p in paths]).tolist() == [i * i for i in range(10)]
+    assert len(CALLS) == 3
+
+    CALLS.clear()
+    paths[0].write_bytes(paths[0].read_bytes()[:-20])        # truncated (a hand edit, a bad disk)
+    paths[1].write_bytes(paths[2].read_bytes())              # another chunk's file
+    (tmp_path / ".squares-000000008-000000010.tmp-1.npz").write_bytes(b"half")  # a killed writer's temp
+    speedier = [ChunkSpec(s.shot, s.name, s.parameters, s.start, s.stop, (("threads", 2),)) for s in _specs()]
+    again = run_chunks(squares, speedier, tmp_path, progress=False)
+    assert sorted(CALLS) == [(0, 4), (4, 8)]                 # options are not part of a chunk's identity
+    assert np.concatenate([load_chunk(p)["values"] for p in again]).tolist() == [i * i for i in range(10)]
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+    CALLS.clear()
+    run_chunks(squares, _specs(scale=3), tmp_path, progress=False)  # another parameter: nothing reused
+    assert len(CALLS) == 3
+
+
+def test_chunk_folders_of_other_inputs_are_removed(tmp_path):
+    old = chunk_folder(tmp_path, "shot", "direct", "a" * 64)
+    old.mkdir()
+    other_stem = chunk_folder(tmp_path, "other", "direct", "a" * 64)
+    other_stem.mkdir()
+    new = chunk_folder(tmp_path, "shot", "direct", "b" * 64)
+    assert new.name == ".shot.direct-" + "b" * 16
+    assert not old.exists() and other_stem.exists()
+
+
+def test_dask_address_without_a_cluster_is_one_clear_error(tmp_path):
+    pytest.importorskip("distributed")
+    with scheduler.using(scheduler.Scheduler(address="dask")), pytest.raises(Exception, match="scheduler-address"):
+        run_chunks(squares, _specs(), tmp_path, progress=False)
+
+
+def _bake(shot: Path, out: Path) -> Path:
+    scene = load_scene(shot, width=8, height=8)
+    return bake_direct(scene, find_camera(scene, SCENES["cornell_box"].camera), out, "cornell_box", 1, 1)
+
+
+def test_changed_input_is_reported_stale_and_baked_afresh(tmp_path, capsys):
+    shot = production_support.write_shot(tmp_path / "scene")
+    layer = _bake(shot, tmp_path / "cache")
+    description = read_cache_layer(layer)
+    assert description.code_version and len(description.content_hash) == 64
+    assert main(["info", str(layer)]) == 0
+    out = capsys.readouterr().out
+    assert f"  code version: {description.code_version}" in out and "  status: valid" in out
+
+    with open(shot, "a") as handle:
+        handle.write("\n# an artist's edit\n")
+    assert cache_status(layer).stale_inputs == {str(shot.resolve()): "changed"}
+    assert main(["info", str(layer)]) == 1
+    out = capsys.readouterr().out
+    assert "  status: stale" in out and f"input {shot.resolve()} changed since the bake" in out
+    rebaked = read_cache_layer(_bake(shot, tmp_path / "cache"))
+    assert rebaked.content_hash != description.content_hash and cache_status(layer).verdict == "valid"
+
+
+def worker_pid(spec: ChunkSpec) -> dict[str, np.ndarray]:
+    """A chunk: its squares and the id of the process that computed it."""
+    return {**squares(spec), "pid": np.array(os.getpid())}
+
+
+def test_a_local_pool_computes_the_chunks_in_worker_processes(tmp_path):
+    with scheduler.using(scheduler.Scheduler(workers=2)):
+        paths = run_chunks(worker_pid, _specs(), tmp_path, progress=False)
+    chunks = [load_chunk(p) for p in paths]
+    assert os.getpid() not in {int(c["pid"]) for c in chunks}
+    assert np.concatenate([c["values"] for c in chunks]).tolist() == [i * i for i in range(10)]
