@@ -57,11 +57,18 @@ def diffuse_radiance(light: Light, position: torch.Tensor, normal: torch.Tensor,
     for start in range(0, position.shape[0], chunk_points):
         chunk = slice(start, start + chunk_points)
         sample = sample_light(light, position[chunk], u[chunk])
-        distance = visibility.occluder_distance(light, position[chunk], normal[chunk], sample.direction,
-                                                sample.distance)
-        shadow = shadow_factor(light.shadow, torch.isfinite(distance), distance)
         cosine = (sample.direction * normal[chunk].unsqueeze(1)).sum(-1).clamp(min=0.0)
-        irradiance[chunk] = (sample.weight() * shadow * cosine.unsqueeze(-1)).mean(dim=1)
+        weight = sample.weight() * cosine.unsqueeze(-1)
+        # Shadow rays only for the (point, sample) pairs that carry light: points facing away from
+        # the light or outside its cone cost nothing.
+        point, live = torch.nonzero((weight != 0).any(-1), as_tuple=True)
+        distance = torch.full_like(sample.distance, math.inf)
+        if point.numel():
+            distance[point, live] = visibility.occluder_distance(
+                light, position[chunk][point], normal[chunk][point], sample.direction[point, live].unsqueeze(1),
+                sample.distance[point, live].unsqueeze(1)).squeeze(1)
+        shadow = shadow_factor(light.shadow, torch.isfinite(distance), distance)
+        irradiance[chunk] = (weight * shadow).mean(dim=1)
     if linked is not None:
         irradiance = irradiance.new_zeros(num_points, 3).index_copy_(0, lit, irradiance)
     return light.diffuse * albedo / math.pi * irradiance

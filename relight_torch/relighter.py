@@ -58,7 +58,7 @@ from relight_torch.lights.linking import decode_paths, linked_objects
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.lights.shaping import emission_factor
 from relight_torch.lights.usd import read_stage_lights
-from relight_torch.math.frame import to_local
+from relight_torch.math.frame import dot, to_local
 from relight_torch.stage import open_stage, time_code
 from relight_torch.visibility import Visibility
 from relight_torch.visibility.embree import EmbreeCaster, ShadowLinkCasters
@@ -133,7 +133,7 @@ def colour_scale(light: Light) -> np.ndarray:
     return np.divide(full, unit, out=np.zeros(3), where=unit != 0)
 
 
-@dataclass(frozen=True)
+@dataclass
 class _Transport:
     """A light's cached transport: P shading points it reaches, S samples each.
 
@@ -141,25 +141,44 @@ class _Transport:
         points: (P,) int64 indices of the shading points, ascending, or None for all N (the
             light reaches most of them: a scatter per shading pass would cost more than the
             unlit points' zeros).
-        emission_local: (S, P, 3) unit emission directions in the light's frame (from the
-            light's samples towards the points), or None when shaping does not apply (distant
-            and dome lights, whose samples are then summed: S = 1).
+        directions: (S, P, 3) unit world directions from the points towards the light's
+            samples, or None when shaping does not apply (distant and dome lights, whose
+            samples are then summed: S = 1).
         lobes: (2, S, P, 3) each sample's diffuse [0] and specular [1] f cos(theta_i) L_i V /
             (pdf S) for the unshaped unit light (V: the ShadowAPI factor).
+        emission_local: (S, P, 3) unit emission directions in the light's frame, from the
+            samples towards the points: made from `directions` (then dropped) when a shaping or
+            Barzel control first needs them, so a light without them never pays for the change
+            of frame.
 
     Samples lead and colours trail so that the shaping factor broadcasts over whole (P, 3)
     slabs and sums over samples add slabs: torch's CPU kernels vectorise those, while a
     broadcast or a reduction over a middle axis of (P, S, 2, 3) ran 10-20x slower.
     """
 
-    points: torch.Tensor
-    emission_local: torch.Tensor | None
+    points: torch.Tensor | None
+    directions: torch.Tensor | None
     lobes: torch.Tensor
+    emission_local: torch.Tensor | None = None
 
     @property
     def num_bytes(self) -> int:
-        tensors = (self.points, self.emission_local, self.lobes)
+        tensors = (self.points, self.directions, self.lobes, self.emission_local)
         return sum(t.numel() * t.element_size() for t in tensors if t is not None)
+
+    @property
+    def shapeable(self) -> bool:
+        """Whether the samples keep their directions (shaping and Barzel controls apply)."""
+        return self.directions is not None or self.emission_local is not None
+
+    def emission_in(self, light: Light) -> torch.Tensor:
+        """`emission_local` for the light the transport was traced for (its transform)."""
+        if self.emission_local is None:
+            directions = self.directions
+            self.emission_local = torch.nn.functional.normalize(
+                LightFrame.of(light, directions).vector_to_local(-directions), dim=-1)
+            self.directions = None
+        return self.emission_local
 
 
 @dataclass
@@ -382,12 +401,12 @@ class Relighter:
             raise ValueError(f"{light.path}: shadow linking needs Embree shadow rays (shadows='embree')")
         num_samples = self.num_light_samples(light)
         parts = [self._chunk_transport(light, chunk, num_samples) for chunk in self._chunks(num_samples)]
-        shaped = parts[0].emission_local is not None
+        shaped = parts[0].directions is not None
         if len(parts) == 1:
-            lobes, emission_local = parts[0].lobes, parts[0].emission_local
+            lobes, directions = parts[0].lobes, parts[0].directions
         else:
             lobes = torch.cat([part.lobes for part in parts], dim=2)
-            emission_local = torch.cat([part.emission_local for part in parts], dim=1) if shaped else None
+            directions = torch.cat([part.directions for part in parts], dim=1) if shaped else None
         points = parts[0].points if len(parts) == 1 else None
         if len(parts) > 1 and any(part.points is not None for part in parts):
             points = torch.cat([torch.arange(chunk.start, chunk.stop, device=g.device) if part.points is None
@@ -395,10 +414,10 @@ class Relighter:
             if 2 * points.shape[0] > g.num_samples:
                 lobes = lobes.new_zeros(2, lobes.shape[1], g.num_samples, 3).index_copy_(2, points, lobes)
                 if shaped:
-                    emission_local = emission_local.new_zeros(num_samples, g.num_samples, 3).index_copy_(
-                        1, points, emission_local)
+                    directions = directions.new_zeros(num_samples, g.num_samples, 3).index_copy_(
+                        1, points, directions)
                 points = None
-        state.transport = _Transport(points, emission_local, lobes)
+        state.transport = _Transport(points, directions, lobes)
         state.images = None
         self.counters["visibility"] += 1
         return state.transport
@@ -415,7 +434,7 @@ class Relighter:
         sample = sample_light(light, g.position[chunk], self._fixed_u(num_samples)[chunk])
         direction = sample.direction.transpose(0, 1)  # (S, C, 3), contiguous: see sample_light
         wi_local = to_local(direction, g.tangent[chunk], g.bitangent[chunk], g.normal[chunk])
-        facing = (direction * g.geometric_normal[chunk]).sum(-1) > 0
+        facing = dot(direction, g.geometric_normal[chunk]) > 0
         # Every per-sample scalar in one (S, C) factor: 1 / pdf, both hemispheres, cos / S.
         cosine = wi_local[..., 2]
         scalar = sample.inverse_pdf().transpose(0, 1) * ((cosine > 0) & facing) * (cosine / num_samples)
@@ -441,9 +460,7 @@ class Relighter:
         torch.mul(specular, weight, out=lobes[1])
         if light.kind not in _SHAPED_KINDS:
             return _Transport(points, None, lobes.sum(1, keepdim=True))
-        emission_local = torch.nn.functional.normalize(LightFrame.of(light, direction).vector_to_local(-direction),
-                                                       dim=-1)
-        return _Transport(points, emission_local, lobes)
+        return _Transport(points, direction, lobes)
 
     def _images(self, state: _LightState) -> torch.Tensor:
         """The light's diffuse and specular unit images (2, N, 3): transport x shaping, per point."""
@@ -465,13 +482,13 @@ class Relighter:
 
     def _emission_factor(self, light: Light, transport: _Transport) -> torch.Tensor | None:
         """(S, P, 3) ShapingAPI x Barzel factor of each cached sample; None when nothing applies."""
-        if transport.emission_local is None:
+        if not transport.shapeable or (light.shaping is None and light.barzel is None):
             return None
         position = self.gbuffer.position
         if light.barzel is not None and transport.points is not None:  # receivers matter to Barzel only
             position = position[transport.points]
         origin = torch.as_tensor(light.world_from_light[:3, 3], device=position.device, dtype=position.dtype)
-        return emission_factor(light, transport.emission_local, position, origin)
+        return emission_factor(light, transport.emission_in(light), position, origin)
 
 
 def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",

@@ -175,7 +175,7 @@ def test_unknown_light_type_is_skipped_with_a_warning(cache, tmp_path, caplog, c
 
 def test_non_finite_light_attribute_names_prim_and_attribute_when_baking(cache, tmp_path):
     lights = _lights_layer(tmp_path, '    def SphereLight "Key"\n    {\n        float inputs:intensity = nan\n    }')
-    with pytest.raises(RelightError, match=r"^/Rig/Key: inputs:intensity = nan must be finite"):
+    with pytest.raises(RelightError, match=r"lights\.usda: /Rig/Key: inputs:intensity = nan must be finite"):
         load_scene(_shot(cache), lights_layer=lights, width=SIZE, height=SIZE)
 
 

@@ -143,3 +143,17 @@ def test_light_tree_groups_nearby_directions():
         return float(np.linalg.norm(groups - groups.mean(axis=1, keepdims=True), axis=-1).mean())
 
     assert spread(order) < 0.5 * spread(np.random.default_rng(0).permutation(1024))
+
+
+def _mean_cut_size(layer: Path) -> float:
+    payloads = {payload.name: payload for payload in read_cache_layer(layer).payloads}
+    return payloads["cutsNodes"].shape[0] / (payloads["cutsOffsets"].shape[0] - 1)
+
+
+def test_data_driven_tree_shortens_the_visibility_cuts(dome):
+    scene, camera, layer, reference, directory = dome
+    driven = bake_cuts(scene, camera, directory / "driven", "dome", supersampling=2, texture_samples=2,
+                       settings=CutsSettings(num_lights=LIGHTS, sigma=2.0, lattice_edge=0.03, beta=0.5))
+    gain = 1.0 - _mean_cut_size(driven) / _mean_cut_size(layer)
+    assert gain > 0.15                # measured 23 % (54.3 -> 42.0 nodes per vertex); the paper: 16-30 %
+    assert _psnr(open_cache_relighter(driven).render(), reference) > 27.5     # measured 28.5 dB

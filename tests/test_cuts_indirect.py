@@ -27,13 +27,13 @@ def test_indirect_mode_matches_the_one_bounce_reference(tmp_path):
     full, direct = (torch.from_numpy(PathTracer(scene, ReferenceSettings(spp=256, max_bounces=bounces,
                                                                          num_workers=1)).render(camera).mean)
                     for bounces in (1, 0))
-    # Measured: indirect 34.3 dB, whole image 30.7 dB; the bounce is low by a third at 1024 point
-    # lights (0.0186 against 0.0290 on average; 14 % low with 4096 lights at 32 x 32): clusters of
-    # surface points stand at their mean position, their solid angle bounded near the receiver.
-    assert float(psnr(indirect, full - direct)) > 32.5
-    assert float(psnr(image, full)) > 29.0
+    # Measured: indirect 36.7 dB, whole image 31.9 dB; the bounce is 20 % low on average (0.0231
+    # against 0.0290; 14 % low with 4096 lights at 32 x 32): the surface points re-emit diffusely
+    # (no specular bounce), and a point's solid angle is bounded by a hemisphere's near a receiver.
+    assert float(psnr(indirect, full - direct)) > 35.0
+    assert float(psnr(image, full)) > 30.5
     ratio = float(indirect.mean() / (full - direct).mean())
-    assert 0.5 < ratio < 1.05
+    assert 0.7 < ratio < 1.05
     groups = relighter.light_group_images()
     assert set(groups) == {f"{g}_{part}" for g in relighter.direct.light_group_images() for part in ("direct", "indirect")}
     np.testing.assert_allclose((sum(groups.values()) + relighter.emission_image()).numpy(), image.numpy(), atol=1e-5)

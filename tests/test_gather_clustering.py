@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -152,6 +154,11 @@ def test_representative_values_are_equation_3s_inner_sums():
     torch.testing.assert_close(values, expected)
     pixels = interpolate(values, gather_set.neighbours, gather_set.rbf)
     torch.testing.assert_close(pixels, torch.stack([0.5 * values[0] + 0.5 * values[2], values[2]]))
+    # Grey weights take the one-bag path: the same sums.
+    grey = dataclasses.replace(gather_set, weight=gather_set.weight[:, :1].expand(-1, 3).contiguous())
+    contributions = radiance[grey.index] * grey.weight
+    expected = torch.stack([contributions[0:2].sum(0), torch.zeros(3), contributions[2:5].sum(0)])
+    torch.testing.assert_close(grey.representative_values(radiance), expected)
 
 
 @pytest.mark.parametrize("offsets, neighbours", [([1, 2, 5], [[0, 1]]), ([0, 3, 2, 5], [[0, 1]]),

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom
 
-from pipeline.bake.multiview.bake import bake_multiview
+from pipeline.bake.multiview.bake import bake_multiview, coverage_summary
 from pipeline.bake.multiview.frames import FrameRenderer
 from pipeline.bake.multiview.placement import PlacementSettings
 from pipeline.bake.multiview.view import view_points
@@ -70,13 +70,15 @@ def test_bake_records_caching_cameras_and_coverage(baked):
     table = np.load(layer.parent / "cornell.cameras.npy", allow_pickle=False)
     assert parameters["numViews"] == table.shape[0] == sum(p.name.startswith("view") for p in description.payloads)
     assert parameters["numPrimary"] >= 1
-    fov = np.degrees(2 * np.arctan(camera_column(table, "horizontalAperture") / 2 / camera_column(table, "focalLength")))
+    half_width = camera_column(table, "horizontalAperture") / 2 / camera_column(table, "focalLength")
+    fov = np.degrees(2 * np.arctan(half_width))
     assert np.all(fov <= 120.0 + 1e-6)
     # Primary faces are 90 degrees; the loop stops under the threshold or at the camera budget.
     assert np.allclose(fov[camera_column(table, "kind") == 0], 90.0)
     assert parameters["uncoveredFraction"] < SETTINGS.coverage or parameters["numSecondary"] == SETTINGS.max_secondary
     assert parameters["primaryFraction"] > 0.5
     assert set(camera_column(table, "width")) <= {32.0, 64.0, 128.0}
+    assert coverage_summary(layer).startswith(f"{parameters['numViews']} caching views")
 
 
 def test_novel_view_matches_reference(baked, tmp_path):
@@ -142,3 +144,13 @@ def test_render_cli_camera_from_lights_layer_over_time(baked, tmp_path):
     np.testing.assert_allclose(first, expected, atol=1e-3)
     assert np.abs(first - second).mean() > 1e-3
     assert main(["render", str(layer), "--camera", "/World/Missing", "-o", str(out)]) == 2
+    # Without --camera a multiview cache renders its own camera (the shot camera, NovelCam at time 1).
+    assert main(["render", str(layer), "-o", str(tmp_path / "own.exr")]) == 0
+    np.testing.assert_allclose(read_rgb_exr(tmp_path / "own.exr"), first, atol=1e-3)
+
+
+def test_bake_cli_refuses_an_empty_box(tmp_path):
+    shot = SCENES["cornell_box"].write(tmp_path)
+    assert main(["bake", str(shot), "--camera", SCENES["cornell_box"].camera, "--method", "multiview",
+                 "--box", "0", "0", "0", "0", "1", "1", "-o", str(tmp_path / "out")]) == 2
+    assert not (tmp_path / "out").exists() or not list((tmp_path / "out").glob("*.relight.usda"))

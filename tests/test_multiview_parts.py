@@ -19,6 +19,7 @@ from pipeline.scenes import SCENES
 from pipeline.tracing import Tracer
 from relight_torch.multiview.correspondence import ViewPoints, correspondence_map, correspondence_map_reference
 from relight_torch.multiview.holes import fill_small_holes
+from relight_torch.multiview.resample import bilinear_samples
 from relight_torch.multiview.views import PRIMARY, SECONDARY, CachingViews
 
 
@@ -143,3 +144,26 @@ def test_importance_attribute_weights_the_samples(cornell, tmp_path):
     samples = sample_surfaces(weighted, 2000, np.random.default_rng(0), importance)
     assert paths.index("/World/Geometry/TallBlock") not in set(samples.object_id.tolist())
     assert resolution_from_coverage(1.0, 32, 256) == 256 and resolution_from_coverage(0.01, 32, 256) == 32
+
+
+def test_bilinear_resampling_is_exact_at_pixel_centres_and_blends_between(views):
+    caching, _ = views
+    pool = caching.pool
+    # Pool rows of view 0 (pixel-centred) whose right-hand neighbour is a sample of the same surface.
+    rows = torch.nonzero(caching.pool_view == 0).squeeze(-1)
+    centre = caching.pool_pixel[rows]
+    right = caching.pool_row[(centre[:, 1] - 0.5).long() * int(caching.sizes[0, 1]) + (centre[:, 0] + 0.5).long()
+                             .clamp(max=int(caching.sizes[0, 1]) - 1)]
+    ok = (right >= 0) & (pool.object_id[right.clamp(min=0)] == pool.object_id[rows]) & (
+        (pool.geometric_normal[right.clamp(min=0)] * pool.geometric_normal[rows]).sum(-1) > 0.99) & (
+        centre[:, 0] + 1 < int(caching.sizes[0, 1]))
+    rows, right, centre = rows[ok][:50], right[ok][:50], centre[ok][:50]
+    assert rows.numel() == 50
+    view = torch.zeros_like(rows)
+    at_centre = bilinear_samples(caching, view, centre, rows, pool.object_id[rows], pool.geometric_normal[rows])
+    torch.testing.assert_close(at_centre.params.diffuse_color, pool.params.diffuse_color[rows])
+    torch.testing.assert_close(at_centre.normal, pool.normal[rows], atol=1e-5, rtol=1e-5)
+    between = bilinear_samples(caching, view, centre + torch.tensor([0.5, 0.0]), rows, pool.object_id[rows],
+                               pool.geometric_normal[rows])
+    expected = 0.5 * (pool.params.diffuse_color[rows] + pool.params.diffuse_color[right])
+    torch.testing.assert_close(between.params.diffuse_color, expected, atol=1e-5, rtol=1e-5)

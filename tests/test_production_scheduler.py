@@ -12,6 +12,7 @@ import production_support
 from pipeline.bake import scheduler
 from pipeline.bake.direct import bake_direct
 from pipeline.bake.scheduler import ChunkSpec, ShotSpec, chunk_folder, chunk_ranges, load_chunk, run_chunks
+from pipeline.bake.transfer import bake as transfer
 from pipeline.cli import main
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
@@ -113,3 +114,23 @@ def test_a_local_pool_computes_the_chunks_in_worker_processes(tmp_path):
     chunks = [load_chunk(p) for p in paths]
     assert os.getpid() not in {int(c["pid"]) for c in chunks}
     assert np.concatenate([c["values"] for c in chunks]).tolist() == [i * i for i in range(10)]
+
+
+def test_transfer_rows_are_the_same_on_one_or_two_threads_and_resume(tmp_path, monkeypatch):
+    """Replaces the closure-based check of `bake_rows` (tests/test_transfer.py) on the chunk API."""
+    shot_path = production_support.write_shot(tmp_path / "scene")
+    scene = load_scene(shot_path, width=8, height=8)
+    shot = ShotSpec.of(scene, find_camera(scene, SCENES["cornell_box"].camera))
+    baked = {}
+    for threads in (1, 2):
+        settings = transfer.TransferSettings(num_gathers=16, rows_per_chunk=16, pairs_per_batch=5 * 16,
+                                             num_threads=threads)
+        baked[threads] = transfer.bake_rows(shot, transfer.F_PREFIX, 37, 6, 1, settings, tmp_path / str(threads),
+                                            progress=False).arrays()
+    assert baked[1].keys() == baked[2].keys()
+    for name in baked[1]:
+        np.testing.assert_array_equal(baked[1][name], baked[2][name])
+    # Run again: every chunk is on disk, nothing is evaluated.
+    monkeypatch.setattr(transfer, "final_gather_rows", lambda *args: pytest.fail("a finished chunk was re-evaluated"))
+    again = transfer.bake_rows(shot, transfer.F_PREFIX, 37, 6, 1, settings, tmp_path / "2", progress=False).arrays()
+    np.testing.assert_array_equal(again["Values"], baked[2]["Values"])

@@ -12,7 +12,6 @@ import torch
 from pipeline.bake.transfer.gather_cloud import flatten_order, refine_triangles, split_budget, triangle_areas
 from pipeline.bake.transfer.rows import gather_transport
 from relight_torch.lights.light import Light, LightKind
-from pipeline.bake.transfer.bake import TransferSettings, bake_rows
 from relight_torch.transfer.encoding import EncodedRows, decode, decode_rows, encode, encode_rows
 from relight_torch.transfer.gathers import GatherSamples, gather_radiance
 from relight_torch.transfer.haar import haar2d, inverse_haar2d, support_area
@@ -175,32 +174,6 @@ def test_stored_indices_are_narrow_where_they_fit(num_columns, index_dtype):
     assert back.indices.dtype == torch.int32 and back.indices.tolist() == indices.tolist()
     torch.testing.assert_close(back.row_colour, rows.row_colour)
     torch.testing.assert_close(back.values, rows.values, rtol=0, atol=0.5 / 255)
-
-
-def test_threaded_bake_equals_one_thread_and_resumes(tmp_path):
-    generator = torch.Generator().manual_seed(10)
-    matrix = torch.rand((37, 16, 3), generator=generator) * torch.rand((37, 1, 3), generator=generator)
-    calls = []
-
-    def evaluate(rows: slice) -> torch.Tensor:
-        calls.append(rows)
-        return matrix[rows]
-
-    baked = {}
-    for num_threads in (1, 2):
-        settings = TransferSettings(num_gathers=16, rows_per_chunk=16, pairs_per_batch=5 * 16, num_threads=num_threads)
-        chunk_dir = tmp_path / str(num_threads)
-        chunk_dir.mkdir()
-        baked[num_threads] = bake_rows(evaluate, 37, 4, 6, settings, chunk_dir, "F", progress=False)
-    for one, two in zip(baked[1].arrays().values(), baked[2].arrays().values()):
-        np.testing.assert_array_equal(one, two)
-    rows = decode_rows(baked[2])
-    rows.check()
-    assert rows.values.shape == (rows.indices.shape[0], 1)  # colour-factored by default
-    # A re-run finds every chunk on disk and evaluates nothing.
-    calls.clear()
-    again = bake_rows(evaluate, 37, 4, 6, settings, tmp_path / "2", "F", progress=False)
-    assert not calls and np.array_equal(again.arrays()["Values"], baked[2].arrays()["Values"])
 
 
 def test_sparse_check_names_broken_invariants():

@@ -12,6 +12,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+import torch
 
 from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
 from pipeline.cli import main
@@ -25,6 +26,7 @@ from relight_torch.relighter import Relighter
 from relight_torch.transfer.open import open_cache_relighter, open_transfer_relighter
 from relight_torch.transfer.relighter import TransferRelighter
 from relight_torch.transfer.sparse import column_norms
+from relight_torch.transfer.upsample import edge_aware_upsampler
 
 SIZE = 32
 
@@ -97,8 +99,9 @@ def test_cli_bakes_and_renders_a_quantised_transfer_cache(tmp_path):
     out = tmp_path / "cache"
     assert main(["bake", str(path), "--camera", cornell_box.CAMERA, "--out", str(out), "--width", "16",
                  "--height", "16", "--supersampling", "1", "--method", "transfer", "--gathers", "256",
-                 "--coefficients", "30", "--quantize"]) == 0
+                 "--coefficients", "30", "--quantize", "--indirect-scale", "2"]) == 0
     assert not list(out.glob(".cornell_box.transfer-*"))  # the resumable chunks are cleaned up
+    assert np.load(out / "cornell_box.viewPixels.npy").max() < 8 * 8
     assert np.load(out / "cornell_box.finalGatherValues.npy").dtype == np.uint8
     assert np.load(out / "cornell_box.finalGatherIndices.npy").dtype == np.uint16
     exr = tmp_path / "render.exr"
@@ -106,8 +109,9 @@ def test_cli_bakes_and_renders_a_quantised_transfer_cache(tmp_path):
     channels, _ = read_exr(exr)
     image = np.stack([channels[c] for c in ("R", "G", "B")], axis=-1)
     assert np.isfinite(image).all() and image.mean() > 0
-    assert main(["bake", str(path), "--camera", cornell_box.CAMERA, "--out", str(out), "--method", "transfer",
-                 "--gathers", "100"]) != 0
+    for bad in (["--gathers", "100"], ["--width", "16", "--height", "16", "--indirect-scale", "3"]):
+        assert main(["bake", str(path), "--camera", cornell_box.CAMERA, "--out", str(out), "--method", "transfer",
+                     *bad]) != 0
 
 
 def _light_at(light: Light, kind: LightKind, position, emit_direction, **fields) -> Light:
@@ -177,8 +181,34 @@ def test_culling_weak_wavelet_lights_stays_within_its_bound(cornell):
     weights = exact._wavelet(bounced).norm(dim=-1) * column_norms(exact.final_gather)
     difference = culled._unit_indirect(light) - exact._unit_indirect(light)
     assert 0.0 < float(difference.norm()) <= 0.05 * float(weights.sum())
-    # Measured when written: 0.05 cost 0.3 dB of the indirect image's PSNR against the reference.
+    # Measured when written: tolerance 0.05 moved the unit indirect light by 1.2 % (L2; 0.002 of the
+    # summed weights, the bound 0.05) and the indirect PSNR against the reference by -0.02 dB.
     reference = references[2] - references[0]
     loss = psnr(exact.indirect_image().numpy(), reference) - psnr(culled.indirect_image().numpy(), reference)
-    print("MEASURE", loss, float(difference.norm()) / float(weights.sum()), float(difference.norm() / exact._unit_indirect(light).norm()))
-    assert abs(loss) < 1.0
+    assert abs(loss) < 0.3
+
+
+def test_reduced_resolution_indirect_is_upsampled_along_edges(cornell, tmp_path):
+    _, references, scene, camera = cornell
+    settings = TransferSettings(num_gathers=1024, num_coefficients=100, indirect_scale=2)
+    layer = bake_transfer(scene, camera, tmp_path, "cornell", supersampling=1, texture_samples=1, settings=settings,
+                          progress=False)
+    relighter = open_transfer_relighter(layer)
+    assert relighter.final_gather.num_rows <= (SIZE // 2) ** 2 and relighter.upsampler is not None
+    reference = references[1] - references[0]
+    indirect = relighter.indirect_image().numpy()
+    assert np.isfinite(indirect).all()
+    plain = TransferRelighter(relighter.direct, relighter.gathers, relighter.view_pixels, relighter.final_gather,
+                              upsampler=edge_aware_upsampler(
+                                  relighter.direct.gbuffer, 1, 2, relighter.view_pixels,
+                                  *(torch.from_numpy(np.load(tmp_path / f"cornell.view{name}.npy"))
+                                    for name in ("Position", "Normal", "ObjectId")), guided=False))
+    # Measured when written (32 x 32, 1,024 gathers, k = 100, F for 16 x 16): 37.9 dB, and 36.3 dB
+    # with a plain tent filter that blends across edges.
+    assert psnr(indirect, reference) >= 37.0
+    assert psnr(indirect, reference) >= psnr(plain.indirect_image().numpy(), reference) + 1.0
+    # The light-group AOVs (direct and upsampled indirect per group) still sum to the beauty.
+    groups = relighter.light_group_images()
+    assert sorted(groups) == ["CeilingLight_direct", "CeilingLight_indirect"]
+    np.testing.assert_allclose((sum(groups.values()) + relighter.emission_image()).numpy(),
+                               relighter.render().numpy(), rtol=1e-5, atol=1e-7)

@@ -31,11 +31,14 @@ class DeepFramebuffer:
         gbuffer: the covered sub-samples (N of them) as a relight_torch GBuffer (CPU tensors).
         camera: the camera it was baked from.
         supersampling: s; the sub-sample image is (H s, W s).
+        num_back_facing: covered sub-samples whose centre ray hit the back of a single-sided
+            surface (most of them do when the camera is inside geometry).
     """
 
     gbuffer: GBuffer
     camera: Camera
     supersampling: int
+    num_back_facing: int = 0
 
 
 def grid_rays(camera: Camera, n: int, rows: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -84,6 +87,10 @@ def bake_deep_framebuffer(scene: Scene, camera: Camera, supersampling: int = 1, 
     hits = tracer.intersect(origins, directions)
     points = shading_points(scene, tangents, hits, directions)
     band_index = np.flatnonzero(hits.hit)
+    double_sided = np.array([obj.double_sided for obj in scene.objects], bool)
+    single_sided = ~double_sided[scene.geometry.object_ids[hits.triangle_id[band_index]]]
+    facing_away = np.einsum("nk,nk->n", hits.geometric_normal[band_index], directions[band_index]) > 0
+    num_back_facing = int(np.count_nonzero(single_sided & facing_away))
     params, normal, tangent, bitangent = points.params, points.normal, points.tangent, points.bitangent
     if texture_samples > 1:
         params, normal, tangent, bitangent = _filter_materials(
@@ -100,7 +107,7 @@ def bake_deep_framebuffer(scene: Scene, camera: Camera, supersampling: int = 1, 
         params=params, material_id=points.material_id, object_id=points.object_id,
         depth=depth.astype(np.float32), camera_position=camera_position,
     )
-    return DeepFramebuffer(gbuffer=gbuffer, camera=camera, supersampling=s)
+    return DeepFramebuffer(gbuffer=gbuffer, camera=camera, supersampling=s, num_back_facing=num_back_facing)
 
 
 def _fold_normal_spread(params: dict[str, np.ndarray], length: np.ndarray) -> None:

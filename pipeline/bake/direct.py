@@ -22,9 +22,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
+from pipeline.errors import warn
 from pipeline.bake.inputs import code_version, hash_inputs, input_files
-from pipeline.bake.scheduler import (ChunkSpec, ShotSpec, chunk_folder, chunk_ranges, chunk_threads, load_chunk, load_shot,
-                                     per_process, run_chunks)
+from pipeline.bake.scheduler import (ChunkSpec, ShotSpec, chunk_folder, chunk_ranges, chunk_threads, load_chunk,
+                                     load_shot, per_process, run_chunks)
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
@@ -40,6 +41,9 @@ ROWS_PER_CHUNK = 64
 """Pixel rows per deep-framebuffer chunk: at 2048 px wide, supersampling 2 and 2 x 2 texture
 samples, 64 rows are 524,288 sub-samples and 2.1 M texture rays per chunk."""
 _PARAM_PREFIX = "param_"
+_BACK_FACING = "numBackFacing"
+BACK_FACING_WARNING = 0.5
+"""Warn when more than this share of the covered sub-samples see back faces of single-sided surfaces."""
 
 
 def write_npy(path: Path, array: np.ndarray, name: str = "") -> Payload:
@@ -62,19 +66,20 @@ def _direct_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
     """The deep framebuffer of pixel rows [start, stop): the GBuffer's per-sample arrays, material
     parameters prefixed with _PARAM_PREFIX."""
     scene, camera = load_shot(spec.shot)
-    gbuffer = bake_deep_framebuffer(scene, camera, spec.param("supersampling"), spec.param("textureSamples"),
-                                    tracer=shot_tracer(spec.shot), rows=(spec.start, spec.stop)).gbuffer
-    arrays = {f.name: getattr(gbuffer, f.name).numpy() for f in dataclasses.fields(GBuffer)
+    dfb = bake_deep_framebuffer(scene, camera, spec.param("supersampling"), spec.param("textureSamples"),
+                                tracer=shot_tracer(spec.shot), rows=(spec.start, spec.stop))
+    arrays = {f.name: getattr(dfb.gbuffer, f.name).numpy() for f in dataclasses.fields(GBuffer)
               if f.name not in ("image_size", "params", "camera_position")}
-    arrays.update({_PARAM_PREFIX + f.name: getattr(gbuffer.params, f.name).numpy()
+    arrays.update({_PARAM_PREFIX + f.name: getattr(dfb.gbuffer.params, f.name).numpy()
                    for f in dataclasses.fields(PreviewSurfaceParams)})
+    arrays[_BACK_FACING] = np.array(dfb.num_back_facing)
     return arrays
 
 
 def _join_bands(chunks: list[dict[str, np.ndarray]], image_size: tuple[int, int],
                 camera_position: np.ndarray) -> GBuffer:
     """The bands' arrays (`_direct_chunk`, in row order) as one GBuffer of the whole image."""
-    joined = {name: np.concatenate([c[name] for c in chunks]) for name in chunks[0]}
+    joined = {name: np.concatenate([c[name] for c in chunks]) for name in chunks[0] if name != _BACK_FACING}
     params = PreviewSurfaceParams.from_numpy({name[len(_PARAM_PREFIX):]: joined.pop(name)
                                               for name in list(joined) if name.startswith(_PARAM_PREFIX)})
     return GBuffer.from_numpy(image_size=image_size, params=params, camera_position=camera_position, **joined)
@@ -96,8 +101,13 @@ def direct_payloads(scene: Scene, camera: Camera, out_dir: Path, stem: str, supe
              for first, last in chunk_ranges(camera.height, ROWS_PER_CHUNK)]
     paths = run_chunks(_direct_chunk, specs, chunk_dir, "deep framebuffer", "rows")
     camera_position = camera.world_from_camera[:3, 3]
-    gbuffer = _join_bands([load_chunk(path) for path in paths],
-                          (camera.height * supersampling, camera.width * supersampling), camera_position)
+    chunks = [load_chunk(path) for path in paths]
+    gbuffer = _join_bands(chunks, (camera.height * supersampling, camera.width * supersampling), camera_position)
+    back_facing = sum(int(c[_BACK_FACING]) for c in chunks)
+    if back_facing > BACK_FACING_WARNING * gbuffer.num_samples:
+        warn(f"{scene.source}: camera {camera.path} sees the back of single-sided surfaces in "
+             f"{back_facing / gbuffer.num_samples:.0%} of its covered samples: is it inside geometry?",
+             scene.warnings)
     channels, constants = gbuffer_to_channels(gbuffer)
     dfb_path = out_dir / f"{stem}.dfb.exr"
     write_exr(dfb_path, channels, {"relight:supersampling": supersampling})

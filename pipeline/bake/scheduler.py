@@ -21,9 +21,11 @@ How to write a baker against it (the transfer and gather bakers are worked examp
     `parameters` is a tuple of (name, value) pairs: everything besides the shot that changes
     the result (not thread counts or batch sizes that only change speed).
 4.  `paths = run_chunks(compute, specs, chunk_dir)` returns the chunk files in the order of
-    `specs`; read each with `load_chunk(path)` and assemble the payloads. `chunk_dir` should be
-    named by the bake's content hash (see `pipeline.bake.indirect`), so a changed shot or
-    setting never meets old chunks; the baker removes it once the cache layer is written.
+    `specs`; read each with `load_chunk(path)` and assemble the payloads. Take `chunk_dir` from
+    `chunk_folder(out_dir, stem, work, digest)`, with `digest` the bake's content hash
+    (`relight_torch.cache.layer.content_hash` over the inputs, the parameters and
+    `pipeline.bake.inputs.code_version()`), so a changed shot, setting or code never meets old
+    chunks; remove it once the cache layer is written (see `pipeline.bake.indirect`).
 
 Where the chunks run is the ambient `Scheduler` (`using(scheduler)`, set by `relight bake
 --scheduler/--workers`):
@@ -39,10 +41,10 @@ filesystem) and run this code version; each worker loads the shot once per proce
 
 In-process is the local default because the chunk runners already keep every core busy with
 threads (torch and Embree release the GIL), while each pool process pays its start (importing
-torch and USD: ~3.5 s on a loaded 2-core box), reads the shot and rebuilds the BVH: on that box
-a small Cornell transfer bake took 10.4 s with 2 processes against 4.8 s in-process. Processes
-pay off where chunks are long and GIL-bound. A script that uses a pool must guard its entry
-point with `if __name__ == "__main__":` (spawned workers import the main module).
+torch and USD, ~3.5 s), reads the shot and rebuilds the BVH: on a 2-core box a Cornell bake took
+60 s with 2 processes against 42-50 s in-process (docs/DISTRIBUTED.md). Processes pay off where
+chunks are long and GIL-bound. A script that uses a pool must guard its entry point with
+`if __name__ == "__main__":` (spawned workers import the main module).
 """
 
 from __future__ import annotations
@@ -157,17 +159,22 @@ class Scheduler:
 
 
 _SCHEDULER: contextvars.ContextVar[Scheduler] = contextvars.ContextVar("relight_scheduler", default=Scheduler())
+_POOLS: contextvars.ContextVar["_Pools | None"] = contextvars.ContextVar("relight_pools", default=None)
 _THREADS: contextvars.ContextVar[int | None] = contextvars.ContextVar("relight_chunk_threads", default=None)
 
 
 @contextlib.contextmanager
 def using(scheduler: Scheduler) -> Iterator[Scheduler]:
-    """Run every `run_chunks` inside the block on `scheduler`."""
+    """Run every `run_chunks` inside the block on `scheduler`; a local pool it starts serves every
+    `run_chunks` of the block (its workers keep their `per_process` state) and stops at its end."""
     token = _SCHEDULER.set(scheduler)
-    try:
-        yield scheduler
-    finally:
-        _SCHEDULER.reset(token)
+    with contextlib.ExitStack() as stack:
+        pool_token = _POOLS.set(_Pools(stack, {}))
+        try:
+            yield scheduler
+        finally:
+            _POOLS.reset(pool_token)
+            _SCHEDULER.reset(token)
 
 
 def current() -> Scheduler:
@@ -240,7 +247,7 @@ def chunk_is_valid(path: Path, digest: str) -> bool:
             if SPEC_KEY not in saved.files or str(saved[SPEC_KEY]) != digest:
                 return False
             for key in saved.files:
-                saved[key]
+                saved[key]  # reading each member checks its zip CRC (a damaged file raises)
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError):
         return False
     return True
@@ -321,15 +328,15 @@ def _submit(compute: Callable, specs: list[ChunkSpec], chunk_dir: Path, schedule
     if scheduler.client is not None or scheduler.address is not None:
         yield from _submit_dask(compute, specs, chunk_dir, scheduler, indices)
         return
-    workers = min(scheduler.workers or 1, len(specs))
-    if workers <= 1:
+    workers = scheduler.workers or 1
+    if workers <= 1 or len(specs) == 1:
         for spec, index in zip(specs, indices):
             run_chunk(compute, spec, str(chunk_dir))
             yield index
         return
     threads = max(1, available_cpus() // workers)
-    # spawn, not fork: a forked child inherits torch's and Embree's thread pools in an unknown state.
-    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+    with contextlib.ExitStack() as stack:
+        pool = _local_pool(workers, _POOLS.get() or _Pools(stack, {}))
         futures = {pool.submit(run_chunk, compute, spec, str(chunk_dir), threads): index
                    for spec, index in zip(specs, indices)}
         try:
@@ -342,13 +349,31 @@ def _submit(compute: Callable, specs: list[ChunkSpec], chunk_dir: Path, schedule
             raise
 
 
+@dataclass
+class _Pools:
+    """Local pools started inside one `using` block, by size; `stack` stops them at its end."""
+
+    stack: contextlib.ExitStack
+    by_size: dict[int, ProcessPoolExecutor]
+
+
+def _local_pool(workers: int, pools: _Pools) -> ProcessPoolExecutor:
+    """The pool of `workers` processes in `pools`, started if there is none yet."""
+    if workers not in pools.by_size:
+        # spawn, not fork: a forked child inherits torch's and Embree's thread pools in an unknown state.
+        pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"))
+        pools.by_size[workers] = pools.stack.enter_context(pool)
+    return pools.by_size[workers]
+
+
 def _submit_dask(compute: Callable, specs: list[ChunkSpec], chunk_dir: Path, scheduler: Scheduler,
                  indices: list[int]) -> Iterator[int]:
     """Run `specs` on a Dask cluster, one task per chunk (one thread each)."""
     try:
         import distributed
     except ImportError:
-        raise RelightError("a Dask scheduler needs the 'distributed' extra (pip install relight[distributed])") from None
+        raise RelightError("a Dask scheduler needs the 'distributed' extra "
+                           "(pip install relight[distributed])") from None
     with contextlib.ExitStack() as stack:
         client = scheduler.client
         if client is None:

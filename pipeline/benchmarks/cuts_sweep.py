@@ -1,32 +1,40 @@
 """Sweep of the cuts method (seed 004, environment mode): lights x sigma x illumination cut size.
 
     python -m pipeline.benchmarks.cuts_sweep [SCENE...] --width W --height H [--lights 1024 4096 ...]
-        [--sigmas 1.5 2 3] [--cut-sizes 128 256 512] [--spp N] [--repeats R] [--csv FILE]
+        [--sigmas 1.5 2 3] [--cut-sizes 128 256 512] [--betas 1 0.5] [--mode env|indirect]
+        [--spp N] [--repeats R] [--csv FILE]
 
-Per scene, light count and sigma it bakes once (bake_s, cache_bytes: that bake's payloads) and
+Per scene, light count, sigma and tree blend beta (1 = geometric tree, < 1 data-driven) it bakes once (bake_s, cache_bytes: that bake's payloads) and
 relights with every illumination cut size, under the shot's lights and every example light edit,
-against `PathTracer(max_bounces=0)` (PSNR, relMSE). relight_ms is the median of a dome edit
+against `PathTracer(max_bounces=0)` (PSNR, relMSE; indirect mode: `max_bounces=1`, and
+psnr_indirect_db against its 1-bounce minus 0-bounce part). relight_ms is the median of a dome edit
 re-rendered (`pipeline.benchmarks.bench.measure.relight_ms`: the illumination cut and every pixel's
 merge and shading run again). params also record what the cost follows: `vis` = mean visibility
-cut size per lattice vertex, `merged` = mean merged-cut entries per sub-sample and `dark` = mean
-dark visibility clusters skipped per sub-sample, so relight_ms can be read against the merged cut
-size at different light counts. One CSV row per (scene, lights, sigma, cut size, light edit), the
+cut size per lattice vertex, and per sub-sample `inputs` = visibility cut entries merged (its
+three vertices'), `merged` = merged-cut entries shaded or tested and `dark` = dark visibility
+clusters dropped before the illumination cut is merged in, so relight_ms can be read against the
+cut sizes at different light counts. One CSV row per (scene, lights, sigma, cut size, light edit), the
 columns shared with the other methods' sweeps (`pipeline.benchmarks.rows`).
 
 With `--timing` only the shot's lights are relit (no references: PSNR columns NaN): for the
-640 x 480, cut size 256 figure of the issue.
+640 x 480, cut size 256 figure of the issue. With `--cost` (implies --timing) the bakes are timed
+round-robin instead, `--repeats` rounds of one light edit re-rendered per bake, so that a shared
+machine's load changes affect every bake alike: for reading relight_ms against `merged` as the
+number of point lights grows (seed 004: the cost follows the merged cut size, not the lights).
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
+import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
-from pipeline.benchmarks.bench.measure import cache_bytes, device_name, relight_ms
+from pipeline.benchmarks.bench.measure import cache_bytes, device_name, moved, relight_ms
 from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, format_params, write_csv
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
@@ -39,13 +47,16 @@ from relight_torch.relighter import shot_lights
 
 
 def references(shot: Path, layers: dict[str, Path | None], camera_path: str, width: int, height: int,
-               spp: int) -> dict:
-    """Light edit -> (H, W, 3) direct-only reference (`PathTracer(max_bounces=0)`)."""
+               spp: int, bounces: int) -> dict:
+    """Light edit -> ((H, W, 3) `PathTracer(max_bounces=bounces)` reference, its part beyond the
+    direct light (None for bounces 0))."""
     out = {}
     for edit, layer in layers.items():
         scene = load_scene(shot, lights_layer=layer, width=width, height=height)
-        out[edit] = PathTracer(scene, ReferenceSettings(spp=spp, max_bounces=0)).render(
-            find_camera(scene, camera_path)).mean
+        camera = find_camera(scene, camera_path)
+        images = [PathTracer(scene, ReferenceSettings(spp=spp, max_bounces=b)).render(camera).mean
+                  for b in sorted({bounces, 0}, reverse=True)]
+        out[edit] = (images[0], images[0] - images[1] if bounces else None)
     return out
 
 
@@ -66,15 +77,48 @@ def cut_rows(relighter: CutsRelighter, layer: Path, scene_name: str, args: argpa
             stats = dict(relighter.stats)
             timing = relight_ms(relighter, args.repeats) if edit == "shot" else NAN
             params = format_params({**parameters, "cut": cut_size, "vis": f"{mean_vis:.1f}",
-                                    "merged": f"{stats['merged'] / num_samples:.1f}",
+                                    "inputs": f"{stats['inputs'] / num_samples:.1f}", "merged": f"{stats['merged'] / num_samples:.1f}",
                                     "dark": f"{stats['dark'] / num_samples:.1f}"})
-            quality = ((psnr(image, expected[edit]), rel_mse(image, expected[edit])) if expected is not None
-                       else (NAN, NAN))
-            row = SweepRow("cuts", scene_name, args.width, args.height, edit, params, quality[0], NAN, quality[1],
+            quality = (NAN, NAN, NAN)
+            if expected is not None:
+                full, indirect = expected[edit]
+                quality = (psnr(image, full), NAN if indirect is None else
+                           psnr(relighter.indirect_image().cpu().numpy(), indirect), rel_mse(image, full))
+            row = SweepRow("cuts", scene_name, args.width, args.height, edit, params, *quality,
                            num_bytes, bake_s, timing, device_name("cpu"))
             print(f"{row.method},{row.scene},{row.light_edit},{row.params},psnr={row.psnr_db:.2f},"
                   f"bytes={num_bytes:.0f},bake_s={bake_s:.1f},relight_ms={timing:.1f}", file=sys.stderr, flush=True)
             rows.append(row)
+    return rows
+
+
+def cost_rows(bakes: list[tuple[CutsRelighter, Path, dict[str, object], float]], scene_name: str,
+              args: argparse.Namespace) -> list[SweepRow]:
+    """One row per bake (first cut size, the shot's lights), relight_ms timed round-robin."""
+    cut_size = args.cut_sizes[0]
+    timings: list[list[float]] = [[] for _ in bakes]
+    for relighter, _, _, _ in bakes:
+        relighter.set_settings(CutsRelightSettings(max_cut=cut_size))
+        relighter.render()
+    for round_index in range(args.repeats):
+        for times, (relighter, _, _, _) in zip(timings, bakes):
+            first = relighter.lights[0]
+            relighter.set_light(moved(first, 0.01 * (1 + round_index % 2)))
+            start = time.perf_counter()
+            relighter.render()
+            times.append(time.perf_counter() - start)
+            relighter.set_light(first)
+    rows = []
+    for times, (relighter, layer, parameters, bake_s) in zip(timings, bakes):
+        num_samples = relighter.cuts.sample_vertices.shape[0]
+        params = format_params({**parameters, "cut": cut_size,
+                                "vis": f"{float(relighter.cuts.visibility.sizes().double().mean()):.1f}",
+                                "inputs": f"{relighter.stats['inputs'] / num_samples:.1f}",
+                                "merged": f"{relighter.stats['merged'] / num_samples:.1f}",
+                                "dark": f"{relighter.stats['dark'] / num_samples:.1f}"})
+        rows.append(SweepRow("cuts", scene_name, args.width, args.height, "shot", params, NAN, NAN, NAN,
+                             float(cache_bytes(layer)), bake_s, 1e3 * statistics.median(times), device_name("cpu")))
+        print(csv_line(rows[-1]), file=sys.stderr, flush=True)
     return rows
 
 
@@ -85,22 +129,26 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[Sw
     layers = {"shot": None}
     if not args.timing:
         layers |= {path.name.split(".")[-2]: path for path in write_light_edits(name, directory)}
-    expected = None if args.timing else references(shot, layers, bundled.camera, args.width, args.height, args.spp)
+    expected = None if args.timing else references(shot, layers, bundled.camera, args.width, args.height, args.spp,
+                                                    int(args.mode == "indirect"))
     scene = load_scene(shot, width=args.width, height=args.height)
     camera = find_camera(scene, bundled.camera)
-    rows = []
-    for num_lights in args.lights:
-        for sigma in args.sigmas:
-            settings = CutsSettings(num_lights=num_lights, sigma=sigma, lattice_edge=args.lattice_edge)
-            start = time.perf_counter()
-            layer = bake_cuts(scene, camera, directory / f"cache-{num_lights}-{sigma}", name, args.supersampling,
-                              args.texture_samples, settings=settings)
-            bake_s = time.perf_counter() - start
-            relighter = open_cuts_relighter(layer)
-            parameters = {"mode": settings.mode, "lights": num_lights, "sigma": sigma,
-                          "latticeEdge": f"{args.lattice_edge:.4g}", "supersampling": args.supersampling}
+    rows, bakes = [], []
+    for num_lights, sigma, beta in itertools.product(args.lights, args.sigmas, args.betas):
+        settings = CutsSettings(mode=args.mode, num_lights=num_lights, sigma=sigma, lattice_edge=args.lattice_edge,
+                                beta=beta)
+        start = time.perf_counter()
+        layer = bake_cuts(scene, camera, directory / f"cache-{num_lights}-{sigma}-{beta}", name, args.supersampling,
+                          args.texture_samples, settings=settings)
+        bake_s = time.perf_counter() - start
+        relighter = open_cuts_relighter(layer)
+        parameters = {"mode": settings.mode, "lights": num_lights, "sigma": sigma, "beta": beta,
+                      "latticeEdge": f"{args.lattice_edge:.4g}", "supersampling": args.supersampling}
+        if args.cost:
+            bakes.append((relighter, layer, parameters, bake_s))
+        else:
             rows += cut_rows(relighter, layer, name, args, parameters, bake_s, expected, layers)
-    return rows
+    return cost_rows(bakes, name, args) if args.cost else rows
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -111,15 +159,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lights", type=int, nargs="+", default=[4096])
     parser.add_argument("--sigmas", type=float, nargs="+", default=[1.5, 2.0, 3.0])
     parser.add_argument("--cut-sizes", type=int, nargs="+", default=[128, 256, 512])
+    parser.add_argument("--betas", type=float, nargs="+", default=[1.0])
+    parser.add_argument("--mode", choices=("env", "indirect"), default="env")
     parser.add_argument("--lattice-edge", type=float, default=CutsSettings().lattice_edge)
     parser.add_argument("--supersampling", type=int, default=2)
     parser.add_argument("--texture-samples", type=int, default=2)
     parser.add_argument("--spp", type=int, default=256)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--timing", action="store_true", help="relight the shot's lights only, no references")
+    parser.add_argument("--cost", action="store_true", help="time the bakes round-robin (implies --timing)")
     parser.add_argument("--out", type=Path, help="working directory (default: a temporary one)")
     parser.add_argument("--csv", type=Path, help="write the rows here (default: stdout)")
     args = parser.parse_args(argv)
+    args.timing |= args.cost
     with tempfile.TemporaryDirectory() as temporary:
         directory = args.out or Path(temporary)
         rows = [row for name in args.scenes for row in sweep_scene(name, args, directory / name)]

@@ -16,13 +16,18 @@ that invalidate different stages of `relight_torch.relighter.Relighter`:
 Rigs of 1, 4 and 16 lights are the shot's lights followed by generated sphere, rect and spot
 lights (round robin) on a ring above what the camera sees, aimed at its centre. Each row reports
 the median and fastest wall time of `repeats` edits (each followed by `render()`, synchronised
-on CUDA) and how many visibility and shading passes one edit ran.
+on CUDA), the median CPU time of the process (all its threads: on a shared machine the wall
+time counts other people's work, this does not), and how many visibility, shading and
+light-link mask passes one edit ran.
+`format_table` ends with the table of edit kinds a lighting artist makes (colour, shaping,
+move, link) and what each recomputes.
 """
 
 from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import math
 import resource
 import tempfile
@@ -38,6 +43,7 @@ import torch
 from pipeline.bake.direct import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
+from relight_torch.io.atomic import write_text_atomic
 from relight_torch.lights.light import BarzelShaping, Light, LightKind, Shaping
 from relight_torch.metrics import psnr
 from relight_torch.relighter import Relighter, RelightSettings, open_relighter
@@ -64,15 +70,18 @@ class Row:
         case: what was edited (see the module doc).
         num_lights: lights in the rig.
         median_ms, min_ms: wall time of one edit and render.
-        visibility_passes, shading_passes: passes one edit ran (the relighter's counters).
+        cpu_ms: median CPU time of the process (every thread) for one edit and render.
+        visibility_passes, shading_passes, mask_passes: passes one edit ran (the relighter's counters).
     """
 
     case: str
     num_lights: int
     median_ms: float
     min_ms: float
+    cpu_ms: float
     visibility_passes: float
     shading_passes: float
+    mask_passes: float
 
 
 @dataclass(frozen=True)
@@ -136,31 +145,45 @@ def bench_rig(shot_lights: list[Light], num_lights: int, centre: np.ndarray, dia
     return rig
 
 
-def time_edits(relighter: Relighter, edit: Callable[[int], None], repeats: int) -> tuple[list[float], float, float]:
-    """Wall times (ms) of `repeats` calls of edit(k) + render, after one untimed warm-up call.
+PASSES = ("visibility", "shading", "masks")
+# The edit kinds of the lighting-artist table (issue 11): kind -> the row that times it.
+EDIT_KINDS = {
+    "colour": "colour edit",
+    "shaping": "shaping edit (cone, focus)",
+    "move": "move one light (Embree)",
+    "link": "light-link edit (masks)",
+}
+
+
+def time_edits(relighter: Relighter, edit: Callable[[int], None],
+               repeats: int) -> tuple[list[float], list[float], float, float, float]:
+    """Wall and process CPU times (ms) of `repeats` calls of edit(k) + render, after one untimed
+    warm-up call.
 
     Returns:
-        (times, visibility passes per edit, shading passes per edit).
+        (wall times, CPU times, then visibility, shading and mask passes per edit).
     """
     sync = torch.cuda.synchronize if relighter.gbuffer.device.type == "cuda" else (lambda: None)
     edit(-1)
     relighter.render()
     sync()
     before = dict(relighter.counters)
-    times = []
+    times, cpu_times = [], []
     for k in range(repeats):
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         edit(k)
         relighter.render()
         sync()
         times.append((time.perf_counter() - start) * 1e3)
-    passes = [(relighter.counters[name] - before.get(name, 0)) / repeats for name in ("visibility", "shading")]
-    return times, passes[0], passes[1]
+        cpu_times.append((time.process_time() - cpu_start) * 1e3)
+    passes = [(relighter.counters[name] - before.get(name, 0)) / repeats for name in PASSES]
+    return times, cpu_times, *passes
 
 
 def _row(case: str, relighter: Relighter, edit: Callable[[int], None], repeats: int) -> Row:
-    times, visibility, shading = time_edits(relighter, edit, repeats)
-    return Row(case, len(relighter.lights), float(np.median(times)), float(np.min(times)), visibility, shading)
+    times, cpu_times, *passes = time_edits(relighter, edit, repeats)
+    return Row(case, len(relighter.lights), float(np.median(times)), float(np.min(times)),
+               float(np.median(cpu_times)), *passes)
 
 
 def _replacer(relighter: Relighter, light: Light, change: Callable[[Light, int], Light]) -> Callable[[int], None]:
@@ -305,25 +328,51 @@ def _device_name(device: str) -> str:
     return f"cpu, {torch.get_num_threads()} torch threads"
 
 
-def format_table(report: Report) -> str:
-    """The rows as an aligned text table, then the context lines."""
-    header = ("case", "lights", "median ms", "min ms", "visibility", "shading")
-    cells = [header] + [(r.case, str(r.num_lights), f"{r.median_ms:.2f}", f"{r.min_ms:.2f}",
-                         f"{r.visibility_passes:g}", f"{r.shading_passes:g}") for r in report.rows]
-    widths = [max(len(row[i]) for row in cells) for i in range(len(header))]
+def _aligned(cells: list[tuple[str, ...]]) -> list[str]:
+    """Rows of cells as aligned lines (first column left, the others right), a rule under the header."""
+    widths = [max(len(row[i]) for row in cells) for i in range(len(cells[0]))]
     lines = ["  ".join(cell.ljust(w) if i == 0 else cell.rjust(w) for i, (cell, w) in enumerate(zip(row, widths)))
              for row in cells]
     lines.insert(1, "-" * len(lines[0]))
-    return "\n".join(lines + [f"{name}: {value}" for name, value in report.context])
+    return lines
+
+
+def edit_kind_rows(report: Report) -> list[tuple[str, Row]]:
+    """(kind, row) for each edit kind of `EDIT_KINDS` the report timed, in that order."""
+    by_case = {row.case: row for row in report.rows}
+    return [(kind, by_case[case]) for kind, case in EDIT_KINDS.items() if case in by_case]
+
+
+def _recomputed(row: Row) -> str:
+    passes = {"visibility": row.visibility_passes, "shading": row.shading_passes, "masks": row.mask_passes}
+    done = [f"{name} x{count:g}" for name, count in passes.items() if count]
+    return ", ".join(done) or "nothing (a rescale)"
+
+
+def format_table(report: Report) -> str:
+    """The rows as an aligned text table, the context lines, then the table of edit kinds."""
+    header = ("case", "lights", "median ms", "min ms", "cpu ms", "visibility", "shading", "masks")
+    cells = [header] + [(r.case, str(r.num_lights), f"{r.median_ms:.2f}", f"{r.min_ms:.2f}", f"{r.cpu_ms:.2f}",
+                         f"{r.visibility_passes:g}", f"{r.shading_passes:g}", f"{r.mask_passes:g}")
+                        for r in report.rows]
+    lines = _aligned(cells) + [f"{name}: {value}" for name, value in report.context]
+    kinds = edit_kind_rows(report)
+    if kinds:
+        lines += ["", f"edit kinds (one light of the {kinds[0][1].num_lights}-light rig):"]
+        lines += _aligned([("edit", "median ms", "min ms", "cpu ms", "recomputed")] + [
+            (kind, f"{row.median_ms:.2f}", f"{row.min_ms:.2f}", f"{row.cpu_ms:.2f}", _recomputed(row))
+            for kind, row in kinds])
+    return "\n".join(lines)
 
 
 def write_csv(report: Report, path: str | Path) -> None:
     """The rows as CSV (one column per Row field), the context as trailing '# name: value' lines."""
-    with open(path, "w", newline="") as handle:
-        writer = csv.writer(handle)
-        fields = [f.name for f in dataclasses.fields(Row)]
-        writer.writerow(fields)
-        for row in report.rows:
-            writer.writerow([getattr(row, name) for name in fields])
-        for name, value in report.context:
-            handle.write(f"# {name}: {value}\n")
+    buffer = io.StringIO(newline="")
+    writer = csv.writer(buffer)
+    fields = [f.name for f in dataclasses.fields(Row)]
+    writer.writerow(fields)
+    for row in report.rows:
+        writer.writerow([getattr(row, name) for name in fields])
+    for name, value in report.context:
+        buffer.write(f"# {name}: {value}\n")
+    write_text_atomic(path, buffer.getvalue())

@@ -48,19 +48,26 @@ from relight_torch.metrics import psnr, rel_mse
 from relight_torch.relighter import shot_lights
 
 
-def _median_ms(relighter: GatherRelighter, edits: list, repeats: int) -> float:
-    """Median ms of `set_light(edit)` + `render()` over `repeats` edits cycled from `edits`."""
-    times = []
+def _median_ms(relighter: GatherRelighter, edits: list, repeats: int) -> tuple[float, float]:
+    """Median ms of `set_light(edit)` + `render()` over `repeats` edits cycled from `edits`, and of
+    its indirect part alone (`render()` is the direct image plus `indirect_image()`, timed apart:
+    the direct part builds the light's shadow maps, which the gathers then share)."""
+    full, indirect = [], []
     for edit in itertools.islice(itertools.cycle(edits), repeats):
         start = time.perf_counter()
         relighter.set_light(edit)
-        relighter.render()
-        times.append(1e3 * (time.perf_counter() - start))
-    return statistics.median(times)
+        relighter.direct.render()
+        middle = time.perf_counter()
+        relighter.indirect_image()
+        end = time.perf_counter()
+        full.append(1e3 * (end - start))
+        indirect.append(1e3 * (end - middle))
+    return statistics.median(full), statistics.median(indirect)
 
 
-def edit_timings(relighter: GatherRelighter, repeats: int = 5) -> dict[str, float]:
-    """Median ms of a full re-render (direct + indirect) after each kind of edit of the first light.
+def edit_timings(relighter: GatherRelighter, repeats: int = 5) -> dict[str, tuple[float, float]]:
+    """Median ms of a full re-render (direct + indirect), and of its indirect part, after each kind
+    of edit of the first light.
 
     'colour': intensity and colour; 'shaping': ShapingAPI focus (no new shadow rays); 'move': a
     translation (the light's direct transport and its gathers' light recomputed). The rig is
@@ -112,7 +119,7 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[Sw
             params = format_params({**settings.parameters(), "gatherSamples": gather_samples,
                                     "numRepresentatives": sum(s.num_representatives for s in relighter.sets.values()),
                                     "surfacePoints": relighter.points.num_points, "shadows": args.shadows})
-            relight_ms = edit_timings(relighter, args.repeats)["move"]
+            relight_ms = edit_timings(relighter, args.repeats)["move"][0]
             for edit, layer_path in layers.items():
                 relighter.set_lights(shot_lights(relighter.direct.description, layer_path))
                 image, indirect = relighter.render().numpy(), relighter.indirect_image().numpy()
@@ -139,7 +146,8 @@ def time_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
         sizes = {n: (s.num_representatives, s.num_gathers) for n, s in relighter.sets.items()}
         timings = edit_timings(relighter, args.repeats)
         print(f"  {shadows}, {gather_samples} gather samples: "
-              + ", ".join(f"{kind} {ms:.0f} ms" for kind, ms in timings.items())
+              + ", ".join(f"{kind} {full:.0f} ms (indirect {indirect:.0f} ms)"
+                          for kind, (full, indirect) in timings.items())
               + f" (median of {args.repeats}; sets (reps, entries) {sizes}, "
               f"{relighter.points.num_points} surface points, {relighter.cache_bytes / 2**20:.1f} MiB in memory)",
               flush=True)

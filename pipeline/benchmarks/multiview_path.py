@@ -10,11 +10,13 @@ the point its centre pixel sees, by yaw angles spread over +-`--yaw` degrees and
 5 % of the scene's extent. Per view: PSNR against `PathTracer(max_bounces=0)` over all pixels and
 over the covered ones (pixels whose every sub-sample found a cache sample, or was baked on
 demand), the PSNR of a direct cache baked for that very view (the ceiling: what the view's own
-deep framebuffer, same supersampling, two texture samples, reaches), the hole fraction before and after the small holes are filled, and median times of
+deep framebuffer, same supersampling, two texture samples, reaches), the hole fraction before
+and after the small holes are filled, and median times of
 the three steps of a camera move: primary rays (Embree, CPU), the correspondence map (eq. 5,
 hole filling, GBuffer gather) and the re-render (a fresh direct Relighter shading the view: light
 samples, shadow rays, BRDF), and of a light move re-rendered at that view (`relight_ms`, the
-shared measure). Timings are warm medians of `--repeats` runs.
+shared measure). Timings are warm medians of `--repeats` runs, wall time (an upper bound on a
+shared machine) and, for the three steps, this process's CPU time (all its threads).
 
 Output: the shared sweep CSV (one row per scene and threshold, light edit 'shot': psnr_db and
 rel_mse averaged over the path, cache_bytes, bake_s, relight_ms the median light move over the
@@ -46,16 +48,16 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scene.types import Camera, Scene
 from pipeline.scenes import SCENES
 from pipeline.tracing import Tracer
-from pipeline.tracing_bench import median_seconds
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.io.atomic import write_text_atomic
+from relight_torch.io.atomic import atomic_path, write_text_atomic
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.multiview.relighter import open_multiview_relighter, view_gbuffer
-from relight_torch.relighter import Relighter
+from relight_torch.relighter import Relighter, RelightSettings
 
-TABLE_COLUMNS = ("scene", "coverage", "view", "psnr_db", "psnr_covered_db", "psnr_direct_db", "rel_mse", "hole_fraction_before",
+TABLE_COLUMNS = ("scene", "coverage", "view", "psnr_db", "psnr_covered_db", "psnr_direct_db", "rel_mse",
+                 "hole_fraction_before",
                  "hole_fraction_after", "large_holes", "rays_ms", "correspondence_ms", "rerender_ms",
-                 "light_edit_ms")
+                 "rays_cpu_ms", "correspondence_cpu_ms", "rerender_cpu_ms", "light_edit_ms")
 
 
 def camera_path(scene: Scene, camera: Camera, num_views: int, yaw_degrees: float) -> list[Camera]:
@@ -82,13 +84,23 @@ def camera_path(scene: Scene, camera: Camera, num_views: int, yaw_degrees: float
     return cameras
 
 
-def _ms(function, repeats: int) -> float:
-    return 1000.0 * median_seconds(function, repeats)
+def _ms(function, repeats: int) -> tuple[float, float]:
+    """(median wall ms, median CPU ms of this process, all threads) of `function`, after one warm-up.
+
+    On a shared machine the wall time is an upper bound; the CPU time is the work itself."""
+    function()
+    wall, cpu = [], []
+    for _ in range(repeats):
+        start, start_cpu = time.perf_counter(), time.process_time()
+        function()
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    return 1000.0 * float(np.median(wall)), 1000.0 * float(np.median(cpu))
 
 
 def measure_view(scene: Scene, relighter, renderer: FrameRenderer, camera: Camera, reference: np.ndarray | None,
                  repeats: int) -> dict[str, float]:
-    """One path view: accuracy against `reference` (None: timings only) and timings."""
+    """One path view: accuracy against `reference` (None: none) and timings (repeats 0: none)."""
     frame = renderer.render(camera)
     report = frame.report
     row = {"hole_fraction_before": report.hole_fraction_before, "hole_fraction_after": report.hole_fraction_after,
@@ -107,6 +119,8 @@ def measure_view(scene: Scene, relighter, renderer: FrameRenderer, camera: Camer
         row |= {"psnr_db": psnr(frame.image, reference), "rel_mse": rel_mse(frame.image, reference),
                 "psnr_covered_db": psnr(frame.image[complete], reference[complete]),
                 "psnr_direct_db": psnr(own.render().numpy(), reference)}
+    if repeats < 1:
+        return row
     state = {}
 
     def rays():
@@ -122,9 +136,21 @@ def measure_view(scene: Scene, relighter, renderer: FrameRenderer, camera: Camer
         fresh.set_lights(relighter.lights)
         fresh.render()
 
-    row |= {"rays_ms": _ms(rays, repeats), "correspondence_ms": _ms(correspondence, repeats),
-            "rerender_ms": _ms(rerender, repeats), "light_edit_ms": relight_ms(relighter, repeats)}
+    for name, function in (("rays", rays), ("correspondence", correspondence), ("rerender", rerender)):
+        row[f"{name}_ms"], row[f"{name}_cpu_ms"] = _ms(function, repeats)
+    row["light_edit_ms"] = relight_ms(relighter, repeats)
     return row
+
+
+def cached_reference(tracer: PathTracer, camera: Camera, path: Path) -> np.ndarray:
+    """The tracer's image of `camera`, kept in `path` (.npy) for the next run."""
+    if path.is_file():
+        return np.load(path, allow_pickle=False)
+    image = tracer.render(camera).mean
+    with atomic_path(path) as temp:
+        with open(temp, "wb") as handle:
+            np.save(handle, image, allow_pickle=False)
+    return image
 
 
 def run_scene(name: str, args: argparse.Namespace, out: Path) -> tuple[list[SweepRow], list[dict]]:
@@ -135,7 +161,9 @@ def run_scene(name: str, args: argparse.Namespace, out: Path) -> tuple[list[Swee
     references = [None] * len(path)
     if not args.no_reference:
         tracer = PathTracer(scene, ReferenceSettings(spp=args.spp, max_bounces=0, seed=11))
-        references = [tracer.render(view).mean for view in path]
+        stem = f"{args.width}x{args.height}-spp{args.spp}-yaw{args.yaw:g}-of{args.views}"
+        references = [cached_reference(tracer, view, out / name / f"reference{i}-{stem}.npy")
+                      for i, view in enumerate(path)]
     rows, table = [], []
     for coverage in args.coverage:
         settings = PlacementSettings(coverage=coverage, max_resolution=args.caching_resolution)
@@ -144,7 +172,7 @@ def run_scene(name: str, args: argparse.Namespace, out: Path) -> tuple[list[Swee
                                settings=settings)
         bake_s = time.perf_counter() - start
         parameters = read_cache_layer(layer).parameters
-        relighter = open_multiview_relighter(layer)
+        relighter = open_multiview_relighter(layer, settings=RelightSettings(area_samples=args.area_samples))
         renderer = FrameRenderer(relighter, fill_holes=args.fill_holes)
         views = []
         for i, (view, reference) in enumerate(zip(path, references)):
@@ -160,10 +188,11 @@ def run_scene(name: str, args: argparse.Namespace, out: Path) -> tuple[list[Swee
                                   "primary": parameters["numPrimary"], "secondary": parameters["numSecondary"],
                                   "uncovered": round(parameters["uncoveredFraction"], 4),
                                   "maxResolution": args.caching_resolution, "views": args.views,
-                                  "supersampling": args.supersampling, "fillHoles": int(args.fill_holes)}),
+                                  "supersampling": args.supersampling, "fillHoles": int(args.fill_holes),
+                                  "areaSamples": args.area_samples}),
             psnr_db=mean.get("psnr_db", float("nan")), rel_mse=mean.get("rel_mse", float("nan")),
             cache_bytes=float(cache_bytes(layer)), bake_s=bake_s,
-            relight_ms=float(np.median([v["light_edit_ms"] for v in views]))))
+            relight_ms=float(np.median([v.get("light_edit_ms", float("nan")) for v in views]))))
     return rows, table
 
 
@@ -178,7 +207,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--caching-resolution", type=int, default=512)
     parser.add_argument("--supersampling", type=int, default=1)
     parser.add_argument("--spp", type=int, default=16, help="reference samples per pixel (default 16)")
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--area-samples", type=int, default=RelightSettings().area_samples,
+                        help="relighter samples per area light and point (default: the relighter's)")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs per median; 0: no timings")
     parser.add_argument("--fill-holes", action="store_true", help="bake large holes on demand")
     parser.add_argument("--no-reference", action="store_true", help="timings only")
     parser.add_argument("--out", type=Path, default=Path("multiview_path"))

@@ -17,7 +17,10 @@ columns shared with the other methods' sweeps.
 With `--timing` it measures relight_ms alone at the given size (640 x 480 for the issue's target)
 without the hours of F rows such a size costs: the real direct cache and gather cloud, and
 synthetic F rows (every pixel's `--coefficients` distinct random indices and values), both
-colour-factored and RGB; PSNR columns are empty.
+colour-factored and RGB; PSNR columns are empty. `--timing --cache LAYER...` times baked transfer
+caches instead (real F rows; `--cull` and `--gather-samples` set the relighter's options), one
+row for the whole edit (part=total: the direct relighter's re-render included) and one for the
+indirect update alone (part=indirect: gather light, Haar, products, upsampling).
 """
 
 from __future__ import annotations
@@ -34,11 +37,12 @@ import torch
 from pipeline.bake.direct import bake_direct
 from pipeline.bake.transfer.bake import F_PREFIX, TransferSettings, bake_transfer, matrix_payloads
 from pipeline.bake.transfer.gather_cloud import create_gathers
-from pipeline.benchmarks.bench.measure import relight_ms
+from pipeline.benchmarks.bench.measure import moved, relight_ms
 from pipeline.benchmarks.rows import COLUMNS
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, write_light_edits
+from pipeline.tracing_bench import median_seconds
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.relighter import open_relighter, shot_lights
@@ -134,6 +138,37 @@ def time_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
                   f"{relight_ms(relighter, repeats=7):.1f},cpu", flush=True)
 
 
+def indirect_ms(relighter: TransferRelighter, repeats: int = 7) -> float:
+    """Median ms of moving the first light and updating the indirect image alone (`relight_ms`'s edit)."""
+    lights = relighter.lights
+    calls = iter(range(1 << 30))
+
+    def edit() -> None:
+        relighter.set_light(moved(lights[0], 0.01 * (1 + next(calls) % 2)))
+        relighter.indirect_image()
+
+    seconds = median_seconds(edit, repeats)
+    relighter.set_lights(lights)
+    return 1e3 * seconds
+
+
+def time_caches(args: argparse.Namespace) -> None:
+    """Print a part=total and a part=indirect relight_ms row per baked transfer cache."""
+    for layer in args.cache:
+        relighter = open_transfer_relighter(layer, shadows=args.shadows, cull_tolerance=args.cull)
+        relighter.gather_samples = args.gather_samples
+        description = relighter.direct.description
+        height, width = (size // relighter.direct.supersampling for size in relighter.direct.gbuffer.image_size)
+        parameters = {**description.parameters, "cull": args.cull, "gatherSamples": args.gather_samples or "default",
+                      "threads": torch.get_num_threads()}
+        cache_bytes = sum(p.num_bytes for p in description.payloads)
+        relighter.render()
+        for part, timing in (("total", relight_ms(relighter, repeats=7)), ("indirect", indirect_ms(relighter))):
+            params = " ".join(f"{key}={value}" for key, value in {**parameters, "part": part}.items())
+            print(f"transfer,{Path(description.source).stem},{width},{height},shot,{params},,,,{cache_bytes},,"
+                  f"{timing:.1f},cpu", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("scenes", nargs="+", choices=sorted(SCENES))
@@ -149,10 +184,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quantize", action="store_true", help="8-bit coefficients")
     parser.add_argument("--rgb", action="store_true", help="RGB coefficients instead of one colour per row")
     parser.add_argument("--timing", action="store_true", help="relight_ms only, synthetic F rows")
+    parser.add_argument("--cache", nargs="+", metavar="LAYER", help="with --timing: time these baked transfer caches")
+    parser.add_argument("--cull", type=float, default=0.0, help="with --cache: culling tolerance of weak wavelet lights")
+    parser.add_argument("--gather-samples", type=int, help="with --cache: light samples per gather (default: the direct's)")
     parser.add_argument("--out", help="directory for the scenes and caches (default: a temporary one)")
     args = parser.parse_args(argv)
     directory = Path(args.out or tempfile.mkdtemp(prefix="relight-transfer-sweep-"))
     print(",".join(COLUMNS), flush=True)
+    if args.timing and args.cache:
+        time_caches(args)
+        return 0
     for name in args.scenes:
         (time_scene if args.timing else sweep_scene)(name, args, directory / name)
     return 0

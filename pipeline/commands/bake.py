@@ -14,9 +14,9 @@ from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
 from pipeline.bake.direct import bake_direct
 from pipeline.bake.gather.bake import GatherSettings, bake_gather
 from pipeline.bake.quality import bake_for_quality
-from pipeline.bake.multiview.bake import bake_multiview
+from pipeline.bake.multiview.bake import bake_multiview, coverage_summary
 from pipeline.bake.multiview.placement import PlacementSettings
-from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
+from pipeline.bake.transfer.bake import TransferSettings, bake_transfer, reduced_view
 from pipeline.commands.common import add_camera_options
 from pipeline.errors import RelightError
 from pipeline.scene import find_camera, load_scene
@@ -60,6 +60,9 @@ def add_parser(subparsers) -> None:
                           help=f"coefficients kept per gather-to-gather row (default {defaults.num_bounce_coefficients})")
     transfer.add_argument("--quantize", action="store_true",
                           help="store coefficients as 8 bits with a per-row scale and offset (default float16)")
+    transfer.add_argument("--indirect-scale", type=int, default=defaults.indirect_scale, metavar="S",
+                          help="bake the final gather for an image S times smaller per side, upsampled edge-aware "
+                               "at relight time (S must divide the width and height; default 1)")
     gather = parser.add_argument_group("gather (--method gather)")
     gather_defaults = GatherSettings()
     gather.add_argument("--directions", type=int, default=gather_defaults.num_directions, metavar="N",
@@ -91,6 +94,9 @@ def add_parser(subparsers) -> None:
     cuts.add_argument("--lattice-edge", type=float, default=cuts_defaults.lattice_edge, metavar="F",
                       help="longest edge of the refined triangles carrying visibility cuts, as a fraction of the "
                            f"scene diagonal (default {cuts_defaults.lattice_edge:.4g})")
+    cuts.add_argument("--beta", type=float, default=cuts_defaults.beta, metavar="B",
+                      help="data-driven light tree: blend of geometric and pilot-visibility distances, "
+                           "0.4-0.5 in the paper (default 1: geometric only)")
     parser.set_defaults(run=run)
 
 
@@ -119,9 +125,11 @@ def _bake(args: argparse.Namespace) -> int:
     if args.method == "transfer":
         settings = TransferSettings(num_gathers=args.gathers, num_coefficients=args.coefficients,
                                     num_bounces=args.bounces, num_bounce_coefficients=args.bounce_coefficients,
-                                    encoding="uint8" if args.quantize else "float16")
+                                    encoding="uint8" if args.quantize else "float16",
+                                    indirect_scale=args.indirect_scale)
         try:
             settings.check()
+            reduced_view(scene, camera, settings.indirect_scale)
         except ValueError as error:
             raise RelightError(f"bake --method transfer: {error}") from None
         layer = bake_transfer(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
@@ -147,9 +155,10 @@ def _bake(args: argparse.Namespace) -> int:
             raise RelightError(f"bake --box: need X0 < X1, Y0 < Y1, Z0 < Z1, got {args.box}")
         layer = bake_multiview(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
                                time_code=args.time, settings=settings, box=box)
+        print(coverage_summary(layer))
     elif args.method == "cuts":
         settings = CutsSettings(mode=args.mode, num_lights=args.cut_lights, sigma=args.sigma,
-                                lattice_edge=args.lattice_edge)
+                                lattice_edge=args.lattice_edge, beta=args.beta)
         try:
             settings.check()
         except ValueError as error:

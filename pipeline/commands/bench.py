@@ -20,7 +20,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "bench", help="run every relighting method's sweep against the reference; CSV, JSON and charts",
         description="Bake each method's parameter sweep on the bundled scenes, relight under the example "
                     "light edits, compare with the reference path tracer at the matching bounce count and "
-                    "write OUT/bench.csv, OUT/bench.json, OUT/speed_accuracy.png and OUT/params_<method>.png. "
+                    "write OUT/bench.csv, OUT/bench.json, OUT/summary.txt (each method's best speed-up over "
+                    "the path tracer at equal PSNR), OUT/speed_accuracy.png and OUT/params_<method>.png. "
                     "References are cached in OUT/references and re-used by a later run into OUT.")
     parser.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
     parser.add_argument("--quick", action="store_true",
@@ -30,10 +31,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--methods", nargs="+", choices=METHOD_MODULES, metavar="METHOD",
                         help=f"methods to run (default: all of {', '.join(METHOD_MODULES)})")
     parser.add_argument("--edits", nargs="+", metavar="EDIT",
-                        help="light edits to relight under: shot and the scenes' example edits (default: all)")
+                        help="example light edits to relight under besides the shot's lights (default: all)")
     parser.add_argument("--width", type=int, metavar="W", help="image width (default 160; --quick 24)")
     parser.add_argument("--height", type=int, metavar="H", help="image height (default 120; --quick 24)")
     parser.add_argument("--spp", type=int, metavar="N", help="reference samples per pixel (default 256; --quick 32)")
+    parser.add_argument("--curve-spp", type=int, nargs="+", metavar="N",
+                        help="spp of the path-tracer renders fitted for the comparison rows (default 1 2 4 8 16; "
+                             "--quick 1 4)")
     parser.add_argument("--repeats", type=int, metavar="N", help="timed light moves per relight time (default 7)")
     add_device_option(parser)
     parser.set_defaults(run=run)
@@ -55,10 +59,15 @@ def run(args: argparse.Namespace) -> int:
         overrides["methods"] = tuple(args.methods)
     if args.edits:
         overrides["edits"] = tuple(args.edits)
+    if args.curve_spp:
+        if min(args.curve_spp) < 1:
+            raise RelightError(f"--curve-spp must be at least 1, got {args.curve_spp}")
+        overrides["curve_spp"] = tuple(args.curve_spp)
     out = Path(args.out)
     config = (BenchConfig.quick_run(out, **overrides) if args.quick
               else dataclasses.replace(BenchConfig(out), **overrides))
     result = run_bench(config, log=lambda line: print(line, flush=True))
+    print((out / "summary.txt").read_text(), end="")
     for path in result.files:
         print(path)
     return 0

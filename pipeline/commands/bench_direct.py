@@ -19,7 +19,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "bench-direct", help="benchmark direct relighting edits (re-shade, move, shaping, colour)",
         description="Bake a bundled scene, then time renders after edits that invalidate different "
                     "stages of the relighter, with rigs of 1, 4 and 16 lights; print a table of median "
-                    "milliseconds, passes run, cache sizes and peak memory.")
+                    "wall and CPU milliseconds, passes run, cache sizes and peak memory, then the table "
+                    "of edit kinds (colour, shaping, move, link) and what each recomputes.")
     parser.add_argument("--scene", default="glossy", choices=sorted(SCENES), help="bundled scene (default: glossy)")
     parser.add_argument("--width", type=int, default=640, metavar="W", help="image width (default: 640)")
     parser.add_argument("--height", type=int, default=480, metavar="H", help="image height (default: 480)")

@@ -19,10 +19,11 @@ import math
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, UsdLux
+from pxr import Gf, Sdf, UsdLux
 
 from pipeline.scenes import authoring, glossy
 from pipeline.scenes.bundled import BundledScene, LightEdit, LightOverride
+from relight_torch.io.atomic import atomic_path
 from relight_torch.io.exr import write_rgb_exr
 
 NAME = "dome"
@@ -59,8 +60,6 @@ def write(directory: Path) -> Path:
     glossy_layer = glossy.write(directory)
     write_rgb_exr(directory / TEXTURE, sky_texture())
     stage = authoring.create_stage(0.01, "The glossy scene under a textured dome light (centimetres).")
-    stage.GetRootLayer().subLayerPaths.append(f"./{glossy_layer.name}")
-    stage.SetDefaultPrim(stage.GetPrimAtPath(authoring.WORLD))
     for light in (glossy.KEY, glossy.SPOT):
         stage.OverridePrim(light).SetActive(False)
     dome = UsdLux.DomeLight.Define(stage, DOME)
@@ -69,7 +68,16 @@ def write(directory: Path) -> Path:
     dome.CreateTextureFormatAttr(UsdLux.Tokens.latlong)
     authoring.place(dome, (0.0, 0.0, 0.0), rotate_xyz=(0.0, 0.0, 0.0))
     stage.SetMetadata("renderSettingsPrimPath", authoring.RENDER_SETTINGS)
-    return authoring.save_stage(stage, directory / f"{NAME}.usda")
+    # The sublayer is added to a detached copy of the layer: an in-memory stage cannot resolve
+    # the relative path (USD would warn), the file written beside glossy.usda can.
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    layer.ImportFromString(stage.GetRootLayer().ExportToString())
+    layer.subLayerPaths.append(f"./{glossy_layer.name}")
+    path = directory / f"{NAME}.usda"
+    with atomic_path(path) as temp:
+        if not layer.Export(str(temp)):
+            raise OSError(f"could not write USD layer {temp}")
+    return path
 
 
 LIGHT_EDITS = (

@@ -12,6 +12,7 @@ allow_pickle=False.
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -22,6 +23,12 @@ from relight_torch.cache.layer import CacheDescription, Payload, file_sha256
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.io.exr import ExrHeader, read_exr, read_exr_header
+
+
+MAX_EXR_EXPANSION = 2048
+"""An EXR payload whose header claims more raw pixel bytes than this many times its file size is
+refused before it is read: no compression OpenEXR writes for us (ZIP deflate tops out near 1032:1)
+gets there, so only a forged header does, and reading it would allocate what it claims."""
 
 
 def payload_file(layer_path: Path, payload: Payload) -> Path:
@@ -66,6 +73,11 @@ def check_exr_header(path: Path, payload: Payload, header: ExrHeader, image_size
         image_size: the expected (H, W).
     """
     height, width = image_size
+    raw = header.width * header.height * sum(dtype.itemsize for dtype in header.channels.values())
+    if raw > MAX_EXR_EXPANSION * path.stat().st_size:
+        raise RelightError(f"{path}: payload {payload.name} header claims {header.width}x{header.height} x "
+                           f"{len(header.channels)} channels ({raw} bytes) from a {path.stat().st_size}-byte file; "
+                           f"refused before reading")
     if (header.height, header.width) != (height, width):
         raise RelightError(f"{path}: payload {payload.name} is a {header.width}x{header.height} EXR, "
                            f"the cache layer says {width}x{height}")
@@ -81,7 +93,9 @@ def read_npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
     """(shape, dtype) from a .npy file's header, without reading the array.
 
     Raises:
-        RelightError: not a .npy file, an unsupported version or a malformed header.
+        RelightError: not a .npy file, an unsupported version, a malformed header, or a header
+            whose shape and dtype do not account for the file's size exactly (a header claiming a
+            huge array is refused before anything is allocated or mapped).
     """
     with open(path, "rb") as handle:
         try:
@@ -91,10 +105,17 @@ def read_npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
             read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
                            else np.lib.format.read_array_header_2_0)
             shape, _, dtype = read_header(handle)
+            data_offset = handle.tell()
         except (ValueError, EOFError) as error:
             reason = str(error).splitlines()[0] if str(error) else type(error).__name__
             raise RelightError(f"{path}: not a .npy array ({reason})") from None
-    return tuple(int(n) for n in shape), dtype
+    shape = tuple(int(n) for n in shape)
+    data_bytes = math.prod(shape) * dtype.itemsize
+    size = path.stat().st_size
+    if data_offset + data_bytes != size:
+        raise RelightError(f"{path}: .npy header claims {dtype.name}{list(shape)} ({data_bytes} bytes of data) but "
+                           f"the file holds {size - data_offset}; refused before reading")
+    return shape, dtype
 
 
 def check_npy_header(path: Path, payload: Payload, header: tuple[tuple[int, ...], np.dtype]) -> None:

@@ -11,6 +11,7 @@ brightest splittable node first, up to a maximum size.
 from __future__ import annotations
 
 import heapq
+import math
 from dataclasses import dataclass
 
 import torch
@@ -18,7 +19,13 @@ import torch
 from relight_torch.cuts.tree import LightTree
 
 MEAN_LEVELS = 255
-"""Stored visibility means are round(<v> * MEAN_LEVELS) in uint8."""
+"""Environment mode: stored visibility means are round(<v> * MEAN_LEVELS) in uint8."""
+
+
+def indirect_scale(num_leaves: int) -> float:
+    """Indirect mode: the stored means are <V G> / `indirect_scale`, G in steradians: 2 pi / L,
+    the share of a hemisphere of one of L surface points around a vertex enclosed by surfaces."""
+    return 2.0 * math.pi / num_leaves
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from relight_torch.cache.load import load_npy
-from relight_torch.cuts.cuts import MEAN_LEVELS, Cuts
+from relight_torch.cuts.cuts import MEAN_LEVELS, Cuts, indirect_scale
 from relight_torch.cuts.relighter import CutsCache, CutsRelighter, CutsRelightSettings
 from relight_torch.cuts.tree import LightTree
 from relight_torch.errors import RelightError
@@ -43,14 +43,16 @@ def open_cuts_relighter(path: str | os.PathLike, device: str | torch.device = "c
         if description.parameters.get("cutsMode", "env") == "env":
             leaves = {"leaf_directions": load("cutsLeafDirections", dtype), "leaf_weights": load("cutsLeafWeights", dtype)}
             num_leaves = leaves["leaf_directions"].shape[0]
+            scale = 1.0 / MEAN_LEVELS
         else:
             points = GatherSamples(**{field: load(f"cutsLeaf{name}", dtype) for field, name in _POINT_FIELDS.items()},
                                    object_id=load("cutsLeafObjectId", torch.int64))
             leaves = {"leaf_points": points}
             num_leaves = points.num_gathers
+            scale = indirect_scale(num_leaves)
         tree = LightTree.of(num_leaves, device)
         visibility = Cuts(load("cutsOffsets", torch.int64), load("cutsNodes", torch.int64),
-                          load("cutsMeans", dtype) / MEAN_LEVELS)
+                          load("cutsMeans", dtype) * scale)
         visibility.check(tree)
         cuts = CutsCache(tree, visibility, load("cutsSampleVertices", torch.int64), load("cutsSampleWeights", dtype),
                          **leaves)

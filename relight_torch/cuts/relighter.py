@@ -11,7 +11,7 @@ covered sub-sample, the cuts of its three lattice vertices are merged with the i
     B = sum_k |C_k| <l_k> f_r(wo, <x_k>) cos(<x_k>) (w1 <v1_k> + w2 <v2_k> + w3 <v3_k>)
 
 with <x_k> the direction to the merged cluster (its mean direction, or its mean position in
-indirect mode, where the geometry term is folded into <v_k>), f_r UsdPreviewSurface from the
+indirect mode, where <v_k> is visibility times the leaves' solid angle), f_r UsdPreviewSurface from the
 sub-sample's current parameters (`relight_torch.brdf.preview_surface.split`; a dome's diffuse and
 specular multipliers apply per lobe). Everything else is the direct relighter's.
 """
@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import math
 from dataclasses import dataclass
 
 import torch
@@ -48,7 +47,7 @@ class CutsRelightSettings:
     """
 
     max_cut: int = 256
-    rows_per_batch: int = 8192
+    rows_per_batch: int = 2048
 
 
 @dataclass(frozen=True)
@@ -57,7 +56,8 @@ class CutsCache:
 
     Attributes:
         tree: the light tree over L leaves.
-        visibility: the lattice vertices' visibility cuts, values (nnz,) mean visibility.
+        visibility: the lattice vertices' visibility cuts, values (nnz,) mean visibility (indirect
+            mode: mean visibility x solid angle of the leaf's patch, sr).
         sample_vertices: (N, 3) int64 lattice vertices of each covered sub-sample.
         sample_weights: (N, 3) their barycentric weights.
         leaf_directions, leaf_weights: environment mode: (L, 3) unit world directions of the
@@ -85,12 +85,9 @@ class CutsRelighter:
     Environment mode: dome lights by cuts, every other light by the direct relighter. Indirect
     mode: every light direct, plus its one-bounce indirect light by cuts (seed 004's second mode):
     the leaves are surface points lit with `relight_torch.transfer.gathers.gather_radiance` (the
-    direct relighter's light kernels and visibility), re-emitting diffusely, and a merged cluster
-    stands for its leaves at their mean position and mean normal:
-
-        B = sum_k |C_k| <L_k A_k> f_r(wo, wi_k) cos(wi_k) cos_k / max(d_k^2, |C_k| <A_k> / 2 pi) <v_k>
-
-    (the bound keeps a near cluster's solid angle below a hemisphere's).
+    direct relighter's light kernels and visibility), re-emitting diffusely; their solid angle is
+    folded into the visibility cuts (`pipeline.bake.cuts.visibility`) and a merged cluster is
+    seen in the direction of its leaves' mean position.
 
     Args:
         direct: the direct relighter of the cache (its G-buffer, exposure and supersampling).
@@ -100,7 +97,8 @@ class CutsRelighter:
     Attributes:
         params: the current material parameters of every sub-sample (edit with `set_params` or
             `edit_material`; no re-bake). Only the cuts' light follows them.
-        stats: of the last cuts render, summed over the sub-samples: 'merged' (entries of the
+        stats: of the last cuts render, summed over the sub-samples: 'inputs' (entries of the
+            three vertices' visibility cuts, the merge's input), 'merged' (entries of the
             merged cuts built with the illumination cut), 'dark' (visibility clusters dark at all
             three vertices, dropped before the illumination cut is merged in), 'shaded' (entries
             whose BRDF was evaluated: lit, above the horizon), and 'illumination_cut' (its size).
@@ -122,8 +120,6 @@ class CutsRelighter:
         else:
             points = cuts.leaf_points
             self._node_position = tree.aggregate(points.position) / tree.size.to(g.position.dtype).unsqueeze(-1)
-            self._node_normal = torch.nn.functional.normalize(tree.aggregate(points.normal), dim=-1)
-            self._node_area = tree.aggregate(points.area)
         self._domes: dict[str, Light] = {}
         self._leaf_radiance: dict[str, tuple[Light, torch.Tensor]] = {}
         self._samples: torch.Tensor | None = None
@@ -247,7 +243,7 @@ class CutsRelighter:
         """(diffuse, specular) light (L, 3) of every leaf for the receivers' two BRDF lobes.
 
         Env: the domes' radiance integrated over each leaf's cell (`env.dome_leaf_light`), times
-        the lights' per-lobe multipliers. Indirect: radiance x area of each surface point after one
+        the lights' per-lobe multipliers. Indirect: the radiance leaving each surface point after one
         diffuse reflection of `lights` (plus its emission with `emission`), the same for both lobes.
         """
         cuts = self.cuts
@@ -263,8 +259,7 @@ class CutsRelighter:
                                        object_paths=self.direct.object_paths)
                 cached = self._leaf_radiance[light.path] = (light, leaf)
             radiance = radiance + cached[1]
-        light = radiance * points.area.unsqueeze(-1)
-        return light, light
+        return radiance, radiance
 
     def illumination_cut(self, lights: list[Light], emission: bool = False
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -277,17 +272,12 @@ class CutsRelighter:
         size = tree.size[nodes].to(diffuse.dtype).unsqueeze(-1)
         return nodes, diffuse[nodes] / size, specular[nodes] / size
 
-    def _incident(self, node: torch.Tensor, sample: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(unit world directions (Q, 3) from the sub-samples towards the merged clusters, the
-        geometry factor (Q,) cos_k / d^2 in indirect mode or None in env mode)."""
+    def _incident(self, node: torch.Tensor, sample: torch.Tensor) -> torch.Tensor:
+        """(Q, 3) unit world directions from the sub-samples towards the merged clusters."""
         if self.mode == "env":
-            return self._node_directions[node], None
+            return self._node_directions[node]
         offset = self._node_position[node] - self.direct.gbuffer.position[sample]
-        distance2 = offset.square().sum(-1)
-        direction = offset / distance2.sqrt().clamp_min(1e-30).unsqueeze(-1)
-        cosine = -(direction * self._node_normal[node]).sum(-1)
-        bound = self._node_area[node] / (2.0 * math.pi)
-        return direction, cosine.clamp_min(0.0) / torch.maximum(distance2, bound)
+        return torch.nn.functional.normalize(offset, dim=-1)
 
     def cut_samples(self, lights: list[Light], emission: bool = False) -> torch.Tensor:
         """(N, 3) radiance of every covered sub-sample from `lights` by cuts (env: their domes;
@@ -304,6 +294,7 @@ class CutsRelighter:
         for start in range(0, g.num_samples, self.settings.rows_per_batch):
             rows = torch.arange(start, min(start + self.settings.rows_per_batch, g.num_samples), device=g.device)
             merged = self.merged_visibility(rows)
+            self.stats["inputs"] += int(cuts.visibility.sizes()[cuts.sample_vertices[rows]].sum())
             weights = cuts.sample_weights[rows]
             # Clusters all three vertices see as dark stay dark however the illumination cut would
             # split them: they are dropped before the illumination cut is merged in.
@@ -313,10 +304,8 @@ class CutsRelighter:
             self.stats["merged"] += int(merged.node.shape[0])
             visibility = self._visibility(merged, weights)
             sample = rows[merged.row]
-            direction, geometry = self._incident(merged.node, sample)
-            if geometry is not None:
-                visibility = visibility * geometry
-            wi_local = to_local(direction, g.tangent[sample], g.bitangent[sample], g.normal[sample])
+            wi_local = to_local(self._incident(merged.node, sample), g.tangent[sample], g.bitangent[sample],
+                                g.normal[sample])
             live = (visibility > 0) & (wi_local[:, 2] > 0)
             sample, wi_local, visibility = sample[live], wi_local[live], visibility[live]
             node, light = merged.node[live], merged.cover[-1][live]

@@ -112,7 +112,3 @@ class LightTree:
                 level = level.reshape(level.shape[0], nodes.shape[0], 2).sum(dim=-1)
             sums[:, nodes] = level
         return sums
-
-    def to(self, device: torch.device | str) -> LightTree:
-        return LightTree(self.num_leaves, self.leftleaf.to(device), self.height.to(device),
-                         self.leaf_nodes.to(device), tuple(n.to(device) for n in self.level_nodes))

@@ -12,10 +12,15 @@ import os
 from pathlib import Path
 from typing import Iterator
 
+from relight_torch.errors import RelightError
+
 
 @contextlib.contextmanager
 def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path to write; on success it replaces `target`, on error it is removed.
+
+    Raises:
+        RelightError: an OSError while writing or renaming (disk full...), naming `target`.
 
     The temporary name keeps the target's suffix, so format-sniffing writers (OpenEXR, USD,
     OpenImageIO) pick the right format.
@@ -28,6 +33,9 @@ def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
         with open(temp, "rb+") as handle:
             os.fsync(handle.fileno())
         os.replace(temp, target)
+    except OSError as error:  # disk full, quota, permissions: one line naming the file
+        raise RelightError(f"{target}: could not be written ({error.strerror or error}); "
+                           f"nothing was replaced") from error
     finally:
         with contextlib.suppress(FileNotFoundError):
             temp.unlink()

@@ -15,7 +15,8 @@ and corners that tolerance also admits the neighbouring surface's sample, so the
 must moreover be the same surface: the same object, with a geometric normal within
 `SAME_SURFACE_COS` of the point's (the paper's "artifacts at surface boundaries", removed).
 
-`correspondence_map` is the vectorised map (a loop over the K cameras, each over all points);
+`correspondence_map` is the vectorised map (a loop over the K cameras, each over the points
+inside its frustum);
 `correspondence_map_reference` is its slow twin, a loop over points and cameras written from the
 formula, used by the tests only.
 """
@@ -78,15 +79,25 @@ class Correspondence:
         view: int64 caching camera index, -1 where no camera sees the point (a hole).
         pool_row: int64 row of the chosen sample in `CachingViews.pool`, -1 for holes.
         score: float32 the winning eq. 5 score (0 for holes).
+        pixel: (N, 2) float32 continuous (column, row) of the point in the chosen camera's image
+            (NaN for holes), or None.
     """
 
     view: torch.Tensor
     pool_row: torch.Tensor
     score: torch.Tensor
+    pixel: torch.Tensor | None = None
 
     @property
     def covered(self) -> torch.Tensor:
         return self.pool_row >= 0
+
+
+def same_surface(surface: torch.Tensor, object_id: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """(...,) bool: cached samples (`CachingViews.surface_table` rows, (..., 4)) of the same surface as
+    points of `object_id` (...,) float32 with unit geometric normals (..., 3)."""
+    cos = surface[..., 1] * normal[..., 0] + surface[..., 2] * normal[..., 1] + surface[..., 3] * normal[..., 2]
+    return (surface[..., 0] == object_id) & (cos > SAME_SURFACE_COS)
 
 
 def _depth_tolerance(depth, pixel_angle, cos):
@@ -105,32 +116,35 @@ def correspondence_map(views: CachingViews, position: torch.Tensor, normal: torc
         normal: (N, 3) unit geometric normals at the points, facing the viewer.
         object_id: (N,) object of each point.
     """
-    pool_object = views.pool.object_id.to(torch.int64)
-    pool_normal = views.pool.geometric_normal.to(position.dtype)
-    object_id = object_id.to(torch.int64)
+    object_id = object_id.to(torch.float32)
     num_points = position.shape[0]
     best_score = torch.zeros(num_points, dtype=torch.float32, device=position.device)
     best_view = torch.full((num_points,), -1, dtype=torch.int64, device=position.device)
     best_row = torch.full((num_points,), -1, dtype=torch.int64, device=position.device)
+    best_pixel = torch.full((num_points, 2), torch.nan, dtype=torch.float32, device=position.device)
     for k in range(views.num_views):
-        to_camera = views.camera_position(k) - position
-        distance_squared = (to_camera * to_camera).sum(-1)
-        cos = (normal * to_camera).sum(-1) * torch.rsqrt(torch.clamp(distance_squared, min=1e-30))
         pixels, depth = views.project(k, position)
         height, width = (int(v) for v in views.sizes[k])
         column, row = torch.floor(pixels[:, 0]), torch.floor(pixels[:, 1])
-        inside = (depth > 0) & (column >= 0) & (column < width) & (row >= 0) & (row < height) & (cos > 0)
-        flat = torch.where(inside, row * width + column, torch.zeros_like(column)).long() + views.image_offsets[k]
-        cached = views.depth[flat]
-        seen = inside & ((depth - cached).abs() <= _depth_tolerance(depth, views.pixel_angle[k], cos))
-        row = torch.where(seen, views.pool_row[flat], torch.zeros_like(flat))
-        seen &= (pool_object[row] == object_id) & ((pool_normal[row] * normal).sum(-1) > SAME_SURFACE_COS)
+        # The rest only for the points inside the frustum (a cube face holds about a sixth).
+        index = torch.nonzero((depth > 0) & (column >= 0) & (column < width) & (row >= 0) & (row < height)).squeeze(-1)
+        point, point_normal, depth = position[index], normal[index], depth[index]
+        to_camera = views.camera_position(k) - point
+        distance_squared = (to_camera * to_camera).sum(-1)
+        cos = (point_normal * to_camera).sum(-1) * torch.rsqrt(torch.clamp(distance_squared, min=1e-30))
+        flat = (row[index] * width + column[index]).long() + views.image_offsets[k]
+        sample = views.pool_row[flat]
+        seen = (cos > 0) & ((depth - views.depth[flat]).abs() <= _depth_tolerance(depth, views.pixel_angle[k], cos))
+        sample = torch.where(seen, sample, torch.zeros_like(sample))
+        seen &= same_surface(views.surface_table[sample], object_id[index], point_normal)
         score = torch.where(seen, cos / distance_squared, torch.zeros_like(cos))
-        better = score > best_score
-        best_score = torch.where(better, score, best_score)
-        best_view = torch.where(better, torch.full_like(best_view, k), best_view)
-        best_row = torch.where(better, row, best_row)
-    return Correspondence(best_view, best_row, best_score)
+        better = score > best_score[index]
+        chosen = index[better]
+        best_score[chosen] = score[better]
+        best_view[chosen] = k
+        best_row[chosen] = sample[better]
+        best_pixel[chosen] = pixels[index[better]].float()
+    return Correspondence(best_view, best_row, best_score, best_pixel)
 
 
 def correspondence_map_reference(views: CachingViews, position: np.ndarray, normal: np.ndarray,

@@ -68,39 +68,36 @@ def fill_small_holes(view: ViewPoints, pool_row: torch.Tensor, pool: GBuffer,
     """
     height, width = view.image_size
     device = pool_row.device
-    rows = torch.full((height, width), -1, dtype=torch.int64, device=device)
-    objects = torch.full((height, width), -1, dtype=torch.int64, device=device)
-    rows.view(-1)[view.pixel_index] = pool_row
-    objects.view(-1)[view.pixel_index] = view.object_id.to(torch.int64)
-    normals = torch.zeros((height, width, 3), dtype=view.geometric_normal.dtype, device=device)
-    normals.view(-1, 3)[view.pixel_index] = view.geometric_normal
-    hole_image = (objects >= 0) & (rows < 0)
-    labels, num_regions = ndimage.label(hole_image.cpu().numpy(), structure=np.ones((3, 3), bool))
+    slot = torch.full((height * width,), -1, dtype=torch.int64, device=device)   # point of each pixel
+    slot[view.pixel_index] = torch.arange(view.num_points, device=device)
+    hole_points = torch.nonzero(pool_row < 0).squeeze(-1)
+    hole_image = np.zeros(height * width, bool)
+    hole_image[view.pixel_index[hole_points].cpu().numpy()] = True
+    labels, num_regions = ndimage.label(hole_image.reshape(height, width), structure=np.ones((3, 3), bool))
     sizes = np.bincount(labels.reshape(-1), minlength=num_regions + 1)
     sizes[0] = 0
-    large = torch.from_numpy(sizes[labels] > max_fill_pixels).to(device)
-    todo = hole_image & ~large
-    filled = rows.clone()
+    large = torch.from_numpy(sizes[labels.reshape(-1)] > max_fill_pixels).to(device)
+    # Only the small holes' points are visited, one neighbour offset at a time.
+    todo = hole_points[~large[view.pixel_index[hole_points]]]
+    filled = pool_row.clone()
     for dr, dc in _OFFSETS:
-        if not bool(todo.any()):
+        if todo.numel() == 0:
             break
-        candidate = torch.full_like(rows, -1)
-        target = (slice(max(dr, 0), height + min(dr, 0)), slice(max(dc, 0), width + min(dc, 0)))
-        source = (slice(max(-dr, 0), height + min(-dr, 0)), slice(max(-dc, 0), width + min(-dc, 0)))
-        # candidate[r, c] = rows[r - dr, c - dc]: the neighbour at offset (-dr, -dc).
-        candidate[target] = rows[source]
-        valid = candidate >= 0
-        same_object = torch.zeros_like(valid)
-        sample = candidate[valid]
-        same_object[valid] = (pool.object_id[sample].to(torch.int64) == objects[valid]) & (
-            (pool.geometric_normal[sample].to(normals.dtype) * normals[valid]).sum(-1) > SAME_SURFACE_COS)
-        take = todo & same_object
-        filled = torch.where(take, candidate, filled)
-        todo = todo & ~take
-    new_rows = filled.view(-1)[view.pixel_index]
-    num_holes = int(hole_image.sum())
+        pixel = view.pixel_index[todo]
+        row, column = pixel // width + dr, pixel % width + dc
+        inside = (row >= 0) & (row < height) & (column >= 0) & (column < width)
+        neighbour = slot[torch.where(inside, row * width + column, torch.zeros_like(pixel))]
+        sample = torch.where(inside & (neighbour >= 0), pool_row[neighbour.clamp(min=0)], -torch.ones_like(pixel))
+        safe = sample.clamp(min=0)
+        take = (sample >= 0) & (pool.object_id[safe].to(torch.int64) == view.object_id[todo].to(torch.int64)) & (
+            (pool.geometric_normal[safe].to(view.geometric_normal.dtype) * view.geometric_normal[todo]).sum(-1)
+            > SAME_SURFACE_COS)
+        filled[todo[take]] = sample[take]
+        todo = todo[~take]
+    new_rows = filled
+    num_holes = int(hole_points.numel())
     report = HoleReport(
         num_points=view.num_points, num_holes=num_holes, num_filled=num_holes - int((new_rows < 0).sum()),
         num_large_holes=int(np.count_nonzero(sizes > max_fill_pixels)),
-        large_pixel_index=torch.nonzero(large.view(-1)).squeeze(-1))
+        large_pixel_index=torch.nonzero(large).squeeze(-1))
     return new_rows, report

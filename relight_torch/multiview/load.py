@@ -40,15 +40,28 @@ def load_camera_table(layer_path: Path, description: CacheDescription) -> np.nda
     return table
 
 
+def view_image_size(layer_path: Path, description: CacheDescription, payload_name: str) -> tuple[int, int] | None:
+    """(H, W) of a multiview cache's deep framebuffer payload `payload_name` (from the camera table);
+    None for its other payloads, or another method's (for generic payload checks, e.g. `relight info`)."""
+    if description.method != "multiview" or not payload_name.startswith("view"):
+        return None
+    return _image_size(load_camera_table(layer_path, description), int(payload_name[len("view"):]), layer_path)
+
+
+def _image_size(table: np.ndarray, k: int, layer_path: Path) -> tuple[int, int]:
+    if not 0 <= k < table.shape[0]:
+        raise RelightError(f"{layer_path}: payload {view_payload_name(k)} has no row in the camera table")
+    return int(camera_column(table, "height")[k]), int(camera_column(table, "width")[k])
+
+
 def load_view_gbuffers(layer_path: Path, description: CacheDescription, table: np.ndarray) -> list[GBuffer]:
     """Every caching camera's deep framebuffer as a CPU GBuffer, headers checked against the table."""
     gbuffers = []
-    widths, heights = camera_column(table, "width"), camera_column(table, "height")
     positions = world_from_camera(table)[:, :3, 3]
     for k in range(table.shape[0]):
         payload = description.payload(view_payload_name(k))
         path = payload_file(layer_path, payload)
-        check_exr_header(path, payload, read_exr_header(path), (int(heights[k]), int(widths[k])))
+        check_exr_header(path, payload, read_exr_header(path), _image_size(table, k, layer_path))
         check_payload_bytes(path, payload)
         channels, _ = read_exr(path)
         gbuffers.append(gbuffer_from_channels(channels, payload.constants, positions[k], str(path)))

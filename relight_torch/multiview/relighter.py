@@ -3,13 +3,14 @@
 For each new view (`set_view`), the caller's visible points (`ViewPoints`) are matched to caching
 camera samples (`correspondence_map`, eq. 5), small holes are filled (`fill_small_holes`), and a
 GBuffer is assembled: the new view's own positions, geometric normals and depths with the chosen
-samples' material parameters and shading frames. Where the material does not perturb its normal,
-the view's own smooth normal replaces the cached one (the frame re-orthonormalised around it):
-a cached normal is the one at the caching pixel's centre, which on a curved surface seen by a
-coarser caching camera is off by up to a caching pixel and shifts highlights. The direct `Relighter` then shades it with the
-usual lights and shadows; there is no second shading path. Lights persist across views; a view
-change rebuilds the per-light transport (the shading points moved), a light edit at a fixed view
-re-renders only what it touches, as for a single-view cache.
+samples' material parameters and shading frames, bilinearly resampled (`resample`). Where the
+material does not perturb its normal, the view's own smooth normal replaces the cached one (the
+frame re-orthonormalised around it): a cached normal is the one at the caching pixel's centre,
+which on a curved surface seen by a coarser caching camera is off by up to a caching pixel and
+shifts highlights. The direct `Relighter` then shades it with the usual lights and shadows; there
+is no second shading path. Lights persist across views; a view change rebuilds the per-light
+transport (the shading points moved), a light edit at a fixed view re-renders only what it
+touches, as for a single-view cache.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from relight_torch.lights.linking import decode_paths
 from relight_torch.multiview.correspondence import ViewPoints, correspondence_map
 from relight_torch.multiview.holes import HoleReport, fill_small_holes
 from relight_torch.multiview.load import load_camera_table, load_view_gbuffers
+from relight_torch.multiview.resample import bilinear_samples
 from relight_torch.multiview.views import CachingViews, concat_gbuffers, gather_gbuffer
 from relight_torch.relighter import Relighter, RelightSettings, shot_lights
 from relight_torch.visibility.embree import EmbreeCaster, ShadowLinkCasters
@@ -54,10 +56,15 @@ def view_gbuffer(views: CachingViews, view: ViewPoints, patch: GBuffer | None = 
     correspondence = correspondence_map(views, view.position, view.geometric_normal, view.object_id)
     rows, report = fill_small_holes(view, correspondence.pool_row, views.pool)
     keep = torch.nonzero(rows >= 0).squeeze(-1)
-    chosen = gather_gbuffer(views.pool, rows[keep])
-    gbuffer = dataclasses.replace(chosen, image_size=view.image_size, pixel_index=view.pixel_index[keep],
-                                  position=view.position[keep], geometric_normal=view.geometric_normal[keep],
-                                  depth=view.depth[keep], camera_position=view.camera_position)
+    # Filled holes are resampled at their neighbour's pixel centre: that sample alone.
+    matched = (correspondence.pool_row[keep] >= 0)[:, None]
+    row = rows[keep]
+    chosen = bilinear_samples(views, torch.where(matched[:, 0], correspondence.view[keep], views.pool_view[row]),
+                              torch.where(matched, correspondence.pixel[keep], views.pool_pixel[row]), row,
+                              view.object_id[keep], view.geometric_normal[keep])
+    gbuffer = GBuffer(image_size=view.image_size, pixel_index=view.pixel_index[keep], position=view.position[keep],
+                      geometric_normal=view.geometric_normal[keep], depth=view.depth[keep],
+                      camera_position=view.camera_position, **chosen._asdict())
     if view.shading_normal is not None and normal_mapped is not None:
         gbuffer = _smooth_frames(gbuffer, view.shading_normal[keep], ~normal_mapped[gbuffer.material_id.long()])
     if patch is not None:

@@ -56,6 +56,33 @@ def check_camera_table(table: np.ndarray, source: str) -> None:
         raise ValueError(f"{source}: focal lengths and apertures must be > 0")
 
 
+BLEND_FIELDS = tuple(f.name for f in dataclasses.fields(PreviewSurfaceParams)
+                     if f.name != "use_specular_workflow") + ("normal", "tangent")
+"""What bilinear resampling blends: the floating material parameters, then the shading normal and
+tangent (params first, in `PreviewSurfaceParams` field order)."""
+
+
+def _blend_sources(gbuffer: GBuffer) -> list[torch.Tensor]:
+    return [getattr(gbuffer.params, name) if hasattr(gbuffer.params, name) else getattr(gbuffer, name)
+            for name in BLEND_FIELDS]
+
+
+def pack_blend_table(gbuffer: GBuffer) -> torch.Tensor:
+    """(N, C) float32 of `BLEND_FIELDS` side by side."""
+    return torch.cat([t.float().reshape(t.shape[0], -1) for t in _blend_sources(gbuffer)], -1)
+
+
+def unpack_blend_table(table: torch.Tensor, like: GBuffer) -> dict[str, torch.Tensor]:
+    """`BLEND_FIELDS` name -> values from an (N, C) table, shaped and typed as `like`'s fields."""
+    out, start = {}, 0
+    for name, source in zip(BLEND_FIELDS, _blend_sources(like)):
+        width = source[0].numel() if source.dim() > 1 else 1
+        values = table[:, start:start + width]
+        out[name] = (values if source.dim() > 1 else values[:, 0]).to(source.dtype)
+        start += width
+    return out
+
+
 def _concat_params(parts: list[PreviewSurfaceParams]) -> PreviewSurfaceParams:
     names = [f.name for f in dataclasses.fields(PreviewSurfaceParams)]
     return PreviewSurfaceParams(**{name: torch.cat([getattr(p, name) for p in parts]) for name in names})
@@ -94,6 +121,15 @@ class CachingViews:
         pool_row: (sum H W,) int64 pool row of each view pixel, -1 where the view hit nothing.
         depth: (sum H W,) float32 cached depth along each view's axis, inf where it hit nothing.
         pixel_angle: (K,) float32 angle one sub-sample pixel subtends at the image centre (radians).
+        pool_view: (R,) int64 the view of each pool row.
+        pool_pixel: (R, 2) float32 (column, row) centre of each pool row's pixel in its view.
+        blend_table: (R, V) the pool's blendable values packed side by side (`BLEND_FIELDS`), the
+            V columns that vary over the pool only: one gather of V values per row is much
+            cheaper than V gathers, and constant columns (no emission, no clearcoat) cost nothing.
+        blend_columns: (C,) bool, which of the C packed columns `blend_table` holds.
+        blend_constants: (C,) float32 the packed columns' values where constant.
+        surface_table: (R, 4) float32 object id (exact below 2^24) and geometric normal of each
+            row: what the same-surface tests read, in one gather.
     """
 
     table: np.ndarray
@@ -104,6 +140,12 @@ class CachingViews:
     pool_row: torch.Tensor
     depth: torch.Tensor
     pixel_angle: torch.Tensor
+    pool_view: torch.Tensor
+    pool_pixel: torch.Tensor
+    blend_table: torch.Tensor
+    blend_columns: torch.Tensor
+    blend_constants: torch.Tensor
+    surface_table: torch.Tensor
 
     @property
     def num_views(self) -> int:
@@ -124,7 +166,7 @@ class CachingViews:
         if len(gbuffers) != table.shape[0]:
             raise ValueError(f"{table.shape[0]} cameras but {len(gbuffers)} deep framebuffers")
         device = gbuffers[0].device if gbuffers else torch.device("cpu")
-        sizes, rows, depths = [], [], []
+        sizes, rows, depths, owners, centres = [], [], [], [], []
         start = 0
         for gbuffer in gbuffers:
             height, width = gbuffer.image_size
@@ -135,6 +177,8 @@ class CachingViews:
             depth[gbuffer.pixel_index] = gbuffer.depth.float()
             rows.append(row)
             depths.append(depth)
+            owners.append(torch.full((gbuffer.num_samples,), len(owners), dtype=torch.int64, device=device))
+            centres.append(torch.stack([gbuffer.pixel_index % width, gbuffer.pixel_index // width], -1).float() + 0.5)
             start += gbuffer.num_samples
         size_tensor = torch.tensor(sizes, dtype=torch.int64, device=device).reshape(-1, 2)
         offsets = torch.zeros(len(gbuffers) + 1, dtype=torch.int64, device=device)
@@ -144,11 +188,18 @@ class CachingViews:
         pixel_angle = aperture / focal / np.maximum(size_tensor[:, 1].cpu().numpy(), 1)
         rows_all = torch.arange(start, device=device)
         pool = concat_gbuffers(gbuffers, (1, start), rows_all, torch.zeros(3, device=device))
+        packed = pack_blend_table(pool)
+        varying = (packed != packed[:1]).any(0)
         return CachingViews(
             table=np.asarray(table, np.float64), pool=pool,
             camera_from_world=torch.from_numpy(np.linalg.inv(world_from_camera(table))).to(device),
             sizes=size_tensor, image_offsets=offsets, pool_row=torch.cat(rows), depth=torch.cat(depths),
-            pixel_angle=torch.as_tensor(pixel_angle, dtype=torch.float32, device=device))
+            pixel_angle=torch.as_tensor(pixel_angle, dtype=torch.float32, device=device),
+            pool_view=torch.cat(owners) if owners else torch.zeros(0, dtype=torch.int64, device=device),
+            pool_pixel=torch.cat(centres) if centres else torch.zeros((0, 2), device=device),
+            blend_table=packed[:, varying], blend_columns=varying,
+            blend_constants=packed[0] if start else packed.new_zeros(packed.shape[1]),
+            surface_table=torch.cat([pool.object_id.float()[:, None], pool.geometric_normal.float()], -1))
 
     def camera_position(self, k: int) -> torch.Tensor:
         """(3,) float32 world position of camera k."""

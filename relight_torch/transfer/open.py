@@ -20,6 +20,7 @@ from relight_torch.transfer.encoding import PARTS, EncodedRows, decode_rows
 from relight_torch.transfer.gathers import GatherSamples, gather_payload_name
 from relight_torch.transfer.relighter import TransferRelighter
 from relight_torch.transfer.sparse import SparseRows
+from relight_torch.transfer.upsample import edge_aware_upsampler
 
 
 def _load(layer_path: Path, description: CacheDescription, name: str) -> torch.Tensor:
@@ -62,9 +63,15 @@ def open_transfer_relighter(path: str | os.PathLike, device: str | torch.device 
     bounce = (load_sparse_rows(layer_path, description, "bounce", gathers.num_gathers).to(device, dtype)
               if num_bounces > 1 else None)
     view_pixels = _load(layer_path, description, "viewPixels").to(device)
+    scale = int(description.parameters.get("indirectScale", 1))
+    upsampler = None
+    if scale > 1:
+        upsampler = edge_aware_upsampler(direct.gbuffer, direct.supersampling, scale, view_pixels,
+                                         *(_load(layer_path, description, name).to(device)
+                                           for name in ("viewPosition", "viewNormal", "viewObjectId")))
     try:
         return TransferRelighter(direct, gathers, view_pixels, final_gather, bounce, num_bounces,
-                                 cull_tolerance=cull_tolerance)
+                                 upsampler=upsampler, cull_tolerance=cull_tolerance)
     except ValueError as error:
         raise RelightError(f"{layer_path}: {error}") from None
 

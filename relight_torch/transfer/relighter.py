@@ -25,6 +25,7 @@ from relight_torch.relighter import Relighter, unit_light
 from relight_torch.transfer.gathers import GatherSamples, gather_radiance
 from relight_torch.transfer.haar import haar2d
 from relight_torch.transfer.sparse import SparseRows, column_norms, cull_light
+from relight_torch.transfer.upsample import EdgeAwareUpsampler
 
 
 def _frozen(value) -> object:
@@ -51,7 +52,8 @@ class TransferRelighter(IndirectRelighter):
         direct: the direct relighter of the cache's deep framebuffer (lights live there; its
             visibility also answers the gathers' shadow queries).
         gathers: the G gather samples, texture order, on the direct relighter's device.
-        view_pixels: (R,) int64 pixel (row * W + col) of each F row.
+        view_pixels: (R,) int64 pixel (row * W + col) of each F row (in the reduced image when
+            `upsampler` is given).
         final_gather: F, R wavelet rows over G.
         bounce: M, G wavelet rows over G, or None for one bounce.
         num_bounces: B >= 1; M is applied B - 1 times.
@@ -61,18 +63,22 @@ class TransferRelighter(IndirectRelighter):
             Cornell box, 16,384 gathers: 1 / 4 / 16 samples put the indirect image 2.5 / 0.7 / 0.4 %
             RMS from 64 samples) but not near one: with a lamp 10 mm from a wall the indirect mean
             fell from 0.95 to 0.70 of the reference at 4 samples, so the default keeps the direct count.
+        upsampler: for F rows baked at a reduced resolution (`--indirect-scale`), the edge-aware
+            map from them to the full image's pixels (`upsample.edge_aware_upsampler`); None when
+            `view_pixels` are pixels of the full image.
         cull_tolerance: on-the-fly culling of weak wavelet lights in the F product (the chapter's
             section 9.8.3, `sparse.cull_light`): the Haar coefficients of the gather light whose
             weight |l_c| ||F_c|| sums to at most this fraction of the total are zeroed, bounding
             the dropped indirect light's L2 norm by that fraction of the summed weights. It
             changes accuracy, not speed, on the CPU: the row product's embedding_bag touches every
             stored entry, and a product over the kept columns alone (gather, multiply,
-            index_add_) cost 30-40x more per entry there, more than any culling saved (docs/TRANSFER.md).
+            index_add_) cost 30-80x more per entry there, more than any culling saved (docs/TRANSFER.md).
     """
 
     def __init__(self, direct: Relighter, gathers: GatherSamples, view_pixels: torch.Tensor,
                  final_gather: SparseRows, bounce: SparseRows | None = None, num_bounces: int = 1,
-                 gather_samples: int | None = None, cull_tolerance: float = 0.0):
+                 gather_samples: int | None = None, upsampler: EdgeAwareUpsampler | None = None,
+                 cull_tolerance: float = 0.0):
         if final_gather.num_columns != gathers.num_gathers or final_gather.num_rows != view_pixels.shape[0]:
             raise ValueError(f"F is {final_gather.num_rows}x{final_gather.num_columns}; expected "
                              f"{view_pixels.shape[0]} view rows x {gathers.num_gathers} gathers")
@@ -90,6 +96,7 @@ class TransferRelighter(IndirectRelighter):
         self.bounce = bounce
         self.num_bounces = num_bounces
         self.gather_samples = gather_samples
+        self.upsampler = upsampler
         self.cull_tolerance = cull_tolerance
         self._column_norms = column_norms(final_gather) if cull_tolerance > 0 else None
         self.counters: collections.Counter[str] = collections.Counter()
@@ -106,6 +113,13 @@ class TransferRelighter(IndirectRelighter):
         if self.cull_tolerance == 0.0:
             return self.final_gather.matmul(light)
         return self.final_gather.matmul(cull_light(light, self._column_norms, self.cull_tolerance))
+
+    def _rows_to_image(self, rows: torch.Tensor) -> torch.Tensor:
+        """(R, 3) values at the F rows' view samples -> (H, W, 3) image, camera exposure applied."""
+        if self.upsampler is None:
+            return super()._rows_to_image(rows)
+        height, width = (size // self.direct.supersampling for size in self.direct.gbuffer.image_size)
+        return self.upsampler(rows).reshape(height, width, 3) * self.direct.exposure_scale
 
     def _wavelet(self, radiance: torch.Tensor) -> torch.Tensor:
         """(G, 3) gather values in texture order -> (G, 3) Haar coefficients, flattened row-major."""

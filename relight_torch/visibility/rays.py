@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from relight_torch.lights.light import Light
+from relight_torch.math.frame import dot
 
 
 class RayCaster(Protocol):
@@ -60,7 +61,7 @@ class RayVisibility:
         num_points, num_samples = distances.shape
         directions, distances = directions.transpose(0, 1), distances.transpose(0, 1)  # (S, N, ...)
         # Leave the surface on the side the light sample is on.
-        side = torch.sign((directions * normals).sum(-1, keepdim=True))
+        side = torch.sign(dot(directions, normals)).unsqueeze(-1)
         origins = points + normals * eps * side
         t_far = torch.where(torch.isfinite(distances), distances - 2.0 * eps, torch.full_like(distances, np.inf))
         o = _float32_rows(origins.reshape(-1, 3))

@@ -12,7 +12,8 @@ and the visibility cuts:
                                     the V lattice vertices' cuts
     <stem>.cutsNodes.npy            (nnz,) uint16 (uint32 over 65,535 nodes) post-order node of
                                     each cut entry, ascending within a vertex
-    <stem>.cutsMeans.npy            (nnz,) uint8 mean visibility, round(<v> * 255)
+    <stem>.cutsMeans.npy            (nnz,) env: uint8 mean visibility, round(<v> * 255); indirect:
+                                    float16 mean of V G / (2 pi / L) (`visibility` module)
     <stem>.cutsSampleVertices.npy   (N, 3) uint32 lattice vertices around each covered sub-sample
                                     of the deep framebuffer (same order)
     <stem>.cutsSampleWeights.npy    (N, 3) float16 their barycentric weights
@@ -48,6 +49,9 @@ class CutsSettings:
         lattice_max: most subdivisions per triangle side.
         vertices_per_chunk: lattice vertices per scheduler chunk (memory ~ 100 B x L per vertex).
         tree_k: K of the geometric tree metric (seed 004, eq. 10; indirect mode).
+        beta: the data-driven tree's blend of geometric and pilot-visibility distances (seed 004,
+            eq. 12: 0.4 to 0.5); 1 builds the purely geometric tree.
+        pilot_vertices: M, vertices whose visibility of every light drives the data-driven tree.
     """
 
     mode: str = "env"
@@ -57,6 +61,8 @@ class CutsSettings:
     lattice_max: int = 64
     vertices_per_chunk: int = 128
     tree_k: float = 30.0
+    beta: float = 1.0
+    pilot_vertices: int = 1024
 
     def check(self) -> None:
         """Raise ValueError naming the first bad setting."""
@@ -66,6 +72,8 @@ class CutsSettings:
             raise ValueError(f"lights must be a power of two >= 2 (e.g. 32768), got {self.num_lights}")
         if self.mode == "indirect" and self.num_lights.bit_length() % 2 == 0:
             raise ValueError(f"indirect mode needs a power of 4 lights (e.g. 16384), got {self.num_lights}")
+        if not 0.0 <= self.beta <= 1.0 or self.pilot_vertices < 1:
+            raise ValueError(f"beta must be in [0, 1] and pilot vertices >= 1, got {self.beta}, {self.pilot_vertices}")
         if self.sigma <= 0 or self.lattice_edge <= 0 or self.lattice_max < 1 or self.vertices_per_chunk < 1:
             raise ValueError("sigma and lattice edge must be > 0, lattice max and vertices per chunk >= 1")
 
@@ -73,7 +81,7 @@ class CutsSettings:
         """The settings that change the cache, as cache-layer parameters."""
         return {"cutsMode": self.mode, "cutsLights": self.num_lights, "cutsSigma": float(self.sigma),
                 "cutsLatticeEdge": float(self.lattice_edge), "cutsLatticeMax": self.lattice_max,
-                "cutsTreeK": float(self.tree_k)}
+                "cutsTreeK": float(self.tree_k), "cutsBeta": float(self.beta), "cutsPilots": self.pilot_vertices}
 
 
 def bake_cuts(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
@@ -89,7 +97,8 @@ def bake_cuts(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supe
                                texture_samples, time_code)
     shot = ShotSpec.of(scene, camera, time_code)
     remember_shot(shot, scene)
-    parameters = (("mode", settings.mode), ("treeK", float(settings.tree_k)),
+    parameters = (("mode", settings.mode), ("treeK", float(settings.tree_k)), ("beta", float(settings.beta)),
+                  ("pilots", settings.pilot_vertices),
                   ("lights", settings.num_lights), ("supersampling", supersampling),
                   ("latticeEdge", float(settings.lattice_edge)), ("latticeMax", settings.lattice_max),
                   ("sigma", float(settings.sigma)))

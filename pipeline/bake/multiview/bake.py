@@ -12,29 +12,50 @@ Writes into OUT:
                                 map or a constant other than +Z): its cached normals are kept
 The coverage statistics are cache parameters: coverage (the threshold), uncoveredFraction,
 primaryFraction, numPrimary, numSecondary, numViews, numSamples, numUnreachable, numSpheres.
-Each file is written atomically; the layer last.
+
+The placement runs in this process (it is sequential: each camera depends on the coverage of the
+ones before); the caching views' deep framebuffers are scheduler chunks (`pipeline.bake.scheduler`),
+one per view, computed from the camera's table row, so a killed bake resumes from its finished
+views and a cluster bakes them in parallel. Each file is written atomically; the layer last.
 """
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
 
-from pipeline import __version__
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
-from pipeline.bake.direct import write_npy
-from pipeline.bake.inputs import hash_inputs, input_files
-from pipeline.bake.multiview.cameras import camera_row
+from pipeline.bake.direct import shot_tracer, write_npy
+from pipeline.bake.inputs import code_version, hash_inputs, input_files
+from pipeline.bake.multiview.cameras import camera_from_row, camera_row
+from pipeline.bake.scheduler import ChunkSpec, ShotSpec, chunk_folder, load_chunk, load_shot, run_chunks
 from pipeline.bake.multiview.placement import Placement, PlacementSettings, place_cameras
 from pipeline.errors import RelightError
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.cache.gbuffer_exr import gbuffer_to_channels
-from relight_torch.cache.layer import SUFFIX, CacheDescription, Payload, content_hash, file_sha256, write_cache_layer
+from relight_torch.cache.layer import (SUFFIX, CacheDescription, Payload, content_hash, file_sha256, read_cache_layer,
+                                       write_cache_layer)
+from relight_torch.io.atomic import remove_temp_files
 from relight_torch.io.exr import write_exr
 from relight_torch.lights.linking import encode_paths
 from relight_torch.multiview.load import view_payload_name
+
+
+CONSTANT_PREFIX = "constant:"
+"""Chunk arrays holding a constant (elided) channel's value, as 0-d arrays."""
+
+
+def _view_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
+    """The deep framebuffer of caching camera `spec.start` (its table row is the 'camera' parameter),
+    as EXR channels plus its constant channels under CONSTANT_PREFIX."""
+    scene, _ = load_shot(spec.shot)
+    camera = camera_from_row(np.asarray(spec.param("camera"), np.float64), f"/Caching/view{spec.start}")
+    dfb = bake_deep_framebuffer(scene, camera, 1, spec.param("textureSamples"), tracer=shot_tracer(spec.shot))
+    channels, constants = gbuffer_to_channels(dfb.gbuffer)
+    return channels | {CONSTANT_PREFIX + name: np.array(value) for name, value in constants.items()}
 
 
 def coverage_parameters(placement: Placement, settings: PlacementSettings) -> dict:
@@ -43,7 +64,8 @@ def coverage_parameters(placement: Placement, settings: PlacementSettings) -> di
         "coverage": float(settings.coverage), "uncoveredFraction": placement.uncovered_fraction,
         "primaryFraction": placement.primary_fraction, "numPrimary": placement.num_primary,
         "numSecondary": placement.num_secondary, "numViews": len(placement.cameras),
-        "numSamples": placement.num_samples, "numUnreachable": placement.num_unreachable, "numSpheres": placement.num_spheres,
+        "numSamples": placement.num_samples, "numUnreachable": placement.num_unreachable,
+        "numSpheres": placement.num_spheres,
         "maxResolution": settings.max_resolution, "seed": settings.seed,
         "box": " ".join(f"{v:.9g}" for v in np.concatenate(placement.box)),
     }
@@ -53,6 +75,17 @@ def normal_mapped(scene: Scene) -> np.ndarray:
     """(num_materials,) bool: the material's normal input is a texture or a constant other than +Z."""
     return np.array([m.normal.texture is not None or not np.allclose(m.normal.value, (0.0, 0.0, 1.0))
                      for m in scene.materials], bool).reshape(-1)
+
+
+def coverage_summary(layer_path: Path) -> str:
+    """One line of a multiview cache's coverage statistics, for the bake's report."""
+    description = read_cache_layer(layer_path)
+    p = description.parameters
+    views = sum(payload.num_bytes for payload in description.payloads if payload.name.startswith("view"))
+    return (f"{p['numViews']} caching views ({p['numPrimary']} omni-directional cameras, {p['numSecondary']} "
+            f"secondary) cover {100 * (1 - p['uncoveredFraction']):.1f}% of the surfaces' importance "
+            f"(threshold {100 * (1 - p['coverage']):.1f}%; primary {100 * p['primaryFraction']:.1f}%; "
+            f"{p['numUnreachable']} of {p['numSamples']} samples unreachable); deep framebuffers {views / 1e6:.1f} MB")
 
 
 def bake_multiview(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 1,
@@ -72,21 +105,31 @@ def bake_multiview(scene: Scene, camera: Camera, out_dir: str | Path, stem: str,
     out_dir.mkdir(parents=True, exist_ok=True)
     layer_path = out_dir / f"{stem}{SUFFIX}"
     layer_path.unlink(missing_ok=True)
-    tracer = Tracer(scene.geometry)
-    placement = place_cameras(scene, settings, box, tracer)
+    remove_temp_files(out_dir, f"{stem}.")
+    placement = place_cameras(scene, settings, box, Tracer(scene.geometry))
     if not placement.cameras:
         raise RelightError(f"{scene.source}: no caching camera sees the surfaces inside the box")
+    rows = [camera_row(placed.camera, placed.kind, placed.group) for placed in placement.cameras]
+    parameters: dict = {"textureSamples": texture_samples} | coverage_parameters(placement, settings)
+    if time_code is not None:
+        parameters["time"] = float(time_code)
+    inputs = hash_inputs(input_files(scene))
+    digest = content_hash(inputs, parameters, code_version())
+    chunk_dir = chunk_folder(out_dir, stem, "multiview", digest)
+    shot = ShotSpec.of(scene, camera, time_code)
+    specs = [ChunkSpec(shot, "view", (("camera", tuple(row.tolist())), ("textureSamples", texture_samples)), k, k + 1)
+             for k, row in enumerate(rows)]
     payloads = []
-    rows = []
-    for k, placed in enumerate(placement.cameras):
-        dfb = bake_deep_framebuffer(scene, placed.camera, 1, texture_samples, tracer)
-        channels, constants = gbuffer_to_channels(dfb.gbuffer)
+    for k, chunk in enumerate(run_chunks(_view_chunk, specs, chunk_dir, "caching views", "views")):
+        arrays = load_chunk(chunk)
+        constants = {name[len(CONSTANT_PREFIX):]: float(value) for name, value in arrays.items()
+                     if name.startswith(CONSTANT_PREFIX)}
+        channels = {name: value for name, value in arrays.items() if not name.startswith(CONSTANT_PREFIX)}
         path = out_dir / f"{stem}.{view_payload_name(k)}.exr"
         write_exr(path, channels, {"relight:supersampling": 1})
         payloads.append(Payload(name=view_payload_name(k), file=path.name, format="exr", sha256=file_sha256(path),
                                 num_bytes=path.stat().st_size, channels=tuple(sorted(channels)),
                                 constants=constants))
-        rows.append(camera_row(placed.camera, placed.kind, placed.group))
     payloads += [
         write_npy(out_dir / f"{stem}.cameras.npy", np.array(rows, np.float64).reshape(len(rows), -1), "cameras"),
         write_npy(out_dir / f"{stem}.occluders.npy", scene.geometry.positions.astype(np.float32), "occluders"),
@@ -97,16 +140,13 @@ def bake_multiview(scene: Scene, camera: Camera, out_dir: str | Path, stem: str,
         write_npy(out_dir / f"{stem}.cornerNormals.npy", scene.geometry.normals.astype(np.float16), "cornerNormals"),
         write_npy(out_dir / f"{stem}.normalMapped.npy", normal_mapped(scene), "normalMapped"),
     ]
-    parameters: dict = {"textureSamples": texture_samples} | coverage_parameters(placement, settings)
-    if time_code is not None:
-        parameters["time"] = float(time_code)
-    inputs = hash_inputs(input_files(scene))
     description = CacheDescription(
         method="multiview", source=scene.source, camera_path=camera.path,
         resolution=(camera.width, camera.height), supersampling=supersampling,
         world_from_camera=camera.world_from_camera, exposure_scale=camera.exposure_scale,
-        content_hash=content_hash(inputs, parameters, __version__), inputs=inputs,
-        parameters=parameters, payloads=tuple(payloads),
+        content_hash=digest, inputs=inputs, parameters=parameters, payloads=tuple(payloads),
+        code_version=code_version(),
     )
     write_cache_layer(layer_path, description)
+    shutil.rmtree(chunk_dir, ignore_errors=True)
     return layer_path

@@ -3,7 +3,10 @@
 Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct`):
     <stem>.viewPixels.npy          (R,) int64 pixel (row * W + col) of each F row: one view
                                    sample per pixel centre (indirect light is smooth; the direct
-                                   part keeps the cache's supersampling, as in the chapter)
+                                   part keeps the cache's supersampling, as in the chapter), of
+                                   the image reduced s times per side with --indirect-scale s
+    <stem>.view<Field>.npy         with --indirect-scale s > 1: Position, Normal (geometric) (R, 3)
+                                   float32 and ObjectId (R,) int32 of the coarse view samples
     <stem>.gather<Field>.npy       the gather cloud (`GatherSamples` fields), texture order;
                                    gatherObjectId (G,) int64 indexes the objectPaths payload
     <stem>.finalGather<Part>.npy   F: Values (nnz, C) float16 | uint8, Scale and Low (R, C)
@@ -30,7 +33,7 @@ import torch
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
 from pipeline.bake.indirect import start_indirect_bake
-from pipeline.bake.direct import write_npy
+from pipeline.bake.direct import shot_tracer, write_npy
 from pipeline.bake.transfer.gather_cloud import create_gathers
 from pipeline.bake.transfer.rows import bounce_rows, final_gather_rows
 from pipeline.bake.scheduler import (ChunkSpec, ShotSpec, chunk_ranges, chunk_threads, load_chunk, load_shot,
@@ -64,6 +67,10 @@ class TransferSettings:
         pairs_per_batch: (row, gather) pairs evaluated together (bounds temporaries, ~100 B each).
         num_threads: batches evaluated concurrently (Embree and torch release the GIL); None: the
             CPUs this process may use.
+        indirect_scale: s >= 1: F has one row per pixel centre of the image reduced s times per
+            side (the shot's width and height must be multiples of s), and the relighter brings
+            its indirect image back to full size with an edge-aware filter guided by the direct
+            deep framebuffer (`relight_torch.transfer.upsample`): s^2 fewer F rows to bake and store.
     """
 
     num_gathers: int = 16384
@@ -76,6 +83,7 @@ class TransferSettings:
     rows_per_chunk: int = 4096
     pairs_per_batch: int = 1 << 20
     num_threads: int | None = None
+    indirect_scale: int = 1
 
     def check(self) -> None:
         """Raise ValueError naming the first bad setting."""
@@ -90,12 +98,14 @@ class TransferSettings:
             raise ValueError(f"encoding must be one of {ENCODINGS}, got {self.encoding!r}")
         if self.rows_per_chunk < 1 or self.pairs_per_batch < 1 or (self.num_threads or 1) < 1:
             raise ValueError("rows_per_chunk, pairs_per_batch and num_threads must be >= 1")
+        if self.indirect_scale < 1:
+            raise ValueError(f"indirect scale must be >= 1, got {self.indirect_scale}")
 
     def parameters(self) -> dict[str, int | str]:
         """The settings that change the cache, as cache-layer parameters."""
         return {"gathers": self.num_gathers, "coefficients": self.num_coefficients, "bounces": self.num_bounces,
                 "bounceCoefficients": self.num_bounce_coefficients, "encoding": self.encoding,
-                "rowColour": int(self.factor_colour), "gatherSeed": self.seed}
+                "rowColour": int(self.factor_colour), "gatherSeed": self.seed, "indirectScale": self.indirect_scale}
 
 
 def compress_rows(dense: torch.Tensor, num_kept: int, factor: bool) -> SparseRows:
@@ -112,7 +122,7 @@ def transfer_inputs(shot: ShotSpec, texture_samples: int, num_gathers: int, seed
                                                                                                 GatherSamples]:
     """The shot's BVH, view samples (one per pixel centre) and gathers, built once per process."""
     scene, camera = load_shot(shot)
-    tracer = Tracer(scene.geometry)
+    tracer = shot_tracer(shot)  # shared with the direct chunks run in this process
     view = bake_deep_framebuffer(scene, camera, 1, texture_samples, tracer=tracer).gbuffer
     return tracer, view, create_gathers(scene, num_gathers, seed)
 
@@ -174,6 +184,22 @@ def matrix_payloads(out_dir: Path, stem: str, prefix: str, rows: EncodedRows) ->
             for part, array in rows.arrays().items()]
 
 
+def reduced_view(scene: Scene, camera: Camera, scale: int) -> tuple[Scene, Camera]:
+    """The scene with its cameras' resolutions divided by `scale`, and `camera` so reduced: the
+    view of the F rows (the same frustum, one view sample per s x s block of pixels).
+
+    Raises:
+        ValueError: the camera's width or height is not a multiple of `scale`.
+    """
+    if scale == 1:
+        return scene, camera
+    if camera.width % scale or camera.height % scale:
+        raise ValueError(f"the indirect scale {scale} must divide the image size {camera.width}x{camera.height}")
+    cameras = {path: dataclasses.replace(c, width=c.width // scale, height=c.height // scale)
+               for path, c in scene.cameras.items()}
+    return dataclasses.replace(scene, cameras=cameras), cameras[camera.path]
+
+
 def bake_transfer(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
                   texture_samples: int = 2, time_code: float | None = None,
                   settings: TransferSettings = TransferSettings(), progress: bool | None = None) -> Path:
@@ -187,16 +213,21 @@ def bake_transfer(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, 
         progress: show progress bars (None: when stderr is a terminal).
 
     Raises:
-        ValueError: bad settings (see `TransferSettings.check`, `create_gathers`).
+        ValueError: bad settings (see `TransferSettings.check`, `create_gathers`, `reduced_view`).
     """
     settings.check()
+    reduced_view(scene, camera, settings.indirect_scale)
     bake = start_indirect_bake(scene, camera, out_dir, stem, "transfer", settings.parameters(), supersampling,
                                texture_samples, time_code)
     chunk_dir = bake.chunk_dir
 
-    shot = ShotSpec.of(scene, camera, time_code)
+    shot = ShotSpec.of(*reduced_view(scene, camera, settings.indirect_scale), time_code)
     _, view, gathers = transfer_inputs(shot, texture_samples, settings.num_gathers, settings.seed)
     payloads = [bake.payload(stem, "viewPixels", view.pixel_index.numpy())]
+    if settings.indirect_scale > 1:  # what the edge-aware upsampling weighs the coarse samples by
+        payloads += [bake.payload(stem, "viewPosition", view.position.numpy()),
+                     bake.payload(stem, "viewNormal", view.geometric_normal.numpy()),
+                     bake.payload(stem, "viewObjectId", view.object_id.numpy())]
     payloads += [bake.payload(stem, gather_payload_name(name), getattr(gathers, name).numpy())
                  for name in (f.name for f in dataclasses.fields(GatherSamples))]
     final_gather = bake_rows(shot, F_PREFIX, view.num_samples, settings.num_coefficients, texture_samples,

@@ -108,3 +108,23 @@ def comparison_rows(rows: list[SweepRow], curves: dict[tuple[str, int], SppCurve
                                            "speedup": f"{full_ms / row.relight_ms:.4g}"}),
                             row.psnr_db, NAN, NAN, NAN, NAN, full_ms, "cpu"))
     return out
+
+
+def summary(rows: list[SweepRow]) -> str:
+    """One line per (scene, method): its point with the largest speed-up over the path tracer at
+    equal PSNR, with the path tracer's PSNR in the method's time beside it."""
+    lines = [f"{'scene':12} {'method':10} {'PSNR dB':>8} {'relight ms':>11} {'tracer spp':>11} {'tracer ms':>11} "
+             f"{'speed-up':>9} {'tracer dB at equal time':>24}  params"]
+    full = [r for r in rows if r.method == "reference-full"]
+    for key in dict.fromkeys((r.scene, r.parameters()["vs"]) for r in full):
+        best = max((r for r in full if (r.scene, r.parameters()["vs"]) == key),
+                   key=lambda r: float(r.parameters()["speedup"]))
+        parameters = best.parameters()
+        method_params = best.params.split(" spp=")[0]
+        equal = next(r for r in rows if r.method == "reference-equal-time" and r.scene == best.scene
+                     and r.params.split(" spp=")[0] == method_params)
+        bound = ">=" if parameters["bound"] == "lower" else ""
+        lines.append(f"{best.scene:12} {key[1]:10} {best.psnr_db:8.2f} {equal.relight_ms:11.1f} "
+                     f"{bound + parameters['spp']:>11} {best.relight_ms:11.0f} {bound + parameters['speedup'] + 'x':>9} "
+                     f"{equal.psnr_db:24.2f}  {method_params.split(' ', 1)[1]}")
+    return "\n".join(lines)

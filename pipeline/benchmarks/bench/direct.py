@@ -1,4 +1,8 @@
-"""Bench adapter of the direct method: supersampling x shadow technique (no indirect light)."""
+"""Bench adapter of the direct method: supersampling x shadow technique x light samples (no indirect light).
+
+Light samples per shading point of an area light (`RelightSettings.area_samples`) are a relight
+setting: every count of a point's 'areaSamples' tuple is relit from one bake.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +12,13 @@ from pipeline.bake.direct import bake_direct
 from pipeline.benchmarks.bench.measure import cache_bytes
 from pipeline.benchmarks.bench.methods import Variant
 from pipeline.scene.types import Camera, Scene
-from relight_torch.relighter import open_relighter
+from relight_torch.relighter import RelightSettings, open_relighter
+
+
+def sample_counts(point: dict[str, object]) -> list[int]:
+    """The point's area-light sample counts (an int or a tuple; default the relighter's)."""
+    value = point.get("areaSamples", RelightSettings().area_samples)
+    return sorted(value) if isinstance(value, tuple) else [int(value)]
 
 
 class DirectAdapter:
@@ -18,12 +28,14 @@ class DirectAdapter:
     """
 
     name = "direct"
-    chart_axes = ("supersampling", "shadows")
+    chart_axes = ("areaSamples", "supersampling")
 
     def grid(self, quick: bool) -> list[dict[str, object]]:
         if quick:
-            return [{"supersampling": 1, "shadows": "embree"}]
-        return [{"supersampling": s, "shadows": shadows} for s in (1, 2, 3) for shadows in ("embree", "shadowmaps")]
+            return [{"supersampling": 1, "shadows": "embree", "areaSamples": (4, 16)}]
+        # Shadow maps render one map per light sample (a GPU technique: seconds per frame on a CPU).
+        return [{"supersampling": s, "shadows": "embree", "areaSamples": (1, 4, 16)} for s in (1, 2)] + [
+            {"supersampling": 1, "shadows": "shadowmaps", "areaSamples": (1, 4)}]
 
     def bounces(self, point: dict[str, object]) -> int:
         return 0
@@ -34,8 +46,11 @@ class DirectAdapter:
                            texture_samples, time_code)
 
     def variants(self, layer: Path, point: dict[str, object], device: str) -> list[Variant]:
-        relighter = open_relighter(layer, device=device, shadows=str(point.get("shadows", "embree")))
-        return [Variant(dict(point), relighter, cache_bytes(layer))]
+        shadows = str(point.get("shadows", "embree"))
+        return [Variant({**point, "areaSamples": count},
+                        open_relighter(layer, device=device, shadows=shadows,
+                                       settings=RelightSettings(area_samples=count)), cache_bytes(layer))
+                for count in sample_counts(point)]
 
 
 ADAPTER = DirectAdapter()

@@ -1,4 +1,5 @@
-"""Relighting a baked cache under every light edit of a bench scene: one SweepRow per edit.
+"""Measuring a method on a bench scene: `run_point` bakes one grid point and `relit_rows` relights
+each of its variants under every light edit, one SweepRow per edit.
 
 relight_ms is the median wall time of a light move re-rendered (the first light translated by
 1 % or 2 % of its distance from the origin along x, alternating, so every call recomputes that
@@ -9,12 +10,13 @@ lights; the other edits' rows carry the same time (one relighter, one rig size).
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from pipeline.benchmarks.bench.methods import BenchScene
+from pipeline.benchmarks.bench.methods import BenchScene, MethodAdapter
 from pipeline.benchmarks.rows import NAN, SweepRow, format_params
 from pipeline.tracing_bench import median_seconds
 from relight_torch.cache.layer import read_cache_layer
@@ -92,3 +94,16 @@ def relit_rows(relighter, layer: Path, scene: BenchScene, method: str, parameter
                              psnr(image, reference), indirect, rel_mse(image, reference), float(num_bytes),
                              bake_s, timing, device_name(scene.device)))
     return rows
+
+
+def run_point(adapter: MethodAdapter, scene: BenchScene, point: dict[str, object]) -> list[SweepRow]:
+    """Bake `point` in `scene.cache_dir`, then one row per (variant, light edit); bake_s is the bake's."""
+    stage, camera = scene.load()
+    directory = scene.cache_dir(adapter.name, point)
+    directory.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    layer = adapter.bake(stage, camera, directory, scene.name, point, scene.supersampling, scene.texture_samples)
+    bake_s = time.perf_counter() - start
+    return [row for variant in adapter.variants(layer, point, scene.device)
+            for row in relit_rows(variant.relighter, layer, scene, adapter.name, variant.parameters,
+                                  adapter.bounces(point), variant.cache_bytes, bake_s)]

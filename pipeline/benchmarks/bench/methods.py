@@ -20,7 +20,7 @@ An adapter is a module of this package exposing `ADAPTER`, an object with
         `point` gives several), each with its parameters (the `params` column) and the bytes its
         cache takes.
 
-`run_point` bakes one point for a `BenchScene` and measures every variant under every light
+`measure.run_point` bakes one point for a `BenchScene` and measures every variant under every light
 edit (`measure.relit_rows`); the stability suite and the quality sizing call `bake` and
 `variants` directly on their own scenes and lights. Adapters never render references.
 
@@ -31,17 +31,15 @@ and add its module name to METHOD_MODULES below. The bench, its chart and its te
 from __future__ import annotations
 
 import importlib
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple, Protocol
 
 from pipeline.benchmarks.bench.references import References
-from pipeline.benchmarks.rows import SweepRow
 from pipeline.scene import find_camera, load_scene
 from pipeline.scene.types import Camera, Scene
 
-METHOD_MODULES = ("direct", "transfer", "gather")
+METHOD_MODULES = ("direct", "transfer", "gather", "cuts", "multiview")
 """Modules of this package holding an `ADAPTER`, in the order the bench runs them."""
 
 
@@ -110,21 +108,6 @@ class MethodAdapter(Protocol):
              supersampling: int, texture_samples: int, time_code: float | None = None) -> Path: ...
 
     def variants(self, layer: Path, point: dict[str, object], device: str) -> list[Variant]: ...
-
-
-def run_point(adapter: MethodAdapter, scene: BenchScene, point: dict[str, object]) -> list[SweepRow]:
-    """Bake `point` in `scene.cache_dir`, then one row per (variant, light edit); bake_s is the bake's."""
-    from pipeline.benchmarks.bench.measure import relit_rows
-
-    stage, camera = scene.load()
-    directory = scene.cache_dir(adapter.name, point)
-    directory.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-    layer = adapter.bake(stage, camera, directory, scene.name, point, scene.supersampling, scene.texture_samples)
-    bake_s = time.perf_counter() - start
-    return [row for variant in adapter.variants(layer, point, scene.device)
-            for row in relit_rows(variant.relighter, layer, scene, adapter.name, variant.parameters,
-                                  adapter.bounces(point), variant.cache_bytes, bake_s)]
 
 
 def adapters(names: list[str] | tuple[str, ...] | None = None) -> dict[str, MethodAdapter]:

@@ -5,8 +5,8 @@
 Per scene it writes the stage and its example light edits under `out/scenes/<scene>`, renders each
 reference once (`References`, cached under `out/references`, so a re-run into the same directory
 re-uses them) and runs each method's grid (`methods.adapters`), caches under `out/caches`. Then
-the path-tracer comparison rows (`comparison.py`), then `out/bench.csv`, `out/bench.json` and the
-charts (`chart.py`). Everything but the *_ms / bake_s timings is deterministic.
+the path-tracer comparison rows (`comparison.py`), then `out/bench.csv`, `out/bench.json`,
+`out/summary.txt` (each method's best speed-up) and the charts (`chart.py`). Everything but the *_ms / bake_s timings is deterministic.
 """
 
 from __future__ import annotations
@@ -17,11 +17,13 @@ from pathlib import Path
 
 import torch
 
-from pipeline.benchmarks.bench.comparison import SppCurve, comparison_rows, measure_spp_curve
-from pipeline.benchmarks.bench.methods import BenchScene, adapters, run_point
+from pipeline.benchmarks.bench.comparison import SppCurve, comparison_rows, measure_spp_curve, summary
+from pipeline.benchmarks.bench.measure import run_point
+from pipeline.benchmarks.bench.methods import BenchScene, adapters
 from pipeline.benchmarks.bench.references import References
 from pipeline.benchmarks.rows import SweepRow, write_csv, write_json
 from pipeline.scenes import SCENES, write_light_edits
+from relight_torch.io.atomic import write_text_atomic
 
 
 @dataclass(frozen=True)
@@ -112,5 +114,7 @@ def run_bench(config: BenchConfig, log=print) -> BenchResult:
     write_csv(result.rows, csv_path)
     write_json(result.rows, json_path, {**context(config),
                                         "spp_curves": {f"{s}/b{b}": asdict(c) for (s, b), c in result.curves.items()}})
-    result.files = [csv_path, json_path] + write_charts(result.rows, config.out)
+    summary_path = config.out / "summary.txt"
+    write_text_atomic(summary_path, summary(result.rows) + "\n")
+    result.files = [csv_path, json_path, summary_path] + write_charts(result.rows, config.out)
     return result
