@@ -236,9 +236,16 @@ def test_links_govern_the_light_reaching_the_gathers(transfer, name, linked_db, 
         assert indirect.sum() > 1.03 * ignored.sum() and (indirect - ignored).min() > -1e-4 * ignored.max()
 
 
-def test_light_link_edit_remasks_the_gathers_without_tracing(transfer):
+def test_light_link_edit_remasks_the_gathers_without_tracing(cornell, transfer):
     cache, _, _ = transfer
     relighter = open_cache_relighter(cache)
+    # Each gather carries the object it was placed on: the tall block's lie on its triangles' box.
+    geometry = load_scene(cornell[0], width=SIZE, height=SIZE).geometry
+    tall = relighter.direct.object_paths.index(TALL)
+    corners = geometry.positions[geometry.object_ids == tall].reshape(-1, 3)
+    on_tall = relighter.gathers.position[relighter.gathers.object_id == tall].numpy()
+    assert on_tall.shape[0] > 10
+    assert (on_tall >= corners.min(0) - 1e-3).all() and (on_tall <= corners.max(0) + 1e-3).all()
     unlinked = relighter.indirect_image()
     lamp = relighter.lights[0]
     relighter.set_light(dataclasses.replace(lamp, light_link=(TALL,)))

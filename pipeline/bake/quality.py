@@ -34,7 +34,6 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.benchmarks.bench.methods import MethodAdapter, adapters
-from pipeline.bake.gather.bake import GatherSettings
 from pipeline.errors import RelightError
 from pipeline.reference.path_tracer import PathTracer, ReferenceImage, ReferenceSettings
 from pipeline.scene.types import Camera, Scene
@@ -51,9 +50,8 @@ START_SPP = 32
 LADDERS: dict[str, list[dict[str, object]]] = {
     "direct": [{"supersampling": s} for s in (1, 2, 3, 4)],
     "transfer": [{"gathers": g, "coefficients": (10, 25, 50, 100, 200)} for g in (1024, 4096, 16384)],
-    # representatives as a fraction of the default count at the size baked (see `_at_size`).
-    "gather": [{"clusters": c, "representatives": f} for c, f in
-               ((8, 0.25), (16, 0.25), (16, 0.5), (32, 0.5), (32, 1.0), (64, 1.0), (120, 1.0))],
+    "gather": [{"clusters": c, "representativeScale": f} for c, f in
+               ((8, "0.25"), (16, "0.25"), (16, "0.5"), (32, "0.5"), (32, "1"), (64, "1"), (120, "1"))],
 }
 """Per method, the bake points tried, cheapest first (tuples: variants of one bake)."""
 
@@ -132,14 +130,6 @@ def reference_for(scene: Scene, camera: Camera, bounces: int, target_db: float) 
         spp = min(MAX_REFERENCE_SPP, math.ceil(spp * 10 ** ((wanted - floor_db) / 10) * 1.1))
 
 
-def _at_size(method: str, point: dict[str, object], num_pixels: int) -> dict[str, object]:
-    """A ladder point made concrete at a size (gather: representatives from a fraction of the default)."""
-    if method != "gather":
-        return dict(point)
-    count = max(1, round(float(point["representatives"]) * GatherSettings().representatives(num_pixels)))
-    return {**point, "representatives": count}
-
-
 def _measure(adapter: MethodAdapter, scene: Scene, camera: Camera, directory: Path, stem: str,
              point: dict[str, object], reference: ReferenceImage, supersampling: int, texture_samples: int,
              time_code: float | None) -> list[tuple[dict[str, object], float, float, float, Path]]:
@@ -154,7 +144,7 @@ def _measure(adapter: MethodAdapter, scene: Scene, camera: Camera, directory: Pa
     return out
 
 
-def _variant_point(method: str, ladder_point: dict[str, object], parameters: dict[str, object]) -> dict[str, object]:
+def _variant_point(ladder_point: dict[str, object], parameters: dict[str, object]) -> dict[str, object]:
     """The single-variant bake point of one measured variant (tuple axes resolved from its parameters)."""
     return {key: (int(parameters[key]) if isinstance(value, tuple) else value) for key, value in ladder_point.items()}
 
@@ -198,9 +188,8 @@ def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: st
                 raise RelightError(f"bake --quality {target_db:g}: no {method} size reaches it on the pilot "
                                    f"(best {best.psnr_db:.1f} dB with {best.point})")
             measured = _measure(adapter, pilot_scene, pilot_camera, pilot_dir / f"step-{index}", stem,
-                                _at_size(method, step, width * height), pilot_reference, supersampling,
-                                texture_samples, time_code)
-            new = [Candidate(_variant_point(method, step, parameters), corrected, num_bytes)
+                                step, pilot_reference, supersampling, texture_samples, time_code)
+            new = [Candidate(_variant_point(step, parameters), corrected, num_bytes)
                    for parameters, corrected, _, num_bytes, _ in measured]
             for candidate in new:
                 log.info("quality pilot %s: %.2f dB, %d bytes", candidate.point, candidate.psnr_db, candidate.cache_bytes)
@@ -212,7 +201,7 @@ def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: st
         chosen = cheapest_passing(target_db + margin_db)
         full_reference = reference_for(scene, camera, bounces, target_db)
         for attempt in range(2):
-            point = _at_size(method, chosen.point, camera.width * camera.height)
+            point = chosen.point
             ((_, measured_db, raw_db, _, layer),) = _measure(adapter, scene, camera, out_dir, stem, point,
                                                               full_reference, supersampling, texture_samples, time_code)
             log.info("quality: %s measured %.2f dB at full size (pilot %.2f dB)", point, measured_db, chosen.psnr_db)

@@ -16,10 +16,11 @@ median time of re-rendering (direct + indirect) after a light move. Representati
 default (40,000 at 400 x 400, scaled with the pixel count). One CSV row per (scene, setting,
 edit), in the columns every method's sweep shares (`pipeline.benchmarks.rows`).
 
-With `--timing` it bakes one cache per scene with the first value of each setting and prints the
-median ms of each kind of edit (`edit_timings`) with both visibilities and every gather-sample
-count, the cache bytes, the bake seconds and the bake's peak resident memory (this process's,
-`resource.getrusage`).
+With `--timing` it bakes one cache per scene with the first value of each setting (or, with
+`--reuse`, relights the one already in OUT) and prints the median ms of each kind of edit
+(`edit_timings`, wall or `--cpu-time`) with both visibilities and every gather-sample count, the
+cache bytes, the bake seconds and the process's peak resident memory (`resource.getrusage`: the
+bake's peak when it baked).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from pipeline.bake.gather.bake import GatherSettings, bake_gather
@@ -48,30 +50,33 @@ from relight_torch.metrics import psnr, rel_mse
 from relight_torch.relighter import shot_lights
 
 
-def _median_ms(relighter: GatherRelighter, edits: list, repeats: int) -> tuple[float, float]:
+def _median_ms(relighter: GatherRelighter, edits: list, repeats: int,
+               clock: Callable[[], float]) -> tuple[float, float]:
     """Median ms of `set_light(edit)` + `render()` over `repeats` edits cycled from `edits`, and of
     its indirect part alone (`render()` is the direct image plus `indirect_image()`, timed apart:
     the direct part builds the light's shadow maps, which the gathers then share)."""
     full, indirect = [], []
     for edit in itertools.islice(itertools.cycle(edits), repeats):
-        start = time.perf_counter()
+        start = clock()
         relighter.set_light(edit)
         relighter.direct.render()
-        middle = time.perf_counter()
+        middle = clock()
         relighter.indirect_image()
-        end = time.perf_counter()
+        end = clock()
         full.append(1e3 * (end - start))
         indirect.append(1e3 * (end - middle))
     return statistics.median(full), statistics.median(indirect)
 
 
-def edit_timings(relighter: GatherRelighter, repeats: int = 5) -> dict[str, tuple[float, float]]:
+def edit_timings(relighter: GatherRelighter, repeats: int = 5,
+                 clock: Callable[[], float] = time.perf_counter) -> dict[str, tuple[float, float]]:
     """Median ms of a full re-render (direct + indirect), and of its indirect part, after each kind
     of edit of the first light.
 
     'colour': intensity and colour; 'shaping': ShapingAPI focus (no new shadow rays); 'move': a
     translation (the light's direct transport and its gathers' light recomputed). The rig is
-    restored afterwards.
+    restored afterwards. `clock`: wall time, or `time.process_time` for this process's CPU time
+    (on a shared machine, what a single-threaded run would take alone).
     """
     lights = relighter.lights
     light = lights[0]
@@ -79,10 +84,10 @@ def edit_timings(relighter: GatherRelighter, repeats: int = 5) -> dict[str, tupl
     shaping = light.shaping or Shaping()
     timings = {
         "colour": _median_ms(relighter, [dataclasses.replace(light, intensity=light.intensity * f, color=(1.0, f, 0.5))
-                                         for f in (0.5, 0.75)], repeats),
+                                         for f in (0.5, 0.75)], repeats, clock),
         "shaping": _median_ms(relighter, [dataclasses.replace(light, shaping=dataclasses.replace(shaping, focus=f))
-                                          for f in (1.0, 2.0)], repeats),
-        "move": _median_ms(relighter, [moved(light, 0.01 * (1 + i % 2)) for i in range(repeats)], repeats),
+                                          for f in (1.0, 2.0)], repeats, clock),
+        "move": _median_ms(relighter, [moved(light, 0.01 * (1 + i % 2)) for i in range(repeats)], repeats, clock),
     }
     relighter.set_lights(lights)
     return timings
@@ -134,22 +139,26 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[Sw
 
 def time_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
     """Print the edit timings of one default-sized cache with both visibilities."""
-    SCENES[name].write(directory)
     settings = _settings(args, args.clusters[0], args.representatives[0], args.point_cells[0])
-    layer, bake_s = _bake(name, args, directory, settings)
+    layer, bake_s = directory / "cache" / f"{name}.relight.usda", float("nan")
+    if not (args.reuse and layer.is_file()):
+        SCENES[name].write(directory)
+        layer, bake_s = _bake(name, args, directory, settings)
     peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    cache_bytes = sum(p.num_bytes for p in read_cache_layer(layer).payloads)
-    print(f"{name} {args.width}x{args.height} {format_params(settings.parameters())}: bake {bake_s:.1f} s, "
-          f"peak RSS {peak_mib:.0f} MiB, cache {cache_bytes / 2**20:.1f} MiB", flush=True)
+    description = read_cache_layer(layer)
+    cache_bytes = sum(p.num_bytes for p in description.payloads)
+    params = format_params({key: description.parameters[key] for key in settings.parameters()})
+    print(f"{name} {args.width}x{args.height} {params}: bake {bake_s:.1f} s, peak RSS {peak_mib:.0f} MiB, "
+          f"cache {cache_bytes / 2**20:.1f} MiB", flush=True)
     for shadows, gather_samples in itertools.product(("embree", "shadowmaps"), args.gather_samples):
         relighter = open_gather_relighter(layer, shadows=shadows, gather_samples=gather_samples)
         sizes = {n: (s.num_representatives, s.num_gathers) for n, s in relighter.sets.items()}
-        timings = edit_timings(relighter, args.repeats)
+        timings = edit_timings(relighter, args.repeats, time.process_time if args.cpu_time else time.perf_counter)
         print(f"  {shadows}, {gather_samples} gather samples: "
               + ", ".join(f"{kind} {full:.0f} ms (indirect {indirect:.0f} ms)"
                           for kind, (full, indirect) in timings.items())
-              + f" (median of {args.repeats}; sets (reps, entries) {sizes}, "
-              f"{relighter.points.num_points} surface points, {relighter.cache_bytes / 2**20:.1f} MiB in memory)",
+              + f" (median of {args.repeats}, {'CPU' if args.cpu_time else 'wall'} time; sets (reps, entries) "
+              f"{sizes}, {relighter.points.num_points} surface points, {relighter.cache_bytes / 2**20:.1f} MiB in memory)",
               flush=True)
 
 
@@ -170,6 +179,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shadows", default="embree", choices=("embree", "shadowmaps"))
     parser.add_argument("--repeats", type=int, default=5, help="timed edits per median")
     parser.add_argument("--timing", action="store_true", help="edit timings of one cache per scene, no PSNR")
+    parser.add_argument("--cpu-time", action="store_true",
+                        help="--timing in this process's CPU time (run with OMP_NUM_THREADS=1 on a loaded machine)")
+    parser.add_argument("--reuse", action="store_true", help="--timing: relight OUT's cache if there is one")
     parser.add_argument("--out", help="directory for the scenes and caches (default: a temporary one)")
     parser.add_argument("--csv", help="also write the rows to this CSV file")
     args = parser.parse_args(argv)

@@ -2,7 +2,7 @@
 
     python -m pipeline.benchmarks.transfer_sweep SCENE [SCENE...] --width W --height H
         [--gathers 1024 4096 ...] [--coefficients 10 25 50 100 200] [--bounces B] [--spp N]
-        [--quantize] [--rgb] [--out DIR] [--csv FILE]
+        [--quantize] [--rgb] [--indirect-scale S] [--out DIR] [--csv FILE]
 
 Per scene and gather count it bakes once, keeping the largest coefficient count, and studies every
 smaller count by culling those rows (`relight_torch.transfer.sparse.cull`, the bake's own order):
@@ -20,7 +20,9 @@ synthetic F rows (every pixel's `--coefficients` distinct random indices and val
 colour-factored and RGB; PSNR columns are empty. `--timing --cache LAYER...` times baked transfer
 caches instead (real F rows; `--cull` and `--gather-samples` set the relighter's options), one
 row for the whole edit (part=total: the direct relighter's re-render included) and one for the
-indirect update alone (part=indirect: gather light, Haar, products, upsampling).
+indirect update alone (part=indirect: gather light, Haar, products, upsampling). `--cache LAYER...`
+without `--timing` compares baked caches with the reference at their own size instead (the shot's
+lights, `--spp` paths per pixel; how the 640 x 480 figures in docs/TRANSFER.md were taken).
 """
 
 from __future__ import annotations
@@ -76,7 +78,7 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
     for num_gathers in args.gathers:
         settings = TransferSettings(num_gathers=num_gathers, num_coefficients=max(args.coefficients),
                                     num_bounces=args.bounces, encoding="uint8" if args.quantize else "float16",
-                                    factor_colour=not args.rgb)
+                                    factor_colour=not args.rgb, indirect_scale=args.indirect_scale)
         cache = directory / f"cache-{num_gathers}"
         start = time.perf_counter()
         layer = bake_transfer(scene, camera, cache, name, args.supersampling, args.texture_samples,
@@ -91,7 +93,7 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
             payloads = matrix_payloads(directory / "culled", name, F_PREFIX, encoded)
             rows = decode_rows(encoded).to("cpu", stored.values.dtype)
             point = TransferRelighter(relighter.direct, relighter.gathers, relighter.view_pixels, rows,
-                                      relighter.bounce, relighter.num_bounces)
+                                      relighter.bounce, relighter.num_bounces, upsampler=relighter.upsampler)
             cache_bytes = base_bytes + sum(p.num_bytes for p in payloads)
             params = " ".join(f"{key}={value}" for key, value in
                               {**settings.parameters(), "coefficients": num_kept}.items())
@@ -169,6 +171,23 @@ def time_caches(args: argparse.Namespace) -> None:
                   f"{timing:.1f},cpu", flush=True)
 
 
+def accuracy_caches(args: argparse.Namespace) -> None:
+    """Print a row per baked transfer cache: PSNR of the full and indirect images under the shot's
+    lights against `PathTracer` references at the cache's own size (`--spp` paths)."""
+    for layer in args.cache:
+        relighter = open_transfer_relighter(layer, shadows=args.shadows, cull_tolerance=args.cull)
+        description = relighter.direct.description
+        width, height = description.resolution
+        (full, reference_indirect), = references(Path(description.source), {"shot": None}, description.camera_path,
+                                                 width, height, args.spp, relighter.num_bounces).values()
+        image, indirect = relighter.render().numpy(), relighter.indirect_image().numpy()
+        params = " ".join(f"{key}={value}" for key, value in
+                          {**description.parameters, "cull": args.cull, "spp": args.spp}.items())
+        print(f"transfer,{Path(description.source).stem},{width},{height},shot,{params},{psnr(image, full):.2f},"
+              f"{psnr(indirect, reference_indirect):.2f},{rel_mse(image, full):.4g},"
+              f"{sum(p.num_bytes for p in description.payloads)},,,cpu", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("scenes", nargs="+", choices=sorted(SCENES))
@@ -183,16 +202,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shadows", default="embree", choices=("embree", "shadowmaps"))
     parser.add_argument("--quantize", action="store_true", help="8-bit coefficients")
     parser.add_argument("--rgb", action="store_true", help="RGB coefficients instead of one colour per row")
+    parser.add_argument("--indirect-scale", type=int, default=1, help="F for an image this many times smaller per side")
     parser.add_argument("--timing", action="store_true", help="relight_ms only, synthetic F rows")
-    parser.add_argument("--cache", nargs="+", metavar="LAYER", help="with --timing: time these baked transfer caches")
+    parser.add_argument("--cache", nargs="+", metavar="LAYER",
+                        help="baked transfer caches: their accuracy against the reference at their size (--spp), "
+                             "or with --timing their relight times")
     parser.add_argument("--cull", type=float, default=0.0, help="with --cache: culling tolerance of weak wavelet lights")
     parser.add_argument("--gather-samples", type=int, help="with --cache: light samples per gather (default: the direct's)")
     parser.add_argument("--out", help="directory for the scenes and caches (default: a temporary one)")
     args = parser.parse_args(argv)
     directory = Path(args.out or tempfile.mkdtemp(prefix="relight-transfer-sweep-"))
     print(",".join(COLUMNS), flush=True)
-    if args.timing and args.cache:
-        time_caches(args)
+    if args.cache:
+        (time_caches if args.timing else accuracy_caches)(args)
         return 0
     for name in args.scenes:
         (time_scene if args.timing else sweep_scene)(name, args, directory / name)

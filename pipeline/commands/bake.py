@@ -86,7 +86,8 @@ def add_parser(subparsers) -> None:
     cuts = parser.add_argument_group("cuts (--method cuts)")
     cuts_defaults = CutsSettings()
     cuts.add_argument("--mode", default=cuts_defaults.mode, choices=CUTS_MODES,
-                      help="light points: 'env' = directions on the sphere, for dome lights (default env)")
+                      help="light points: 'env' = directions on the sphere (dome lights), 'indirect' = surface "
+                           "points (one diffuse bounce of every light; --cut-lights a power of 4) (default env)")
     cuts.add_argument("--cut-lights", type=int, default=cuts_defaults.num_lights, metavar="L",
                       help=f"point lights in the light tree, a power of two (default {cuts_defaults.num_lights})")
     cuts.add_argument("--sigma", type=float, default=cuts_defaults.sigma, metavar="SIGMA",

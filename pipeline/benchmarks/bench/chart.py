@@ -5,7 +5,8 @@
                             the path tracer rows (hollow: same time; cross: same PSNR, labelled with
                             the best speed-up; both are measured under the shot's lights)
     params_<method>.png     per scene: PSNR and relight ms against the method's swept parameter
-                            (`chart_axes` of its adapter), one curve per value of its second one
+                            (`chart_axes[0]` of its adapter), one curve per combination of the other
+                            parameters that vary (`chart_axes[1]` named first)
 """
 
 from __future__ import annotations
@@ -58,9 +59,9 @@ def _log_axis(axes, which: str) -> None:
     """Axis `which` ('x' or 'y') of `axes` on a log scale, labelled 12, 50, 300 (not 10^n)."""
     axis = axes.xaxis if which == "x" else axes.yaxis
     (axes.set_xscale if which == "x" else axes.set_yscale)("log")
-    plain = ticker.FuncFormatter(lambda value, _: f"{value:.3g}")
-    axis.set_major_formatter(plain)
-    axis.set_minor_formatter(plain)
+    axis.set_major_locator(ticker.LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(ticker.FuncFormatter(lambda value, _: f"{value:.3g}"))
+    axis.set_minor_formatter(ticker.NullFormatter())
 
 
 def _save(figure: Figure, path: Path) -> Path:
@@ -74,7 +75,7 @@ def speed_accuracy_chart(rows: list[SweepRow], path: Path) -> Path:
     by_method = points(rows, "shot")
     scenes = list(dict.fromkeys(row.scene for row in rows))
     methods = list(dict.fromkeys(row.method for row in rows if row.method not in COMPARISONS))
-    figure = Figure(figsize=(6.4 * len(scenes), 4.8))
+    figure = Figure(figsize=(8.4 * len(scenes), 4.8))
     for index, scene in enumerate(scenes):
         axes = figure.add_subplot(1, len(scenes), index + 1)
         first = next(row for row in rows if row.scene == scene)
@@ -96,7 +97,9 @@ def speed_accuracy_chart(rows: list[SweepRow], path: Path) -> Path:
             if same_psnr:
                 best = max(same_psnr, key=lambda r: float(r.parameters()["speedup"]))
                 bound = ">= " if best.parameters()["bound"] == "lower" else ""
-                axes.annotate(f"{bound}{float(best.parameters()['speedup']):.0f}x", (best.relight_ms, best.psnr_db),
+                speedup = float(best.parameters()["speedup"])
+                axes.annotate(f"{bound}{speedup:.0f}x" if speedup >= 10 else f"{bound}{speedup:.1f}x",
+                              (best.relight_ms, best.psnr_db),
                               textcoords="offset points", xytext=(4, 4), fontsize=8, color=colour)
         _log_axis(axes, "x")
         axes.set_xlabel(f"relight time per light move, ms (log; {first.device})")
@@ -107,7 +110,7 @@ def speed_accuracy_chart(rows: list[SweepRow], path: Path) -> Path:
         handles += [Line2D([], [], ls="", marker="o", mfc="none", color="grey"),
                     Line2D([], [], ls="", marker="x", color="grey")]
         labels += ["path tracer in the method's time", "path tracer to the method's PSNR (speed-up)"]
-        axes.legend(handles, labels, fontsize=7, loc="lower right")
+        axes.legend(handles, labels, fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     return _save(figure, path)
 
 
@@ -117,17 +120,21 @@ def parameter_chart(rows: list[SweepRow], method: str, x_key: str, series_key: s
     scenes = [scene for scene in dict.fromkeys(row.scene for row in rows) if (scene, method) in by_method]
     figure = Figure(figsize=(5.6 * len(scenes), 7.2))
     for index, scene in enumerate(scenes):
+        measured = [(dict(item.split("=", 1) for item in params.split()), mean_psnr, ms)
+                    for params, mean_psnr, ms in by_method[(scene, method)]]
+        # One curve per combination of the other parameters that vary (series_key first).
+        varying = [key for key in measured[0][0] if key != x_key and len({v.get(key) for v, _, _ in measured}) > 1]
+        varying.sort(key=lambda key: key != series_key)
         series: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
-        for params, mean_psnr, ms in by_method[(scene, method)]:
-            values = dict(item.split("=", 1) for item in params.split())
-            series[values.get(series_key, "") if series_key else ""].append((float(values[x_key]), mean_psnr, ms))
+        for values, mean_psnr, ms in measured:
+            label = " ".join(f"{key}={values.get(key)}" for key in varying) or method
+            series[label].append((float(values[x_key]), mean_psnr, ms))
         top = figure.add_subplot(2, len(scenes), index + 1)
         bottom = figure.add_subplot(2, len(scenes), len(scenes) + index + 1, sharex=top)
         for label, values in series.items():
             values.sort()
-            name = f"{series_key}={label}" if series_key else method
-            top.plot([v[0] for v in values], [v[1] for v in values], "-o", label=name)
-            bottom.plot([v[0] for v in values], [v[2] for v in values], "-o", label=name)
+            top.plot([v[0] for v in values], [v[1] for v in values], "-o", label=label)
+            bottom.plot([v[0] for v in values], [v[2] for v in values], "-o", label=label)
         first = next(row for row in rows if row.scene == scene)
         top.set_title(f"{method} on {scene} {first.width}x{first.height}")
         top.set_ylabel("PSNR, dB (mean over light edits)")

@@ -170,32 +170,36 @@ CASES: list[StabilityCase] = [
     StabilityCase(
         "close_corner", "cornell_box", "a 20 mm lamp 20 mm from three walls in a corner (1/r^2 at close range)",
         _close_corner,
-        why={"direct": "Irradiance varies as 1/r^2 across a pixel footprint next to the lamp, and a few light "
-                       "samples per point under-resolve a light that subtends a large solid angle.",
-             "transfer": "The gather light is point-sampled at 1024 gathers, so the walls beside the lamp "
-                         "(where 1/r^2 peaks) hold few gathers and their bright patch is missed or aliased.",
-             "gather": "Clustered gathers average D over each cluster, and next to the lamp D changes by "
-                       "orders of magnitude within one cluster, so the one bounce is biased."},
+        why={"direct": "Next to the lamp irradiance changes by orders of magnitude within a pixel, and one "
+                       "sub-sample per pixel misses it (the 2 x 2 direct part of transfer and gather has about a "
+                       "quarter of this error); the close lamp also subtends a large solid angle for 16 samples.",
+             "transfer": "The indirect light is right on average (within a few per cent); its error is on the "
+                         "walls beside the lamp, where few of the 1024 gathers see the 1/r^2 peak.",
+             "gather": "Clusters average D over gather points whose irradiance differs by orders of magnitude "
+                       "next to the lamp: the bounce comes out about a sixth too weak."},
         min_psnr={"direct": 25.0, "transfer": 28.0, "gather": 26.0}),
     StabilityCase(
         "tight_spot", "cornell_box", "a 5-degree spot at 200x intensity making a small bright patch on the back wall",
         _tight_spot,
         why={"direct": "The relighter takes a few light samples on the 130 x 105 mm lamp and with a 5-degree "
                        "cone each sample lights its own small ellipse, so the spot breaks into blobs.",
-             "transfer": "The small strong secondary source falls between the gathers, so the "
-                         "indirect light it casts is carried by one or two gathers and is blotchy.",
-             "gather": "Few clusters per representative cannot isolate the bright patch, so its "
-                       "contribution is averaged with dark gathers and lost or spread."},
+             "transfer": "The bright patch is carried by the few gathers that land in it, each standing for "
+                         "its whole cell: the indirect light is about a quarter too strong and blotchy, worst on "
+                         "the ceiling the patch lights.",
+             "gather": "Few clusters per representative average the patch's gather points with dark ones: the "
+                       "indirect light is more than half too weak, worst on the ceiling the patch lights."},
         min_psnr={"direct": 21.0, "transfer": 17.0, "gather": 17.0}),
     StabilityCase(
         "grazing", "cornell_box", "a strip light 8 mm above the floor aimed along it (about 1 degree incidence)",
         _grazing,
-        why={"direct": "At grazing incidence cos(theta) and the shadow-ray offsets dominate: a fixed "
-                       "sub-sample pattern aliases the fast fall-off across the floor.",
-             "transfer": "The floor's gathers see the light at grazing incidence too, and the wavelet "
-                         "truncation smears the resulting sharp gradient.",
-             "gather": "Gather clusters mix points lit at grazing incidence with unlit ones, and the "
-                       "radial-basis reconstruction blurs the fall-off."},
+        why={"direct": "The error sits in the bottom image row: the floor within a few centimetres of the strip "
+                       "is lit at 1/r^2 at grazing incidence, and one sub-sample per pixel misses the bright "
+                       "sliver that the path tracer's pixel average includes.",
+             "transfer": "It shares the direct part's bottom-row error, and the floor's gathers next to the strip "
+                         "are lit at 1/r^2, so a few gathers carry a badly sampled share of the bounce: the "
+                         "indirect light is about a quarter too strong.",
+             "gather": "It shares the direct part's bottom-row error; the indirect light is right on average but "
+                       "blotchy, clusters mixing gather points lit at grazing incidence with unlit ones."},
         min_psnr={"direct": 16.0, "transfer": 15.0, "gather": 15.0}),
     StabilityCase(
         "inside_geometry", "cornell_box", "the lamp plus a bright sphere light inside the closed tall block",
