@@ -26,6 +26,7 @@ EXPECTED = {
     # name: (metersPerUnit, resolution, {light type: count}, number of materials)
     "cornell_box": (0.001, (512, 512), {"RectLight": 1}, 3),
     "glossy": (0.01, (640, 480), {"SphereLight": 2}, 7),
+    "dome": (0.01, (640, 480), {"DomeLight": 1}, 7),
     "set": (0.01, (640, 480), {"DistantLight": 1, "RectLight": 1, "SphereLight": 2, "DiskLight": 1}, 5),
 }
 

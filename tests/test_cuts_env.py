@@ -157,3 +157,16 @@ def test_data_driven_tree_shortens_the_visibility_cuts(dome):
     gain = 1.0 - _mean_cut_size(driven) / _mean_cut_size(layer)
     assert gain > 0.15                # measured 23 % (54.3 -> 42.0 nodes per vertex); the paper: 16-30 %
     assert _psnr(open_cache_relighter(driven).render(), reference) > 27.5     # measured 28.5 dB
+
+
+def test_a_dome_light_link_masks_the_unlinked_objects(dome):
+    scene, _, layer, _, _ = dome
+    relighter = open_cache_relighter(layer)
+    (light,) = relighter.lights
+    floor = next(obj.path for obj in scene.objects if obj.path.endswith("Floor"))
+    unlinked = relighter.cut_samples([light])
+    linked = relighter.cut_samples([dataclasses.replace(light, light_link=(floor,))])
+    on_floor = torch.from_numpy(np.asarray([obj.path == floor for obj in scene.objects]))[
+        relighter.direct.gbuffer.object_id.long()]
+    assert torch.equal(linked[~on_floor], torch.zeros_like(linked[~on_floor]))
+    torch.testing.assert_close(linked[on_floor], unlinked[on_floor])

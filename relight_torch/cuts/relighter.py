@@ -32,6 +32,7 @@ from relight_torch.cuts.merge import MergedCuts, merge, refine
 from relight_torch.cuts.tree import LightTree
 from relight_torch.lights.dome import REC709_LUMINANCE
 from relight_torch.lights.light import Light, LightKind
+from relight_torch.lights.linking import linked_objects
 from relight_torch.math.frame import to_local
 from relight_torch.relighter import Relighter, light_group
 from relight_torch.transfer.gathers import GatherSamples, gather_radiance
@@ -282,7 +283,29 @@ class CutsRelighter:
     def cut_samples(self, lights: list[Light], emission: bool = False) -> torch.Tensor:
         """(N, 3) radiance of every covered sub-sample from `lights` by cuts (env: their domes;
         indirect: their bounce, plus the surfaces' emission bounced with `emission`), camera
-        exposure not applied."""
+        exposure not applied. Env: domes with a light link are merged separately and masked to
+        the linked objects (shadow links are not honoured: the visibility cuts hold every occluder)."""
+        links: dict[tuple[str, ...] | None, list[Light]] = {}
+        for light in lights if self.mode == "env" else ():
+            links.setdefault(light.light_link, []).append(light)
+        if set(links) - {None}:
+            total = torch.zeros_like(self.direct.gbuffer.position)
+            for link, members in links.items():
+                part = self._merged_samples(members, emission)
+                total += part if link is None else part * self._link_mask(link)
+            return total
+        return self._merged_samples(lights, emission)
+
+    def _link_mask(self, link: tuple[str, ...]) -> torch.Tensor:
+        """(N, 1) 1 on the sub-samples of the objects a light link includes, else 0."""
+        g = self.direct.gbuffer
+        if self.direct.object_paths is None:
+            raise ValueError("light linking needs the cache's object paths (re-bake the cache)")
+        linked = torch.from_numpy(linked_objects(self.direct.object_paths, link)).to(g.device)
+        return linked[g.object_id.long()].to(g.position.dtype).unsqueeze(-1)
+
+    def _merged_samples(self, lights: list[Light], emission: bool) -> torch.Tensor:
+        """`cut_samples` of lights sharing one light link (or indirect mode)."""
         g = self.direct.gbuffer
         out = torch.zeros_like(g.position)
         self.stats.clear()

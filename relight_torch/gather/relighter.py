@@ -255,7 +255,10 @@ class GatherRelighter(IndirectRelighter):
         total = torch.zeros_like(self.view_albedo)
         for name, gather_set in self.sets.items():
             pixels = interpolate(gather_set.representative_values(radiance), gather_set.neighbours, gather_set.rbf)
-            total = total + (pixels * self.view_albedo if name == "diffuse" else pixels)
+            if name == "diffuse":
+                total.addcmul_(pixels, self.view_albedo)
+            else:
+                total.add_(pixels)
         return total
 
     def surface_radiance(self, light: Light) -> torch.Tensor:

@@ -36,12 +36,10 @@ def look_camera(path: str, position: np.ndarray, forward: np.ndarray, up: np.nda
 
 def camera_row(camera: Camera, kind: int, group: int) -> np.ndarray:
     """(C,) float64 row of the camera table (`relight_torch.multiview.views.CAMERA_COLUMNS`)."""
-    row = np.concatenate([np.asarray(camera.world_from_camera, np.float64).reshape(-1), [
+    return np.concatenate([np.asarray(camera.world_from_camera, np.float64).reshape(-1), [
         camera.focal_length, camera.horizontal_aperture, camera.vertical_aperture,
         camera.horizontal_aperture_offset, camera.vertical_aperture_offset, *camera.clipping_range,
         camera.width, camera.height, kind, group]])
-    assert row.shape == (len(CAMERA_COLUMNS),)
-    return row
 
 
 def camera_from_row(row: np.ndarray, path: str) -> Camera:
