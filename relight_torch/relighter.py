@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,6 +69,8 @@ from relight_torch.visibility.rays import RayVisibility
 _COLOUR_FIELDS = ("intensity", "exposure", "color", "enable_color_temperature", "color_temperature",
                   "diffuse", "specular")
 _SHADING_FIELDS = ("shaping", "barzel")
+# Pixels per row when a colour scale is applied (see Relighter._add_light).
+_TILE_PIXELS = 1024
 # The kinds whose emission ShapingAPI and Barzel controls shape (see lights/emission.py).
 _SHAPED_KINDS = (LightKind.SPHERE, LightKind.RECT, LightKind.DISK, LightKind.CYLINDER)
 
@@ -94,6 +97,20 @@ class RelightSettings:
     chunk_samples: int = 1 << 20
     full_sampling_angle: float = 0.0
     min_area_samples: int = 1
+
+
+def box_filter(image: torch.Tensor, s: int) -> torch.Tensor:
+    """The mean of each s x s block of an (H, W, C) image: (H / s, W / s, C).
+
+    Summed as slabs (s rows of W C values, then s runs of C values), which torch's CPU kernels
+    stream; `reshape(H / s, s, W / s, s, C).mean((1, 3))`, the same numbers, runs ~10x slower.
+    """
+    height, width, channels = image.shape
+    rows = image.reshape(height // s, s, width * channels)
+    total = sum((rows[:, k] for k in range(1, s)), rows[:, 0])
+    runs = total.reshape(height // s, width // s, s * channels)
+    total = sum((runs[..., k * channels:(k + 1) * channels] for k in range(1, s)), runs[..., :channels])
+    return total / (s * s)
 
 
 def _key(light: Light, names: tuple[str, ...]) -> tuple:
@@ -331,9 +348,8 @@ class Relighter:
         """Sub-sample values (N, 3) to the (H, W, 3) image: scattered, box-filtered, exposed."""
         height, width = self.gbuffer.image_size
         image = values.reshape(height, width, 3) if self._dense else self.gbuffer.scatter(values)
-        s = self.supersampling
-        if s > 1:
-            image = image.reshape(height // s, s, width // s, s, 3).mean(dim=(1, 3))
+        if self.supersampling > 1:
+            image = box_filter(image, self.supersampling)
         return image * self.exposure_scale if self.exposure_scale != 1.0 else image
 
     def _add_light(self, total: torch.Tensor, state: _LightState, in_place: bool = True) -> torch.Tensor:
@@ -348,8 +364,16 @@ class Relighter:
         mask = self._mask(light)
         if mask is not None:
             diffuse_scale, specular_scale = diffuse_scale * mask, specular_scale * mask
-        total = total.addcmul_(diffuse, diffuse_scale) if in_place else torch.addcmul(total, diffuse, diffuse_scale)
-        return total.addcmul_(specular, specular_scale)
+        # Without a mask the (3,) scales broadcast along rows of 3: read (N, 3) as rows of k
+        # pixels and the scales tiled k times, so that torch's CPU kernels stream long rows.
+        k = math.gcd(total.shape[0], _TILE_PIXELS) if mask is None else 1
+        shape = (-1, 3 * k)
+        if k > 1:
+            diffuse, specular = diffuse.reshape(shape), specular.reshape(shape)
+            diffuse_scale, specular_scale = diffuse_scale.repeat(k), specular_scale.repeat(k)
+        rows = total.view(shape)
+        rows = rows.addcmul_(diffuse, diffuse_scale) if in_place else torch.addcmul(rows, diffuse, diffuse_scale)
+        return rows.addcmul_(specular, specular_scale).view(total.shape)
 
     # -- per-light stages -----------------------------------------------------------------------
 

@@ -1,4 +1,5 @@
-"""How many samples a light gets: its angular radius and the adaptive count (hand-computed values)."""
+"""How many samples a light gets: its angular radius and the adaptive count (hand-computed values);
+the supersampling box filter against the plain block mean."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import torch
 
 from relight_torch.light_samples import adaptive_sample_count, angular_radius
 from relight_torch.lights.light import Light, LightKind
+from relight_torch.relighter import box_filter
 
 
 def placed(kind: LightKind, scale: float = 1.0, **fields) -> Light:
@@ -45,3 +47,10 @@ def test_adaptive_sample_count():
     assert adaptive_sample_count(16, 1, math.radians(0.5), full) == 1
     assert adaptive_sample_count(16, 4, math.radians(0.5), full) == 4
     assert adaptive_sample_count(16, 1, math.radians(0.5), 0.0) == 16   # adaptivity off
+
+
+@pytest.mark.parametrize("s", [1, 2, 3])
+def test_box_filter_is_the_block_mean(s):
+    image = torch.rand(4 * s, 6 * s, 3, generator=torch.Generator().manual_seed(s))
+    expected = image.reshape(4, s, 6, s, 3).mean(dim=(1, 3))
+    torch.testing.assert_close(box_filter(image, s), expected, rtol=1e-6, atol=1e-7)

@@ -12,6 +12,8 @@ that invalidate different stages of `relight_torch.relighter.Relighter`:
     colour edit            one light's colour: a rescale, nothing shaded
     light-link edit        one light's light link (every object but one, the one cycling):
                            its (N,) mask from the G-buffer's object ids, nothing traced or shaded
+                           (a link seen before reuses its mask: with fewer objects than
+                           repeats, under one mask pass per edit)
 
 Rigs of 1, 4 and 16 lights are the shot's lights followed by generated sphere, rect and spot
 lights (round robin) on a ring above what the camera sees, aimed at its centre. Each row reports
@@ -345,7 +347,7 @@ def edit_kind_rows(report: Report) -> list[tuple[str, Row]]:
 
 def _recomputed(row: Row) -> str:
     passes = {"visibility": row.visibility_passes, "shading": row.shading_passes, "masks": row.mask_passes}
-    done = [f"{name} x{count:g}" for name, count in passes.items() if count]
+    done = [f"{name} x{count:.3g}" for name, count in passes.items() if count]
     return ", ".join(done) or "nothing (a rescale)"
 
 
@@ -353,7 +355,7 @@ def format_table(report: Report) -> str:
     """The rows as an aligned text table, the context lines, then the table of edit kinds."""
     header = ("case", "lights", "median ms", "min ms", "cpu ms", "visibility", "shading", "masks")
     cells = [header] + [(r.case, str(r.num_lights), f"{r.median_ms:.2f}", f"{r.min_ms:.2f}", f"{r.cpu_ms:.2f}",
-                         f"{r.visibility_passes:g}", f"{r.shading_passes:g}", f"{r.mask_passes:g}")
+                         f"{r.visibility_passes:.3g}", f"{r.shading_passes:.3g}", f"{r.mask_passes:.3g}")
                         for r in report.rows]
     lines = _aligned(cells) + [f"{name}: {value}" for name, value in report.context]
     kinds = edit_kind_rows(report)
