@@ -186,8 +186,9 @@ CASES: list[StabilityCase] = [
              "transfer": "The bright patch is carried by the few gathers that land in it, each standing for "
                          "its whole cell: the indirect light is about a quarter too strong and blotchy, worst on "
                          "the ceiling the patch lights.",
-             "gather": "Few clusters per representative average the patch's gather points with dark ones: the "
-                       "indirect light is about a quarter too weak, worst on the ceiling the patch lights."},
+             "gather": "16 clusters at 64 representatives miss the patch's gather points almost altogether: "
+                       "nearly all of the indirect light it casts is lost (with 4x the representatives, about a "
+                       "quarter), worst on the ceiling the patch lights."},
         min_psnr={"direct": 21.0, "transfer": 17.0, "gather": 17.0}),
     StabilityCase(
         "grazing", "cornell_box", "a strip light 8 mm above the floor aimed along it (about 1 degree incidence)",
@@ -198,9 +199,9 @@ CASES: list[StabilityCase] = [
              "transfer": "It shares the direct part's bottom-row error, and the floor's gathers next to the strip "
                          "are lit at 1/r^2, so a few gathers carry a badly sampled share of the bounce: the "
                          "indirect light is about a quarter too strong.",
-             "gather": "It shares the direct part's bottom-row error; the indirect light is right on average but "
-                       "blotchy, worst on the ceiling, clusters mixing gather points lit at grazing incidence "
-                       "with unlit ones."},
+             "gather": "It shares the direct part's bottom-row error, and its indirect light is about 75 % too "
+                       "strong: the few representatives near the strip gather points lit at 1/r^2, and the "
+                       "radial-basis weights spread that over the floor."},
         min_psnr={"direct": 16.0, "transfer": 15.0, "gather": 15.0}),
     StabilityCase(
         "inside_geometry", "cornell_box", "the lamp plus a bright sphere light inside the closed tall block",
