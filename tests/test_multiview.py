@@ -79,6 +79,10 @@ def test_bake_records_caching_cameras_and_coverage(baked):
     assert parameters["primaryFraction"] > 0.5
     assert set(camera_column(table, "width")) <= {32.0, 64.0, 128.0}
     assert coverage_summary(layer).startswith(f"{parameters['numViews']} caching views")
+    # Each caching view's EXR records its own size, so the generic payload checks of `relight info` pass.
+    assert all(p.shape == (camera_column(table, "height")[int(p.name[4:])], camera_column(table, "width")[int(p.name[4:])])
+               for p in description.payloads if p.name.startswith("view"))
+    assert main(["info", str(layer)]) == 0
 
 
 def test_novel_view_matches_reference(baked, tmp_path):

@@ -53,7 +53,8 @@ class Payload:
         sha256: hex digest of the file's bytes.
         num_bytes: file size.
         channels: EXR channel names (exr) — empty for npy.
-        shape, dtype: array shape and numpy dtype name (npy) — empty for exr.
+        shape, dtype: array shape and numpy dtype name (npy); for exr, shape is empty (the image is
+            the cache's resolution times its supersampling) or the image's (H, W) where it differs.
         constants: channel name -> value, for channels elided because constant over the image.
     """
 
@@ -275,6 +276,8 @@ def _read_payload(prim: Usd.Prim, path: Path) -> Payload:
     _require(payload.num_bytes > 0, path, prim, f"relight:bytes = {payload.num_bytes} must be > 0")
     if payload.format == "exr":
         _require(len(payload.channels) > 0, path, prim, "relight:channels is empty for an EXR payload")
+        _require(payload.shape == () or (len(payload.shape) == 2 and min(payload.shape) > 0), path, prim,
+                 f"relight:shape {list(payload.shape)} of an EXR payload must be empty or a positive (H, W)")
     else:
         _require(all(n >= 0 for n in payload.shape), path, prim, f"relight:shape {list(payload.shape)} is negative")
         _require(_plain_dtype(payload.dtype), path, prim,

@@ -143,7 +143,7 @@ def check_payload(layer_path: Path, description: CacheDescription, payload: Payl
             check_payload_bytes(path, payload)
         raise
     if payload.format == "exr":
-        check_exr_header(path, payload, header, sub_sample_size(description))
+        check_exr_header(path, payload, header, payload.shape or sub_sample_size(description))
     else:
         check_npy_header(path, payload, header)
     check_payload_bytes(path, payload)

@@ -40,14 +40,6 @@ def load_camera_table(layer_path: Path, description: CacheDescription) -> np.nda
     return table
 
 
-def view_image_size(layer_path: Path, description: CacheDescription, payload_name: str) -> tuple[int, int] | None:
-    """(H, W) of a multiview cache's deep framebuffer payload `payload_name` (from the camera table);
-    None for its other payloads, or another method's (for generic payload checks, e.g. `relight info`)."""
-    if description.method != "multiview" or not payload_name.startswith("view"):
-        return None
-    return _image_size(load_camera_table(layer_path, description), int(payload_name[len("view"):]), layer_path)
-
-
 def _image_size(table: np.ndarray, k: int, layer_path: Path) -> tuple[int, int]:
     if not 0 <= k < table.shape[0]:
         raise RelightError(f"{layer_path}: payload {view_payload_name(k)} has no row in the camera table")

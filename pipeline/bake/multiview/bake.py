@@ -129,7 +129,7 @@ def bake_multiview(scene: Scene, camera: Camera, out_dir: str | Path, stem: str,
         write_exr(path, channels, {"relight:supersampling": 1})
         payloads.append(Payload(name=view_payload_name(k), file=path.name, format="exr", sha256=file_sha256(path),
                                 num_bytes=path.stat().st_size, channels=tuple(sorted(channels)),
-                                constants=constants))
+                                shape=next(iter(channels.values())).shape[:2], constants=constants))
     payloads += [
         write_npy(out_dir / f"{stem}.cameras.npy", np.array(rows, np.float64).reshape(len(rows), -1), "cameras"),
         write_npy(out_dir / f"{stem}.occluders.npy", scene.geometry.positions.astype(np.float32), "occluders"),
