@@ -129,6 +129,20 @@ def direct_payloads(scene: Scene, camera: Camera, out_dir: Path, stem: str, supe
     return description, chunk_dir
 
 
+def prepare_output(out_dir: str | Path, stem: str, supersampling: int, texture_samples: int) -> tuple[Path, Path]:
+    """Check the sampling rates, create `out_dir`, remove the old layer and killed writers' temp
+    files of `stem`; (out_dir, the layer's path)."""
+    if supersampling < 1 or texture_samples < 1:
+        raise ValueError(f"supersampling and texture_samples must be >= 1, got {supersampling}, {texture_samples}")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    layer_path = out_dir / f"{stem}{SUFFIX}"
+    # An old layer must not survive beside new payloads if this bake dies midway.
+    layer_path.unlink(missing_ok=True)
+    remove_temp_files(out_dir, f"{stem}.")
+    return out_dir, layer_path
+
+
 def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
                 texture_samples: int = 2, time_code: float | None = None) -> Path:
     """Bake the direct-lighting cache of `camera`; returns the cache layer's path.
@@ -138,14 +152,7 @@ def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
         texture_samples: material samples per sub-sample side (texture filtering).
         time_code: the time the scene was read at (recorded so lights are read at the same time).
     """
-    if supersampling < 1 or texture_samples < 1:
-        raise ValueError(f"supersampling and texture_samples must be >= 1, got {supersampling}, {texture_samples}")
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    layer_path = out_dir / f"{stem}{SUFFIX}"
-    # An old layer must not survive beside new payloads if this bake dies midway.
-    layer_path.unlink(missing_ok=True)
-    remove_temp_files(out_dir, f"{stem}.")
+    out_dir, layer_path = prepare_output(out_dir, stem, supersampling, texture_samples)
     description, chunk_dir = direct_payloads(scene, camera, out_dir, stem, supersampling, texture_samples,
                                               time_code)
     write_cache_layer(layer_path, description)

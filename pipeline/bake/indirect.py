@@ -16,11 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.bake.direct import direct_payloads, write_npy
+from pipeline.bake.direct import direct_payloads, prepare_output, write_npy
 from pipeline.bake.scheduler import chunk_folder
 from pipeline.scene.types import Camera, Scene
-from relight_torch.io.atomic import remove_temp_files
-from relight_torch.cache.layer import SUFFIX, CacheDescription, Payload, content_hash, write_cache_layer
+from relight_torch.cache.layer import CacheDescription, Payload, content_hash, write_cache_layer
 
 
 @dataclass(frozen=True)
@@ -67,14 +66,7 @@ def start_indirect_bake(scene: Scene, camera: Camera, out_dir: str | Path, stem:
                         method_parameters: dict, supersampling: int, texture_samples: int,
                         time_code: float | None) -> IndirectBake:
     """Write the direct payloads (no layer yet) and name the chunk folder of an indirect method."""
-    if supersampling < 1 or texture_samples < 1:
-        raise ValueError(f"supersampling and texture_samples must be >= 1, got {supersampling}, {texture_samples}")
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    layer_path = out_dir / f"{stem}{SUFFIX}"
-    # An old layer must not survive beside new payloads if this bake dies midway.
-    layer_path.unlink(missing_ok=True)
-    remove_temp_files(out_dir, f"{stem}.")
+    out_dir, layer_path = prepare_output(out_dir, stem, supersampling, texture_samples)
     description, direct_chunk_dir = direct_payloads(scene, camera, out_dir, stem, supersampling, texture_samples,
                                                     time_code)
     parameters = {**description.parameters, **method_parameters}
