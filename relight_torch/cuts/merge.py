@@ -81,8 +81,36 @@ def merge(tree: LightTree, sources: list[tuple[Cuts, torch.Tensor]]) -> MergedCu
     return MergedCuts(row, node, cover)
 
 
+def refine_nodes(tree: LightTree, node: torch.Tensor, shared: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Merge a cut shared by every row into merged nodes `node` (Q,) int64 (each row's a sorted partition).
+
+    Args:
+        shared: (K,) int64 sorted node indices of the shared cut (a partition of the leaves).
+
+    Returns:
+        (parent (R,), new_node (R,), shared_index (R,)), int64: the refined entries in order, each
+        with the entry of `node` it refines, its node and its index into `shared`.
+    """
+    at_or_after = torch.searchsorted(shared, node).clamp_max_(shared.shape[0] - 1)
+    shared_at = shared[at_or_after]
+    covered = (shared_at >= node) & (tree.leftleaf[shared_at] <= node)
+    first_inside = torch.searchsorted(shared, tree.leftleaf[node])
+    # Above the shared cut, `at_or_after` is the first shared node after `node`: its end is exact
+    # unless `node` is past the last shared node (then every shared node inside it precedes it).
+    end = torch.where(shared[-1] < node, shared.shape[0], at_or_after)
+    counts = torch.where(covered, 1, end - first_inside)
+    if bool(covered.all()):  # no node above the shared cut: one entry each, no expansion
+        return torch.arange(node.shape[0], device=node.device), node, at_or_after
+    parent = torch.repeat_interleave(counts)
+    start = torch.where(covered, at_or_after, first_inside)
+    shared_index = start[parent] + torch.arange(parent.shape[0], device=node.device) - (torch.cumsum(counts, 0) - counts)[parent]
+    new_node = torch.where(covered[parent], node[parent], shared[shared_index])
+    return parent, new_node, shared_index
+
+
 def refine(tree: LightTree, merged: MergedCuts, shared: torch.Tensor) -> MergedCuts:
-    """Merge a cut shared by every row into `merged`.
+    """Merge a cut shared by every row into `merged` (`refine_nodes`).
 
     Args:
         shared: (K,) int64 sorted node indices of the shared cut (a partition of the leaves).
@@ -90,18 +118,5 @@ def refine(tree: LightTree, merged: MergedCuts, shared: torch.Tensor) -> MergedC
     Returns:
         the merged cuts with the shared cut's index (into `shared`) appended to `cover`.
     """
-    node = merged.node
-    at_or_after = torch.searchsorted(shared, node).clamp_max(shared.shape[0] - 1)
-    covered = (shared[at_or_after] >= node) & (tree.leftleaf[shared[at_or_after]] <= node)
-    first_inside = torch.searchsorted(shared, tree.leftleaf[node])
-    counts = torch.where(covered, torch.ones_like(node), at_or_after - first_inside)
-    # Above the shared cut, `at_or_after` is the first shared node after `node`: its end is exact
-    # unless `node` is past the last shared node (then every shared node inside it precedes it).
-    past_end = ~covered & (shared[-1] < node)
-    counts = torch.where(past_end, shared.shape[0] - first_inside, counts)
-    parent = torch.repeat_interleave(torch.arange(node.shape[0], device=node.device), counts)
-    start = torch.where(covered, at_or_after, first_inside)
-    offset = torch.arange(parent.shape[0], device=node.device) - (torch.cumsum(counts, 0) - counts)[parent]
-    shared_index = start[parent] + offset
-    new_node = torch.where(covered[parent], node[parent], shared[shared_index])
-    return MergedCuts(merged.row[parent], new_node, tuple(c[parent] for c in merged.cover) + (shared_index,))
+    parent, node, shared_index = refine_nodes(tree, merged.node, shared)
+    return MergedCuts(merged.row[parent], node, tuple(c[parent] for c in merged.cover) + (shared_index,))

@@ -28,7 +28,7 @@ from relight_torch.brdf import preview_surface
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.cuts.cuts import Cuts, intensity_cut
 from relight_torch.cuts.env import dome_leaf_light
-from relight_torch.cuts.merge import MergedCuts, merge, refine
+from relight_torch.cuts.merge import MergedCuts, merge, refine_nodes
 from relight_torch.cuts.tree import LightTree
 from relight_torch.lights.dome import REC709_LUMINANCE
 from relight_torch.lights.light import Light, LightKind
@@ -80,6 +80,25 @@ class CutsCache:
         return "env" if self.leaf_points is None else "indirect"
 
 
+@dataclass(frozen=True)
+class VisibilityBatch:
+    """The lit clusters of the merged visibility cuts of a batch of sub-samples (no lights, no materials).
+
+    Attributes:
+        sample: (Q,) int64 sub-sample of each merged cluster, ascending.
+        node: (Q,) int64 its node, ascending within a sub-sample.
+        visibility: (Q,) barycentric blend of the three vertices' means (> 0).
+        inputs: entries of the batch's vertices' visibility cuts (the merge's input).
+        dark: merged clusters dark at all three vertices (dropped).
+    """
+
+    sample: torch.Tensor
+    node: torch.Tensor
+    visibility: torch.Tensor
+    inputs: int
+    dark: int
+
+
 class CutsRelighter:
     """Light by cuts plus the direct relighter, on one deep framebuffer.
 
@@ -124,6 +143,7 @@ class CutsRelighter:
         self._domes: dict[str, Light] = {}
         self._leaf_radiance: dict[str, tuple[Light, torch.Tensor]] = {}
         self._samples: torch.Tensor | None = None
+        self._visibility_batches: tuple[int, list[VisibilityBatch]] | None = None
         self.set_lights(direct.lights)
 
     @property
@@ -313,30 +333,43 @@ class CutsRelighter:
             return out
         nodes, diffuse_light, specular_light = self.illumination_cut(lights, emission)
         self.stats["illumination_cut"] = int(nodes.shape[0])
-        cuts, tree = self.cuts, self.cuts.tree
-        for start in range(0, g.num_samples, self.settings.rows_per_batch):
-            rows = torch.arange(start, min(start + self.settings.rows_per_batch, g.num_samples), device=g.device)
-            merged = self.merged_visibility(rows)
-            self.stats["inputs"] += int(cuts.visibility.sizes()[cuts.sample_vertices[rows]].sum())
-            weights = cuts.sample_weights[rows]
-            # Clusters all three vertices see as dark stay dark however the illumination cut would
-            # split them: they are dropped before the illumination cut is merged in.
-            lit = self._visibility(merged, weights) > 0
-            self.stats["dark"] += int((~lit).sum())
-            merged = refine(tree, merged.select(lit), nodes)
-            self.stats["merged"] += int(merged.node.shape[0])
-            visibility = self._visibility(merged, weights)
-            sample = rows[merged.row]
-            wi_local = to_local(self._incident(merged.node, sample), g.tangent[sample], g.bitangent[sample],
-                                g.normal[sample])
-            live = (visibility > 0) & (wi_local[:, 2] > 0)
-            sample, wi_local, visibility = sample[live], wi_local[live], visibility[live]
-            node, light = merged.node[live], merged.cover[-1][live]
+        size = self.cuts.tree.size.to(out.dtype)
+        for batch in self.visibility_batches():
+            self.stats["inputs"] += batch.inputs
+            self.stats["dark"] += batch.dark
+            parent, node, light = refine_nodes(self.cuts.tree, batch.node, nodes)
+            self.stats["merged"] += int(node.shape[0])
+            sample = batch.sample[parent]
+            wi_local = to_local(self._incident(node, sample), g.tangent[sample], g.bitangent[sample], g.normal[sample])
+            live = wi_local[:, 2] > 0
+            sample, wi_local, node, light = sample[live], wi_local[live], node[live], light[live]
             self.stats["shaded"] += int(sample.shape[0])
             diffuse, specular = preview_surface.split(self.params.index(sample), self._wo_local[sample], wi_local)
-            weight = (tree.size[node].to(out.dtype) * visibility * wi_local[:, 2]).unsqueeze(-1)
+            weight = (size[node] * batch.visibility[parent[live]] * wi_local[:, 2]).unsqueeze(-1)
             out.index_add_(0, sample, (diffuse * diffuse_light[light] + specular * specular_light[light]) * weight)
         return out
+
+    def visibility_batches(self) -> list[VisibilityBatch]:
+        """The merged visibility cuts of every covered sub-sample, in batches of
+        `settings.rows_per_batch`: computed on first use, then kept (they depend on neither the
+        lights nor the materials)."""
+        batch_rows = self.settings.rows_per_batch
+        if self._visibility_batches is None or self._visibility_batches[0] != batch_rows:
+            cuts, num_samples = self.cuts, self.direct.gbuffer.num_samples
+            device = cuts.sample_vertices.device
+            batches = []
+            for start in range(0, num_samples, batch_rows):
+                rows = torch.arange(start, min(start + batch_rows, num_samples), device=device)
+                merged = self.merged_visibility(rows)
+                visibility = self._visibility(merged, cuts.sample_weights[rows])
+                # Clusters all three vertices see as dark stay dark however the illumination cut
+                # would split them: they are dropped before the illumination cut is merged in.
+                lit = visibility > 0
+                batches.append(VisibilityBatch(rows[merged.row[lit]], merged.node[lit], visibility[lit],
+                                               int(cuts.visibility.sizes()[cuts.sample_vertices[rows]].sum()),
+                                               int((~lit).sum())))
+            self._visibility_batches = (batch_rows, batches)
+        return self._visibility_batches[1]
 
     def _visibility(self, merged: MergedCuts, weights: torch.Tensor) -> torch.Tensor:
         """(Q,) barycentric blend of the three vertices' cluster means; `weights` (P, 3) per row."""
