@@ -4,7 +4,8 @@ The Cornell box is relit with its ceiling lamp plus two sphere lights sharing th
 'key.rim' (a name EXR layers cannot hold as is: it must come out as 'key_rim'). The EXR, read
 back with OpenImageIO, holds R, G, B and one layer per group, which sum to the beauty; an
 intensity edit of every light of one group scales that group's image and nothing else, and
-runs no visibility or shading pass.
+runs no visibility or shading pass. The indirect methods (transfer, gather) split each group
+into direct and indirect layers that still sum to the beauty.
 """
 
 from __future__ import annotations
@@ -90,13 +91,16 @@ def test_group_intensity_edit_is_a_rescale_of_its_layer(baked):
     np.testing.assert_allclose(sum(after.values()).numpy(), fresh.render().numpy(), rtol=1e-5, atol=1e-7)
 
 
-def test_transfer_render_splits_each_group_into_direct_and_indirect(baked, tmp_path):
+@pytest.mark.parametrize("method_options", [
+    ["--method", "transfer", "--gathers", "256", "--coefficients", "30"],
+    ["--method", "gather", "--directions", "64", "--clusters", "8"],
+], ids=["transfer", "gather"])
+def test_indirect_render_splits_each_group_into_direct_and_indirect(baked, tmp_path, method_options):
     _, layer = baked
     shot = SCENES["cornell_box"].write(tmp_path / "scene")
     out = tmp_path / "cache"
     assert cli.main(["bake", str(shot), "--camera", SCENES["cornell_box"].camera, "--out", str(out), "--width",
-                     str(SIZE), "--height", str(SIZE), "--supersampling", "1", "--method", "transfer",
-                     "--gathers", "256", "--coefficients", "30"]) == 0
+                     str(SIZE), "--height", str(SIZE), "--supersampling", "1", *method_options]) == 0
     exr = tmp_path / "groups.exr"
     assert cli.main(["render", str(out / "cornell_box.relight.usda"), "--lights", str(layer), "-o", str(exr),
                      "--aov", "lightgroups"]) == 0
