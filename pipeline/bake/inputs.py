@@ -1,4 +1,5 @@
-"""What a bake read, hashed: the composed stage's layers and the texture files.
+"""What a bake read, hashed: the composed stage's layers and the texture files (and what it was
+asked for: a re-run of the same request on unchanged inputs finds its cache up to date).
 
 The cache records each input file with its sha256, so a later run can say exactly which input
 changed (stale cache) instead of silently relighting old data. A layer or texture inside a .usdz
@@ -8,8 +9,10 @@ what is on disk, and what changes when anything inside it does.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
+import json
 import os
 from pathlib import Path
 
@@ -19,7 +22,9 @@ import pipeline
 import relight_torch
 
 from pipeline.scene.types import Scene
-from relight_torch.cache.layer import file_sha256
+from relight_torch.cache.layer import file_sha256, read_cache_layer, write_cache_layer
+from relight_torch.cache.status import cache_status
+from relight_torch.errors import RelightError
 from relight_torch.stage import open_stage
 
 
@@ -68,3 +73,33 @@ def _source_digest() -> str:
 def hash_inputs(files: list[str]) -> dict[str, str]:
     """path -> sha256 of its bytes."""
     return {f: file_sha256(f) for f in files}
+
+
+REQUEST_PARAMETER = "request"
+"""Cache-layer parameter holding `request_digest` of the bake command that wrote the cache."""
+
+
+def request_digest(request: dict) -> str:
+    """sha256 (16 hex) of a bake request (the command's options that shape the cache) and the code
+    version: equal digests over unchanged inputs make the same cache."""
+    text = json.dumps({**request, "codeVersion": code_version()}, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def up_to_date(layer_path: Path, digest: str) -> bool:
+    """Whether the cache at `layer_path` was baked for request `digest` and is still valid: every
+    payload as recorded and no input changed since."""
+    if not layer_path.is_file():
+        return False
+    try:
+        status = cache_status(layer_path)
+    except RelightError:
+        return False
+    return status.description.parameters.get(REQUEST_PARAMETER) == digest and status.verdict == "valid"
+
+
+def record_request(layer_path: Path, digest: str) -> None:
+    """Add `digest` to the cache layer's parameters (rewritten atomically)."""
+    description = read_cache_layer(layer_path)
+    write_cache_layer(layer_path, dataclasses.replace(
+        description, parameters={**description.parameters, REQUEST_PARAMETER: digest}))

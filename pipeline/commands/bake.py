@@ -12,6 +12,7 @@ from pipeline.bake import scheduler
 from pipeline.bake.cuts.bake import MODES as CUTS_MODES
 from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
 from pipeline.bake.direct import bake_direct
+from pipeline.bake.inputs import record_request, request_digest, up_to_date
 from pipeline.bake.gather.bake import GatherSettings, bake_gather
 from pipeline.bake.quality import bake_for_quality
 from pipeline.bake.multiview.bake import bake_multiview, coverage_summary
@@ -20,6 +21,7 @@ from pipeline.bake.transfer.bake import TransferSettings, bake_transfer, reduced
 from pipeline.commands.common import add_camera_options
 from pipeline.errors import RelightError
 from pipeline.scene import find_camera, load_scene
+from relight_torch.cache.layer import SUFFIX
 
 METHODS = ("direct", "transfer", "gather", "multiview", "cuts")
 
@@ -111,18 +113,35 @@ def run(args: argparse.Namespace) -> int:
         return _bake(args)
 
 
+_NOT_REQUEST = ("out", "stem", "scheduler", "workers")
+"""Options that do not change the cache (where and how it is computed)."""
+
+
 def _bake(args: argparse.Namespace) -> int:
+    stem = args.stem or Path(args.scene).name.split(".")[0]
+    layer_path = Path(args.out) / f"{stem}{SUFFIX}"
+    request = {name: value for name, value in vars(args).items()
+               if name not in _NOT_REQUEST and isinstance(value, (str, int, float, bool, list, tuple, type(None)))}
+    digest = request_digest({**request, "scene": str(Path(args.scene).resolve())})
+    if up_to_date(layer_path, digest):
+        print(f"{layer_path}: up to date (same request, inputs and code; payloads verified), nothing baked")
+        return 0
+    record_request(_bake_method(args, stem), digest)
+    return 0
+
+
+def _bake_method(args: argparse.Namespace, stem: str) -> Path:
+    """Run the bake `args` asks for; the cache layer's path."""
     start = time.perf_counter()
     scene = load_scene(args.scene, time=args.time, width=args.width, height=args.height)
     camera = find_camera(scene, args.camera)
-    stem = args.stem or Path(args.scene).name.split(".")[0]
     if args.quality is not None:
         result = bake_for_quality(scene, camera, args.out, stem, args.method, args.quality, args.supersampling,
                                   args.texture_samples, args.time,
                                   fixed={"bounces": args.bounces} if args.method == "transfer" else None)
         print(f"{result.layer}: {args.method} cache sized for {args.quality:g} dB: {result.point} (pilot "
               f"{result.predicted_db:.1f} dB, measured {result.measured_db:.1f} dB) in {time.perf_counter() - start:.1f} s")
-        return 0
+        return result.layer
     if args.method == "transfer":
         settings = TransferSettings(num_gathers=args.gathers, num_coefficients=args.coefficients,
                                     num_bounces=args.bounces, num_bounce_coefficients=args.bounce_coefficients,
@@ -171,4 +190,4 @@ def _bake(args: argparse.Namespace) -> int:
                             time_code=args.time)
     print(f"{layer}: {args.method} cache of {args.camera} at {camera.width}x{camera.height} "
           f"(supersampling {args.supersampling}) in {time.perf_counter() - start:.1f} s")
-    return 0
+    return layer

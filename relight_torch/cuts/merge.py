@@ -14,7 +14,8 @@ less those with a strict descendant in the union. Batched, for every row at once
 A cut shared by every row (the frame's illumination cut) is merged in a second step, `refine`,
 without copying it per row: a merged node the shared cut covers keeps one entry; a node above the
 shared cut is replaced by the shared cut's nodes inside it, [leftleaf(node), node), a contiguous
-slice of the sorted shared cut. No per-row Python loop; cost grows with the merged cut size.
+slice of the sorted shared cut, found from the shared cut's index of the node's first and last
+leaves. No per-row Python loop; cost grows with the merged cut size.
 """
 
 from __future__ import annotations
@@ -85,6 +86,10 @@ def refine_nodes(tree: LightTree, node: torch.Tensor, shared: torch.Tensor
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Merge a cut shared by every row into merged nodes `node` (Q,) int64 (each row's a sorted partition).
 
+    The shared cut's index of every leaf is tabulated once; a node's leftmost leaf (leftleaf) and
+    rightmost leaf (node - height) then name the first and last shared nodes it overlaps: one
+    (a shared node covers it) or the run of shared nodes inside it.
+
     Args:
         shared: (K,) int64 sorted node indices of the shared cut (a partition of the leaves).
 
@@ -92,20 +97,17 @@ def refine_nodes(tree: LightTree, node: torch.Tensor, shared: torch.Tensor
         (parent (R,), new_node (R,), shared_index (R,)), int64: the refined entries in order, each
         with the entry of `node` it refines, its node and its index into `shared`.
     """
-    at_or_after = torch.searchsorted(shared, node).clamp_max_(shared.shape[0] - 1)
-    shared_at = shared[at_or_after]
-    covered = (shared_at >= node) & (tree.leftleaf[shared_at] <= node)
-    first_inside = torch.searchsorted(shared, tree.leftleaf[node])
-    # Above the shared cut, `at_or_after` is the first shared node after `node`: its end is exact
-    # unless `node` is past the last shared node (then every shared node inside it precedes it).
-    end = torch.where(shared[-1] < node, shared.shape[0], at_or_after)
-    counts = torch.where(covered, 1, end - first_inside)
-    if bool(covered.all()):  # no node above the shared cut: one entry each, no expansion
-        return torch.arange(node.shape[0], device=node.device), node, at_or_after
+    leaf_cut = torch.repeat_interleave(torch.arange(shared.shape[0], device=shared.device), tree.size.index_select(0, shared))
+    cut_of = torch.zeros(tree.num_nodes, dtype=torch.int64, device=shared.device).index_copy_(0, tree.leaf_nodes, leaf_cut)
+    first = cut_of.index_select(0, tree.leftleaf.index_select(0, node))
+    counts = cut_of.index_select(0, node - tree.height.index_select(0, node)) - first + 1
+    if bool((counts == 1).all()):  # every node lies under a shared node: no expansion
+        return torch.arange(node.shape[0], device=node.device), node, first
     parent = torch.repeat_interleave(counts)
-    start = torch.where(covered, at_or_after, first_inside)
-    shared_index = start[parent] + torch.arange(parent.shape[0], device=node.device) - (torch.cumsum(counts, 0) - counts)[parent]
-    new_node = torch.where(covered[parent], node[parent], shared[shared_index])
+    shared_index = (first - (torch.cumsum(counts, 0) - counts)).index_select(0, parent) + torch.arange(
+        parent.shape[0], device=node.device)
+    new_node = torch.where((counts == 1).index_select(0, parent), node.index_select(0, parent),
+                           shared.index_select(0, shared_index))
     return parent, new_node, shared_index
 
 

@@ -85,14 +85,19 @@ class VisibilityBatch:
     """The lit clusters of the merged visibility cuts of a batch of sub-samples (no lights, no materials).
 
     Attributes:
-        sample: (Q,) int64 sub-sample of each merged cluster, ascending.
-        node: (Q,) int64 its node, ascending within a sub-sample.
+        rows: (P,) int64 the batch's sub-samples.
+        frame: (P, 3, 3) their shading frames, columns tangent, bitangent, normal (world -> local
+            by right-multiplication).
+        local: (Q,) int64 row (into `rows`) of each merged cluster, ascending.
+        node: (Q,) int64 its node, ascending within a row.
         visibility: (Q,) barycentric blend of the three vertices' means (> 0).
         inputs: entries of the batch's vertices' visibility cuts (the merge's input).
         dark: merged clusters dark at all three vertices (dropped).
     """
 
-    sample: torch.Tensor
+    rows: torch.Tensor
+    frame: torch.Tensor
+    local: torch.Tensor
     node: torch.Tensor
     visibility: torch.Tensor
     inputs: int
@@ -293,13 +298,6 @@ class CutsRelighter:
         size = tree.size[nodes].to(diffuse.dtype).unsqueeze(-1)
         return nodes, diffuse[nodes] / size, specular[nodes] / size
 
-    def _incident(self, node: torch.Tensor, sample: torch.Tensor) -> torch.Tensor:
-        """(Q, 3) unit world directions from the sub-samples towards the merged clusters."""
-        if self.mode == "env":
-            return self._node_directions[node]
-        offset = self._node_position[node] - self.direct.gbuffer.position[sample]
-        return torch.nn.functional.normalize(offset, dim=-1)
-
     def cut_samples(self, lights: list[Light], emission: bool = False) -> torch.Tensor:
         """(N, 3) radiance of every covered sub-sample from `lights` by cuts (env: their domes;
         indirect: their bounce, plus the surfaces' emission bounced with `emission`), camera
@@ -325,7 +323,14 @@ class CutsRelighter:
         return linked[g.object_id.long()].to(g.position.dtype).unsqueeze(-1)
 
     def _merged_samples(self, lights: list[Light], emission: bool) -> torch.Tensor:
-        """`cut_samples` of lights sharing one light link (or indirect mode)."""
+        """`cut_samples` of lights sharing one light link (or indirect mode).
+
+        Per batch of cached merged visibility clusters (`visibility_batches`, sub-samples of
+        similar cut sizes together) the illumination cut is merged in (`refine_nodes`) and the
+        refined clusters are laid out densely, (P, M) with M the batch's largest merged cut
+        (padding has weight 0), so that a sub-sample's frame and material broadcast over its
+        clusters instead of being gathered per cluster.
+        """
         g = self.direct.gbuffer
         out = torch.zeros_like(g.position)
         self.stats.clear()
@@ -333,41 +338,67 @@ class CutsRelighter:
             return out
         nodes, diffuse_light, specular_light = self.illumination_cut(lights, emission)
         self.stats["illumination_cut"] = int(nodes.shape[0])
-        size = self.cuts.tree.size.to(out.dtype)
+        light_table = torch.cat((diffuse_light, specular_light), dim=1)
+        tree = self.cuts.tree
+        size = tree.size.to(out.dtype)
         for batch in self.visibility_batches():
             self.stats["inputs"] += batch.inputs
             self.stats["dark"] += batch.dark
-            parent, node, light = refine_nodes(self.cuts.tree, batch.node, nodes)
+            parent, node, light = refine_nodes(tree, batch.node, nodes)
             self.stats["merged"] += int(node.shape[0])
-            sample = batch.sample[parent]
-            wi_local = to_local(self._incident(node, sample), g.tangent[sample], g.bitangent[sample], g.normal[sample])
-            live = wi_local[:, 2] > 0
-            sample, wi_local, node, light = sample[live], wi_local[live], node[live], light[live]
-            self.stats["shaded"] += int(sample.shape[0])
-            diffuse, specular = preview_surface.split(self.params.index(sample), self._wo_local[sample], wi_local)
-            weight = (size[node] * batch.visibility[parent[live]] * wi_local[:, 2]).unsqueeze(-1)
-            out.index_add_(0, sample, (diffuse * diffuse_light[light] + specular * specular_light[light]) * weight)
+            local = batch.local.index_select(0, parent)
+            counts = torch.bincount(local, minlength=batch.rows.shape[0])
+            width = int(counts.max())
+            slot = local * width + torch.arange(local.shape[0], device=local.device) - (torch.cumsum(counts, 0) - counts
+                                                                                         ).index_select(0, local)
+            dense_node = torch.full((batch.rows.shape[0] * width,), tree.root, dtype=node.dtype, device=node.device)
+            dense_node.index_copy_(0, slot, node)
+            dense_light = torch.zeros_like(dense_node).index_copy_(0, slot, light)
+            weight = out.new_zeros(dense_node.shape).index_copy_(
+                0, slot, size.index_select(0, node) * batch.visibility.index_select(0, parent))
+            shape = (batch.rows.shape[0], width)
+            wi_local = torch.bmm(self._incident_dense(dense_node, batch.rows).view(*shape, 3), batch.frame)
+            cos = wi_local[..., 2]
+            weight = weight.view(shape) * cos
+            self.stats["shaded"] += int((weight > 0).sum())
+            params = self.params.index(batch.rows).with_sample_axis()
+            diffuse, specular = preview_surface.split(params, self._wo_local.index_select(0, batch.rows).unsqueeze(1),
+                                                      wi_local)
+            light_rows = light_table.index_select(0, dense_light).view(*shape, 6)
+            radiance = (diffuse * light_rows[..., :3] + specular * light_rows[..., 3:]) * weight.unsqueeze(-1)
+            out.index_add_(0, batch.rows, radiance.sum(dim=1))
         return out
+
+    def _incident_dense(self, node: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """(P M, 3) unit world directions towards merged clusters `node` (P M,) from sub-samples
+        `rows` (P,), each sub-sample's M clusters consecutive."""
+        if self.mode == "env":
+            return self._node_directions.index_select(0, node)
+        position = self.direct.gbuffer.position.index_select(0, rows)
+        offset = self._node_position.index_select(0, node).view(rows.shape[0], -1, 3) - position.unsqueeze(1)
+        return torch.nn.functional.normalize(offset, dim=-1).view(-1, 3)
 
     def visibility_batches(self) -> list[VisibilityBatch]:
         """The merged visibility cuts of every covered sub-sample, in batches of
         `settings.rows_per_batch`: computed on first use, then kept (they depend on neither the
-        lights nor the materials)."""
+        lights nor the materials). Sub-samples are batched in the order of their vertices' cut
+        sizes, so that a batch's merged cuts have similar sizes."""
         batch_rows = self.settings.rows_per_batch
         if self._visibility_batches is None or self._visibility_batches[0] != batch_rows:
-            cuts, num_samples = self.cuts, self.direct.gbuffer.num_samples
-            device = cuts.sample_vertices.device
+            cuts, g = self.cuts, self.direct.gbuffer
+            inputs = cuts.visibility.sizes()[cuts.sample_vertices].sum(dim=1)
+            order = torch.argsort(inputs, stable=True)
+            frames = torch.stack((g.tangent, g.bitangent, g.normal), dim=-1)
             batches = []
-            for start in range(0, num_samples, batch_rows):
-                rows = torch.arange(start, min(start + batch_rows, num_samples), device=device)
+            for start in range(0, g.num_samples, batch_rows):
+                rows = order[start:start + batch_rows]
                 merged = self.merged_visibility(rows)
                 visibility = self._visibility(merged, cuts.sample_weights[rows])
                 # Clusters all three vertices see as dark stay dark however the illumination cut
                 # would split them: they are dropped before the illumination cut is merged in.
                 lit = visibility > 0
-                batches.append(VisibilityBatch(rows[merged.row[lit]], merged.node[lit], visibility[lit],
-                                               int(cuts.visibility.sizes()[cuts.sample_vertices[rows]].sum()),
-                                               int((~lit).sum())))
+                batches.append(VisibilityBatch(rows, frames[rows], merged.row[lit], merged.node[lit], visibility[lit],
+                                               int(inputs[rows].sum()), int((~lit).sum())))
             self._visibility_batches = (batch_rows, batches)
         return self._visibility_batches[1]
 
