@@ -19,8 +19,11 @@ from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scene.types import MaterialInput
 from pipeline.scenes import SCENES, write_light_edits
+from relight_torch.brdf import preview_surface
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.cuts.relighter import CutsRelighter
+from relight_torch.cuts.merge import refine
+from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
+from relight_torch.math.frame import to_local
 from relight_torch.metrics import psnr
 from relight_torch.relighter import RelightSettings, open_relighter
 from relight_torch.transfer.open import open_cache_relighter
@@ -112,6 +115,40 @@ def test_merge_cost_follows_the_merged_cut_size(dome):
     assert work <= int((vertex_sizes + relighter.stats["illumination_cut"]).sum())
     assert work < 0.15 * num_samples * LIGHTS
     assert relighter.stats["shaded"] <= relighter.stats["merged"]
+
+
+def _per_cluster(relighter: CutsRelighter) -> torch.Tensor:
+    """(N, 3) `cut_samples` of the relighter's lights, plainly: every sub-sample's merged cut at once,
+    each merged cluster shaded with its sub-sample's frame and material gathered, summed by index_add."""
+    g, cuts, tree = relighter.direct.gbuffer, relighter.cuts, relighter.cuts.tree
+    nodes, diffuse_light, specular_light = relighter.illumination_cut(relighter.lights)
+    merged = refine(tree, relighter.merged_visibility(torch.arange(g.num_samples)), nodes)
+    visibility = sum(cuts.sample_weights[merged.row, j] * cuts.visibility.values[merged.cover[j]] for j in range(3))
+    row, light = merged.row, merged.cover[-1]
+    directions = torch.nn.functional.normalize(tree.aggregate(cuts.leaf_directions), dim=-1)[merged.node]
+    wi_local = to_local(directions, g.tangent[row], g.bitangent[row], g.normal[row])
+    wo_local = to_local(g.wo_world(), g.tangent, g.bitangent, g.normal)[row]
+    diffuse, specular = preview_surface.split(relighter.params.index(row), wo_local, wi_local)
+    weight = (tree.size[merged.node] * visibility * wi_local[:, 2]).unsqueeze(-1)
+    terms = (diffuse * diffuse_light[light] + specular * specular_light[light]) * weight
+    return torch.zeros_like(g.position).index_add_(0, row, terms)
+
+
+def test_cached_dense_batches_match_a_per_cluster_evaluation(dome):
+    # The relighter keeps the merged visibility cuts across frames, batches sub-samples by cut
+    # size and shades (P, M) padded blocks; a plain per-cluster evaluation must agree, before
+    # and after a material edit (which keeps the cached visibility and illumination cuts).
+    scene, _, layer, _, _ = dome
+    relighter = open_cache_relighter(layer)
+    relighter.set_settings(CutsRelightSettings(rows_per_batch=97))
+    torch.testing.assert_close(relighter.cut_samples(relighter.lights), _per_cluster(relighter), rtol=1e-4, atol=1e-5)
+    index = next(i for i, material in enumerate(scene.materials) if material.path.endswith("RedPlastic"))
+    relighter.edit_material(index, diffuse_color=(0.1, 0.5, 0.15), roughness=0.6)
+    batched = relighter.cut_samples(relighter.lights)
+    torch.testing.assert_close(batched, _per_cluster(relighter), rtol=1e-4, atol=1e-5)
+    fresh = open_cache_relighter(layer)
+    fresh.edit_material(index, diffuse_color=(0.1, 0.5, 0.15), roughness=0.6)
+    torch.testing.assert_close(batched, fresh.cut_samples(fresh.lights), rtol=1e-4, atol=1e-5)
 
 
 def test_lattice_interpolates_the_hit_points():

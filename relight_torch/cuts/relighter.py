@@ -5,15 +5,18 @@ editable.
 Per frame, every leaf light gets its light (`CutsRelighter.leaf_light`: environment mode, the dome
 lights integrated over each leaf's cell; indirect mode, the direct light reflected by each
 surface point) and the illumination cut refines the tree by intensity up to `max_cut` nodes. Per
-covered sub-sample, the cuts of its three lattice vertices are merged with the illumination cut
-(`merge.merge`, `merge.refine`) and
+covered sub-sample, the cuts of its three lattice vertices are merged (`merge.merge`; once, then
+kept across frames: `CutsRelighter.visibility_batches`) and the illumination cut is merged into
+that (`merge.refine_nodes`, per frame; kept across material edits), then
 
     B = sum_k |C_k| <l_k> f_r(wo, <x_k>) cos(<x_k>) (w1 <v1_k> + w2 <v2_k> + w3 <v3_k>)
 
 with <x_k> the direction to the merged cluster (its mean direction, or its mean position in
 indirect mode, where <v_k> is visibility times the leaves' solid angle), f_r UsdPreviewSurface from the
 sub-sample's current parameters (`relight_torch.brdf.preview_surface.split`; a dome's diffuse and
-specular multipliers apply per lobe). Everything else is the direct relighter's.
+specular multipliers apply per lobe). What each edit recomputes: a material edit, the BRDF and
+the sums; a light edit, also the illumination cut and its merge; neither, the visibility merge.
+Everything else is the direct relighter's.
 """
 
 from __future__ import annotations
@@ -44,7 +47,7 @@ class CutsRelightSettings:
 
     Attributes:
         max_cut: illumination cut size (seed 004: 128, 256 or 512).
-        rows_per_batch: sub-samples merged together (bounds the merged arrays' memory).
+        rows_per_batch: sub-samples merged and shaded together (bounds the temporaries' memory).
     """
 
     max_cut: int = 256
@@ -88,8 +91,8 @@ class VisibilityBatch:
         rows: (P,) int64 the batch's sub-samples.
         frame: (P, 3, 3) their shading frames, columns tangent, bitangent, normal (world -> local
             by right-multiplication).
-        local: (Q,) int64 row (into `rows`) of each merged cluster, ascending.
-        node: (Q,) int64 its node, ascending within a row.
+        local: (Q,) int32 row (into `rows`) of each merged cluster, ascending.
+        node: (Q,) int32 its node, ascending within a row.
         visibility: (Q,) barycentric blend of the three vertices' means (> 0).
         inputs: entries of the batch's vertices' visibility cuts (the merge's input).
         dark: merged clusters dark at all three vertices (dropped).
@@ -149,6 +152,9 @@ class CutsRelighter:
         self._leaf_radiance: dict[str, tuple[Light, torch.Tensor]] = {}
         self._samples: torch.Tensor | None = None
         self._visibility_batches: tuple[int, list[VisibilityBatch]] | None = None
+        # The last illumination cut: (key of its lights, the lights (kept alive, so their ids stay
+        # theirs), (nodes, diffuse, specular)).
+        self._illumination: tuple[tuple, list[Light], tuple[torch.Tensor, ...]] | None = None
         self.set_lights(direct.lights)
 
     @property
@@ -336,7 +342,10 @@ class CutsRelighter:
         self.stats.clear()
         if self.mode == "env" and not lights:
             return out
-        nodes, diffuse_light, specular_light = self.illumination_cut(lights, emission)
+        key = (tuple(map(id, lights)), emission, self.settings.max_cut)
+        if self._illumination is None or self._illumination[0] != key:  # a material edit keeps the cut
+            self._illumination = (key, lights, self.illumination_cut(lights, emission))
+        nodes, diffuse_light, specular_light = self._illumination[2]
         self.stats["illumination_cut"] = int(nodes.shape[0])
         light_table = torch.cat((diffuse_light, specular_light), dim=1)
         tree = self.cuts.tree
@@ -344,9 +353,9 @@ class CutsRelighter:
         for batch in self.visibility_batches():
             self.stats["inputs"] += batch.inputs
             self.stats["dark"] += batch.dark
-            parent, node, light = refine_nodes(tree, batch.node, nodes)
+            parent, node, light = refine_nodes(tree, batch.node.long(), nodes)
             self.stats["merged"] += int(node.shape[0])
-            local = batch.local.index_select(0, parent)
+            local = batch.local.index_select(0, parent).long()
             counts = torch.bincount(local, minlength=batch.rows.shape[0])
             width = int(counts.max())
             slot = local * width + torch.arange(local.shape[0], device=local.device) - (torch.cumsum(counts, 0) - counts
@@ -397,7 +406,7 @@ class CutsRelighter:
                 # Clusters all three vertices see as dark stay dark however the illumination cut
                 # would split them: they are dropped before the illumination cut is merged in.
                 lit = visibility > 0
-                batches.append(VisibilityBatch(rows, frames[rows], merged.row[lit], merged.node[lit], visibility[lit],
+                batches.append(VisibilityBatch(rows, frames[rows], merged.row[lit].int(), merged.node[lit].int(), visibility[lit],
                                                int(inputs[rows].sum()), int((~lit).sum())))
             self._visibility_batches = (batch_rows, batches)
         return self._visibility_batches[1]

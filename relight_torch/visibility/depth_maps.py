@@ -154,24 +154,38 @@ class PinholeMaps(DepthMap):
         face_from_world: (F, 3, 3) orthonormal rows (right, up, forward) per face.
         tan_half_fov: tangent of each face's half field of view (1 for a cube map).
         resolution: texels per face side.
+        directions: (F, R, R, 3) `texel_directions` of an identical map (same frames, field of
+            view, resolution, dtype), to share rather than recompute; None computes them.
 
     Attributes:
-        directions: (F, R, R, 3) unit world direction of every texel-centre ray (48 bytes a texel
+        directions: (F, R, R, 3) unit world direction of every texel-centre ray (12 bytes a texel
             in float32: computed once rather than at every lookup, which it made 2x slower).
     """
 
-    def __init__(self, centre: torch.Tensor, face_from_world: torch.Tensor, tan_half_fov: float, resolution: int):
+    def __init__(self, centre: torch.Tensor, face_from_world: torch.Tensor, tan_half_fov: float, resolution: int,
+                 directions: torch.Tensor | None = None):
         self.centre = centre
         self.face_from_world = face_from_world
         self.num_faces = face_from_world.shape[0]
         self.tan_half_fov = tan_half_fov
         self.resolution = resolution
-        index = torch.arange(resolution, device=centre.device)
+        self.directions = self.texel_directions() if directions is None else directions
+
+    def texel_directions(self) -> torch.Tensor:
+        """(F, R, R, 3) unit world direction of every texel-centre ray (see `directions`)."""
+        index = torch.arange(self.resolution, device=self.centre.device)
         row, col = torch.meshgrid(index, index, indexing="ij")
-        uv = self.texel_centre_uv(row, col) * tan_half_fov
-        frame = face_from_world[:, None, None]
-        self.directions = torch.nn.functional.normalize(
+        uv = self.texel_centre_uv(row, col) * self.tan_half_fov
+        frame = self.face_from_world[:, None, None]
+        return torch.nn.functional.normalize(
             uv[..., 0:1] * frame[..., 0, :] + uv[..., 1:2] * frame[..., 1, :] + frame[..., 2, :], dim=-1)
+
+    def affine_rays(self):
+        """Origins: the centre; unnormalised directions: forward + u tan right + v tan up (see `RasterTarget`)."""
+        frame = self.face_from_world
+        origins = torch.zeros_like(frame)
+        origins[:, 0] = self.centre
+        return origins, torch.stack((frame[:, 2], self.tan_half_fov * frame[:, 0], self.tan_half_fov * frame[:, 1]), 1)
 
     def face_of(self, offset: torch.Tensor) -> torch.Tensor:
         """(...) long face seeing each world offset from the centre (...,3): the only one."""
@@ -224,9 +238,10 @@ class CubeMap(PinholeMaps):
     Args:
         centre: (3,) world position of the light.
         resolution: texels per face side.
+        directions: as `PinholeMaps` (a cube map's do not depend on its centre).
     """
 
-    def __init__(self, centre: torch.Tensor, resolution: int):
+    def __init__(self, centre: torch.Tensor, resolution: int, directions: torch.Tensor | None = None):
         eye = torch.eye(3, device=centre.device, dtype=centre.dtype)
         faces = []
         for axis in range(3):
@@ -234,7 +249,7 @@ class CubeMap(PinholeMaps):
                 forward = sign * eye[axis]
                 right = eye[(axis + 1) % 3]
                 faces.append(torch.stack((right, torch.linalg.cross(forward, right), forward)))
-        super().__init__(centre, torch.stack(faces), 1.0, resolution)
+        super().__init__(centre, torch.stack(faces), 1.0, resolution, directions)
 
     def face_of(self, offset):
         """The face of the dominant axis (elementwise: an argmax over the faces' z was 10x slower)."""
@@ -274,6 +289,14 @@ class OrthoMap(DepthMap):
         frame = self.face_from_world[0]
         origin = self.window_centre + uv[..., 0:1] * frame[0] + uv[..., 1:2] * frame[1]
         return origin, frame[2].expand_as(origin)
+
+    def affine_rays(self):
+        """Origins: the window's centre + u h right + v h up; directions: forward (see `RasterTarget`)."""
+        frame = self.face_from_world[0]
+        origins = torch.stack((self.window_centre, self.half_size * frame[0], self.half_size * frame[1]))
+        directions = torch.zeros_like(frame)
+        directions[0] = frame[2]
+        return origins.unsqueeze(0), directions.unsqueeze(0)
 
     def footprint(self, depth):
         return torch.full_like(depth, 2.0 * self.half_size / self.resolution)

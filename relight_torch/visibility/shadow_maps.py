@@ -108,6 +108,8 @@ class ShadowMapVisibility:
         self.max_spot_half_angle = max_spot_half_angle
         self.num_builds = 0
         self._maps: dict[str, tuple[tuple, DepthMap]] = {}
+        # Texel directions shared by every cube map (they do not depend on the light's position).
+        self._cube_directions: torch.Tensor | None = None
 
     def occluder_distance(self, light: Light, points: torch.Tensor, normals: torch.Tensor,
                           directions: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
@@ -171,7 +173,9 @@ class ShadowMapVisibility:
             right, up = orthonormal_basis(forward)
             tan_half_fov = math.tan(math.radians(shaping.cone_angle + SPOT_MARGIN_DEGREES))
             return PinholeMaps(centre, torch.stack((right, up, forward)).unsqueeze(0), tan_half_fov, self.resolution)
-        return CubeMap(centre, self.resolution)
+        cube = CubeMap(centre, self.resolution, self._cube_directions)
+        self._cube_directions = cube.directions
+        return cube
 
     def _distant_frame(self, light: Light) -> torch.Tensor:
         """(3, 3) rows right, up, forward (= the light's -direction) of a distant light's map."""

@@ -46,11 +46,13 @@ class CutsAdapter:
                          settings=settings(point))
 
     def variants(self, layer: Path, point: dict[str, object], device: str) -> list[Variant]:
+        """One variant per illumination cut size: CUT_SIZES, or the point's 'cut' alone."""
         num_bytes, bake = cache_bytes(layer), settings(point)
+        sizes = (int(point["cut"]),) if "cut" in point else CUT_SIZES
         return [Variant({"mode": bake.mode, "lights": bake.num_lights, "sigma": bake.sigma, "cut": size},
                         open_cuts_relighter(layer, device=device, cuts_settings=CutsRelightSettings(max_cut=size)),
                         num_bytes)
-                for size in CUT_SIZES]
+                for size in sizes]
 
 
 ADAPTER = CutsAdapter()

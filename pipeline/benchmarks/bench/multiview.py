@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import torch
+
 from pipeline.bake.multiview.bake import bake_multiview
 from pipeline.bake.multiview.frames import FrameRenderer, read_view_camera
 from pipeline.bake.multiview.placement import PlacementSettings
@@ -51,6 +53,10 @@ class MultiviewAdapter:
                                   description.parameters.get("time"), width, height)
         FrameRenderer(relighter).render(camera)
         return [Variant(dict(point), relighter, cache_bytes(layer))]
+
+    def relight_view(self, variant: Variant, camera: Camera) -> torch.Tensor:
+        """(H, W, 3) image of `camera` (at the cache's resolution) from the caching views; holes stay black."""
+        return torch.from_numpy(FrameRenderer(variant.relighter).render(camera).image)
 
 
 ADAPTER = MultiviewAdapter()
