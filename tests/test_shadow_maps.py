@@ -18,6 +18,7 @@ from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light
 from relight_torch.lights.light import Light, LightKind, Shaping
 from relight_torch.math.frame import orthonormal_basis
+from relight_torch.visibility import raster
 from relight_torch.visibility.depth_maps import CubeMap, OrthoMap, PinholeMaps
 from relight_torch.visibility.embree import EmbreeCaster
 from relight_torch.visibility.raster import rasterise_depth, ray_triangle_distance
@@ -111,9 +112,12 @@ def test_cube_map_depth_of_a_plane_is_its_distance_over_cosine():
     assert torch.isfinite(cube.depth[0]).float().mean().item() == pytest.approx(0.5)
 
 
+@pytest.mark.parametrize("dense", [False, True])
 @pytest.mark.parametrize("kind", ["cube", "spot", "ortho"])
-def test_rasteriser_matches_brute_force_rays(kind):
-    """The bounding-box rasteriser against every texel's ray tested on every triangle (its slow twin)."""
+def test_rasteriser_matches_brute_force_rays(kind, dense, monkeypatch):
+    """The bounding-box rasteriser against every texel's ray tested on every triangle (its slow twin),
+    with every pair flattened into candidates or every pair tested as a dense box."""
+    monkeypatch.setattr(raster, "DENSE_PAIR_TEXELS", 1 if dense else 1 << 30)
     generator = torch.Generator().manual_seed(3)
     centres = torch.rand(40, 1, 3, generator=generator, dtype=torch.float64) * 6.0 - 3.0
     corners = centres + torch.rand(40, 3, 3, generator=generator, dtype=torch.float64) * 2.0 - 1.0
@@ -228,7 +232,7 @@ def test_dome_light_raises(scene):
 
 
 def test_maps_are_built_once_per_light_geometry(scene):
-    corners, points, normals = scene
+    corners, _, _ = scene
     light = light_at((0.0, 0.0, 3.0), radius=0.1)
     visibility = ShadowMapVisibility(torch.from_numpy(corners), resolution=16)
     first = visibility.depth_map(light)

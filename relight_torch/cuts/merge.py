@@ -97,8 +97,10 @@ def refine_nodes(tree: LightTree, node: torch.Tensor, shared: torch.Tensor
         (parent (R,), new_node (R,), shared_index (R,)), int64: the refined entries in order, each
         with the entry of `node` it refines, its node and its index into `shared`.
     """
-    leaf_cut = torch.repeat_interleave(torch.arange(shared.shape[0], device=shared.device), tree.size.index_select(0, shared))
-    cut_of = torch.zeros(tree.num_nodes, dtype=torch.int64, device=shared.device).index_copy_(0, tree.leaf_nodes, leaf_cut)
+    leaf_cut = torch.repeat_interleave(torch.arange(shared.shape[0], device=shared.device),
+                                       tree.size.index_select(0, shared))
+    cut_of = torch.zeros(tree.num_nodes, dtype=torch.int64, device=shared.device).index_copy_(
+        0, tree.leaf_nodes, leaf_cut)
     first = cut_of.index_select(0, tree.leftleaf.index_select(0, node))
     counts = cut_of.index_select(0, node - tree.height.index_select(0, node)) - first + 1
     if bool((counts == 1).all()):  # every node lies under a shared node: no expansion

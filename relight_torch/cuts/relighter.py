@@ -406,8 +406,8 @@ class CutsRelighter:
                 # Clusters all three vertices see as dark stay dark however the illumination cut
                 # would split them: they are dropped before the illumination cut is merged in.
                 lit = visibility > 0
-                batches.append(VisibilityBatch(rows, frames[rows], merged.row[lit].int(), merged.node[lit].int(), visibility[lit],
-                                               int(inputs[rows].sum()), int((~lit).sum())))
+                batches.append(VisibilityBatch(rows, frames[rows], merged.row[lit].int(), merged.node[lit].int(),
+                                               visibility[lit], int(inputs[rows].sum()), int((~lit).sum())))
             self._visibility_batches = (batch_rows, batches)
         return self._visibility_batches[1]
 
