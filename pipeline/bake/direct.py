@@ -23,14 +23,14 @@ import numpy as np
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
 from pipeline.errors import warn
-from pipeline.bake.inputs import code_version, hash_inputs, input_files
+from pipeline.bake.inputs import code_version, identify_bake
 from pipeline.bake.scheduler import (ChunkSpec, ShotSpec, chunk_folder, chunk_ranges, chunk_threads, load_chunk,
                                      load_shot, per_process, run_chunks)
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.cache.gbuffer_exr import gbuffer_to_channels
-from relight_torch.cache.layer import (SUFFIX, CacheDescription, Payload, content_hash, file_sha256,
+from relight_torch.cache.layer import (SUFFIX, CacheDescription, Payload, file_sha256,
                                        write_cache_layer)
 from relight_torch.gbuffer import GBuffer
 from relight_torch.io.atomic import atomic_path, remove_temp_files
@@ -89,11 +89,8 @@ def direct_payloads(scene: Scene, camera: Camera, out_dir: Path, stem: str, supe
                     texture_samples: int, time_code: float | None) -> tuple[CacheDescription, Path]:
     """Write the direct payloads; the cache's description (not yet written) and the chunk folder
     to remove once its layer is written."""
-    parameters: dict = {"supersampling": supersampling, "textureSamples": texture_samples}
-    if time_code is not None:
-        parameters["time"] = float(time_code)
-    inputs = hash_inputs(input_files(scene))
-    digest = content_hash(inputs, parameters, code_version())
+    parameters, inputs, digest = identify_bake(
+        scene, {"supersampling": supersampling, "textureSamples": texture_samples}, time_code)
     chunk_dir = chunk_folder(out_dir, stem, "direct", digest)
     shot = ShotSpec.of(scene, camera, time_code)
     specs = [ChunkSpec(shot, "deepFramebuffer", (("supersampling", supersampling),

@@ -22,7 +22,7 @@ import pipeline
 import relight_torch
 
 from pipeline.scene.types import Scene
-from relight_torch.cache.layer import file_sha256, read_cache_layer, write_cache_layer
+from relight_torch.cache.layer import content_hash, file_sha256, read_cache_layer, write_cache_layer
 from relight_torch.cache.status import cache_status
 from relight_torch.errors import RelightError
 from relight_torch.stage import open_stage
@@ -103,3 +103,12 @@ def record_request(layer_path: Path, digest: str) -> None:
     description = read_cache_layer(layer_path)
     write_cache_layer(layer_path, dataclasses.replace(
         description, parameters={**description.parameters, REQUEST_PARAMETER: digest}))
+
+
+def identify_bake(scene: Scene, parameters: dict, time_code: float | None) -> tuple[dict, dict[str, str], str]:
+    """What a bake records about itself: its parameters (plus 'time' when a time code is given),
+    its hashed input files and its content hash over both and the code version."""
+    if time_code is not None:
+        parameters = {**parameters, "time": float(time_code)}
+    inputs = hash_inputs(input_files(scene))
+    return parameters, inputs, content_hash(inputs, parameters, code_version())

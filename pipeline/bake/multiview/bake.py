@@ -28,7 +28,7 @@ import numpy as np
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
 from pipeline.bake.direct import shot_tracer, write_npy
-from pipeline.bake.inputs import code_version, hash_inputs, input_files
+from pipeline.bake.inputs import code_version, identify_bake
 from pipeline.bake.multiview.cameras import camera_from_row, camera_row
 from pipeline.bake.scheduler import ChunkSpec, ShotSpec, chunk_folder, load_chunk, load_shot, run_chunks
 from pipeline.bake.multiview.placement import Placement, PlacementSettings, place_cameras
@@ -36,7 +36,7 @@ from pipeline.errors import RelightError
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.cache.gbuffer_exr import gbuffer_to_channels
-from relight_torch.cache.layer import (SUFFIX, CacheDescription, Payload, content_hash, file_sha256, read_cache_layer,
+from relight_torch.cache.layer import (SUFFIX, CacheDescription, Payload, file_sha256, read_cache_layer,
                                        write_cache_layer)
 from relight_torch.io.atomic import remove_temp_files
 from relight_torch.io.exr import write_exr
@@ -110,11 +110,8 @@ def bake_multiview(scene: Scene, camera: Camera, out_dir: str | Path, stem: str,
     if not placement.cameras:
         raise RelightError(f"{scene.source}: no caching camera sees the surfaces inside the box")
     rows = [camera_row(placed.camera, placed.kind, placed.group) for placed in placement.cameras]
-    parameters: dict = {"textureSamples": texture_samples} | coverage_parameters(placement, settings)
-    if time_code is not None:
-        parameters["time"] = float(time_code)
-    inputs = hash_inputs(input_files(scene))
-    digest = content_hash(inputs, parameters, code_version())
+    parameters, inputs, digest = identify_bake(
+        scene, {"textureSamples": texture_samples} | coverage_parameters(placement, settings), time_code)
     chunk_dir = chunk_folder(out_dir, stem, "multiview", digest)
     shot = ShotSpec.of(scene, camera, time_code)
     specs = [ChunkSpec(shot, "view", (("camera", tuple(row.tolist())), ("textureSamples", texture_samples)), k, k + 1)
