@@ -64,6 +64,7 @@ from relight_torch.stage import open_stage, time_code
 from relight_torch.visibility import Visibility
 from relight_torch.visibility.embree import EmbreeCaster, ShadowLinkCasters
 from relight_torch.visibility.rays import RayVisibility
+from relight_torch.visibility.shadow_maps import ShadowMapVisibility
 
 
 _COLOUR_FIELDS = ("intensity", "exposure", "color", "enable_color_temperature", "color_temperature",
@@ -546,7 +547,6 @@ def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", 
             shadow_link_caster = ShadowLinkCasters(occluders, occluder_objects, object_paths, caster.epsilon)
         visibility = RayVisibility(caster, shadow_link_caster)
     elif shadows == "shadowmaps":
-        from relight_torch.visibility.shadow_maps import ShadowMapVisibility  # noqa: PLC0415 (being written)
         # Always cube maps for spot lights: a cone edit does not re-run visibility, and a perspective
         # map sized for the old cone would leave the new one's receivers unshadowed.
         visibility = ShadowMapVisibility(torch.from_numpy(occluders).to(device), receivers=gbuffer.position,
