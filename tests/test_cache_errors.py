@@ -20,7 +20,7 @@ from cache_support import SIZE, bake_bundled, copy_bake
 from pipeline import cli
 from pipeline.errors import RelightError
 from pipeline.scene import load_scene
-from relight_torch.cache.layer import file_sha256
+from relight_torch.cache.layer import CACHE_VERSION, file_sha256
 from relight_torch.io.exr import read_exr, write_exr
 from relight_torch.relighter import open_relighter
 
@@ -146,11 +146,11 @@ def test_render_command_exits_2_with_one_line_and_writes_nothing(cache, case, ca
 
 
 def test_render_command_refuses_a_hand_edited_layer(cache, capsys, tmp_path):
-    text = cache.read_text().replace("uniform int relight:version = 1", "uniform int relight:version = 7")
+    text = cache.read_text().replace(f"uniform int relight:version = {CACHE_VERSION}", "uniform int relight:version = 7")
     cache.write_text(text)
     assert cli.main(["render", str(cache), "-o", str(tmp_path / "relit.exr")]) == 2
     assert capsys.readouterr().err == (f"relight: error: {cache}: cache version 7 is not supported "
-                                       f"(this relight reads version 1); re-bake it\n")
+                                       f"(this relight reads version {CACHE_VERSION}); re-bake it\n")
     assert not (tmp_path / "relit.exr").exists()
 
 

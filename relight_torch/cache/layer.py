@@ -35,7 +35,9 @@ from relight_torch.io.atomic import atomic_path
 from relight_torch.schema import register_schemas
 
 CACHE_PRIM = "/Cache"
-CACHE_VERSION = 1
+CACHE_VERSION = 2
+"""Cache format version: 2 added object ids to the indirect methods' gathers (light linking) and the
+gather method's shared surface points; caches of another version are refused with 're-bake it'."""
 SUFFIX = ".relight.usda"
 METHODS = ("direct", "transfer", "gather", "cuts", "multiview")
 FORMATS = ("exr", "npy")
