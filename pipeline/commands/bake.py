@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -113,6 +114,15 @@ def run(args: argparse.Namespace) -> int:
         return _bake(args)
 
 
+def _check(method: str, *checks: Callable[[], object]) -> None:
+    """Run the method's settings checks; a ValueError becomes one `bake --method` error line."""
+    try:
+        for check in checks:
+            check()
+    except ValueError as error:
+        raise RelightError(f"bake --method {method}: {error}") from None
+
+
 _NOT_REQUEST = ("out", "stem", "scheduler", "workers")
 """Options that do not change the cache (where and how it is computed)."""
 
@@ -147,29 +157,19 @@ def _bake_method(args: argparse.Namespace, stem: str) -> Path:
                                     num_bounces=args.bounces, num_bounce_coefficients=args.bounce_coefficients,
                                     encoding="uint8" if args.quantize else "float16",
                                     indirect_scale=args.indirect_scale)
-        try:
-            settings.check()
-            reduced_view(scene, camera, settings.indirect_scale)
-        except ValueError as error:
-            raise RelightError(f"bake --method transfer: {error}") from None
+        _check("transfer", settings.check, lambda: reduced_view(scene, camera, settings.indirect_scale))
         layer = bake_transfer(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
                               time_code=args.time, settings=settings)
     elif args.method == "gather":
         settings = GatherSettings(num_directions=args.directions, num_clusters=args.clusters,
                                   num_representatives=args.representatives, point_cells=args.point_cells)
-        try:
-            settings.check()
-        except ValueError as error:
-            raise RelightError(f"bake --method gather: {error}") from None
+        _check("gather", settings.check)
         layer = bake_gather(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
                             time_code=args.time, settings=settings)
     elif args.method == "multiview":
         settings = PlacementSettings(coverage=args.coverage, max_resolution=args.caching_resolution,
                                      min_resolution=min(PlacementSettings().min_resolution, args.caching_resolution))
-        try:
-            settings.check()
-        except ValueError as error:
-            raise RelightError(f"bake --method multiview: {error}") from None
+        _check("multiview", settings.check)
         box = None if args.box is None else (np.array(args.box[:3]), np.array(args.box[3:]))
         if box is not None and not np.all(box[0] < box[1]):
             raise RelightError(f"bake --box: need X0 < X1, Y0 < Y1, Z0 < Z1, got {args.box}")
@@ -179,10 +179,7 @@ def _bake_method(args: argparse.Namespace, stem: str) -> Path:
     elif args.method == "cuts":
         settings = CutsSettings(mode=args.mode, num_lights=args.cut_lights, sigma=args.sigma,
                                 lattice_edge=args.lattice_edge, beta=args.beta)
-        try:
-            settings.check()
-        except ValueError as error:
-            raise RelightError(f"bake --method cuts: {error}") from None
+        _check("cuts", settings.check)
         layer = bake_cuts(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
                           time_code=args.time, settings=settings)
     else:
