@@ -12,7 +12,8 @@ cache under the shot's lights and every example light edit (`pipeline.scenes.wri
 once per `--gather-samples` count, comparing with `PathTracer(max_bounces=1)`: psnr_db on the full
 image, psnr_indirect_db on the indirect part against the reference's 1-bounce minus 0-bounce
 image (references are kept on disk under OUT and re-used, `bench.references`). cache_bytes counts every payload of the layer (the direct part included); relight_ms is the
-median time of re-rendering (direct + indirect) after a light move. Representatives 0 means the
+median time of re-rendering (direct + indirect) after a light move (`bench.measure.relight_ms`, as
+in `relight bench`). Representatives 0 means the
 default (40,000 at 400 x 400, scaled with the pixel count). One CSV row per (scene, setting,
 edit), in the columns every method's sweep shares (`pipeline.benchmarks.rows`).
 
@@ -38,7 +39,7 @@ from pathlib import Path
 
 from pipeline.bake.gather.bake import GatherSettings, bake_gather
 from pipeline.benchmarks.rows import COLUMNS, SweepRow, csv_line, format_params, write_csv
-from pipeline.benchmarks.bench.measure import moved
+from pipeline.benchmarks.bench.measure import cache_bytes, moved, relight_ms
 from pipeline.benchmarks.bench.references import References
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, write_light_edits
@@ -118,20 +119,20 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[Sw
                                                                      args.point_cells):
         settings = _settings(args, clusters, representatives, point_cells)
         layer, bake_s = _bake(name, args, directory, settings)
-        cache_bytes = sum(p.num_bytes for p in read_cache_layer(layer).payloads)
+        num_bytes = cache_bytes(layer)
         for gather_samples in args.gather_samples:
             relighter = open_gather_relighter(layer, shadows=args.shadows, gather_samples=gather_samples)
             params = format_params({**settings.parameters(), "gatherSamples": gather_samples,
                                     "numRepresentatives": sum(s.num_representatives for s in relighter.sets.values()),
                                     "surfacePoints": relighter.points.num_points, "shadows": args.shadows})
-            relight_ms = edit_timings(relighter, args.repeats)["move"][0]
+            move_ms = relight_ms(relighter, args.repeats)
             for edit, layer_path in layers.items():
                 relighter.set_lights(shot_lights(relighter.direct.description, layer_path))
                 image, indirect = relighter.render().numpy(), relighter.indirect_image().numpy()
                 full = expected.full(edit, 1)
                 row = SweepRow("gather", name, args.width, args.height, edit, params, psnr(image, full),
-                               psnr(indirect, expected.indirect(edit, 1)), rel_mse(image, full), cache_bytes,
-                               bake_s, relight_ms)
+                               psnr(indirect, expected.indirect(edit, 1)), rel_mse(image, full), num_bytes,
+                               bake_s, move_ms)
                 print(csv_line(row), flush=True)
                 rows.append(row)
     return rows
@@ -146,10 +147,9 @@ def time_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
         layer, bake_s = _bake(name, args, directory, settings)
     peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     description = read_cache_layer(layer)
-    cache_bytes = sum(p.num_bytes for p in description.payloads)
     params = format_params({key: description.parameters[key] for key in settings.parameters()})
     print(f"{name} {args.width}x{args.height} {params}: bake {bake_s:.1f} s, peak RSS {peak_mib:.0f} MiB, "
-          f"cache {cache_bytes / 2**20:.1f} MiB", flush=True)
+          f"cache {cache_bytes(layer) / 2**20:.1f} MiB", flush=True)
     for shadows, gather_samples in itertools.product(("embree", "shadowmaps"), args.gather_samples):
         relighter = open_gather_relighter(layer, shadows=shadows, gather_samples=gather_samples)
         sizes = {n: (s.num_representatives, s.num_gathers) for n, s in relighter.sets.items()}

@@ -13,7 +13,6 @@ from pipeline.bake.multiview.frames import render_frames
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.exr import exr_layer_names, write_rgb_exr
 from relight_torch.io.preview import write_png
-from relight_torch.multiview.relighter import MultiviewRelighter
 from relight_torch.transfer.open import open_cache_relighter
 
 
@@ -49,8 +48,12 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
-    if args.camera or read_cache_layer(args.cache).method == "multiview":
+    method = read_cache_layer(args.cache).method
+    if method == "multiview":
         return run_views(args, start)
+    if args.camera:
+        raise RelightError(f"--camera: {args.cache} is a {method!r} cache, baked for its camera only; bake it "
+                           f"with --method multiview to move the camera")
     relighter = open_cache_relighter(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
     image = relighter.render().cpu().numpy()
     write_rgb_exr(args.out, image, light_group_layers(relighter) if "lightgroups" in args.aov else None)
@@ -64,9 +67,6 @@ def run(args: argparse.Namespace) -> int:
 def run_views(args: argparse.Namespace, start: float) -> int:
     """`relight render` of a multiview cache: one frame per --time from --camera (or the cache's camera)."""
     relighter = open_cache_relighter(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
-    if not isinstance(relighter, MultiviewRelighter):
-        raise RelightError(f"--camera: {args.cache} is a {relighter.description.method!r} cache, baked for its "
-                           f"camera only; bake it with --method multiview to move the camera")
     width, height = relighter.description.resolution
     render_frames(relighter, args.camera or relighter.description.camera_path, args.time or [None], args.out,
                   args.width or width, args.height or height, args.lights, args.png, args.fill_holes,

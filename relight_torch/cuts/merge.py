@@ -43,10 +43,6 @@ class MergedCuts:
     node: torch.Tensor
     cover: tuple[torch.Tensor, ...]
 
-    def select(self, keep: torch.Tensor) -> MergedCuts:
-        """The merged nodes where the (Q,) boolean mask `keep` is True."""
-        return MergedCuts(self.row[keep], self.node[keep], tuple(c[keep] for c in self.cover))
-
 
 def _row_entries(cuts: Cuts, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(owner (E,), entry (E,)): the entries of cuts `rows` (P,), concatenated in row order."""

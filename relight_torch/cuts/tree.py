@@ -105,10 +105,4 @@ class LightTree:
 
     def aggregate_batch(self, leaf_values: torch.Tensor) -> torch.Tensor:
         """`aggregate` over a batch: (B, L) -> (B, 2L - 1) node sums."""
-        sums = leaf_values.new_empty((leaf_values.shape[0], self.num_nodes))
-        level = leaf_values
-        for nodes in self.level_nodes:
-            if nodes.shape[0] != level.shape[1]:
-                level = level.reshape(level.shape[0], nodes.shape[0], 2).sum(dim=-1)
-            sums[:, nodes] = level
-        return sums
+        return self.aggregate(leaf_values.T).T

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
-from pipeline.bake.direct import shot_tracer, write_npy
+from pipeline.bake.direct import prepare_output, shot_tracer, write_npy
 from pipeline.bake.inputs import code_version, identify_bake
 from pipeline.bake.multiview.cameras import camera_from_row, camera_row
 from pipeline.bake.scheduler import ChunkSpec, ShotSpec, chunk_folder, load_chunk, load_shot, run_chunks
@@ -36,9 +36,8 @@ from pipeline.errors import RelightError
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.cache.gbuffer_exr import gbuffer_to_channels
-from relight_torch.cache.layer import (SUFFIX, CacheDescription, Payload, file_sha256, read_cache_layer,
+from relight_torch.cache.layer import (CacheDescription, Payload, file_sha256, read_cache_layer,
                                        write_cache_layer)
-from relight_torch.io.atomic import remove_temp_files
 from relight_torch.io.exr import write_exr
 from relight_torch.lights.linking import encode_paths
 from relight_torch.multiview.load import view_payload_name
@@ -101,11 +100,7 @@ def bake_multiview(scene: Scene, camera: Camera, out_dir: str | Path, stem: str,
         settings: the placement's parameters.
         box: (lo, hi) workspace; default the scene's bounds.
     """
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    layer_path = out_dir / f"{stem}{SUFFIX}"
-    layer_path.unlink(missing_ok=True)
-    remove_temp_files(out_dir, f"{stem}.")
+    out_dir, layer_path = prepare_output(out_dir, stem, supersampling, texture_samples)
     placement = place_cameras(scene, settings, box, Tracer(scene.geometry))
     if not placement.cameras:
         raise RelightError(f"{scene.source}: no caching camera sees the surfaces inside the box")

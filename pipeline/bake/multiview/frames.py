@@ -23,6 +23,8 @@ from pipeline.bake.multiview.view import view_points
 from pipeline.errors import RelightError
 from pipeline.scene.camera import read_camera
 from pipeline.scene.load import load_scene
+from pipeline.scene.surface import triangle_tangents
+from pipeline.tracing import Tracer
 from pipeline.scene.types import Camera, Scene
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.io.preview import write_png
@@ -62,7 +64,8 @@ class FrameRenderer:
         self.relighter = relighter
         self.lights_layer = lights_layer
         self.fill_holes = fill_holes
-        self._scene: Scene | None = None
+        self._shot: tuple[Scene, Tracer, np.ndarray] | None = None
+        """The shot, its BVH and triangle tangents, loaded for the first hole patch and kept."""
 
     def render(self, camera: Camera) -> Frame:
         relighter = self.relighter
@@ -71,11 +74,15 @@ class FrameRenderer:
         report = relighter.set_view(view, exposure_scale=camera.exposure_scale)
         patched = 0
         if self.fill_holes and report.num_large_holes:
-            if self._scene is None:
+            if self._shot is None:
                 description = relighter.description
-                self._scene = load_scene(description.source, time=description.parameters.get("time"),
-                                         lights_layer=self.lights_layer)
-            patch = hole_patch(self._scene, camera, relighter.supersampling, report.large_pixel_index.cpu().numpy())
+                scene = load_scene(description.source, time=description.parameters.get("time"),
+                                   lights_layer=self.lights_layer)
+                self._shot = (scene, Tracer(scene.geometry),
+                              triangle_tangents(scene.geometry.positions, scene.geometry.uvs))
+            scene, tracer, tangents = self._shot
+            patch = hole_patch(scene, camera, relighter.supersampling, report.large_pixel_index.cpu().numpy(),
+                               tracer, tangents)
             relighter.set_view(view, patch=patch, exposure_scale=camera.exposure_scale)
             patched = patch.num_samples
         return Frame(relighter.render().cpu().numpy(), report, patched)

@@ -20,17 +20,19 @@ from relight_torch.gbuffer import GBuffer
 
 
 def hole_patch(scene: Scene, camera: Camera, supersampling: int, pixel_index: np.ndarray,
-               tracer: Tracer | None = None) -> GBuffer:
+               tracer: Tracer | None = None, tangents: np.ndarray | None = None) -> GBuffer:
     """The G-buffer of `camera`'s sub-samples at `pixel_index` (M,) flat indices of its (H s, W s) image.
 
-    Sub-samples whose rays hit nothing are left out.
+    Sub-samples whose rays hit nothing are left out. `tracer` and `tangents` (T, 3, 3) (the scene's
+    BVH and `triangle_tangents`) are built here when not given; a caller patching many frames keeps them.
     """
     tracer = tracer or Tracer(scene.geometry)
+    tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs) if tangents is None else tangents
     origins, directions = grid_rays(camera, supersampling)
     pixel_index = np.asarray(pixel_index, np.int64)
     directions = directions[pixel_index]
     hits = tracer.intersect(origins[pixel_index], directions)
-    points = shading_points(scene, triangle_tangents(scene.geometry.positions, scene.geometry.uvs), hits, directions)
+    points = shading_points(scene, tangents, hits, directions)
     centre = camera.world_from_camera[:3, 3]
     forward = -camera.world_from_camera[:3, 2] / np.linalg.norm(camera.world_from_camera[:3, 2])
     return GBuffer.from_numpy(

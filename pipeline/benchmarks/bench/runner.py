@@ -106,7 +106,7 @@ def run_bench(config: BenchConfig, log=print) -> BenchResult:
                 rows = run_point(adapter, scene, point)
                 method_rows += rows
                 log(f"{name} {adapter.name} {point}: " + ", ".join(f"{r.light_edit} {r.psnr_db:.1f} dB" for r in rows))
-        bounces = sorted({0 if row.psnr_indirect_db != row.psnr_indirect_db else 1 for row in method_rows})
+        bounces = sorted({int(row.parameters()["bounces"]) for row in method_rows})
         for count in bounces:
             result.curves[(name, count)] = measure_spp_curve(scene.references, count, config.curve_spp)
         result.rows += method_rows + comparison_rows(method_rows, result.curves)

@@ -68,7 +68,7 @@ class TransferAdapter:
             payloads = matrix_payloads(culled_dir, f"{layer.name.split('.')[0]}-{num_kept}", F_PREFIX, encoded)
             final_gather = decode_rows(encoded).to(device, stored.values.dtype)
             relighter = TransferRelighter(baked.direct, baked.gathers, baked.view_pixels, final_gather, baked.bounce,
-                                          baked.num_bounces)
+                                          baked.num_bounces, upsampler=baked.upsampler)
             out.append(Variant({**baked_settings.parameters(), "coefficients": num_kept}, relighter,
                                base_bytes + sum(p.num_bytes for p in payloads)))
         return out
