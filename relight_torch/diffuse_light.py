@@ -59,9 +59,10 @@ def diffuse_radiance(light: Light, position: torch.Tensor, normal: torch.Tensor,
         sample = sample_light(light, position[chunk], u[chunk])
         cosine = (sample.direction * normal[chunk].unsqueeze(1)).sum(-1).clamp(min=0.0)
         weight = sample.weight() * cosine.unsqueeze(-1)
-        # Shadow rays only for the (point, sample) pairs that carry light: points facing away from
-        # the light or outside its cone cost nothing.
-        point, live = torch.nonzero((weight != 0).any(-1), as_tuple=True)
+        # Shadow rays only for the (point, sample) pairs that can carry light: samples the light
+        # cannot emit (pdf 0) and points facing away cost nothing. Shaping is left out of this test
+        # so that a shaping edit asks the same shadow queries (remembered by the gather relighter).
+        point, live = torch.nonzero((sample.pdf > 0) & (cosine > 0), as_tuple=True)
         distance = torch.full_like(sample.distance, math.inf)
         if point.numel():
             distance[point, live] = visibility.occluder_distance(

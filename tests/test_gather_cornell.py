@@ -74,9 +74,9 @@ def test_light_edits_recompute_only_what_they_touch(cornell):
     assert relighter.counters["gather_light"] == 1  # a colour edit is a rescale
     scale = 2.0 * np.array([1.0, 0.5, 0.25]) / np.asarray(light.color)
     np.testing.assert_allclose(edited.numpy(), scale * before.numpy(), rtol=1e-5, atol=1e-7)
-    # A shaping edit re-weights the remembered shadow answers: no shadow ray is traced again, and
-    # the result is what a fresh relighter traces.
-    shaped = dataclasses.replace(light, shaping=Shaping(focus=3.0))
+    # A shaping edit (a cone that darkens part of the room, and focus) re-weights the remembered
+    # shadow answers: no shadow ray is traced again, and the result is what a fresh relighter traces.
+    shaped = dataclasses.replace(light, shaping=Shaping(focus=3.0, cone_angle=30.0))
     relighter.set_light(shaped)
     traced = relighter.visibility.counters["queries"]
     reshaped = relighter.indirect_image()
@@ -84,7 +84,7 @@ def test_light_edits_recompute_only_what_they_touch(cornell):
     fresh = open_cache_relighter(layer)
     fresh.set_light(shaped)
     np.testing.assert_allclose(reshaped.numpy(), fresh.indirect_image().numpy(), rtol=1e-5, atol=1e-7)
-    assert float(reshaped.sum()) < float(before.sum())  # focus narrows the lamp's emission
+    assert float(reshaped.sum()) < float(before.sum())  # the cone and focus narrow the lamp's emission
     moved = light.world_from_light.copy()
     moved[0, 3] -= 100.0
     relighter.set_light(dataclasses.replace(light, world_from_light=moved))
