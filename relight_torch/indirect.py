@@ -8,10 +8,29 @@ the base scales and sums them, per light for the image and per light group for t
 
 from __future__ import annotations
 
+import dataclasses
+
+import numpy as np
 import torch
 
-from relight_torch.lights.light import Light
+from relight_torch.lights.emission import is_delta_light
+from relight_torch.lights.light import Light, LightKind
 from relight_torch.relighter import Relighter, colour_scale, light_group
+
+
+def light_snapshot(value: object) -> object:
+    """A hashable, comparable snapshot of a light or a light field (arrays by content, dataclasses by field)."""
+    if isinstance(value, np.ndarray):
+        return value.shape, value.dtype.str, value.tobytes()
+    if dataclasses.is_dataclass(value):
+        return tuple((f.name, light_snapshot(getattr(value, f.name))) for f in dataclasses.fields(value))
+    return value
+
+
+def gather_light_key(unit: Light) -> object:
+    """What a unit light's diffuse light on gathers depends on: all of it but its AOV group and its
+    specular multiplier (gathers reflect diffusely)."""
+    return light_snapshot(dataclasses.replace(unit, light_group="", specular=1.0))
 
 
 class IndirectRelighter:
@@ -96,6 +115,13 @@ class IndirectRelighter:
         """(R, 3) indirect light of the surfaces' own emission; zero unless a method carries it."""
         return torch.zeros((self.view_pixels.shape[0], 3), device=self.view_pixels.device,
                            dtype=self.direct.gbuffer.position.dtype)
+
+    def _gather_samples(self, light: Light, area_samples: int) -> int:
+        """Light samples per gather: 1 for a delta light, the direct settings' dome count for a dome,
+        else `area_samples`."""
+        if is_delta_light(light):
+            return 1
+        return self.direct.settings.dome_samples if light.kind is LightKind.DOME else area_samples
 
     @staticmethod
     def _scale(light: Light, like: torch.Tensor) -> torch.Tensor:

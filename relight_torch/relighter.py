@@ -138,6 +138,12 @@ def _geometry_fields() -> tuple[str, ...]:
 _GEOMETRY_FIELDS = _geometry_fields()
 
 
+def geometry_key(light: Light) -> tuple:
+    """A hashable snapshot of what a light's shadow rays and light samples depend on (not its
+    colour, shaping, path, group or link)."""
+    return _key(light, _GEOMETRY_FIELDS)
+
+
 def light_group(light: Light) -> str:
     """The light-group AOV a light writes to: its `light_group`, else its prim's name."""
     return light.light_group or light.path.rsplit("/", 1)[-1]
@@ -270,11 +276,11 @@ class Relighter:
 
     def set_light(self, light: Light) -> None:
         """Add a light or edit one (matched by path); invalidates only what the edit touches."""
-        geometry_key = _key(light, _GEOMETRY_FIELDS)
-        shading_key = geometry_key + _key(light, _SHADING_FIELDS)
+        transport_key = geometry_key(light)
+        shading_key = transport_key + _key(light, _SHADING_FIELDS)
         state = self._lights.get(light.path)
-        if state is None or state.geometry_key != geometry_key:
-            state = _LightState(light, geometry_key, shading_key)
+        if state is None or state.geometry_key != transport_key:
+            state = _LightState(light, transport_key, shading_key)
         elif state.shading_key != shading_key:
             state.images, state.shading_key = None, shading_key
         state.light = light

@@ -24,16 +24,14 @@ import collections
 import dataclasses
 import functools
 
-import numpy as np
 import torch
 
 from relight_torch.diffuse_light import diffuse_radiance
 from relight_torch.gather.reconstruction import interpolate
 from relight_torch.gather.remembered import RememberedVisibility
-from relight_torch.lights.emission import is_delta_light
-from relight_torch.indirect import IndirectRelighter
-from relight_torch.lights.light import Light, LightKind
-from relight_torch.relighter import Relighter, colour_scale, unit_light
+from relight_torch.indirect import IndirectRelighter, gather_light_key
+from relight_torch.lights.light import Light
+from relight_torch.relighter import Relighter, unit_light
 
 SET_NAMES = ("diffuse", "glossy")
 DEFAULT_GATHER_SAMPLES = 1
@@ -160,17 +158,6 @@ class GatherSet:
         return self.weight.t().contiguous()
 
 
-def light_key(light: Light) -> object:
-    """A hashable snapshot of every field of a light (arrays by content, nested dataclasses by field)."""
-    def frozen(value):
-        if isinstance(value, np.ndarray):
-            return value.shape, value.dtype.str, value.tobytes()
-        if dataclasses.is_dataclass(value):
-            return tuple((f.name, frozen(getattr(value, f.name))) for f in dataclasses.fields(value))
-        return value
-    return frozen(light)
-
-
 class GatherRelighter(IndirectRelighter):
     """Direct + clustered-gather indirect relighting of one 'gather' cache.
 
@@ -232,24 +219,6 @@ class GatherRelighter(IndirectRelighter):
 
     # -- rendering ------------------------------------------------------------------------------
 
-    def indirect_image(self) -> torch.Tensor:
-        """(H, W, 3) indirect light alone, camera exposure applied."""
-        rows = self.indirect_rows()
-        height, width = (size // self.direct.supersampling for size in self.direct.gbuffer.image_size)
-        image = rows.new_zeros((height * width, 3))
-        image[self.view_pixels] = rows
-        return image.reshape(height, width, 3) * self.direct.exposure_scale
-
-    def indirect_rows(self) -> torch.Tensor:
-        """(P, 3) indirect radiance at the view samples (exposure not applied)."""
-        total = torch.zeros_like(self.view_albedo)
-        for light in self.lights:
-            scale = torch.as_tensor(colour_scale(light), device=total.device, dtype=total.dtype)
-            if bool((scale == 0).all()):
-                continue
-            total = total + scale * self._unit_indirect(light)
-        return total
-
     def reconstruct(self, radiance: torch.Tensor) -> torch.Tensor:
         """Equation 3: (U, 3) radiance leaving the shared surface points -> (P, 3) per pixel."""
         total = torch.zeros_like(self.view_albedo)
@@ -263,16 +232,14 @@ class GatherRelighter(IndirectRelighter):
 
     def surface_radiance(self, light: Light) -> torch.Tensor:
         """(U, 3) radiance D leaving the shared surface points, lit by `light` (its colour included)."""
-        settings = self.direct.settings
-        num_samples = 1 if is_delta_light(light) else (
-            settings.dome_samples if light.kind is LightKind.DOME else self.gather_samples)
         p = self.points
-        return diffuse_radiance(light, p.position, p.normal, p.albedo, self.visibility, num_samples, settings.seed,
+        return diffuse_radiance(light, p.position, p.normal, p.albedo, self.visibility,
+                                self._gather_samples(light, self.gather_samples), self.direct.settings.seed,
                                 object_id=p.object_id, object_paths=self.direct.object_paths)
 
     def _unit_indirect(self, light: Light) -> torch.Tensor:
         unit = unit_light(light)
-        key = light_key(unit)
+        key = gather_light_key(unit)
         cached = self._per_light.get(light.path)
         if cached is None or cached[0] != key:
             self.counters["gather_light"] += 1

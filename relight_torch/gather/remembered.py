@@ -11,31 +11,15 @@ visibility and kept; identical later queries are answered from memory.
 from __future__ import annotations
 
 import collections
-import dataclasses
 
 import torch
 
 from relight_torch.lights.light import Light
+from relight_torch.relighter import geometry_key
 from relight_torch.visibility import Visibility
 
-_IGNORED_FIELDS = ("intensity", "exposure", "color", "enable_color_temperature", "color_temperature",
-                   "diffuse", "specular", "shaping", "barzel", "light_link", "light_group")
-"""Light fields no shadow ray depends on (a light link changes which points ask, not the answers)."""
 MAX_ANSWERS = 8
 """Queries kept per light (the oldest is dropped): one per chunk of points of a pass."""
-
-
-def shadow_key(light: Light) -> tuple:
-    """A hashable snapshot of what a light's shadow answers depend on (arrays by content)."""
-    values = []
-    for field in dataclasses.fields(light):
-        if field.name in _IGNORED_FIELDS:
-            continue
-        value = getattr(light, field.name)
-        if hasattr(value, "tobytes"):
-            value = (value.shape, str(value.dtype), value.tobytes())
-        values.append((field.name, value))
-    return tuple(values)
 
 
 class RememberedVisibility:
@@ -56,7 +40,7 @@ class RememberedVisibility:
     def occluder_distance(self, light: Light, points: torch.Tensor, normals: torch.Tensor,
                           directions: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
         """(N, S) distance to the first occluder, inf where visible (see `Visibility`)."""
-        key = shadow_key(light)
+        key = geometry_key(light)
         if light.path not in self._answers or self._answers[light.path][0] != key:
             self._answers[light.path] = (key, [])
         queries = (points, normals, directions, distances)

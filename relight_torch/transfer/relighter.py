@@ -14,13 +14,11 @@ from __future__ import annotations
 import collections
 import dataclasses
 
-import numpy as np
 import torch
 
 from relight_torch.diffuse_light import link_mask
-from relight_torch.indirect import IndirectRelighter
-from relight_torch.lights.emission import is_delta_light
-from relight_torch.lights.light import Light, LightKind
+from relight_torch.indirect import IndirectRelighter, gather_light_key
+from relight_torch.lights.light import Light
 from relight_torch.relighter import Relighter, unit_light
 from relight_torch.transfer.gathers import GatherSamples, gather_radiance
 from relight_torch.transfer.haar import haar2d
@@ -28,18 +26,9 @@ from relight_torch.transfer.sparse import SparseRows, column_norms, cull_light
 from relight_torch.transfer.upsample import EdgeAwareUpsampler
 
 
-def _frozen(value) -> object:
-    """A hashable, comparable snapshot of a light field (arrays by content, dataclasses by field)."""
-    if isinstance(value, np.ndarray):
-        return value.shape, value.dtype.str, value.tobytes()
-    if dataclasses.is_dataclass(value):
-        return tuple((f.name, _frozen(getattr(value, f.name))) for f in dataclasses.fields(value))
-    return value
-
-
 @dataclasses.dataclass
 class _IndirectState:
-    gather_key: object           # `_frozen` of the unit light less its group, link and specular
+    gather_key: object           # `gather_light_key` of the unit light less its link
     radiance: torch.Tensor       # (G, 3) its gather light g_d, no light link applied
     light_link: tuple[str, ...] | None = None     # the link `unit_indirect` was masked with
     unit_indirect: torch.Tensor | None = None     # (R, 3) its indirect radiance at the F rows
@@ -138,12 +127,11 @@ class TransferRelighter(IndirectRelighter):
         it depends on changes; a light-link edit re-masks the cached gather light and transfers."""
         unit = unit_light(light)
         gather_light = dataclasses.replace(unit, light_link=None)
-        key = _frozen(dataclasses.replace(gather_light, light_group="", specular=1.0))
+        key = gather_light_key(gather_light)
         state = self._per_light.get(light.path)
         if state is None or state.gather_key != key:
             settings = self.direct.settings
-            num_samples = 1 if is_delta_light(unit) else (
-                settings.dome_samples if unit.kind is LightKind.DOME else self.gather_samples or settings.area_samples)
+            num_samples = self._gather_samples(unit, self.gather_samples or settings.area_samples)
             radiance = gather_radiance(gather_light, self.gathers, self.direct.visibility, num_samples, settings.seed)
             self.counters["gather_light"] += 1
             state = _IndirectState(key, radiance)
