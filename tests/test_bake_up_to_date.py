@@ -7,7 +7,7 @@ import pytest
 
 from pipeline import cli
 from pipeline.scenes import SCENES
-from relight_torch.cache.layer import read_cache_layer
+from relight_torch.cache.layer import content_hash, read_cache_layer
 
 SIZE = ["--width", "8", "--height", "8", "--texture-samples", "1"]
 
@@ -30,7 +30,11 @@ def test_same_request_is_up_to_date(shot, tmp_path, capsys):
     written = layer.stat().st_mtime_ns
     assert "up to date" in _bake(shot, out, capsys, "--supersampling", "1", "--workers", "1")
     assert layer.stat().st_mtime_ns == written
-    assert "request" in read_cache_layer(layer).parameters
+    description = read_cache_layer(layer)
+    assert "request" in description.parameters
+    # The recorded content hash still covers every recorded parameter, the request included.
+    assert description.content_hash == content_hash(description.inputs, description.parameters,
+                                                    description.code_version)
 
 
 @pytest.mark.parametrize("change", ["option", "input", "payload"])

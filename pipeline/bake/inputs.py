@@ -99,10 +99,13 @@ def up_to_date(layer_path: Path, digest: str) -> bool:
 
 
 def record_request(layer_path: Path, digest: str) -> None:
-    """Add `digest` to the cache layer's parameters (rewritten atomically)."""
+    """Add `digest` to the cache layer's parameters (rewritten atomically), its content hash
+    recomputed so that it still covers every recorded parameter."""
     description = read_cache_layer(layer_path)
+    parameters = {**description.parameters, REQUEST_PARAMETER: digest}
     write_cache_layer(layer_path, dataclasses.replace(
-        description, parameters={**description.parameters, REQUEST_PARAMETER: digest}))
+        description, parameters=parameters,
+        content_hash=content_hash(description.inputs, parameters, description.code_version)))
 
 
 def identify_bake(scene: Scene, parameters: dict, time_code: float | None) -> tuple[dict, dict[str, str], str]:
