@@ -38,18 +38,27 @@ def _cell_pattern(directions: torch.Tensor, solid_angles: torch.Tensor) -> torch
     return torch.nn.functional.normalize(world, dim=-1)
 
 
-def dome_leaf_light(lights: list[Light], directions: torch.Tensor, solid_angles: torch.Tensor,
-                    lobe: str) -> torch.Tensor:
-    """(L, 3) light of every leaf from the given dome lights, for one BRDF lobe.
+def dome_leaf_light(lights: list[Light], directions: torch.Tensor,
+                    solid_angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(diffuse, specular) (L, 3) light of every leaf from the given dome lights, for the two BRDF
+    lobes: each dome's radiance over the leaf's cell, evaluated once, times its per-lobe multiplier.
 
     Args:
-        lights: dome lights (their `diffuse` or `specular` multiplier is applied per `lobe`).
+        lights: dome lights.
         directions: (L, 3) unit world directions of the leaves; solid_angles: (L,) their cells.
-        lobe: 'diffuse' or 'specular'.
     """
-    total = torch.zeros_like(directions)
+    diffuse, specular = torch.zeros_like(directions), torch.zeros_like(directions)
     if not lights:
-        return total
+        return diffuse, specular
+    pattern = _cell_pattern(directions, solid_angles)
+    origin = torch.zeros_like(pattern)
+    for light in lights:
+        if light.diffuse == 0.0 and light.specular == 0.0:
+            continue
+        radiance = emitted_radiance(light, origin, pattern).mean(dim=1) * solid_angles.unsqueeze(-1)
+        diffuse += light.diffuse * radiance
+        specular += light.specular * radiance
+    return diffuse, specular
     pattern = _cell_pattern(directions, solid_angles)
     origin = torch.zeros_like(pattern)
     for light in lights:

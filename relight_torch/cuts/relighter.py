@@ -280,8 +280,7 @@ class CutsRelighter:
         """
         cuts = self.cuts
         if self.mode == "env":
-            return (dome_leaf_light(lights, cuts.leaf_directions, cuts.leaf_weights, "diffuse"),
-                    dome_leaf_light(lights, cuts.leaf_directions, cuts.leaf_weights, "specular"))
+            return dome_leaf_light(lights, cuts.leaf_directions, cuts.leaf_weights)
         points = cuts.leaf_points
         radiance = points.emission.clone() if emission else torch.zeros_like(points.position)
         for light in lights:
