@@ -527,6 +527,16 @@ class Relighter:
         return emission_factor(light, transport.emission_in(light), position, origin)
 
 
+def embree_visibility(occluders: np.ndarray, occluder_objects: np.ndarray | None,
+                      object_paths: list[str] | None) -> tuple[EmbreeCaster, RayVisibility]:
+    """Embree over a cache's (T, 3, 3) occluders and the shadow-ray visibility using it, with a
+    caster per shadow-link set when the (T,) occluder objects and their paths are given."""
+    caster = EmbreeCaster(occluders)
+    links = None if occluder_objects is None else ShadowLinkCasters(occluders, occluder_objects, object_paths,
+                                                                    caster.epsilon)
+    return caster, RayVisibility(caster, links)
+
+
 def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
                    lights_layer: str | os.PathLike | None = None,
                    settings: RelightSettings = RelightSettings()) -> Relighter:
@@ -551,12 +561,8 @@ def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", 
     linking = {payload.name for payload in description.payloads} >= {"objectPaths", "occluderObjects"}
     object_paths = decode_paths(load_npy(layer_path, description, "objectPaths")) if linking else None
     if shadows == "embree":
-        caster = EmbreeCaster(occluders)
-        shadow_link_caster = None
-        if linking:
-            occluder_objects = np.asarray(load_npy(layer_path, description, "occluderObjects"))
-            shadow_link_caster = ShadowLinkCasters(occluders, occluder_objects, object_paths, caster.epsilon)
-        visibility = RayVisibility(caster, shadow_link_caster)
+        occluder_objects = np.asarray(load_npy(layer_path, description, "occluderObjects")) if linking else None
+        _, visibility = embree_visibility(occluders, occluder_objects, object_paths)
     elif shadows == "shadowmaps":
         # Always cube maps for spot lights: a cone edit does not re-run visibility, and a perspective
         # map sized for the old cone would leave the new one's receivers unshadowed.

@@ -59,12 +59,3 @@ def dome_leaf_light(lights: list[Light], directions: torch.Tensor,
         diffuse += light.diffuse * radiance
         specular += light.specular * radiance
     return diffuse, specular
-    pattern = _cell_pattern(directions, solid_angles)
-    origin = torch.zeros_like(pattern)
-    for light in lights:
-        multiplier = light.diffuse if lobe == "diffuse" else light.specular
-        if multiplier == 0.0:
-            continue
-        radiance = emitted_radiance(light, origin, pattern).mean(dim=1)
-        total = total + multiplier * radiance * solid_angles.unsqueeze(-1)
-    return total

@@ -33,9 +33,8 @@ from relight_torch.multiview.holes import HoleReport, fill_small_holes
 from relight_torch.multiview.load import load_camera_table, load_view_gbuffers
 from relight_torch.multiview.resample import bilinear_samples
 from relight_torch.multiview.views import CachingViews, concat_gbuffers, gather_gbuffer
-from relight_torch.relighter import Relighter, RelightSettings, shot_lights
-from relight_torch.visibility.embree import EmbreeCaster, ShadowLinkCasters
-from relight_torch.visibility.rays import RayVisibility
+from relight_torch.relighter import Relighter, RelightSettings, embree_visibility, shot_lights
+from relight_torch.visibility.embree import EmbreeCaster
 
 
 def view_gbuffer(views: CachingViews, view: ViewPoints, patch: GBuffer | None = None,
@@ -202,8 +201,7 @@ def open_multiview_relighter(path: str | os.PathLike, device: str | torch.device
     object_paths = decode_paths(load_npy(layer_path, description, "objectPaths"))
     corner_normals = np.asarray(load_npy(layer_path, description, "cornerNormals"))
     normal_mapped = torch.from_numpy(np.array(load_npy(layer_path, description, "normalMapped"), bool)).to(device)
-    caster = EmbreeCaster(occluders)
-    visibility = RayVisibility(caster, ShadowLinkCasters(occluders, occluder_objects, object_paths, caster.epsilon))
+    caster, visibility = embree_visibility(occluders, occluder_objects, object_paths)
     relighter = MultiviewRelighter(views, visibility, description.supersampling, description.exposure_scale,
                                    settings, object_paths, caster, occluder_objects, corner_normals, normal_mapped)
     relighter.description = description
