@@ -13,7 +13,7 @@ import pytest
 from pipeline.bake.direct import bake_direct
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
-from pipeline.scenes import SCENES, write_light_edits
+from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.metrics import psnr
 from relight_torch.relighter import Relighter, shot_lights
@@ -35,7 +35,7 @@ def baked(request, tmp_path_factory):
     width, height, spp, threshold = CASES[name]
     directory = tmp_path_factory.mktemp(name)
     shot = SCENES[name].write(directory)
-    edits = {"shot": None} | {p.name.split(".")[-2]: p for p in write_light_edits(name, directory)}
+    edits = light_edit_layers(name, directory)
     scene = load_scene(shot, width=width, height=height)
     cache = bake_direct(scene, find_camera(scene, SCENES[name].camera), directory / "cache", name)
     return name, shot, edits, cache, (width, height, spp, threshold)

@@ -38,7 +38,7 @@ from pipeline.benchmarks.bench.measure import cache_bytes, device_name, moved, r
 from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, format_params, write_csv
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
-from pipeline.scenes import SCENES, write_light_edits
+from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.cuts.open import open_cuts_relighter
 from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
@@ -126,9 +126,7 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[Sw
     """Every (lights, sigma) bake of one scene and its rows."""
     bundled = SCENES[name]
     shot = bundled.write(directory)
-    layers = {"shot": None}
-    if not args.timing:
-        layers |= {path.name.split(".")[-2]: path for path in write_light_edits(name, directory)}
+    layers = {"shot": None} if args.timing else light_edit_layers(name, directory)
     expected = None if args.timing else references(shot, layers, bundled.camera, args.width, args.height, args.spp,
                                                     int(args.mode == "indirect"))
     scene = load_scene(shot, width=args.width, height=args.height)

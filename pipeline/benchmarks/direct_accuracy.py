@@ -20,7 +20,7 @@ import numpy as np
 from pipeline.bake.direct import bake_direct
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
-from pipeline.scenes import SCENES, write_light_edits
+from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.relighter import open_relighter, shot_lights
 
@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     directory = Path(args.out or tempfile.mkdtemp(prefix="relight-accuracy-"))
     bundled = SCENES[args.scene]
     shot = bundled.write(directory)
-    edits = {"shot": None} | {p.name.split(".")[-2]: p for p in write_light_edits(args.scene, directory)}
+    edits = light_edit_layers(args.scene, directory)
     scene = load_scene(shot, width=args.width, height=args.height)
     cache = bake_direct(scene, find_camera(scene, bundled.camera), directory / "cache", args.scene,
                         args.supersampling, args.texture_samples)

@@ -42,7 +42,7 @@ from pipeline.benchmarks.rows import COLUMNS, SweepRow, csv_line, format_params,
 from pipeline.benchmarks.bench.measure import cache_bytes, moved, relight_ms
 from pipeline.benchmarks.bench.references import References
 from pipeline.scene import find_camera, load_scene
-from pipeline.scenes import SCENES, write_light_edits
+from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.gather.open import open_gather_relighter
 from relight_torch.gather.relighter import DEFAULT_GATHER_SAMPLES, GatherRelighter
@@ -111,7 +111,7 @@ def _settings(args: argparse.Namespace, clusters: int, representatives: int, poi
 def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[SweepRow]:
     """The sweep's rows of one scene (printed as CSV lines as they are measured)."""
     shot = SCENES[name].write(directory)
-    layers = {"shot": None} | {p.name.split(".")[-2]: p for p in write_light_edits(name, directory)}
+    layers = light_edit_layers(name, directory)
     expected = References(shot, SCENES[name].camera, args.width, args.height, layers, args.spp,
                           directory / "references")
     rows = []

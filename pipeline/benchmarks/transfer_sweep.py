@@ -43,7 +43,7 @@ from pipeline.benchmarks.bench.measure import moved, relight_ms
 from pipeline.benchmarks.rows import COLUMNS
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
-from pipeline.scenes import SCENES, write_light_edits
+from pipeline.scenes import SCENES, light_edit_layers
 from pipeline.tracing_bench import median_seconds
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.metrics import psnr, rel_mse
@@ -71,7 +71,7 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
     bundled = SCENES[name]
     (directory / "culled").mkdir(parents=True, exist_ok=True)
     shot = bundled.write(directory)
-    layers = {"shot": None} | {p.name.split(".")[-2]: p for p in write_light_edits(name, directory)}
+    layers = light_edit_layers(name, directory)
     expected = references(shot, layers, bundled.camera, args.width, args.height, args.spp, args.bounces)
     scene = load_scene(shot, width=args.width, height=args.height)
     camera = find_camera(scene, bundled.camera)

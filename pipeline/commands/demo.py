@@ -20,7 +20,7 @@ from pipeline.commands.common import add_device_option
 from pipeline.errors import RelightError
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
-from pipeline.scenes import SCENES, write_light_edits
+from pipeline.scenes import SCENES, light_edit_layers
 from pipeline.tracing_bench import median_seconds
 from relight_torch.io.atomic import atomic_path
 from relight_torch.io.exr import write_rgb_exr
@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     bundled = SCENES[args.scene]
     shot = bundled.write(out / "scene")
-    edits = [("shot", None)] + [(p.name.split(".")[-2], p) for p in write_light_edits(args.scene, out / "scene")]
+    edits = list(light_edit_layers(args.scene, out / "scene").items())
     scene = load_scene(shot, width=args.width, height=args.height)
     camera = find_camera(scene, bundled.camera)
     start = time.perf_counter()

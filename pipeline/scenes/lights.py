@@ -52,3 +52,9 @@ def write_light_edits(name: str, directory: str | Path) -> list[Path]:
         write_text_atomic(path, text)
         paths.append(path)
     return paths
+
+
+def light_edit_layers(name: str, directory: str | Path) -> dict[str, Path | None]:
+    """'shot' -> None (the shot's own lights), then each example edit's name -> its layer written
+    by `write_light_edits`: the light edits every benchmark relights under."""
+    return {"shot": None} | {path.name.split(".")[-2]: path for path in write_light_edits(name, directory)}

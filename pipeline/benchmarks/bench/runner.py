@@ -22,7 +22,7 @@ from pipeline.benchmarks.bench.measure import run_point
 from pipeline.benchmarks.bench.methods import BenchScene, adapters
 from pipeline.benchmarks.bench.references import References
 from pipeline.benchmarks.rows import SweepRow, write_csv, write_json
-from pipeline.scenes import SCENES, write_light_edits
+from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.io.atomic import write_text_atomic
 
 
@@ -77,7 +77,7 @@ def prepare_scene(name: str, config: BenchConfig) -> BenchScene:
     bundled = SCENES[name]
     directory = config.out / "scenes" / name
     shot = bundled.write(directory)
-    edits = {"shot": None} | {path.name.split(".")[-2]: path for path in write_light_edits(name, directory)}
+    edits = light_edit_layers(name, directory)
     edits = {edit: layer for edit, layer in edits.items() if config.edits is None or edit in {"shot", *config.edits}}
     references = References(shot, bundled.camera, config.width, config.height, edits, config.spp,
                             config.out / "references")
