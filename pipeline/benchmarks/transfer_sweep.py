@@ -2,7 +2,7 @@
 
     python -m pipeline.benchmarks.transfer_sweep SCENE [SCENE...] --width W --height H
         [--gathers 1024 4096 ...] [--coefficients 10 25 50 100 200] [--bounces B] [--spp N]
-        [--quantize] [--rgb] [--indirect-scale S] [--out DIR] [--csv FILE]
+        [--quantize] [--rgb] [--indirect-scale S] [--out DIR]
 
 Per scene and gather count it bakes once, keeping the largest coefficient count, and studies every
 smaller count by culling those rows (`relight_torch.transfer.sparse.cull`, the bake's own order):
@@ -39,12 +39,11 @@ import torch
 from pipeline.bake.direct import bake_direct
 from pipeline.bake.transfer.bake import F_PREFIX, TransferSettings, bake_transfer, matrix_payloads
 from pipeline.bake.transfer.gather_cloud import create_gathers
-from pipeline.benchmarks.bench.measure import moved, relight_ms
+from pipeline.benchmarks.bench.measure import relight_ms
 from pipeline.benchmarks.rows import COLUMNS
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
-from pipeline.tracing_bench import median_seconds
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.relighter import open_relighter, shot_lights
@@ -140,20 +139,6 @@ def time_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
                   f"{relight_ms(relighter, repeats=7):.1f},cpu", flush=True)
 
 
-def indirect_ms(relighter: TransferRelighter, repeats: int = 7) -> float:
-    """Median ms of moving the first light and updating the indirect image alone (`relight_ms`'s edit)."""
-    lights = relighter.lights
-    calls = iter(range(1 << 30))
-
-    def edit() -> None:
-        relighter.set_light(moved(lights[0], 0.01 * (1 + next(calls) % 2)))
-        relighter.indirect_image()
-
-    seconds = median_seconds(edit, repeats)
-    relighter.set_lights(lights)
-    return 1e3 * seconds
-
-
 def time_caches(args: argparse.Namespace) -> None:
     """Print a part=total and a part=indirect relight_ms row per baked transfer cache."""
     for layer in args.cache:
@@ -165,7 +150,7 @@ def time_caches(args: argparse.Namespace) -> None:
                       "threads": torch.get_num_threads()}
         cache_bytes = sum(p.num_bytes for p in description.payloads)
         relighter.render()
-        for part, timing in (("total", relight_ms(relighter, repeats=7)), ("indirect", indirect_ms(relighter))):
+        for part, timing in (("total", relight_ms(relighter, repeats=7)), ("indirect", relight_ms(relighter, repeats=7, part="indirect_image"))):
             params = " ".join(f"{key}={value}" for key, value in {**parameters, "part": part}.items())
             print(f"transfer,{Path(description.source).stem},{width},{height},shot,{params},,,,{cache_bytes},,"
                   f"{timing:.1f},cpu", flush=True)

@@ -32,18 +32,21 @@ def moved(light: Light, fraction: float) -> Light:
     return dataclasses.replace(light, world_from_light=world_from_light)
 
 
-def relight_ms(relighter, repeats: int = 5, device: str = "cpu") -> float:
+def relight_ms(relighter, repeats: int = 5, device: str = "cpu", part: str = "render") -> float:
     """Median ms of moving the relighter's first light and re-rendering (see the module doc).
 
-    `relighter` is any relighter of the shared API (`lights`, `set_light`, `set_lights`, `render`).
+    `relighter` is any relighter of the shared API (`lights`, `set_light`, `set_lights`, `render`);
+    `part` names the method timed after each move: 'render', or 'indirect_image' for the indirect
+    part alone.
     """
+    render = getattr(relighter, part)
     lights = relighter.lights
     sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
     calls = iter(range(1 << 30))
 
     def edit_and_render() -> None:
         relighter.set_light(moved(lights[0], 0.01 * (1 + next(calls) % 2)))
-        relighter.render()
+        render()
         sync()
 
     seconds = median_seconds(edit_and_render, repeats)
