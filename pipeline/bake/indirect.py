@@ -16,9 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.bake.direct import direct_payloads, prepare_output, write_npy
-from pipeline.bake.scheduler import chunk_folder
+from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
+from pipeline.bake.direct import direct_payloads, prepare_output, shot_tracer, write_npy
+from pipeline.bake.scheduler import ShotSpec, chunk_folder, load_shot, per_process
 from pipeline.scene.types import Camera, Scene
+from relight_torch.gbuffer import GBuffer
 from relight_torch.cache.layer import CacheDescription, Payload, content_hash, write_cache_layer
 
 
@@ -74,3 +76,11 @@ def start_indirect_bake(scene: Scene, camera: Camera, out_dir: str | Path, stem:
     chunk_dir = chunk_folder(out_dir, stem, method, digest)
     chunk_dir.mkdir(parents=True, exist_ok=True)
     return IndirectBake(layer_path, description, method, parameters, digest, chunk_dir, direct_chunk_dir)
+
+
+@per_process
+def view_samples(shot: ShotSpec, texture_samples: int) -> GBuffer:
+    """The shot camera's view samples (one per pixel centre) that indirect bakes gather for, baked
+    once per process with the shot's BVH (`shot_tracer`, shared with the direct chunks)."""
+    scene, camera = load_shot(shot)
+    return bake_deep_framebuffer(scene, camera, 1, texture_samples, tracer=shot_tracer(shot)).gbuffer

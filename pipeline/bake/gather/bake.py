@@ -32,9 +32,8 @@ from typing import Iterator
 import numpy as np
 import torch
 
-from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
 from pipeline.bake.direct import shot_tracer
-from pipeline.bake.indirect import IndirectBake, start_indirect_bake
+from pipeline.bake.indirect import IndirectBake, start_indirect_bake, view_samples
 from pipeline.bake.gather.hemisphere import ClusteredGathers, cluster_gathers, gather
 from pipeline.bake.gather.representatives import choose_representatives, glossy_share, reconstruction_weights
 from pipeline.bake.gather.surface_points import merge_entries, share_points
@@ -138,11 +137,9 @@ def _single_threaded_torch() -> Iterator[None]:
 @per_process
 def gather_inputs(shot: ShotSpec, texture_samples: int) -> tuple[Tracer, np.ndarray, GBuffer]:
     """The shot's BVH, triangle tangents and view samples (one per pixel centre), built once per process."""
-    scene, camera = load_shot(shot)
-    tracer = shot_tracer(shot)  # shared with the direct chunks run in this process
+    scene, _ = load_shot(shot)
     tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs)
-    view = bake_deep_framebuffer(scene, camera, 1, texture_samples, tracer=tracer).gbuffer
-    return tracer, tangents, view
+    return shot_tracer(shot), tangents, view_samples(shot, texture_samples)
 
 
 def _gather_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:

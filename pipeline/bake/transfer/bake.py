@@ -31,8 +31,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
-from pipeline.bake.indirect import start_indirect_bake
+from pipeline.bake.indirect import start_indirect_bake, view_samples
 from pipeline.bake.direct import shot_tracer, write_npy
 from pipeline.bake.transfer.gather_cloud import create_gathers
 from pipeline.bake.transfer.rows import bounce_rows, final_gather_rows
@@ -121,10 +120,8 @@ def compress_rows(dense: torch.Tensor, num_kept: int, factor: bool) -> SparseRow
 def transfer_inputs(shot: ShotSpec, texture_samples: int, num_gathers: int, seed: int) -> tuple[Tracer, GBuffer,
                                                                                                 GatherSamples]:
     """The shot's BVH, view samples (one per pixel centre) and gathers, built once per process."""
-    scene, camera = load_shot(shot)
-    tracer = shot_tracer(shot)  # shared with the direct chunks run in this process
-    view = bake_deep_framebuffer(scene, camera, 1, texture_samples, tracer=tracer).gbuffer
-    return tracer, view, create_gathers(scene, num_gathers, seed)
+    scene, _ = load_shot(shot)
+    return shot_tracer(shot), view_samples(shot, texture_samples), create_gathers(scene, num_gathers, seed)
 
 
 def _bake_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
