@@ -94,10 +94,9 @@ def fill_small_holes(view: ViewPoints, pool_row: torch.Tensor, pool: GBuffer,
             > SAME_SURFACE_COS)
         filled[todo[take]] = sample[take]
         todo = todo[~take]
-    new_rows = filled
     num_holes = int(hole_points.numel())
     report = HoleReport(
-        num_points=view.num_points, num_holes=num_holes, num_filled=num_holes - int((new_rows < 0).sum()),
+        num_points=view.num_points, num_holes=num_holes, num_filled=num_holes - int((filled < 0).sum()),
         num_large_holes=int(np.count_nonzero(sizes > max_fill_pixels)),
         large_pixel_index=torch.nonzero(large).squeeze(-1))
-    return new_rows, report
+    return filled, report
