@@ -35,8 +35,8 @@ from pathlib import Path
 
 from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
 from pipeline.benchmarks.bench.measure import cache_bytes, device_name, moved, relight_ms
+from pipeline.benchmarks.bench.references import References
 from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, format_params, write_csv
-from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import read_cache_layer
@@ -44,20 +44,6 @@ from relight_torch.cuts.open import open_cuts_relighter
 from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.relighter import shot_lights
-
-
-def references(shot: Path, layers: dict[str, Path | None], camera_path: str, width: int, height: int,
-               spp: int, bounces: int) -> dict:
-    """Light edit -> ((H, W, 3) `PathTracer(max_bounces=bounces)` reference, its part beyond the
-    direct light (None for bounces 0))."""
-    out = {}
-    for edit, layer in layers.items():
-        scene = load_scene(shot, lights_layer=layer, width=width, height=height)
-        camera = find_camera(scene, camera_path)
-        images = [PathTracer(scene, ReferenceSettings(spp=spp, max_bounces=b)).render(camera).mean
-                  for b in sorted({bounces, 0}, reverse=True)]
-        out[edit] = (images[0], images[0] - images[1] if bounces else None)
-    return out
 
 
 def cut_rows(relighter: CutsRelighter, layer: Path, scene_name: str, args: argparse.Namespace,
@@ -127,8 +113,10 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[Sw
     bundled = SCENES[name]
     shot = bundled.write(directory)
     layers = {"shot": None} if args.timing else light_edit_layers(name, directory)
-    expected = None if args.timing else references(shot, layers, bundled.camera, args.width, args.height, args.spp,
-                                                    int(args.mode == "indirect"))
+    bounces = int(args.mode == "indirect")
+    refs = References(shot, bundled.camera, args.width, args.height, layers, args.spp, directory / "references")
+    expected = None if args.timing else {
+        edit: (refs.full(edit, bounces), refs.indirect(edit, bounces) if bounces else None) for edit in layers}
     scene = load_scene(shot, width=args.width, height=args.height)
     camera = find_camera(scene, bundled.camera)
     rows, bakes = [], []

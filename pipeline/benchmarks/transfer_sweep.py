@@ -33,15 +33,14 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from pipeline.bake.direct import bake_direct
 from pipeline.bake.transfer.bake import F_PREFIX, TransferSettings, bake_transfer, matrix_payloads
 from pipeline.bake.transfer.gather_cloud import create_gathers
 from pipeline.benchmarks.bench.measure import relight_ms
+from pipeline.benchmarks.bench.references import References
 from pipeline.benchmarks.rows import COLUMNS
-from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import read_cache_layer
@@ -52,26 +51,14 @@ from relight_torch.transfer.open import open_transfer_relighter
 from relight_torch.transfer.relighter import TransferRelighter
 from relight_torch.transfer.sparse import SparseRows, cull
 
-def references(shot: Path, layers: dict[str, Path | None], camera_path: str, width: int, height: int, spp: int,
-               num_bounces: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per light edit: (B-bounce reference, its indirect part = B-bounce minus 0-bounce)."""
-    out = {}
-    for edit, layer in layers.items():
-        scene = load_scene(shot, lights_layer=layer, width=width, height=height)
-        camera = find_camera(scene, camera_path)
-        full, direct = (PathTracer(scene, ReferenceSettings(spp=spp, max_bounces=b)).render(camera).mean
-                        for b in (num_bounces, 0))
-        out[edit] = (full, full - direct)
-    return out
-
-
 def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
     """Print the CSV rows of one scene."""
     bundled = SCENES[name]
     (directory / "culled").mkdir(parents=True, exist_ok=True)
     shot = bundled.write(directory)
     layers = light_edit_layers(name, directory)
-    expected = references(shot, layers, bundled.camera, args.width, args.height, args.spp, args.bounces)
+    refs = References(shot, bundled.camera, args.width, args.height, layers, args.spp, directory / "references")
+    expected = {edit: (refs.full(edit, args.bounces), refs.indirect(edit, args.bounces)) for edit in layers}
     scene = load_scene(shot, width=args.width, height=args.height)
     camera = find_camera(scene, bundled.camera)
     for num_gathers in args.gathers:
@@ -163,8 +150,9 @@ def accuracy_caches(args: argparse.Namespace) -> None:
         relighter = open_transfer_relighter(layer, shadows=args.shadows, cull_tolerance=args.cull)
         description = relighter.direct.description
         width, height = description.resolution
-        (full, reference_indirect), = references(Path(description.source), {"shot": None}, description.camera_path,
-                                                 width, height, args.spp, relighter.num_bounces).values()
+        refs = References(Path(description.source), description.camera_path, width, height, {"shot": None}, args.spp,
+                          Path(layer).parent / "references")
+        full, reference_indirect = refs.full("shot", relighter.num_bounces), refs.indirect("shot", relighter.num_bounces)
         image, indirect = relighter.render().numpy(), relighter.indirect_image().numpy()
         params = " ".join(f"{key}={value}" for key, value in
                           {**description.parameters, "cull": args.cull, "spp": args.spp}.items())
