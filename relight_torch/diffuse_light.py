@@ -18,7 +18,7 @@ from relight_torch.errors import RelightError
 from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light
 from relight_torch.lights.light import Light
-from relight_torch.lights.linking import linked_objects
+from relight_torch.lights.linking import linked_points
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.visibility import Visibility
 
@@ -84,5 +84,4 @@ def link_mask(light: Light, object_id: torch.Tensor | None,
     if object_id is None or object_paths is None:
         raise RelightError(f"{light.path}: light linking of indirect light needs the gathers' object ids "
                            f"(re-bake the cache with this version)")
-    linked = torch.from_numpy(linked_objects(object_paths, light.light_link)).to(object_id.device)
-    return linked[object_id.long()]
+    return linked_points(object_paths, light.light_link, object_id)

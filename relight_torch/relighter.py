@@ -55,7 +55,7 @@ from relight_torch.light_samples import adaptive_sample_count, angular_radius, f
 from relight_torch.lights.emission import is_delta_light, light_radiance_scale, sample_light
 from relight_torch.lights.geometry import LightFrame
 from relight_torch.lights.light import Light, LightKind
-from relight_torch.lights.linking import decode_paths, linked_objects
+from relight_torch.lights.linking import decode_paths, linked_points
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.lights.shaping import emission_factor
 from relight_torch.lights.usd import read_stage_lights
@@ -400,8 +400,7 @@ class Relighter:
                 raise ValueError(f"{light.path}: light linking needs the cache's object paths "
                                  f"(re-bake the cache with this version)")
             g = self.gbuffer
-            linked = torch.from_numpy(linked_objects(self.object_paths, link)).to(g.device)
-            self._masks[link] = linked[g.object_id.long()].to(g.position.dtype).unsqueeze(-1)
+            self._masks[link] = linked_points(self.object_paths, link, g.object_id).to(g.position.dtype).unsqueeze(-1)
             self.counters["masks"] += 1
         return self._masks[link]
 

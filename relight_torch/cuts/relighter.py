@@ -35,7 +35,7 @@ from relight_torch.cuts.merge import MergedCuts, merge, refine_nodes
 from relight_torch.cuts.tree import LightTree
 from relight_torch.lights.dome import REC709_LUMINANCE
 from relight_torch.lights.light import Light, LightKind
-from relight_torch.lights.linking import linked_objects
+from relight_torch.lights.linking import linked_points
 from relight_torch.math.frame import to_local
 from relight_torch.relighter import Relighter, light_group
 from relight_torch.transfer.gathers import GatherSamples, gather_radiance
@@ -324,8 +324,7 @@ class CutsRelighter:
         g = self.direct.gbuffer
         if self.direct.object_paths is None:
             raise ValueError("light linking needs the cache's object paths (re-bake the cache)")
-        linked = torch.from_numpy(linked_objects(self.direct.object_paths, link)).to(g.device)
-        return linked[g.object_id.long()].to(g.position.dtype).unsqueeze(-1)
+        return linked_points(self.direct.object_paths, link, g.object_id).to(g.position.dtype).unsqueeze(-1)
 
     def _merged_samples(self, lights: list[Light], emission: bool) -> torch.Tensor:
         """`cut_samples` of lights sharing one light link (or indirect mode).

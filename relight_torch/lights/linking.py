@@ -15,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+import torch
 from pxr import Sdf, Usd, UsdGeom
 
 
@@ -70,6 +71,12 @@ def linked_objects(object_paths: Sequence[str], link: tuple[str, ...] | None) ->
         return np.ones(len(object_paths), bool)
     members = set(link)
     return np.array([path in members or path.split("[", 1)[0] in members for path in object_paths], bool)
+
+
+def linked_points(object_paths: Sequence[str], link: tuple[str, ...], object_id: torch.Tensor) -> torch.Tensor:
+    """(N,) bool on `object_id`'s device: whether light link `link` includes each point's object
+    (`object_id` (N,) indexes `object_paths`)."""
+    return torch.from_numpy(linked_objects(object_paths, link)).to(object_id.device)[object_id.long()]
 
 
 def encode_paths(paths: Sequence[str]) -> np.ndarray:
