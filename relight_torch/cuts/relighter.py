@@ -340,7 +340,8 @@ class CutsRelighter:
         self.stats.clear()
         if self.mode == "env" and not lights:
             return out
-        key = (tuple(map(id, lights)), emission, self.settings.max_cut)
+        # Env mode has no surface emission in its leaves: with or without it the cut is the same.
+        key = (tuple(map(id, lights)), emission and self.mode == "indirect", self.settings.max_cut)
         if self._illumination is None or self._illumination[0] != key:  # a material edit keeps the cut
             self._illumination = (key, lights, self.illumination_cut(lights, emission))
         nodes, diffuse_light, specular_light = self._illumination[2]
