@@ -13,7 +13,8 @@
 3. The chosen sizes are baked at the full size into OUT and measured against a full-size
    reference (same noise rule). If that misses the target, the threshold is raised by the miss and
    the search goes on (once).
-4. The cache layer's parameters record the choice (the method's own parameters hold the sizes)
+4. The cache layer's parameters record the choice (the method's own parameters hold the bake
+   sizes; qualityChoice all of them, relight-time ones such as the illumination cut size included)
    and: qualityTarget, qualityPredicted (pilot PSNR), qualityMeasured (full size), qualityRawPsnr,
    qualityReferenceSpp and qualityPilot ('WxH').
 
@@ -52,6 +53,13 @@ LADDERS: dict[str, list[dict[str, object]]] = {
     "transfer": [{"gathers": g, "coefficients": (10, 25, 50, 100, 200)} for g in (1024, 4096, 16384)],
     "gather": [{"clusters": c, "representativeScale": f} for c, f in
                ((8, "0.25"), (16, "0.25"), (16, "0.5"), (32, "0.5"), (32, "1"), (64, "1"), (120, "1"))],
+    # A smaller sigma refines the visibility cuts (bytes); the illumination cut sizes cost relight
+    # time only and come from one bake, so the cheapest passing one is kept.
+    "cuts": [{"lights": n, "sigma": s, "cut": (128, 256, 512)} for n, s in
+             ((1024, 3.0), (1024, 2.0), (4096, 2.0), (4096, 1.5), (16384, 1.5), (65536, 1.5))],
+    # More caching cameras (a lower uncovered fraction), then larger caching images.
+    "multiview": [{"coverage": c, "maxResolution": r} for c, r in
+                  (("0.1", 256), ("0.05", 256), ("0.05", 512), ("0.02", 512), ("0.02", 1024))],
 }
 """Per method, the bake points tried, cheapest first (tuples: variants of one bake)."""
 
@@ -215,16 +223,17 @@ def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: st
     if measured_db < target_db:
         log.warning("bake --quality %g: %s measured %.2f dB at full size after a retry", target_db, point, measured_db)
     reference_spp = round(full_reference.num_paths / (camera.width * camera.height))
-    _record(layer, target_db, chosen.psnr_db, measured_db, raw_db, reference_spp, (width, height))
+    _record(layer, point, target_db, chosen.psnr_db, measured_db, raw_db, reference_spp, (width, height))
     return QualityResult(layer, point, chosen.psnr_db, measured_db, raw_db, reference_spp, (width, height),
                          tuple(candidates))
 
 
-def _record(layer: Path, target_db: float, predicted_db: float, measured_db: float, raw_db: float,
-            reference_spp: int, pilot: tuple[int, int]) -> None:
+def _record(layer: Path, point: dict[str, object], target_db: float, predicted_db: float, measured_db: float,
+            raw_db: float, reference_spp: int, pilot: tuple[int, int]) -> None:
     """Add the quality parameters to the cache layer (and re-hash them into its content hash)."""
     description = read_cache_layer(layer)
-    parameters = {**description.parameters, "qualityTarget": float(target_db), "qualityPredicted": float(predicted_db),
+    parameters = {**description.parameters, "qualityChoice": " ".join(f"{k}={v}" for k, v in point.items()),
+                  "qualityTarget": float(target_db), "qualityPredicted": float(predicted_db),
                   "qualityMeasured": float(measured_db), "qualityRawPsnr": float(raw_db),
                   "qualityReferenceSpp": int(reference_spp), "qualityPilot": f"{pilot[0]}x{pilot[1]}"}
     write_cache_layer(layer, dataclasses.replace(

@@ -140,6 +140,11 @@ def _bake(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fixed_sizes(args: argparse.Namespace) -> dict[str, object] | None:
+    """The options `--quality` keeps as given while it sizes the rest (see `bake_for_quality`)."""
+    return {"transfer": {"bounces": args.bounces}, "cuts": {"mode": args.mode}}.get(args.method)
+
+
 def _bake_method(args: argparse.Namespace, stem: str) -> Path:
     """Run the bake `args` asks for; the cache layer's path."""
     start = time.perf_counter()
@@ -148,7 +153,7 @@ def _bake_method(args: argparse.Namespace, stem: str) -> Path:
     if args.quality is not None:
         result = bake_for_quality(scene, camera, args.out, stem, args.method, args.quality, args.supersampling,
                                   args.texture_samples, args.time,
-                                  fixed={"bounces": args.bounces} if args.method == "transfer" else None)
+                                  fixed=_fixed_sizes(args))
         print(f"{result.layer}: {args.method} cache sized for {args.quality:g} dB: {result.point} (pilot "
               f"{result.predicted_db:.1f} dB, measured {result.measured_db:.1f} dB) in {time.perf_counter() - start:.1f} s")
         return result.layer

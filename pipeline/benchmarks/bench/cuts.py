@@ -20,9 +20,10 @@ CUT_SIZES = (128, 256, 512)
 
 
 def settings(point: dict[str, object]) -> CutsSettings:
-    """The bake settings of a point (keys lights, sigma)."""
+    """The bake settings of a point (keys lights, sigma, mode)."""
     defaults = CutsSettings()
-    return CutsSettings(num_lights=int(point.get("lights", defaults.num_lights)),
+    return CutsSettings(mode=str(point.get("mode", defaults.mode)),
+                        num_lights=int(point.get("lights", defaults.num_lights)),
                         sigma=float(point.get("sigma", defaults.sigma)))
 
 
@@ -38,7 +39,7 @@ class CutsAdapter:
         return [{"lights": 8192, "sigma": sigma} for sigma in (1.5, 2.0, 3.0)]
 
     def bounces(self, point: dict[str, object]) -> int:
-        return 0
+        return 1 if settings(point).mode == "indirect" else 0
 
     def bake(self, scene: Scene, camera: Camera, directory: Path, stem: str, point: dict[str, object],
              supersampling: int, texture_samples: int, time_code: float | None = None) -> Path:
@@ -46,9 +47,10 @@ class CutsAdapter:
                          settings=settings(point))
 
     def variants(self, layer: Path, point: dict[str, object], device: str) -> list[Variant]:
-        """One variant per illumination cut size: CUT_SIZES, or the point's 'cut' alone."""
+        """One variant per illumination cut size: the point's 'cut' (a size or a tuple), else CUT_SIZES."""
         num_bytes, bake = cache_bytes(layer), settings(point)
-        sizes = (int(point["cut"]),) if "cut" in point else CUT_SIZES
+        sizes = point.get("cut", CUT_SIZES)
+        sizes = tuple(int(size) for size in (sizes if isinstance(sizes, tuple) else (sizes,)))
         return [Variant({"mode": bake.mode, "lights": bake.num_lights, "sigma": bake.sigma, "cut": size},
                         open_cuts_relighter(layer, device=device, cuts_settings=CutsRelightSettings(max_cut=size)),
                         num_bytes)

@@ -42,7 +42,7 @@ class MultiviewAdapter:
         resolution = int(point["maxResolution"])
         settings = PlacementSettings(coverage=float(point["coverage"]), max_resolution=resolution,
                                      min_resolution=min(PlacementSettings().min_resolution, resolution),
-                                     num_samples=int(point["samples"]))
+                                     num_samples=int(point.get("samples", PlacementSettings().num_samples)))
         return bake_multiview(scene, camera, directory, stem, supersampling, texture_samples, time_code, settings)
 
     def variants(self, layer: Path, point: dict[str, object], device: str) -> list[Variant]:
