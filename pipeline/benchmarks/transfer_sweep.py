@@ -36,25 +36,24 @@ from pathlib import Path
 import torch
 
 from pipeline.bake.direct import bake_direct
-from pipeline.bake.transfer.bake import F_PREFIX, TransferSettings, bake_transfer, matrix_payloads
+from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
 from pipeline.bake.transfer.gather_cloud import create_gathers
 from pipeline.benchmarks.bench.measure import relight_ms
 from pipeline.benchmarks.bench.references import References
-from pipeline.benchmarks.rows import COLUMNS
+from pipeline.benchmarks.bench.transfer import culled_variants
+from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, format_params
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
-from relight_torch.cache.layer import read_cache_layer
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.relighter import open_relighter, shot_lights
-from relight_torch.transfer.encoding import decode_rows, encode_rows
 from relight_torch.transfer.open import open_transfer_relighter
 from relight_torch.transfer.relighter import TransferRelighter
-from relight_torch.transfer.sparse import SparseRows, cull
+from relight_torch.transfer.sparse import SparseRows
+
 
 def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
     """Print the CSV rows of one scene."""
     bundled = SCENES[name]
-    (directory / "culled").mkdir(parents=True, exist_ok=True)
     shot = bundled.write(directory)
     layers = light_edit_layers(name, directory)
     refs = References(shot, bundled.camera, args.width, args.height, layers, args.spp, directory / "references")
@@ -70,27 +69,18 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
         layer = bake_transfer(scene, camera, cache, name, args.supersampling, args.texture_samples,
                               settings=settings, progress=False)
         bake_s = time.perf_counter() - start
-        description = read_cache_layer(layer)
-        base_bytes = sum(p.num_bytes for p in description.payloads if not p.name.startswith(F_PREFIX))
         relighter = open_transfer_relighter(layer, shadows=args.shadows)
-        stored = relighter.final_gather
-        for num_kept in sorted(args.coefficients):
-            encoded = encode_rows(cull(stored, num_kept), settings.encoding)
-            payloads = matrix_payloads(directory / "culled", name, F_PREFIX, encoded)
-            rows = decode_rows(encoded).to("cpu", stored.values.dtype)
-            point = TransferRelighter(relighter.direct, relighter.gathers, relighter.view_pixels, rows,
-                                      relighter.bounce, relighter.num_bounces, upsampler=relighter.upsampler)
-            cache_bytes = base_bytes + sum(p.num_bytes for p in payloads)
-            params = " ".join(f"{key}={value}" for key, value in
-                              {**settings.parameters(), "coefficients": num_kept}.items())
+        description = relighter.direct.description
+        for variant in culled_variants(layer, relighter, settings, sorted(args.coefficients)):
+            point, params = variant.relighter, format_params(variant.parameters)
             for edit, layer_path in layers.items():
                 point.set_lights(shot_lights(description, layer_path))
                 image, indirect = point.render().numpy(), point.indirect_image().numpy()
                 full, reference_indirect = expected[edit]
-                timing = relight_ms(point) if edit == "shot" else float("nan")
-                print(f"transfer,{name},{args.width},{args.height},{edit},{params},{psnr(image, full):.2f},"
-                      f"{psnr(indirect, reference_indirect):.2f},{rel_mse(image, full):.4g},{cache_bytes},"
-                      f"{bake_s:.1f},{timing:.1f},cpu", flush=True)
+                timing = relight_ms(point) if edit == "shot" else NAN
+                print(csv_line(SweepRow("transfer", name, args.width, args.height, edit, params, psnr(image, full),
+                                        psnr(indirect, reference_indirect), rel_mse(image, full),
+                                        variant.cache_bytes, bake_s, timing)), flush=True)
 
 
 def synthetic_rows(num_rows: int, num_columns: int, num_kept: int, factored: bool, seed: int = 0) -> SparseRows:
@@ -121,9 +111,11 @@ def time_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
             rows = synthetic_rows(view_pixels.shape[0], num_gathers, max(args.coefficients), factored)
             relighter = TransferRelighter(direct, gathers, view_pixels, rows.to("cpu", torch.float32))
             relighter.render()
-            params = f"gathers={num_gathers} coefficients={max(args.coefficients)} rowColour={int(factored)} synthetic=1"
-            print(f"transfer,{name},{args.width},{args.height},shot,{params},,,,{rows.num_bytes},,"
-                  f"{relight_ms(relighter, repeats=7):.1f},cpu", flush=True)
+            params = format_params({"gathers": num_gathers, "coefficients": max(args.coefficients),
+                                    "rowColour": int(factored), "synthetic": 1})
+            print(csv_line(SweepRow("transfer", name, args.width, args.height, "shot", params,
+                                    cache_bytes=rows.num_bytes, relight_ms=relight_ms(relighter, repeats=7))),
+                  flush=True)
 
 
 def time_caches(args: argparse.Namespace) -> None:
@@ -137,10 +129,10 @@ def time_caches(args: argparse.Namespace) -> None:
                       "threads": torch.get_num_threads()}
         cache_bytes = sum(p.num_bytes for p in description.payloads)
         relighter.render()
-        for part, timing in (("total", relight_ms(relighter, repeats=7)), ("indirect", relight_ms(relighter, repeats=7, part="indirect_image"))):
-            params = " ".join(f"{key}={value}" for key, value in {**parameters, "part": part}.items())
-            print(f"transfer,{Path(description.source).stem},{width},{height},shot,{params},,,,{cache_bytes},,"
-                  f"{timing:.1f},cpu", flush=True)
+        for part, method in (("total", "render"), ("indirect", "indirect_image")):
+            print(csv_line(SweepRow("transfer", Path(description.source).stem, width, height, "shot",
+                                    format_params({**parameters, "part": part}), cache_bytes=cache_bytes,
+                                    relight_ms=relight_ms(relighter, repeats=7, part=method))), flush=True)
 
 
 def accuracy_caches(args: argparse.Namespace) -> None:
@@ -154,11 +146,10 @@ def accuracy_caches(args: argparse.Namespace) -> None:
                           Path(layer).parent / "references")
         full, reference_indirect = refs.full("shot", relighter.num_bounces), refs.indirect("shot", relighter.num_bounces)
         image, indirect = relighter.render().numpy(), relighter.indirect_image().numpy()
-        params = " ".join(f"{key}={value}" for key, value in
-                          {**description.parameters, "cull": args.cull, "spp": args.spp}.items())
-        print(f"transfer,{Path(description.source).stem},{width},{height},shot,{params},{psnr(image, full):.2f},"
-              f"{psnr(indirect, reference_indirect):.2f},{rel_mse(image, full):.4g},"
-              f"{sum(p.num_bytes for p in description.payloads)},,,cpu", flush=True)
+        params = format_params({**description.parameters, "cull": args.cull, "spp": args.spp})
+        print(csv_line(SweepRow("transfer", Path(description.source).stem, width, height, "shot", params,
+                                psnr(image, full), psnr(indirect, reference_indirect), rel_mse(image, full),
+                                sum(p.num_bytes for p in description.payloads))), flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:

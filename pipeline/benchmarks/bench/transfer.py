@@ -55,23 +55,31 @@ class TransferAdapter:
                              settings=settings(point), progress=False)
 
     def variants(self, layer: Path, point: dict[str, object], device: str) -> list[Variant]:
-        baked_settings = settings(point)
-        description = read_cache_layer(layer)
-        base_bytes = sum(p.num_bytes for p in description.payloads if not p.name.startswith(F_PREFIX))
         baked = open_transfer_relighter(layer, device=device)
-        stored = baked.final_gather.to("cpu", baked.final_gather.values.dtype)
-        culled_dir = layer.parent / "culled"
-        culled_dir.mkdir(exist_ok=True)
-        out = []
-        for num_kept in kept_counts(point):
-            encoded = encode_rows(cull(stored, num_kept), baked_settings.encoding)
-            payloads = matrix_payloads(culled_dir, f"{layer.name.split('.')[0]}-{num_kept}", F_PREFIX, encoded)
-            final_gather = decode_rows(encoded).to(device, stored.values.dtype)
-            relighter = TransferRelighter(baked.direct, baked.gathers, baked.view_pixels, final_gather, baked.bounce,
-                                          baked.num_bounces, upsampler=baked.upsampler)
-            out.append(Variant({**baked_settings.parameters(), "coefficients": num_kept}, relighter,
-                               base_bytes + sum(p.num_bytes for p in payloads)))
-        return out
+        return culled_variants(layer, baked, settings(point), kept_counts(point))
+
+
+def culled_variants(layer: Path, baked: TransferRelighter, baked_settings: TransferSettings,
+                    counts: list[int]) -> list[Variant]:
+    """One variant per kept coefficient count of the cache `layer` opened as `baked`: its F rows
+    culled to that count and encoded as the bake would (parts written under `<cache>/culled`,
+    counted in the variant's cache bytes)."""
+    description = read_cache_layer(layer)
+    base_bytes = sum(p.num_bytes for p in description.payloads if not p.name.startswith(F_PREFIX))
+    stored = baked.final_gather.to("cpu", baked.final_gather.values.dtype)
+    device = baked.final_gather.values.device
+    culled_dir = layer.parent / "culled"
+    culled_dir.mkdir(exist_ok=True)
+    out = []
+    for num_kept in counts:
+        encoded = encode_rows(cull(stored, num_kept), baked_settings.encoding)
+        payloads = matrix_payloads(culled_dir, f"{layer.name.split('.')[0]}-{num_kept}", F_PREFIX, encoded)
+        final_gather = decode_rows(encoded).to(device, stored.values.dtype)
+        relighter = TransferRelighter(baked.direct, baked.gathers, baked.view_pixels, final_gather, baked.bounce,
+                                      baked.num_bounces, upsampler=baked.upsampler)
+        out.append(Variant({**baked_settings.parameters(), "coefficients": num_kept}, relighter,
+                           base_bytes + sum(p.num_bytes for p in payloads)))
+    return out
 
 
 ADAPTER = TransferAdapter()
