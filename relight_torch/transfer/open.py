@@ -87,15 +87,12 @@ def open_cache_relighter(path: str | os.PathLike, device: str | torch.device = "
         RelightError: the layer is unreadable, of another method, stale or corrupt.
     """
     method = read_cache_layer(path).method
-    if method == "direct":
-        return open_relighter(path, device, shadows, lights_layer, settings)
-    if method == "transfer":
-        return open_transfer_relighter(path, device, shadows, lights_layer, settings)
-    if method == "gather":
-        return open_gather_relighter(path, device, shadows, lights_layer, settings)
-    if method == "multiview":
-        return open_multiview_relighter(path, device, shadows, lights_layer, settings)
-    if method == "cuts":
-        return open_cuts_relighter(path, device, shadows, lights_layer, settings)
-    raise RelightError(f"{path}: cannot relight a {method!r} cache "
-                       f"(this build relights 'direct', 'transfer', 'gather', 'multiview' and 'cuts')")
+    if method not in _OPENERS:
+        raise RelightError(f"{path}: cannot relight a {method!r} cache "
+                           f"(this build relights {', '.join(repr(name) for name in _OPENERS)})")
+    return _OPENERS[method](path, device, shadows, lights_layer, settings)
+
+
+_OPENERS = {"direct": open_relighter, "transfer": open_transfer_relighter, "gather": open_gather_relighter,
+            "multiview": open_multiview_relighter, "cuts": open_cuts_relighter}
+"""The opener of each cache method; each takes (path, device, shadows, lights_layer, settings)."""
