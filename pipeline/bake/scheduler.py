@@ -233,20 +233,29 @@ def spec_digest(spec: ChunkSpec) -> str:
 
 
 def load_chunk(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """A chunk file's arrays (without the spec digest); never unpickles."""
-    with np.load(path, allow_pickle=False) as saved:
-        return {key: saved[key] for key in saved.files if key != SPEC_KEY}
+    """A chunk file's arrays (without the spec digest); never unpickles.
+
+    Raises:
+        RelightError: the file is unreadable or damaged (a zip CRC fails); re-running the bake redoes it.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as saved:
+            return {key: saved[key] for key in saved.files if key != SPEC_KEY}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
+        raise RelightError(f"{path}: chunk file unreadable ({error}); run the bake again to redo it") from None
 
 
-def chunk_is_valid(path: Path, digest: str) -> bool:
-    """The chunk file exists, every array reads back (zip CRCs hold) and it was computed for `digest`."""
+def chunk_is_valid(path: Path, digest: str, read_members: bool = True) -> bool:
+    """The chunk file exists, was computed for `digest` and (with `read_members`) every array reads
+    back (zip CRCs hold). A chunk just written by a worker is checked without `read_members`: its
+    arrays are read, CRCs checked, when the bake assembles it (`load_chunk`)."""
     if not path.is_file():
         return False
     try:
         with np.load(path, allow_pickle=False) as saved:
             if SPEC_KEY not in saved.files or str(saved[SPEC_KEY]) != digest:
                 return False
-            for key in saved.files:
+            for key in saved.files if read_members else ():
                 saved[key]  # reading each member checks its zip CRC (a damaged file raises)
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError):
         return False
@@ -312,7 +321,7 @@ def run_chunks(compute: Callable[[ChunkSpec], dict[str, np.ndarray]], specs: Seq
     with progress_bar(label, total, unit, scheduler.progress if progress is None else progress) as update:
         update(done, total)
         for i in _submit(compute, [specs[i] for i in pending], chunk_dir, scheduler, pending):
-            if not chunk_is_valid(paths[i], digests[i]):
+            if not chunk_is_valid(paths[i], digests[i], read_members=False):
                 raise RelightError(f"{paths[i]}: chunk {specs[i].name} [{specs[i].start}, {specs[i].stop}) "
                                    f"came back missing or invalid (does the worker see {chunk_dir}?)")
             done += specs[i].stop - specs[i].start
