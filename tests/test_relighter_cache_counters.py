@@ -27,6 +27,7 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.lights.emission import sample_light
 from relight_torch.lights.light import BarzelShaping, Light, LightKind, Shadow, Shaping
+from relight_torch.lights.polygon import analytic_ratio
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.light_samples import fixed_light_samples
 from relight_torch.math.frame import to_local
@@ -34,7 +35,7 @@ from relight_torch.relighter import Relighter, RelightSettings, colour_scale, op
 from relight_torch.shading import reflected_radiance
 
 SIZE = 32
-SETTINGS = RelightSettings(area_samples=4, chunk_samples=1024)
+SETTINGS = RelightSettings(area_samples=4, chunk_samples=1024, shadow_filter_radius=0)  # the per-sample twin: unfiltered
 UP = np.array([0.0, 1.0, 0.0])
 
 
@@ -173,7 +174,9 @@ def test_unchanged_rig_costs_nothing(relighter):
 
 def slow_light_samples(relighter: Relighter, light: Light) -> torch.Tensor:
     """(N, 3) radiance the light reflects at every sub-sample, evaluated per sample of the SHAPED
-    light with `reflected_radiance` (the slow twin of the relighter's cached transport)."""
+    light with `reflected_radiance` (the slow twin of the relighter's cached transport); for a
+    rect light the diffuse part times the ratio estimator's closed form over the samples' own
+    unshaped, unshadowed estimate of it."""
     g = relighter.gbuffer
     u = fixed_light_samples(g.num_samples, relighter.num_light_samples(light), SETTINGS.seed)
     sample = sample_light(light, g.position, u)
@@ -183,9 +186,13 @@ def slow_light_samples(relighter: Relighter, light: Light) -> torch.Tensor:
     weight = sample.weight() * shadow_factor(light.shadow, torch.isfinite(distance), distance) * facing[..., None]
     wo_local = to_local(g.wo_world(), g.tangent, g.bitangent, g.normal)
     wi_local = to_local(sample.direction, g.tangent[:, None], g.bitangent[:, None], g.normal[:, None])
-    reflected = reflected_radiance(g.params.with_sample_axis(), wo_local[:, None], wi_local, weight,
-                                   light.diffuse, light.specular)
-    return reflected.mean(dim=1)
+    params = g.params.with_sample_axis()
+    diffuse = reflected_radiance(params, wo_local[:, None], wi_local, weight, light.diffuse, 0.0).mean(dim=1)
+    specular = reflected_radiance(params, wo_local[:, None], wi_local, weight, 0.0, light.specular).mean(dim=1)
+    estimate = (torch.isfinite(sample.distance) * facing * wi_local[..., 2].clamp_min(0.0)
+                * sample.inverse_pdf()).mean(dim=1)
+    ratio = analytic_ratio(light, g.position, g.normal, estimate)
+    return (diffuse if ratio is None else diffuse * ratio[:, None]) + specular
 
 
 def test_cached_transport_matches_per_sample_shading(relighter):

@@ -111,6 +111,22 @@ def _storm_lobe(alpha: torch.Tensor, cos_l: torch.Tensor, cos_e: torch.Tensor, c
     return microfacet / (4.0 * cos_l * cos_e + STORM_EPSILON)
 
 
+def _half_angles(wo_local: torch.Tensor, wi_local: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """(N.E, N.L, N.h clamped to >= 0; E.h, 0 below the horizon; above (bool)), each (...)."""
+    cos_e = wo_local[..., 2].clamp_min(0.0)
+    cos_l = wi_local[..., 2].clamp_min(0.0)
+    # The half vector h = (wo + wi) / max(|wo + wi|, 1e-12) (`half_vector`) enters only through
+    # N.h and E.h: computed as scalars, since on the CPU (..., 3) vector ops cost several times
+    # as much. Likewise the horizon rule multiplies scalars before they meet the colours.
+    h = wo_local + wi_local
+    length = dot(h, h).sqrt().clamp_min(1e-12)
+    cos_h = (h[..., 2] / length).clamp_min(0.0)
+    e_dot_h = dot(wo_local, h) / length
+    above = above_horizon(wo_local, wi_local)
+    e_dot_h = torch.where(above, e_dot_h, 0.0)  # what is masked below may be anything, even NaN
+    return cos_e, cos_l, cos_h, e_dot_h, above
+
+
 def split(
     params: PreviewSurfaceParams, wo_local: torch.Tensor, wi_local: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -125,17 +141,7 @@ def split(
         (diffuse, specular), 0 where either direction is below the horizon.
     """
     check_pair(wo_local, wi_local)
-    cos_e = wo_local[..., 2].clamp_min(0.0)
-    cos_l = wi_local[..., 2].clamp_min(0.0)
-    # The half vector h = (wo + wi) / max(|wo + wi|, 1e-12) (`half_vector`) enters only through
-    # N.h and E.h: computed as scalars, since on the CPU (..., 3) vector ops cost several times
-    # as much. Likewise the horizon rule multiplies scalars before they meet the colours.
-    h = wo_local + wi_local
-    length = dot(h, h).sqrt().clamp_min(1e-12)
-    cos_h = (h[..., 2] / length).clamp_min(0.0)
-    e_dot_h = dot(wo_local, h) / length
-    above = above_horizon(wo_local, wi_local)
-    e_dot_h = torch.where(above, e_dot_h, 0.0)  # what is masked below may be anything, even NaN
+    cos_e, cos_l, cos_h, e_dot_h, above = _half_angles(wo_local, wi_local)
     f0, f90 = _specular_colors(params)
     fresnel = schlick_fresnel(f0, f90, e_dot_h.unsqueeze(-1))
     lobe = _storm_lobe(storm_alpha(params.roughness), cos_l, cos_e, cos_h)
@@ -145,6 +151,53 @@ def split(
         coat_fresnel = schlick_fresnel(_dielectric_f0(params).unsqueeze(-1), 1.0, e_dot_h.unsqueeze(-1))
         specular = specular + coat_fresnel * torch.where(above, params.clearcoat * coat_lobe, 0.0).unsqueeze(-1)
     diffuse = diffuse_albedo(params) / math.pi * (1.0 - fresnel) * above.to(fresnel.dtype).unsqueeze(-1)
+    return diffuse, specular
+
+
+def split_factors(
+    params: PreviewSurfaceParams, wo_local: torch.Tensor, wi_local: torch.Tensor, coat: bool,
+    weight: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The scalars (..., F) that `split` is linear in, for lights summed over many directions.
+
+    With s = (1 - E.h)^5 the Schlick weight and g, g_c the base and clearcoat lobes of `split`
+    (0 below the horizon), F = 4 (6 with `coat`): [above, above s, g, g s (, g_c, g_c s)].
+    Schlick's F = F0 + (F90 - F0) s is linear in s, so for lights Ld, Ls (..., 3) per direction,
+    sum over directions of (diffuse Ld + specular Ls) = `combine_factors` of the sums of the
+    first two factors times Ld and of the others times Ls. Params broadcast as in `split`;
+    `weight` (...), if given, multiplies every factor (e.g. a cosine and a solid angle).
+    """
+    check_pair(wo_local, wi_local)
+    cos_e, cos_l, cos_h, e_dot_h, above = _half_angles(wo_local, wi_local)
+    schlick = schlick_fresnel(0.0, 1.0, e_dot_h)
+    scale = torch.ones_like(schlick) if weight is None else weight
+
+    def masked_lobe(roughness: torch.Tensor) -> torch.Tensor:
+        return torch.where(above, _storm_lobe(storm_alpha(roughness), cos_l, cos_e, cos_h) * scale, 0.0)
+
+    lit, lobe = torch.where(above, scale, 0.0), masked_lobe(params.roughness)
+    columns = [lit, lit * schlick, lobe, lobe * schlick]
+    if coat:
+        coat_lobe = masked_lobe(params.clearcoat_roughness)
+        columns += [coat_lobe, coat_lobe * schlick]
+    return torch.stack(columns, dim=-1)
+
+
+def combine_factors(params: PreviewSurfaceParams, diffuse_sums: torch.Tensor,
+                    specular_sums: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(diffuse, specular) (N, 3) reflected light from sums of `split_factors` times light.
+
+    Args:
+        params: N rows.
+        diffuse_sums: (N, 2, 3) sums of the factors [above, above s] times the diffuse light.
+        specular_sums: (N, 2 or 4, 3) sums of the other factors times the specular light.
+    """
+    f0, f90 = _specular_colors(params)
+    diffuse = diffuse_albedo(params) / math.pi * ((1.0 - f0) * diffuse_sums[:, 0] - (f90 - f0) * diffuse_sums[:, 1])
+    specular = f0 * specular_sums[:, 0] + (f90 - f0) * specular_sums[:, 1]
+    if specular_sums.shape[1] > 2:
+        r2 = _dielectric_f0(params).unsqueeze(-1)
+        specular = specular + params.clearcoat.unsqueeze(-1) * (r2 * specular_sums[:, 2] + (1.0 - r2) * specular_sums[:, 3])
     return diffuse, specular
 
 

@@ -212,7 +212,7 @@ def _sample_directions(light: Light, frame: LightFrame, receivers: torch.Tensor,
         return _cone_directions(u, _to_distant_light(frame).expand_as(receivers), cos_max)
     if light.kind is LightKind.DOME:
         return _dome_directions(light, frame, u)
-    disk_points, _ = concentric_disk(u)
+    disk_points = concentric_disk(u)[0] if light.kind is LightKind.DISK else None
     emitting_points = frame.point_to_world(sample_area_local(light, disk_points, u))
     return torch.nn.functional.normalize(emitting_points - receivers, dim=-1)
 

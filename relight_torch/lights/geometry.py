@@ -113,14 +113,15 @@ def surface_area(light: Light) -> float:
     raise ValueError(f"{light.path}: {light.kind.value} has no emitting surface")
 
 
-def sample_area_local(light: Light, disk_points: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+def sample_area_local(light: Light, disk_points: torch.Tensor | None, u: torch.Tensor) -> torch.Tensor:
     """Uniform-area points on a rect, disk or cylinder light, in its local frame.
 
     Uniform in local area is uniform in world area under the transforms `check_transform` allows.
 
     Args:
         light: a RECT, DISK or CYLINDER light.
-        disk_points: (..., 2) points of the unit disk, uniform in area (used by the disk).
+        disk_points: (..., 2) points of the unit disk, uniform in area (used by the disk only:
+            None for the others).
         u: (..., 2) uniform numbers in [0, 1).
 
     Returns:
@@ -167,8 +168,10 @@ def intersect_surface(light: Light, frame: LightFrame, origins: torch.Tensor, di
     Returns:
         SurfaceHits with the broadcast shape of the rays.
     """
-    origins, directions = torch.broadcast_tensors(origins, directions)
+    # Per-origin work on the unbroadcast origins (samples share their receiver), then broadcast.
     origin_local = frame.point_to_local(origins)
+    origins, directions = torch.broadcast_tensors(origins, directions)
+    origin_local = origin_local.expand(origins.shape)
     direction_local = frame.vector_to_local(directions)
     area = surface_area(light)
     if light.kind is LightKind.CYLINDER:
@@ -199,8 +202,7 @@ def _plane_crossing(light: Light, origin_local: torch.Tensor, direction_local: t
     else:
         inside = point[..., 0].square() + point[..., 1].square() <= light.radius**2
     hit = inside & (distance > 0) & torch.isfinite(distance)
-    normal = torch.zeros_like(point)
-    normal[..., 2] = -1.0
+    normal = torch.tensor([0.0, 0.0, -1.0], device=point.device, dtype=point.dtype)  # broadcasts
     return torch.where(hit, distance, math.inf), normal
 
 

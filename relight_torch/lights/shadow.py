@@ -33,6 +33,17 @@ def shadow_factor(shadow: Shadow, occluded: torch.Tensor, occluder_distance: tor
     like = occluder_distance
     if not shadow.enable:
         return torch.ones(*like.shape, 3, device=like.device, dtype=like.dtype)
+    color = torch.as_tensor(shadow.color, device=like.device, dtype=like.dtype)
+    return 1.0 - shadow_strength(shadow, occluded, occluder_distance).unsqueeze(-1) * (1.0 - color)
+
+
+def shadow_strength(shadow: Shadow, occluded: torch.Tensor, occluder_distance: torch.Tensor) -> torch.Tensor:
+    """(...) the strength of `shadow_factor` (1 for an occluded point, faded by distance); 0
+    everywhere when shadows are disabled. With a grey shadow colour c the factor is the scalar
+    1 - strength (1 - c)."""
+    like = occluder_distance
+    if not shadow.enable:
+        return torch.zeros_like(like)
     strength = occluded.to(like.dtype)
     if shadow.distance >= 0:
         if shadow.falloff > 0:
@@ -40,5 +51,4 @@ def shadow_factor(shadow: Shadow, occluded: torch.Tensor, occluder_distance: tor
         else:
             fade = (occluder_distance <= shadow.distance).to(like.dtype)
         strength = strength * fade
-    color = torch.as_tensor(shadow.color, device=like.device, dtype=like.dtype)
-    return 1.0 - strength.unsqueeze(-1) * (1.0 - color)
+    return strength

@@ -9,8 +9,10 @@ a being the per-sample variance of a pixel. `measure_spp_curve` renders the shot
 and takes a as the median of the per-render estimates MSE(s) / (1/s + 1/N): clamping to [0, 1]
 trims fireflies at 1 spp, which lowers that render's estimate (by ~30 % with one bounce on the
 Cornell box; at 2..16 spp they agree within ~10 %), and the median ignores it. The render time is
-fitted as fixed + per_spp * s. From it, per method point (light edit 'shot', where relight_ms is
-measured):
+fitted as fixed + per_spp * s over the low-spp renders, each rendered again in this run even when
+cached (the reference's time may come from an earlier run under another load, and the methods'
+relight times are taken in this one). From it, per method point (light edit 'shot', where
+relight_ms is measured):
 
     reference-equal-time   the spp that fits in the method's relight time (per_spp only: the
                            fixed cost is not charged, which favours the path tracer) and the
@@ -71,15 +73,16 @@ class SppCurve:
 
 
 def measure_spp_curve(references: References, bounces: int, spp: tuple[int, ...]) -> SppCurve:
-    """Render the shot at each of `spp` (seed CURVE_SEED) and fit `SppCurve` (see the module doc)."""
+    """Render the shot at each of `spp` (seed CURVE_SEED, timed now) and fit `SppCurve` (see the
+    module doc); with a single count, its time is all per-spp."""
     reference = references.render("shot", bounces)
-    renders = [references.render("shot", bounces, count, CURVE_SEED) for count in spp]
+    renders = [references.render("shot", bounces, count, CURVE_SEED, fresh=True) for count in spp]
     mse = np.array([10 ** (-psnr(render.mean, reference.mean) / 10) for render in renders])
     noise = float(np.median(mse / (1.0 / np.asarray(spp, float) + 1.0 / references.spp)))
-    counts = np.asarray(list(spp) + [references.spp], float)
-    seconds = np.asarray([render.seconds for render in renders] + [reference.seconds])
-    per_spp, fixed = np.polyfit(counts, seconds, 1)
-    return SppCurve(bounces, tuple(spp), tuple(float(s) for s in seconds[:-1]), tuple(float(m) for m in mse),
+    seconds = np.asarray([render.seconds for render in renders])
+    counts = np.asarray(spp, float)
+    per_spp, fixed = np.polyfit(counts, seconds, 1) if len(set(spp)) > 1 else (seconds.mean() / counts[0], 0.0)
+    return SppCurve(bounces, tuple(spp), tuple(float(s) for s in seconds), tuple(float(m) for m in mse),
                     references.spp, reference.seconds, noise, max(float(per_spp), 1e-12), float(fixed))
 
 

@@ -1,7 +1,9 @@
-"""Bench adapter of the direct method: supersampling x shadow technique x light samples (no indirect light).
+"""Bench adapter of the direct method: supersampling x shadow technique x light samples x shadow
+filter (no indirect light).
 
-Light samples per shading point of an area light (`RelightSettings.area_samples`) are a relight
-setting: every count of a point's 'areaSamples' tuple is relit from one bake.
+Light samples per shading point of an area light (`RelightSettings.area_samples`) and the radius of
+the ratio estimator's visibility filter (`RelightSettings.shadow_filter_radius`) are relight
+settings: every pair of a point's 'areaSamples' and 'shadowFilter' tuples is relit from one bake.
 """
 
 from __future__ import annotations
@@ -15,9 +17,9 @@ from pipeline.scene.types import Camera, Scene
 from relight_torch.relighter import RelightSettings, open_relighter
 
 
-def sample_counts(point: dict[str, object]) -> list[int]:
-    """The point's area-light sample counts (an int or a tuple; default the relighter's)."""
-    value = point.get("areaSamples", RelightSettings().area_samples)
+def setting_values(point: dict[str, object], key: str, default: int) -> list[int]:
+    """The point's values of a relight setting (an int or a tuple; `default` when absent)."""
+    value = point.get(key, default)
     return sorted(value) if isinstance(value, tuple) else [int(value)]
 
 
@@ -31,10 +33,13 @@ class DirectAdapter:
     chart_axes = ("areaSamples", "supersampling")
 
     def grid(self, quick: bool) -> list[dict[str, object]]:
+        # Rect lights take the ratio estimator (lights/polygon.py): a few samples are accurate,
+        # and with their visibility filtered one sample can do.
         if quick:
-            return [{"supersampling": 1, "shadows": "embree", "areaSamples": (4, 16)}]
+            return [{"supersampling": 1, "shadows": "embree", "areaSamples": (1, 2, 4, 16), "shadowFilter": (0, 2, 4)}]
         # Shadow maps render one map per light sample (a GPU technique: seconds per frame on a CPU).
-        return [{"supersampling": s, "shadows": "embree", "areaSamples": (1, 4, 16)} for s in (1, 2)] + [
+        return [{"supersampling": s, "shadows": "embree", "areaSamples": (1, 2, 4, 16), "shadowFilter": (0, 2)}
+                for s in (1, 2)] + [
             {"supersampling": 1, "shadows": "shadowmaps", "areaSamples": (1, 4)}]
 
     def bounces(self, point: dict[str, object]) -> int:
@@ -47,10 +52,12 @@ class DirectAdapter:
 
     def variants(self, layer: Path, point: dict[str, object], device: str) -> list[Variant]:
         shadows = str(point.get("shadows", "embree"))
-        return [Variant({**point, "areaSamples": count},
-                        open_relighter(layer, device=device, shadows=shadows,
-                                       settings=RelightSettings(area_samples=count)), cache_bytes(layer))
-                for count in sample_counts(point)]
+        defaults = RelightSettings()
+        return [Variant({**point, "areaSamples": count, "shadowFilter": radius},
+                        open_relighter(layer, device=device, shadows=shadows, settings=RelightSettings(
+                            area_samples=count, shadow_filter_radius=radius)), cache_bytes(layer))
+                for count in setting_values(point, "areaSamples", defaults.area_samples)
+                for radius in setting_values(point, "shadowFilter", defaults.shadow_filter_radius)]
 
 
 ADAPTER = DirectAdapter()

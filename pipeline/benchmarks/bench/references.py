@@ -40,18 +40,21 @@ class References:
         return (self.directory / f"{self.shot.stem}-{edit}-{self.width}x{self.height}-b{bounces}-spp{spp}"
                 f"-seed{seed}.npz")
 
-    def render(self, edit: str, bounces: int, spp: int | None = None, seed: int | None = None) -> ReferenceImage:
+    def render(self, edit: str, bounces: int, spp: int | None = None, seed: int | None = None,
+               fresh: bool = False) -> ReferenceImage:
         """The path tracer's image of `edit` with `bounces` indirect bounces.
 
         Args:
             spp, seed: default: the reference's (a render compared with the reference must use
                 another seed, or their noise is correlated).
+            fresh: render it again even when cached (the same image; its `seconds` then time this
+                run, on this run's machine and load).
         """
         spp, seed = spp or self.spp, self.seed if seed is None else seed
         key = (edit, bounces, spp, seed)
-        if key not in self._images:
+        if fresh or key not in self._images:
             path = self.path(edit, bounces, spp, seed)
-            if not path.is_file():
+            if fresh or not path.is_file():
                 scene = load_scene(self.shot, lights_layer=self.edits[edit], width=self.width, height=self.height)
                 image = PathTracer(scene, ReferenceSettings(spp=spp, max_bounces=bounces, seed=seed)).render(
                     find_camera(scene, self.camera))

@@ -1,0 +1,173 @@
+"""Closed-form unshadowed irradiance from a polygonal light, and the ratio estimator built on it.
+
+Lambert's formula for a convex polygon seen from a receiver at the origin, restricted to the
+receiver's upper hemisphere (normal n):
+
+    G = integral over the polygon of max(cos theta, 0) d omega = 1/2 |sum_i theta_i (n . Gamma_i)|
+
+over the edges (v_i, v_i+1) of the polygon clipped by the tangent plane n . x = 0, theta_i the
+angle the edge subtends and Gamma_i the unit normal of the plane through the origin and the edge.
+A convex polygon crosses the tangent plane at 0 or 2 points; clipping adds the closing edge along
+the horizon from where the boundary leaves the hemisphere to where it comes back (its Gamma is
++-n). G is a projected solid angle in sr (pi for a polygon covering the hemisphere); an
+untextured light of radiance L gives the irradiance E = L G.
+
+Ratio estimator (Heitz, Hill & McGuire 2018, "Combining analytic direct illumination and
+stochastic shadows"): with fixed light samples, the diffuse term sum_s f L V cos / (pdf S) is
+multiplied per receiver by G / G_hat, G_hat the same samples' unshadowed estimate sum_s cos / (pdf S)
+of G. Exact where the light is wholly visible or wholly hidden; noise only in penumbrae.
+Per-sample multipliers applied afterwards (ShapingAPI, Barzel) keep it consistent: the result
+tends to the integral of the shaped emission as samples grow.
+
+Lights with a closed form here: untextured RectLights (one-sided: nothing reaches the side
+their local +Z faces). `normalize` scales L only, so it leaves G / G_hat unchanged.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from relight_torch.lights.geometry import LightFrame, surface_area
+from relight_torch.lights.light import Light, LightKind
+
+CHUNK_POINTS = 1 << 16
+"""Receivers evaluated together by `rect_cosine_integral`."""
+
+
+def has_closed_form(light: Light) -> bool:
+    """Whether `rect_cosine_integral` gives the light's unshadowed irradiance (per unit radiance)."""
+    return light.kind is LightKind.RECT and light.texture is None and surface_area(light) > 0.0
+
+
+def _edge_term(ax, ay, az, bx, by, bz, nx, ny, nz) -> torch.Tensor:
+    """theta (n . Gamma) of the edges a -> b (components, broadcasting): 0 for a degenerate edge.
+
+    Gamma = (a x b) / |a x b|, theta = atan2(|a x b|, a . b); in-place on fresh temporaries (this
+    runs per receiver and edge at every light move).
+    """
+    cx = ay * bz
+    cx.sub_(az * by)
+    cy = az * bx
+    cy.sub_(ax * bz)
+    cz = ax * by
+    cz.sub_(ay * bx)
+    projection = cx * nx
+    projection.addcmul_(cy, ny).addcmul_(cz, nz)
+    length = cx.square_().addcmul_(cy, cy).addcmul_(cz, cz).sqrt_()
+    cosine = ax * bx
+    cosine.addcmul_(ay, by).addcmul_(az, bz)
+    # A degenerate edge has a x b = 0: projection 0 over a clamped length gives 0.
+    return torch.atan2(length, cosine).mul_(projection).div_(length.clamp_min_(1e-30))
+
+
+def polygon_cosine_integral(vertices: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """G (N,) in sr: the cosine-weighted solid angle of a convex polygon above each receiver's horizon.
+
+    Args:
+        vertices: (K, N, 3) the polygon's K >= 3 corners in order (either winding), relative to
+            each of N receivers (corner - receiver position).
+        normal: (N, 3) unit receiver normals.
+
+    Returns:
+        (N,) 1/2 |sum theta_i n . Gamma_i| over the polygon clipped to n . x >= 0 (module doc).
+    """
+    closed = torch.cat((vertices, vertices[:1]))
+    return _closed_polygon_integral([closed[..., i].contiguous() for i in range(3)],
+                                    [normal[:, i].contiguous() for i in range(3)])
+
+
+def _closed_polygon_integral(v: list[torch.Tensor], n: list[torch.Tensor]) -> torch.Tensor:
+    """`polygon_cosine_integral` of components (K + 1, N) whose last row repeats the first.
+
+    Receivers with every corner above the horizon take the plain sum over the K edges; only those
+    whose tangent plane cuts the polygon are clipped (`_clipped_sum`).
+    """
+    start, end = [c[:-1] for c in v], [c[1:] for c in v]  # edge k: vertex k -> k + 1 (views)
+    height = start[0] * n[0]
+    height.addcmul_(start[1], n[1]).addcmul_(start[2], n[2])
+    num_corners = height.shape[0]
+    num_above = (height > 0).sum(0)
+    total = _edge_term(*start, *end, *n).sum(0)
+    total.masked_fill_(num_above < num_corners, 0.0)
+    cut = torch.nonzero((num_above > 0) & (num_above < num_corners)).squeeze(-1)
+    if cut.numel():
+        total[cut] = _clipped_sum([c[:, cut] for c in v], [c[cut] for c in n], height[:, cut])
+    return total.abs_().mul_(0.5)
+
+
+def _clipped_sum(v: list[torch.Tensor], n: list[torch.Tensor], height: torch.Tensor) -> torch.Tensor:
+    """sum theta_i n . Gamma_i (M,) over closed polygons (components (K + 1, M)) cut by their
+    tangent plane; height (K, M) of the first K vertices above it."""
+    above = height > 0
+    # Edge k runs from vertex k to vertex k + 1; p is where it meets the tangent plane (if it does).
+    u, w = [c[:-1] for c in v], [c[1:] for c in v]
+    next_height, next_above = height.roll(-1, 0), above.roll(-1, 0)
+    crossing = above != next_above
+    t = torch.where(crossing, height / torch.where(crossing, height - next_height, 1.0), 0.0)
+    p = [a + t * (b - a) for a, b in zip(u, w)]
+    start = [torch.where(above, a, q) for a, q in zip(u, p)]
+    end = [torch.where(next_above, b, q) for b, q in zip(w, p)]
+    edges = torch.where(above | next_above, _edge_term(*start, *end, *n), 0.0).sum(0)
+    # The horizon edge: from the crossing where the boundary leaves to the one where it re-enters.
+    leaving, entering = crossing & above, crossing & next_above
+    exit_point = [torch.where(leaving, q, 0.0).sum(0) for q in p]
+    entry_point = [torch.where(entering, q, 0.0).sum(0) for q in p]
+    return edges + _edge_term(*exit_point, *entry_point, *n)
+
+
+def rect_cosine_integral(light: Light, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """G (N,) of a RectLight's emitting rectangle at receivers (N, 3) with unit normals (N, 3).
+
+    0 behind the light (local z >= 0: the rect emits towards local -Z only). Any invertible
+    affine transform is honoured: its corners are mapped to world space. Evaluated in blocks of
+    CHUNK_POINTS receivers, whose temporaries stay in cache (2-3x faster on a CPU than one pass).
+    """
+    frame = LightFrame.of(light, points)
+    half_x, half_y = 0.5 * light.width, 0.5 * light.height
+    corners_local = torch.tensor([[half_x, half_y, 0.0], [-half_x, half_y, 0.0], [-half_x, -half_y, 0.0],
+                                  [half_x, -half_y, 0.0], [half_x, half_y, 0.0]],
+                                 device=points.device, dtype=points.dtype)
+    corners = frame.point_to_world(corners_local)  # (5, 3): closed
+    if points.shape[0] <= CHUNK_POINTS:
+        return _rect_block(frame, corners, points, normals)
+    return torch.cat([_rect_block(frame, corners, points[i:i + CHUNK_POINTS], normals[i:i + CHUNK_POINTS])
+                      for i in range(0, points.shape[0], CHUNK_POINTS)])
+
+
+def _rect_block(frame: LightFrame, corners: torch.Tensor, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """`rect_cosine_integral` of some receivers (N, 3), given the closed world corners (5, 3)."""
+    relative = [corners[:, i:i + 1] - points[:, i] for i in range(3)]  # (5, N) each
+    integral = _closed_polygon_integral(relative, [normals[:, i].contiguous() for i in range(3)])
+    # The receiver's local z: corner 0 lies in the light's plane (local z 0), so the third row of
+    # light_from_world takes (corner - point) to minus the receiver's local z.
+    row = frame.light_from_world[2]
+    local_z = -(relative[0][0] * row[0] + relative[1][0] * row[1] + relative[2][0] * row[2])
+    return integral.masked_fill_(local_z >= 0, 0.0)
+
+
+def closed_form(light: Light, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor | None:
+    """G (N,) of the light at receivers (N, 3) with unit normals (N, 3); None without a closed form."""
+    return rect_cosine_integral(light, points, normals) if has_closed_form(light) else None
+
+
+def ratio_of(exact: torch.Tensor, estimate: torch.Tensor) -> torch.Tensor:
+    """(N,) exact / estimate, 1 where the estimate is 0 (no sample to carry visibility)."""
+    return torch.where(estimate > 0, exact / torch.where(estimate > 0, estimate, 1.0), 1.0)
+
+
+def analytic_ratio(light: Light, points: torch.Tensor, normals: torch.Tensor,
+                   estimate: torch.Tensor) -> torch.Tensor | None:
+    """(N,) G / estimate per receiver, the ratio estimator's factor on the diffuse term (module doc).
+
+    Args:
+        light: the light the samples were drawn from.
+        points, normals: (N, 3) receivers and their unit normals (the normal the samples' cosines used).
+        estimate: (N,) the samples' unshadowed Monte Carlo estimate of G, sum_s cos+ / (pdf S) over
+            samples reaching the emitting side.
+
+    Returns:
+        the factor, 1 where the estimate is 0 (no sample to carry visibility: plain Monte
+        Carlo is kept); None when the light has no closed form.
+    """
+    exact = closed_form(light, points, normals)
+    return None if exact is None else ratio_of(exact, estimate)
