@@ -159,6 +159,15 @@ def test_representative_values_are_equation_3s_inner_sums():
     contributions = radiance[grey.index] * grey.weight
     expected = torch.stack([contributions[0:2].sum(0), torch.zeros(3), contributions[2:5].sum(0)])
     torch.testing.assert_close(grey.representative_values(radiance), expected)
+    assert grey._grey and not gather_set._grey
+    # Weights grey up to float rounding (the diffuse set's) take it too; a real tint does not.
+    rounded = dataclasses.replace(gather_set, weight=grey.weight * torch.tensor([1.0, 1.0 + 3e-7, 1.0 - 5e-7]))
+    tinted = dataclasses.replace(gather_set, weight=grey.weight * torch.tensor([1.0, 1.0 + 1e-4, 1.0]))
+    assert rounded._grey and not tinted._grey
+    for weighted in (rounded, tinted):
+        contributions = radiance[weighted.index] * weighted.weight
+        expected = torch.stack([contributions[0:2].sum(0), torch.zeros(3), contributions[2:5].sum(0)])
+        torch.testing.assert_close(weighted.representative_values(radiance), expected, rtol=2e-6, atol=0.0)
 
 
 @pytest.mark.parametrize("offsets, neighbours", [([1, 2, 5], [[0, 1]]), ([0, 3, 2, 5], [[0, 1]]),

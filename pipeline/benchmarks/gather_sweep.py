@@ -4,7 +4,7 @@ shared-point grid, against the one-bounce reference.
     python -m pipeline.benchmarks.gather_sweep SCENE [SCENE...] --width W --height H
         [--clusters 15 30 60 120 240] [--representatives 0 ...] [--point-cells 64 ...]
         [--directions N] [--gather-samples S ...] [--spp N] [--shadows embree|shadowmaps]
-        [--out DIR] [--csv FILE]
+        [--shadow-map-resolution R] [--out DIR] [--csv FILE]
     python -m pipeline.benchmarks.gather_sweep SCENE --timing --width 400 --height 400 [...]
 
 Per scene and (clusters, representatives, point cells) it bakes once (bake_s) and relights the
@@ -19,9 +19,10 @@ edit), in the columns every method's sweep shares (`pipeline.benchmarks.rows`).
 
 With `--timing` it bakes one cache per scene with the first value of each setting (or, with
 `--reuse`, relights the one already in OUT) and prints the median ms of each kind of edit
-(`edit_timings`, wall or `--cpu-time`) with both visibilities and every gather-sample count, the
-cache bytes, the bake seconds and the process's peak resident memory (`resource.getrusage`: the
-bake's peak when it baked).
+(`edit_timings`, wall or `--cpu-time`) with both visibilities and every gather-sample count (with
+shadow maps also the mean CPU ms of a move's map build and lookups), the cache bytes, the bake
+seconds and the process's peak resident memory (`resource.getrusage`: the bake's peak when it
+baked).
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ from relight_torch.gather.open import open_gather_relighter
 from relight_torch.gather.relighter import DEFAULT_GATHER_SAMPLES, GatherRelighter
 from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch.relighter import shot_lights
+from relight_torch.relighter import RelightSettings, shot_lights
 
 
 def _median_ms(relighter: GatherRelighter, edits: list, repeats: int,
@@ -108,6 +109,10 @@ def _settings(args: argparse.Namespace, clusters: int, representatives: int, poi
                           num_representatives=representatives or None, point_cells=point_cells)
 
 
+def _relight_settings(args: argparse.Namespace) -> RelightSettings:
+    return RelightSettings(shadow_map_resolution=args.shadow_map_resolution)
+
+
 def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[SweepRow]:
     """The sweep's rows of one scene (printed as CSV lines as they are measured)."""
     shot = SCENES[name].write(directory)
@@ -121,7 +126,8 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[Sw
         layer, bake_s = _bake(name, args, directory, settings)
         num_bytes = cache_bytes(layer)
         for gather_samples in args.gather_samples:
-            relighter = open_gather_relighter(layer, shadows=args.shadows, gather_samples=gather_samples)
+            relighter = open_gather_relighter(layer, shadows=args.shadows, settings=_relight_settings(args),
+                                              gather_samples=gather_samples)
             params = format_params({**settings.parameters(), "gatherSamples": gather_samples,
                                     "numRepresentatives": sum(s.num_representatives for s in relighter.sets.values()),
                                     "surfacePoints": relighter.points.num_points, "shadows": args.shadows})
@@ -151,15 +157,23 @@ def time_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
     print(f"{name} {args.width}x{args.height} {params}: bake {bake_s:.1f} s, peak RSS {peak_mib:.0f} MiB, "
           f"cache {cache_bytes(layer) / 2**20:.1f} MiB", flush=True)
     for shadows, gather_samples in itertools.product(("embree", "shadowmaps"), args.gather_samples):
-        relighter = open_gather_relighter(layer, shadows=shadows, gather_samples=gather_samples)
+        relighter = open_gather_relighter(layer, shadows=shadows, settings=_relight_settings(args),
+                                          gather_samples=gather_samples)
         sizes = {n: (s.num_representatives, s.num_gathers) for n, s in relighter.sets.items()}
+        relighter.render()
+        maps = getattr(relighter.direct.visibility, "seconds", None)
+        before = dict(maps or {})
         timings = edit_timings(relighter, args.repeats, time.process_time if args.cpu_time else time.perf_counter)
+        # Only the moves query the visibility (colour and shaping edits re-use their answers).
+        split = "" if maps is None else ", shadow maps per move: " + ", ".join(
+            f"{kind} {1e3 * (maps[kind] - before.get(kind, 0.0)) / args.repeats:.0f} ms CPU"
+            for kind in ("build", "lookup"))
         print(f"  {shadows}, {gather_samples} gather samples: "
               + ", ".join(f"{kind} {full:.0f} ms (indirect {indirect:.0f} ms)"
                           for kind, (full, indirect) in timings.items())
               + f" (median of {args.repeats}, {'CPU' if args.cpu_time else 'wall'} time; sets (reps, entries) "
-              f"{sizes}, {relighter.points.num_points} surface points, {relighter.cache_bytes / 2**20:.1f} MiB in memory)",
-              flush=True)
+              f"{sizes}, {relighter.points.num_points} surface points, {relighter.cache_bytes / 2**20:.1f} MiB in memory)"
+              + split, flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -177,6 +191,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--supersampling", type=int, default=1)
     parser.add_argument("--texture-samples", type=int, default=1)
     parser.add_argument("--shadows", default="embree", choices=("embree", "shadowmaps"))
+    parser.add_argument("--shadow-map-resolution", type=int, default=RelightSettings().shadow_map_resolution,
+                        help="texels per side of each shadow-map face (RelightSettings)")
     parser.add_argument("--repeats", type=int, default=5, help="timed edits per median")
     parser.add_argument("--timing", action="store_true", help="edit timings of one cache per scene, no PSNR")
     parser.add_argument("--cpu-time", action="store_true",

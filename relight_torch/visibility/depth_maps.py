@@ -16,8 +16,9 @@ and texel centres sit at u = (col + 0.5) * 2 / R - 1.
 
 `lookup` turns query points into the texel they fall in, their own depth along the map's rays,
 the texel-centre ray (for the receiver-plane test of `shadow_maps`) and the texel's depth slope
-(for the slope-scaled bias). Biases are measured in texel footprints (`footprint`), never in a
-world epsilon.
+(for the slope-scaled bias); `sample` the same with coordinates as separate tensors and without
+the ray (`texel_plane` gives what the receiver-plane test needs of it). Biases are measured in
+texel footprints (`footprint`), never in a world epsilon.
 """
 
 from __future__ import annotations
@@ -54,6 +55,25 @@ class MapLookup:
     slope: torch.Tensor
 
 
+@dataclass(frozen=True)
+class MapSample:
+    """The texels query points fall in, without their texel-centre rays (all shapes (...)).
+
+    Attributes:
+        stored: occluder depth of the texel, inf outside the map or where it saw nothing.
+        depth: the query's own depth along the map's rays.
+        slope: the texel's depth slope (see `MapLookup.slope`).
+        row, col, flat: int32 the texel's row and column on its face and its flat index.
+    """
+
+    stored: torch.Tensor
+    depth: torch.Tensor
+    slope: torch.Tensor
+    row: torch.Tensor
+    col: torch.Tensor
+    flat: torch.Tensor
+
+
 class DepthMap:
     """Shared texel arithmetic and lookup; subclasses define the projection.
 
@@ -78,6 +98,19 @@ class DepthMap:
 
     def project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """(face (...) long, uv (..., 2), depth (...), inside (...) bool) of world points (..., 3)."""
+        face, u, v, depth, inside = self.project_components(*points.unbind(-1))
+        if inside is None:
+            inside = torch.ones_like(depth, dtype=torch.bool)
+        return face.long(), torch.stack((u, v), dim=-1), depth, inside
+
+    def project_components(self, x: torch.Tensor, y: torch.Tensor,
+                           z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
+                                                     torch.Tensor | None]:
+        """(face, u, v, depth, inside bool or None when every point is inside), each (...), of
+        world points given by their coordinates x, y, z (broadcast to (...)); face holds whole
+        numbers (any dtype). Coordinates as separate contiguous tensors: torch's CPU kernels run
+        5-20x slower on the strided or reduced last axis of (..., 3), and `where` costs about ten
+        adds, so the cube map picks its face with 0/1 masks."""
         raise NotImplementedError
 
     def texel_rays(self, face: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -92,6 +125,24 @@ class DepthMap:
         """(..., 2) image coordinates (u, v) of texel centres (...)."""
         return (torch.stack((col, row), dim=-1).to(self.face_from_world.dtype) + 0.5) * (2.0 / self.resolution) - 1.0
 
+    def texel_plane(self, sample: MapSample, normals: torch.Tensor,
+                    point_normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Where the texel-centre rays of a sample meet planes through points p with unit normals n.
+
+        Args:
+            sample: the texels (...) (`sample`).
+            normals: (..., 3) n, broadcast against the texels' shape plus 3; point_normal: p.n (...).
+
+        Returns:
+            (cos, numerator), each (...): the cosine between each texel's ray and n, and (p - o).n
+            for the ray's origin o; the plane lies at depth numerator / cos along the ray.
+        """
+        raise NotImplementedError
+
+    def depth_of(self, x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """(...) depth along the map's rays of world points given by their coordinates (`project`'s depth alone)."""
+        raise NotImplementedError
+
     def lookup(self, points: torch.Tensor, jitter: torch.Tensor | None = None) -> MapLookup:
         """The texels world points fall in (nearest texel, optionally jittered).
 
@@ -102,16 +153,37 @@ class DepthMap:
         Returns:
             MapLookup of shape (...).
         """
-        face, uv, depth, inside = self.project(points)
-        texel = (uv + 1.0) * (0.5 * self.resolution)
-        if jitter is not None:
-            texel = texel + jitter
-        index = torch.floor(texel).clamp(0, self.resolution - 1).long()
-        col, row = index[..., 0], index[..., 1]
-        flat = (face * self.resolution + row) * self.resolution + col
-        stored = torch.where(inside, _take(self.depth, flat), torch.inf)
+        face, u, v, depth, inside = self.project_components(*points.unbind(-1))
+        face, row, col, flat = self._texel(face, u, v, None if jitter is None else jitter.unbind(-1))
+        stored = _take(self.depth, flat)
+        if inside is not None:
+            stored = torch.where(inside, stored, torch.inf)
         origin, direction = self.texel_rays(face, row, col)
         return MapLookup(stored, depth, origin, direction, _take(self.slope, flat))
+
+    def sample(self, x: torch.Tensor, y: torch.Tensor, z: torch.Tensor,
+               jitter: tuple[torch.Tensor, torch.Tensor] | None = None) -> MapSample:
+        """`lookup` without the texel-centre rays, of world points given by their coordinates
+        (broadcast to (...), see `project_components`); `jitter`: column and row offsets in
+        texels (broadcast to (...)), or None. MapSample of shape (...)."""
+        face, u, v, depth, inside = self.project_components(x, y, z)
+        _, row, col, flat = self._texel(face, u, v, jitter)
+        stored = _take(self.depth, flat)
+        if inside is not None:
+            stored = torch.where(inside, stored, torch.inf)
+        return MapSample(stored, depth, _take(self.slope, flat), row, col, flat)
+
+    def _texel(self, face: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
+               jitter: tuple[torch.Tensor, torch.Tensor] | None) -> tuple[torch.Tensor, ...]:
+        """(face, row, col, flat index) int32 (...) of the texel image coordinates (u, v) (...)
+        fall in on `face`, after adding the (column, row) `jitter` in texels."""
+        half = 0.5 * self.resolution
+        col, row = (u + 1.0) * half, (v + 1.0) * half
+        if jitter is not None:
+            col, row = col + jitter[0], row + jitter[1]
+        col, row = (torch.floor(t).clamp(0, self.resolution - 1).to(torch.int32) for t in (col, row))
+        face = face.to(torch.int32)
+        return face, row, col, (face * self.resolution + row) * self.resolution + col
 
 
 def _take(table: torch.Tensor, flat: torch.Tensor) -> torch.Tensor:
@@ -123,13 +195,13 @@ def _take(table: torch.Tensor, flat: torch.Tensor) -> torch.Tensor:
 
 def _axis_slope(depth: torch.Tensor, dim: int) -> torch.Tensor:
     """(F, R, R) smaller absolute one-sided depth difference along `dim`; 0 where both are undefined."""
-    step = torch.diff(depth, dim=dim).abs()
-    step = torch.where(torch.isnan(step), torch.full_like(step, torch.inf), step)
+    step = torch.diff(depth, dim=dim).abs()  # NaN between two empty texels, inf next to one
     pad_shape = list(step.shape)
     pad_shape[dim] = 1
     pad = torch.full(pad_shape, torch.inf, device=depth.device, dtype=depth.dtype)
-    smaller = torch.minimum(torch.cat((pad, step), dim=dim), torch.cat((step, pad), dim=dim))
-    return torch.where(torch.isfinite(smaller), smaller, torch.zeros_like(smaller))
+    # fmin skips NaN (no defined difference on that side); what stays undefined (NaN, inf) is 0.
+    smaller = torch.fmin(torch.cat((pad, step), dim=dim), torch.cat((step, pad), dim=dim))
+    return smaller.nan_to_num(nan=0.0, posinf=0.0)
 
 
 def _texel_range(low: torch.Tensor, high: torch.Tensor, resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -154,12 +226,13 @@ class PinholeMaps(DepthMap):
         face_from_world: (F, 3, 3) orthonormal rows (right, up, forward) per face.
         tan_half_fov: tangent of each face's half field of view (1 for a cube map).
         resolution: texels per face side.
-        directions: (F, R, R, 3) `texel_directions` of an identical map (same frames, field of
+        directions: (3, F, R, R) `texel_directions` of an identical map (same frames, field of
             view, resolution, dtype), to share rather than recompute; None computes them.
 
     Attributes:
-        directions: (F, R, R, 3) unit world direction of every texel-centre ray (12 bytes a texel
-            in float32: computed once rather than at every lookup, which it made 2x slower).
+        directions: (3, F, R, R) unit world direction of every texel-centre ray, by coordinate
+            (12 bytes a texel in float32: computed once rather than at every lookup, which it
+            made 2x slower).
     """
 
     def __init__(self, centre: torch.Tensor, face_from_world: torch.Tensor, tan_half_fov: float, resolution: int,
@@ -172,13 +245,14 @@ class PinholeMaps(DepthMap):
         self.directions = self.texel_directions() if directions is None else directions
 
     def texel_directions(self) -> torch.Tensor:
-        """(F, R, R, 3) unit world direction of every texel-centre ray (see `directions`)."""
+        """(3, F, R, R) unit world direction of every texel-centre ray (see `directions`)."""
         index = torch.arange(self.resolution, device=self.centre.device)
         row, col = torch.meshgrid(index, index, indexing="ij")
         uv = self.texel_centre_uv(row, col) * self.tan_half_fov
         frame = self.face_from_world[:, None, None]
         return torch.nn.functional.normalize(
-            uv[..., 0:1] * frame[..., 0, :] + uv[..., 1:2] * frame[..., 1, :] + frame[..., 2, :], dim=-1)
+            uv[..., 0:1] * frame[..., 0, :] + uv[..., 1:2] * frame[..., 1, :] + frame[..., 2, :],
+            dim=-1).permute(3, 0, 1, 2).contiguous()
 
     def affine_rays(self):
         """Origins: the centre; unnormalised directions: forward + u tan right + v tan up (see `RasterTarget`)."""
@@ -187,29 +261,34 @@ class PinholeMaps(DepthMap):
         origins[:, 0] = self.centre
         return origins, torch.stack((frame[:, 2], self.tan_half_fov * frame[:, 0], self.tan_half_fov * frame[:, 1]), 1)
 
-    def face_local(self, offset: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(face (...) long, face-local coordinates (..., 3)) of world offsets from the centre (..., 3).
+    def _offsets(self, x, y, z) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        cx, cy, cz = self.centre.tolist()
+        return x - cx, y - cy, z - cz
 
-        The face is the only one (a spot light's map)."""
-        face = torch.zeros(offset.shape[:-1], dtype=torch.long, device=offset.device)
-        return face, offset @ self.face_from_world[0].T
-
-    def project(self, points):
-        offset = points - self.centre
-        face, local = self.face_local(offset)
-        z = local[..., 2]
-        positive = z > 0
-        safe_z = torch.where(positive, z, torch.ones_like(z))
-        uv = local[..., :2] / (safe_z * self.tan_half_fov).unsqueeze(-1)
-        inside = positive & (uv.abs() <= 1.0).all(dim=-1)
-        return face, uv, offset.norm(dim=-1), inside
+    def project_components(self, x, y, z):
+        """The only face's (a spot light's map) local coordinates, z forward."""
+        offset = self._offsets(x, y, z)
+        right, up, forward = (_combine(row, offset) for row in self.face_from_world[0].tolist())
+        positive = forward > 0
+        scale = torch.where(positive, forward, torch.ones_like(forward)) * self.tan_half_fov
+        u, v = right / scale, up / scale
+        inside = positive & (u.abs() <= 1.0) & (v.abs() <= 1.0)
+        return torch.zeros_like(u, dtype=torch.long), u, v, _length(offset), inside
 
     def texel_rays(self, face, row, col):
-        direction = _take(self.directions, (face * self.resolution + row) * self.resolution + col)
+        flat = (face * self.resolution + row) * self.resolution + col
+        direction = torch.stack([_take(column, flat) for column in self.directions], dim=-1)
         return self.centre.expand_as(direction), direction
 
     def footprint(self, depth):
         return depth * (2.0 * self.tan_half_fov / self.resolution)
+
+    def texel_plane(self, sample, normals, point_normal):
+        cos = sum(_take(column, sample.flat) * normals[..., axis] for axis, column in enumerate(self.directions))
+        return cos, point_normal - (normals * self.centre).sum(-1)
+
+    def depth_of(self, x, y, z):
+        return _length(self._offsets(x, y, z))
 
     def texel_bounds(self, corners):
         """(F, T, 4) texel bounds of each triangle's part in front of each face (near-clipped)."""
@@ -251,18 +330,34 @@ class CubeMap(PinholeMaps):
                 faces.append(torch.stack((right, torch.linalg.cross(forward, right), forward)))
         super().__init__(centre, torch.stack(faces), 1.0, resolution, directions)
 
-    def face_local(self, offset):
-        """The face of the dominant axis a (elementwise: an argmax over the faces' z was 10x slower);
-        its frame is (e_{a+1}, s e_{a+2}, s e_a) with s the sign, so its coordinates are a signed
-        permutation of the offset (a (3, 3) product per face and a gather were 3x slower)."""
-        size = offset.abs()
-        x_major = (size[..., 0] >= size[..., 1]) & (size[..., 0] >= size[..., 2])
-        axis = torch.where(x_major, 0, torch.where(size[..., 1] >= size[..., 2], 1, 2))
-        permuted = torch.gather(offset, -1, torch.stack(((axis + 1) % 3, (axis + 2) % 3, axis), dim=-1))
-        negative = permuted[..., 2] < 0
-        sign = torch.where(negative, -1.0, 1.0).to(offset.dtype)
-        local = torch.stack((permuted[..., 0], sign * permuted[..., 1], sign * permuted[..., 2]), dim=-1)
-        return 2 * axis + negative.long(), local
+    def project_components(self, x, y, z):
+        """The face of the offset o's dominant axis a, elementwise (an argmax over the faces' z was
+        10x slower): face 2 a + [o_a < 0] has the frame (e_{a+1}, s e_{a+2}, s e_a), s the sign of
+        o_a, so u = o_{a+1} / |o_a| and v = o_{a+2} / o_a (a (3, 3) product per face was 3x slower)."""
+        ox, oy, oz = self._offsets(x, y, z)
+        ax, ay, az = ox.abs(), oy.abs(), oz.abs()
+        is_x = (ax >= ay) & (ax >= az)
+        dtype = ox.dtype
+        on_x, on_y = is_x.to(dtype), (~is_x & (ay >= az)).to(dtype)
+        on_z = 1.0 - on_x - on_y
+        major = ox * on_x + oy * on_y + oz * on_z
+        size = major.abs().clamp_min(torch.finfo(dtype).tiny)
+        u = (oy * on_x + oz * on_y + ox * on_z) / size
+        v = (oz * on_x + ox * on_y + oy * on_z) * major.sign() / size
+        face = (on_y + 2.0 * on_z) * 2.0 + (major < 0).to(dtype)
+        # Every direction lies on a face (the centre itself reads the middle of face 0).
+        return face, u, v, _length((ox, oy, oz)), None
+
+
+def _combine(weights: list[float], components: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    """sum_i weights[i] components[i] (a row of a frame applied to points given by their coordinates)."""
+    return components[0] * weights[0] + components[1] * weights[1] + components[2] * weights[2]
+
+
+def _length(components: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    """Euclidean length of vectors given by their coordinates."""
+    x, y, z = components
+    return torch.sqrt(x * x + y * y + z * z)
 
 
 class OrthoMap(DepthMap):
@@ -283,11 +378,15 @@ class OrthoMap(DepthMap):
         self.num_faces = 1
         self.resolution = resolution
 
-    def project(self, points):
-        local = (points - self.window_centre) @ self.face_from_world[0].T
-        uv = local[..., :2] / self.half_size
-        face = torch.zeros(uv.shape[:-1], dtype=torch.long, device=uv.device)
-        return face, uv, local[..., 2], (uv.abs() <= 1.0).all(dim=-1)
+    def _local(self, x, y, z, rows: slice) -> list[torch.Tensor]:
+        cx, cy, cz = self.window_centre.tolist()
+        offset = (x - cx, y - cy, z - cz)
+        return [_combine(row, offset) for row in self.face_from_world[0, rows].tolist()]
+
+    def project_components(self, x, y, z):
+        right, up, depth = self._local(x, y, z, slice(None))
+        u, v = right / self.half_size, up / self.half_size
+        return torch.zeros_like(u, dtype=torch.long), u, v, depth, (u.abs() <= 1.0) & (v.abs() <= 1.0)
 
     def texel_rays(self, face, row, col):
         uv = self.texel_centre_uv(row, col) * self.half_size
@@ -305,6 +404,15 @@ class OrthoMap(DepthMap):
 
     def footprint(self, depth):
         return torch.full_like(depth, 2.0 * self.half_size / self.resolution)
+
+    def texel_plane(self, sample, normals, point_normal):
+        right, up, forward = ((normals * row).sum(-1) for row in self.face_from_world[0])
+        u, v = ((t.to(normals.dtype) + 0.5) * (2.0 / self.resolution) - 1.0 for t in (sample.col, sample.row))
+        origin = (normals * self.window_centre).sum(-1) + (u * right + v * up) * self.half_size
+        return forward.expand_as(origin), point_normal - origin
+
+    def depth_of(self, x, y, z):
+        return self._local(x, y, z, slice(2, 3))[0]
 
     def texel_bounds(self, corners):
         uv = ((corners - self.window_centre) @ self.face_from_world[0, :2].T) / self.half_size
