@@ -93,8 +93,11 @@ class RelightSettings:
             (`light_samples.adaptive_sample_count`). 0 gives every light `area_samples`.
         min_area_samples: the fewest samples a small light gets.
         shadow_map_resolution: texels per side of each shadow-map face (`shadows='shadowmaps'`);
-            512 builds about 6x faster than 1024 at nearly the same accuracy on the bundled scenes.
-        shadow_map_march_steps: depth-map lookups per shadow ray (`shadows='shadowmaps'`).
+            512 builds ~5x faster than 1024 with the 'pcss' lookup within 0.3 dB of it on the
+            Cornell box (`pipeline.benchmarks.shadow_map_accuracy`).
+        shadow_map_lookup: 'pcss' (at most three depth reads per shadow ray) or 'march' (the
+            exact march of `shadow_map_march_steps` reads), see `visibility.shadow_maps`.
+        shadow_map_march_steps: depth-map reads per shadow ray of the 'march' lookup.
         shadow_filter_radius: r of the same-surface box filter (`visibility.surface_filter`,
             2r + 1 taps per pass) over the shadowed and unshadowed estimates of lights with a
             closed-form irradiance (the ratio estimator's denoised visibility); 0: no filter.
@@ -109,7 +112,8 @@ class RelightSettings:
     chunk_samples: int = 1 << 20
     full_sampling_angle: float = 0.0
     min_area_samples: int = 1
-    shadow_map_resolution: int = 1024
+    shadow_map_resolution: int = 512
+    shadow_map_lookup: str = "pcss"
     shadow_map_march_steps: int = 16
     shadow_filter_radius: int = 0
 
@@ -690,7 +694,7 @@ def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", 
         # map sized for the old cone would leave the new one's receivers unshadowed.
         visibility = ShadowMapVisibility(torch.from_numpy(occluders).to(device), settings.shadow_map_resolution,
                                          settings.shadow_map_march_steps, receivers=gbuffer.position,
-                                         max_spot_half_angle=0.0)
+                                         max_spot_half_angle=0.0, lookup=settings.shadow_map_lookup)
     else:
         raise RelightError(f"shadows must be 'embree' or 'shadowmaps', got {shadows!r}")
     relighter = Relighter(gbuffer, visibility, description.supersampling, description.exposure_scale, settings,
