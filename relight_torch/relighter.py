@@ -578,7 +578,9 @@ class Relighter:
             if shadow.enable:
                 weight = weight * (1.0 - (1.0 - shadow.color[0]) * shadow_strength(
                     shadow, torch.isfinite(distance), distance))
-            factors = preview_surface.split_factors(params, wo_local, wi_local, bool(params.clearcoat.any()))
+            # (S, P, F) view of the (F, S, P) factors: samples lead as everywhere in the transport.
+            factors = preview_surface.split_factors(params, wo_local, wi_local,
+                                                    bool(params.clearcoat.any())).movedim(0, -1)
             # With a filtered visibility the diffuse factors stay unshadowed (see _Transport).
             factors[..., :2] *= (unshadowed if filtered else weight).unsqueeze(-1)
             factors[..., 2:] *= weight.unsqueeze(-1)

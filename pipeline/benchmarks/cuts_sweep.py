@@ -7,9 +7,10 @@
 Per scene, light count, sigma and tree blend beta (1 = geometric tree, < 1 data-driven) it bakes once (bake_s, cache_bytes: that bake's payloads) and
 relights with every illumination cut size, under the shot's lights and every example light edit,
 against `PathTracer(max_bounces=0)` (PSNR, relMSE; indirect mode: `max_bounces=1`, and
-psnr_indirect_db against its 1-bounce minus 0-bounce part). relight_ms is the median of a dome edit
-re-rendered (`pipeline.benchmarks.bench.measure.relight_ms`: the illumination cut and every pixel's
-merge and shading run again). params also record what the cost follows: `vis` = mean visibility
+psnr_indirect_db against its 1-bounce minus 0-bounce part). relight_ms is the median of the first
+light moved and re-rendered (`pipeline.benchmarks.bench.measure.relight_ms`; env mode: a dome
+translated, whose light and illumination cut do not change, so only the kept factor columns'
+products with the light run again; see `edit_timings` for edits that change more). params also record what the cost follows: `vis` = mean visibility
 cut size per lattice vertex, and per sub-sample `inputs` = visibility cut entries merged (its
 three vertices'), `merged` = merged-cut entries shaded or tested and `dark` = dark visibility
 clusters dropped before the illumination cut is merged in, so relight_ms can be read against the
@@ -17,21 +18,29 @@ cut sizes at different light counts. One CSV row per (scene, lights, sigma, cut 
 columns shared with the other methods' sweeps (`pipeline.benchmarks.rows`).
 
 With `--timing` only the shot's lights are relit (no references: PSNR columns NaN): for the
-640 x 480, cut size 256 figure of the issue. With `--cost` (implies --timing) the bakes are timed
-round-robin instead, `--repeats` rounds of one light edit re-rendered per bake, so that a shared
-machine's load changes affect every bake alike: for reading relight_ms against `merged` as the
+640 x 480, cut size 256 figure of the issue, one row per kind of edit (`edit_timings`: the dome
+moved, turned, a material's colour, its roughness, a small object's roughness; params add `cpu_ms`, the median CPU time, and
+`evaluated`, the merged entries per sub-sample whose BRDF factors the edit recomputed, and
+`kept_mb`, `CutsRelighter.kept_bytes`). With `--cost` (implies --timing) the bakes are timed
+round-robin instead, `--repeats` rounds of the cuts' light fully evaluated per bake, so that a
+shared machine's load changes affect every bake alike: for reading relight_ms against `merged` as the
 number of point lights grows (seed 004: the cost follows the merged cut size, not the lights).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
+import math
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
+import torch
 
 from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
 from pipeline.benchmarks.bench.measure import cache_bytes, device_name, moved, relight_ms
@@ -42,8 +51,56 @@ from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.cuts.open import open_cuts_relighter
 from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
+from relight_torch.lights.light import Light, LightKind
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.relighter import shot_lights
+
+
+def rotated(light: Light, degrees: float) -> Light:
+    """`light` turned by `degrees` about world +Y (a dome edit that changes the illumination cut)."""
+    cos, sin = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    turn = np.array([[cos, 0.0, sin, 0.0], [0.0, 1.0, 0.0, 0.0], [-sin, 0.0, cos, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    return dataclasses.replace(light, world_from_light=turn @ light.world_from_light)
+
+
+def edit_timings(relighter: CutsRelighter, repeats: int) -> dict[str, tuple[float, float, float]]:
+    """Per kind of edit, (median wall ms, median CPU ms, merged entries per sub-sample whose BRDF
+    factors were recomputed) of `repeats` edits each followed by `render()`.
+
+    Kinds: 'move' (the first dome translated, as `measure.relight_ms`: its light and illumination
+    cut are unchanged), 'rotate' (the dome turned 2 or 4 degrees about +Y: the illumination cut
+    changes), 'colour' (a material's diffuse colour), 'roughness' (its roughness, 0.3 or 0.6),
+    both on the material with the second most sub-samples (`dome`: the backdrop, 43 %), and
+    'roughness_object' on the third least common one (`dome`: the red plastic, 2 %). Lights and
+    materials are restored after.
+    """
+    lights, params = relighter.lights, relighter.params
+    dome = next(light for light in lights if light.kind is LightKind.DOME)
+    order = torch.bincount(relighter.direct.gbuffer.material_id.long()).argsort(descending=True).tolist()
+    large, small = order[1], order[-3]
+    edits = {
+        "move": lambda i: relighter.set_light(moved(dome, 0.01 * (1 + i % 2))),
+        "rotate": lambda i: relighter.set_light(rotated(dome, 2.0 * (1 + i % 2))),
+        "colour": lambda i: relighter.edit_material(large, diffuse_color=((0.1, 0.5, 0.15), (0.5, 0.1, 0.1))[i % 2]),
+        "roughness": lambda i: relighter.edit_material(large, roughness=(0.3, 0.6)[i % 2]),
+        "roughness_object": lambda i: relighter.edit_material(small, roughness=(0.3, 0.6)[i % 2]),
+    }
+    timings = {}
+    num_samples = relighter.cuts.sample_vertices.shape[0]
+    for kind, edit in edits.items():
+        relighter.render()
+        wall, cpu, evaluated = [], [], []
+        for index in range(repeats):
+            edit(index)
+            start, start_cpu = time.perf_counter(), time.process_time()
+            relighter.render()
+            wall.append(time.perf_counter() - start)
+            cpu.append(time.process_time() - start_cpu)
+            evaluated.append(relighter.stats["evaluated"] / num_samples)
+        timings[kind] = (1e3 * statistics.median(wall), 1e3 * statistics.median(cpu), statistics.median(evaluated))
+        relighter.set_lights(lights)
+        relighter.set_params(params)
+    return timings
 
 
 def cut_rows(relighter: CutsRelighter, layer: Path, scene_name: str, args: argparse.Namespace,
@@ -61,10 +118,20 @@ def cut_rows(relighter: CutsRelighter, layer: Path, scene_name: str, args: argpa
             relighter.set_lights(shot_lights(description, lights_layer))
             image = relighter.render().cpu().numpy()
             stats = dict(relighter.stats)
+            params = {**parameters, "cut": cut_size, "vis": f"{mean_vis:.1f}",
+                      "inputs": f"{stats['inputs'] / num_samples:.1f}", "merged": f"{stats['merged'] / num_samples:.1f}",
+                      "dark": f"{stats['dark'] / num_samples:.1f}"}
+            if args.timing:
+                for kind, (wall, cpu, evaluated) in edit_timings(relighter, args.repeats).items():
+                    row = SweepRow("cuts", scene_name, args.width, args.height, kind, format_params(
+                        {**params, "cpu_ms": f"{cpu:.1f}", "evaluated": f"{evaluated:.1f}",
+                         "kept_mb": f"{relighter.kept_bytes() / 2**20:.0f}"}), NAN, NAN, NAN,
+                        num_bytes, bake_s, wall, device_name("cpu"))
+                    print(csv_line(row), file=sys.stderr, flush=True)
+                    rows.append(row)
+                continue
             timing = relight_ms(relighter, args.repeats) if edit == "shot" else NAN
-            params = format_params({**parameters, "cut": cut_size, "vis": f"{mean_vis:.1f}",
-                                    "inputs": f"{stats['inputs'] / num_samples:.1f}", "merged": f"{stats['merged'] / num_samples:.1f}",
-                                    "dark": f"{stats['dark'] / num_samples:.1f}"})
+            params = format_params(params)
             quality = (NAN, NAN, NAN)
             if expected is not None:
                 full, indirect = expected[edit]
@@ -80,24 +147,26 @@ def cut_rows(relighter: CutsRelighter, layer: Path, scene_name: str, args: argpa
 
 def cost_rows(bakes: list[tuple[CutsRelighter, Path, dict[str, object], float]], scene_name: str,
               args: argparse.Namespace) -> list[SweepRow]:
-    """One row per bake (first cut size, the shot's lights), relight_ms timed round-robin."""
+    """One row per bake (first cut size, the shot's lights), relight_ms timed round-robin: the
+    cuts' light with every merged entry evaluated (`cut_samples` of copies of the lights, so that
+    no kept columns serve: as after an edit that changes the whole illumination cut); params add
+    `cpu_ms`."""
     cut_size = args.cut_sizes[0]
     timings: list[list[float]] = [[] for _ in bakes]
+    cpu_times: list[list[float]] = [[] for _ in bakes]
     for relighter, _, _, _ in bakes:
         relighter.set_settings(CutsRelightSettings(max_cut=cut_size))
         relighter.render()
-    for round_index in range(args.repeats):
-        for times, (relighter, _, _, _) in zip(timings, bakes):
-            first = relighter.lights[0]
-            relighter.set_light(moved(first, 0.01 * (1 + round_index % 2)))
-            start = time.perf_counter()
-            relighter.render()
+    for _ in range(args.repeats):
+        for times, cpu, (relighter, _, _, _) in zip(timings, cpu_times, bakes):
+            start, start_cpu = time.perf_counter(), time.process_time()
+            relighter.cut_samples([dataclasses.replace(light) for light in relighter.lights])  # not the kept lights
             times.append(time.perf_counter() - start)
-            relighter.set_light(first)
+            cpu.append(time.process_time() - start_cpu)
     rows = []
-    for times, (relighter, layer, parameters, bake_s) in zip(timings, bakes):
+    for times, cpu, (relighter, layer, parameters, bake_s) in zip(timings, cpu_times, bakes):
         num_samples = relighter.cuts.sample_vertices.shape[0]
-        params = format_params({**parameters, "cut": cut_size,
+        params = format_params({**parameters, "cut": cut_size, "cpu_ms": f"{1e3 * statistics.median(cpu):.1f}",
                                 "vis": f"{float(relighter.cuts.visibility.sizes().double().mean()):.1f}",
                                 "inputs": f"{relighter.stats['inputs'] / num_samples:.1f}",
                                 "merged": f"{relighter.stats['merged'] / num_samples:.1f}",

@@ -158,14 +158,15 @@ def split_factors(
     params: PreviewSurfaceParams, wo_local: torch.Tensor, wi_local: torch.Tensor, coat: bool,
     weight: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """The scalars (..., F) that `split` is linear in, for lights summed over many directions.
+    """The scalars (F, ...) that `split` is linear in, for lights summed over many directions.
 
     With s = (1 - E.h)^5 the Schlick weight and g, g_c the base and clearcoat lobes of `split`
     (0 below the horizon), F = 4 (6 with `coat`): [above, above s, g, g s (, g_c, g_c s)].
     Schlick's F = F0 + (F90 - F0) s is linear in s, so for lights Ld, Ls (..., 3) per direction,
     sum over directions of (diffuse Ld + specular Ls) = `combine_factors` of the sums of the
     first two factors times Ld and of the others times Ls. Params broadcast as in `split`;
-    `weight` (...), if given, multiplies every factor (e.g. a cosine and a solid angle).
+    `weight` (...), if given, multiplies every factor (e.g. a cosine and a solid angle). The
+    factor axis comes first: stacking it last costs as much as the rest on the CPU.
     """
     check_pair(wo_local, wi_local)
     cos_e, cos_l, cos_h, e_dot_h, above = _half_angles(wo_local, wi_local)
@@ -180,7 +181,7 @@ def split_factors(
     if coat:
         coat_lobe = masked_lobe(params.clearcoat_roughness)
         columns += [coat_lobe, coat_lobe * schlick]
-    return torch.stack(columns, dim=-1)
+    return torch.stack(columns)
 
 
 def combine_factors(params: PreviewSurfaceParams, diffuse_sums: torch.Tensor,

@@ -78,13 +78,23 @@ def merge(tree: LightTree, sources: list[tuple[Cuts, torch.Tensor]]) -> MergedCu
     return MergedCuts(row, node, cover)
 
 
+def leaf_cut_index(tree: LightTree, shared: torch.Tensor) -> torch.Tensor:
+    """(2L - 1,) int64: at each leaf's node index, the index into the cut `shared` (K,) (sorted,
+    a partition of the leaves) of the cut node holding the leaf (0 at inner nodes). A node n
+    overlaps the cut nodes from the one at leftleaf(n) to the one at n - height(n), its last leaf."""
+    leaf_cut = torch.repeat_interleave(torch.arange(shared.shape[0], device=shared.device),
+                                       tree.size.index_select(0, shared))
+    return torch.zeros(tree.num_nodes, dtype=torch.int64, device=shared.device).index_copy_(
+        0, tree.leaf_nodes, leaf_cut)
+
+
 def refine_nodes(tree: LightTree, node: torch.Tensor, shared: torch.Tensor
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Merge a cut shared by every row into merged nodes `node` (Q,) int64 (each row's a sorted partition).
 
-    The shared cut's index of every leaf is tabulated once; a node's leftmost leaf (leftleaf) and
-    rightmost leaf (node - height) then name the first and last shared nodes it overlaps: one
-    (a shared node covers it) or the run of shared nodes inside it.
+    The shared cut's index of every leaf is tabulated once (`leaf_cut_index`); a node's leftmost
+    leaf (leftleaf) and rightmost leaf (node - height) then name the first and last shared nodes
+    it overlaps: one (a shared node covers it) or the run of shared nodes inside it.
 
     Args:
         shared: (K,) int64 sorted node indices of the shared cut (a partition of the leaves).
@@ -93,10 +103,7 @@ def refine_nodes(tree: LightTree, node: torch.Tensor, shared: torch.Tensor
         (parent (R,), new_node (R,), shared_index (R,)), int64: the refined entries in order, each
         with the entry of `node` it refines, its node and its index into `shared`.
     """
-    leaf_cut = torch.repeat_interleave(torch.arange(shared.shape[0], device=shared.device),
-                                       tree.size.index_select(0, shared))
-    cut_of = torch.zeros(tree.num_nodes, dtype=torch.int64, device=shared.device).index_copy_(
-        0, tree.leaf_nodes, leaf_cut)
+    cut_of = leaf_cut_index(tree, shared)
     first = cut_of.index_select(0, tree.leftleaf.index_select(0, node))
     counts = cut_of.index_select(0, node - tree.height.index_select(0, node)) - first + 1
     if bool((counts == 1).all()):  # every node lies under a shared node: no expansion

@@ -1,0 +1,65 @@
+"""The cuts relighter's factorised BRDF (`preview_surface.split_factors` / `combine_factors`) and
+its column slots: exact rewrites of `split` and of the illumination cut's bookkeeping."""
+
+from __future__ import annotations
+
+import torch
+
+from relight_torch.brdf import preview_surface
+from relight_torch.cuts.relighter import _assign_slots
+
+
+def _random_params(n: int, generator: torch.Generator) -> preview_surface.PreviewSurfaceParams:
+    def uniform(*shape: int) -> torch.Tensor:
+        return torch.rand(*shape, generator=generator, dtype=torch.float64)
+
+    return preview_surface.PreviewSurfaceParams(
+        diffuse_color=uniform(n, 3), emissive_color=torch.zeros(n, 3, dtype=torch.float64),
+        specular_color=uniform(n, 3), metallic=uniform(n), roughness=uniform(n), clearcoat=uniform(n),
+        clearcoat_roughness=uniform(n), ior=1.0 + uniform(n), opacity=torch.ones(n, dtype=torch.float64),
+        use_specular_workflow=uniform(n) > 0.5)
+
+
+def test_factors_sum_to_split_times_light():
+    # Sums over S directions of the factors times the light, combined with the colours, equal
+    # the sum of split()'s diffuse and specular parts times the light (both workflows, clearcoat,
+    # directions below the horizon included).
+    generator = torch.Generator().manual_seed(3)
+    n, s = 64, 9
+    params = _random_params(n, generator)
+    wo = torch.nn.functional.normalize(torch.randn(n, 1, 3, generator=generator, dtype=torch.float64), dim=-1)
+    wi = torch.nn.functional.normalize(torch.randn(n, s, 3, generator=generator, dtype=torch.float64), dim=-1)
+    diffuse_light, specular_light = (torch.rand(n, s, 3, generator=generator, dtype=torch.float64) for _ in range(2))
+    diffuse, specular = preview_surface.split(params.with_sample_axis(), wo, wi)
+    expected = (diffuse * diffuse_light + specular * specular_light).sum(dim=1)
+    factors = preview_surface.split_factors(params.with_sample_axis(), wo, wi, coat=True).movedim(0, -1)
+    assert factors.shape == (n, s, 6)
+    weight = torch.randn(n, s, generator=generator, dtype=torch.float64)
+    torch.testing.assert_close(preview_surface.split_factors(params.with_sample_axis(), wo, wi, coat=True, weight=weight),
+                               factors.movedim(-1, 0) * weight, rtol=1e-12, atol=0.0)
+    sums_d = torch.einsum("nsf,nsc->nfc", factors[..., :2], diffuse_light)
+    sums_s = torch.einsum("nsf,nsc->nfc", factors[..., 2:], specular_light)
+    combined = sum(preview_surface.combine_factors(params, sums_d, sums_s))
+    torch.testing.assert_close(combined, expected, rtol=1e-10, atol=1e-12)
+    # Without a coat the first four factors give the same as clearcoat 0.
+    uncoated = preview_surface.PreviewSurfaceParams(**{**params.__dict__, "clearcoat": torch.zeros(n, dtype=torch.float64)})
+    diffuse, specular = preview_surface.split(uncoated.with_sample_axis(), wo, wi)
+    four = preview_surface.split_factors(uncoated.with_sample_axis(), wo, wi, coat=False).movedim(0, -1)
+    torch.testing.assert_close(four, factors[..., :4])
+    combined = sum(preview_surface.combine_factors(uncoated, torch.einsum("nsf,nsc->nfc", four[..., :2], diffuse_light),
+                                                   torch.einsum("nsf,nsc->nfc", four[..., 2:], specular_light)))
+    torch.testing.assert_close(combined, (diffuse * diffuse_light + specular * specular_light).sum(dim=1),
+                               rtol=1e-10, atol=1e-12)
+
+
+def test_slots_keep_the_nodes_a_new_cut_keeps():
+    slot_node = torch.full((5,), -1, dtype=torch.int64)
+    slot, new = _assign_slots(slot_node, torch.tensor([3, 7, 12]), 31)
+    assert new.all() and sorted(slot.tolist()) == [0, 1, 2]
+    first = dict(zip([3, 7, 12], slot.tolist()))
+    slot, new = _assign_slots(slot_node, torch.tensor([3, 5, 6, 12, 20]), 31)
+    assert new.tolist() == [False, True, True, False, True]
+    assert slot[0] == first[3] and slot[3] == first[12]           # kept nodes keep their columns
+    assert len(set(slot.tolist())) == 5                           # 7's slot is free for a new node
+    assert sorted(slot_node.tolist()) == [3, 5, 6, 12, 20]
+    assert torch.equal(slot_node[slot], torch.tensor([3, 5, 6, 12, 20]))
