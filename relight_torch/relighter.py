@@ -192,7 +192,7 @@ class _Transport:
         diffuse_ratio: (P,) the ratio estimator's factor on the diffuse sum (closed-form
             unshadowed irradiance over the samples' estimate of it, `lights.polygon`), or None
             for lights without a closed form.
-        factors: (S, P, F) the same as per-sample scalars, for lights whose L_i V is one colour
+        factors: (F, S, P) the same as per-sample scalars, for lights whose L_i V is one colour
             times a scalar w (untextured, grey shadow colour): w cos(theta_i) / (pdf S) times the
             BRDF's `preview_surface.split_factors` (F = 4, or 6 with a clearcoat); the
             materials' colours enter per point when the images are made (`combine_factors`).
@@ -511,7 +511,7 @@ class Relighter:
             return joined
 
         return _Transport(None if dense else points, join("directions", 1, 0.0), join("lobes", 2, 0.0),
-                          join("diffuse_ratio", 0, 1.0), join("factors", 1, 0.0), parts[0].colour,
+                          join("diffuse_ratio", 0, 1.0), join("factors", 2, 0.0), parts[0].colour,
                           join("shadow_sums", 0, 0.0))
 
     def _filter_visibility(self, transport: _Transport) -> None:
@@ -578,12 +578,10 @@ class Relighter:
             if shadow.enable:
                 weight = weight * (1.0 - (1.0 - shadow.color[0]) * shadow_strength(
                     shadow, torch.isfinite(distance), distance))
-            # (S, P, F) view of the (F, S, P) factors: samples lead as everywhere in the transport.
-            factors = preview_surface.split_factors(params, wo_local, wi_local,
-                                                    bool(params.clearcoat.any())).movedim(0, -1)
+            factors = preview_surface.split_factors(params, wo_local, wi_local, bool(params.clearcoat.any()))
             # With a filtered visibility the diffuse factors stay unshadowed (see _Transport).
-            factors[..., :2] *= (unshadowed if filtered else weight).unsqueeze(-1)
-            factors[..., 2:] *= weight.unsqueeze(-1)
+            factors[:2] *= unshadowed if filtered else weight
+            factors[2:] *= weight
             sums = None
             if filtered:
                 sums = torch.stack((weight.sum(0), unshadowed.sum(0)), dim=-1)
@@ -591,10 +589,10 @@ class Relighter:
                 # light) take the closed form as their unshadowed diffuse sum (Fresnel's s taken
                 # as 0) and their visibility from the filter's neighbours.
                 uncovered = torch.nonzero((sums[:, 1] == 0) & (exact[local] > 0)).squeeze(-1)
-                factors[0, uncovered, 0] = exact[local][uncovered]
+                factors[0, 0, uncovered] = exact[local][uncovered]
             colour = torch.as_tensor(scale, device=factors.device, dtype=factors.dtype)
             if light.kind not in _SHAPED_KINDS:
-                return _Transport(points, None, None, ratio, factors.sum(0, keepdim=True), colour, sums)
+                return _Transport(points, None, None, ratio, factors.sum(1, keepdim=True), colour, sums)
             return _Transport(points, direction, None, ratio, factors, colour, sums)
         weight = radiance * scalar.unsqueeze(-1)
         if shadow.enable:
@@ -634,12 +632,13 @@ class Relighter:
         """(2, P, 3) diffuse and specular sums of a transport kept as scalar factors, each sample
         times its shaping `factor` (S, P, 3) when given."""
         factors = transport.factors
-        if factor is None:  # scalar sums (P, F, 1): the light's colour multiplies the result
-            sums = (factors[0] if factors.shape[0] == 1 else factors.sum(0)).unsqueeze(-1)
-        else:  # one sample at a time: (P, F, 3) slabs, never an (S, P, F, 3) temporary
-            sums = factors[0].unsqueeze(-1) * factor[0].unsqueeze(-2)
-            for s in range(1, factors.shape[0]):
-                sums.addcmul_(factors[s].unsqueeze(-1), factor[s].unsqueeze(-2))
+        if factor is None:  # scalar sums (F, P, 1): the light's colour multiplies the result
+            sums = (factors[:, 0] if factors.shape[1] == 1 else factors.sum(1)).unsqueeze(-1)
+        else:  # one sample at a time: (F, P, 3) slabs, never an (F, S, P, 3) temporary
+            sums = factors[:, 0].unsqueeze(-1) * factor[0]
+            for s in range(1, factors.shape[1]):
+                sums.addcmul_(factors[:, s].unsqueeze(-1), factor[s])
+        sums = sums.movedim(0, 1)  # (P, F, C)
         g = self.gbuffer
         params = g.params if transport.points is None else g.params.index(transport.points)
         return torch.stack(preview_surface.combine_factors(params, sums[:, :2], sums[:, 2:])).mul_(transport.colour)
