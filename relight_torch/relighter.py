@@ -283,6 +283,8 @@ class Relighter:
         self._lights: dict[str, _LightState] = {}
         self._masks: dict[tuple[str, ...], torch.Tensor] = {}
         self._wo_local = to_local(gbuffer.wo_world(), gbuffer.tangent, gbuffer.bitangent, gbuffer.normal)
+        # Whether the transport factors carry the clearcoat lobe: one answer for every chunk.
+        self._coat = bool(gbuffer.params.clearcoat.any())
         self._u: dict[int, torch.Tensor] = {}
         # Every pixel covered in order: scattering into the image is a reshape.
         self._dense = gbuffer.num_samples == height * width and bool(
@@ -578,7 +580,7 @@ class Relighter:
             if shadow.enable:
                 weight = weight * (1.0 - (1.0 - shadow.color[0]) * shadow_strength(
                     shadow, torch.isfinite(distance), distance))
-            factors = preview_surface.split_factors(params, wo_local, wi_local, bool(params.clearcoat.any()))
+            factors = preview_surface.split_factors(params, wo_local, wi_local, self._coat)
             # With a filtered visibility the diffuse factors stay unshadowed (see _Transport).
             factors[:2] *= unshadowed if filtered else weight
             factors[2:] *= weight

@@ -2,6 +2,7 @@
 
     python -m pipeline.benchmarks.multiview_path SCENE [SCENE...] [--width 640 --height 480]
         [--views 8] [--coverage 0.1 0.05 0.02] [--caching-resolution 512] [--spp 16]
+        [--sample-groups G] [--blend-lighting] [--edge-contrast C|none] [--threads T]
         [--fill-holes] [--no-reference] [--out DIR] [--csv FILE] [--table FILE]
 
 Per scene and coverage threshold it bakes a multiview cache (placement and one deep framebuffer
@@ -12,11 +13,16 @@ over the covered ones (pixels whose every sub-sample found a cache sample, or wa
 demand), the PSNR of a direct cache baked for that very view (the ceiling: what the view's own
 deep framebuffer, same supersampling, two texture samples, reaches), the hole fraction before
 and after the small holes are filled, and median times of
-the three steps of a camera move: primary rays (Embree, CPU), the correspondence map (eq. 5,
-hole filling, GBuffer gather) and the re-render (a fresh direct Relighter shading the view: light
-samples, shadow rays, BRDF), and of a light move re-rendered at that view (`relight_ms`, the
-shared measure). Timings are warm medians of `--repeats` runs, wall time (an upper bound on a
-shared machine) and, for the three steps, this process's CPU time (all its threads).
+the three steps of a camera move: primary rays (Embree, CPU), the correspondence map
+(`MultiviewRelighter.set_view`: eq. 5, hole filling, GBuffer gather, a Relighter over the view)
+and the re-render (`render` with every light's images dropped: the cached lighting of the
+caching samples gathered and the BRDF evaluated at the view; the shadow rays it traced are
+counted, `rerender_rays`: only those of the points on a light's edges, `--edge-contrast`, once
+`prepare_lighting` has lit the pool), and of a light move
+re-rendered at that view (`relight_ms`, the shared measure: the moved light's lighting is traced
+again for the caching samples the view uses). Timings are warm medians of `--repeats` runs,
+wall time (an upper bound on a shared machine) and, for the three steps, this process's CPU time
+(all its threads); `--threads` sets torch's and Embree's threads.
 
 Output: the shared sweep CSV (one row per scene and threshold, light edit 'shot': psnr_db and
 rel_mse averaged over the path, cache_bytes, bake_s, relight_ms the median light move over the
@@ -51,13 +57,13 @@ from pipeline.tracing import Tracer
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.atomic import atomic_path, write_text_atomic
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch.multiview.relighter import open_multiview_relighter, view_gbuffer
+from relight_torch.multiview.relighter import open_multiview_relighter
 from relight_torch.relighter import Relighter, RelightSettings
 
 TABLE_COLUMNS = ("scene", "coverage", "view", "psnr_db", "psnr_covered_db", "psnr_direct_db", "rel_mse",
                  "hole_fraction_before",
                  "hole_fraction_after", "large_holes", "rays_ms", "correspondence_ms", "rerender_ms",
-                 "rays_cpu_ms", "correspondence_cpu_ms", "rerender_cpu_ms", "light_edit_ms")
+                 "rays_cpu_ms", "correspondence_cpu_ms", "rerender_cpu_ms", "rerender_rays", "light_edit_ms")
 
 
 def camera_path(scene: Scene, camera: Camera, num_views: int, yaw_degrees: float) -> list[Camera]:
@@ -128,16 +134,16 @@ def measure_view(scene: Scene, relighter, renderer: FrameRenderer, camera: Camer
                                     relighter.corner_normals)
 
     def correspondence():
-        state["gbuffer"] = view_gbuffer(relighter.views, state["view"], normal_mapped=relighter.normal_mapped)[0]
+        relighter.set_view(state["view"], exposure_scale=camera.exposure_scale)
 
     def rerender():
-        fresh = Relighter(state["gbuffer"], relighter.visibility, relighter.supersampling, relighter.exposure_scale,
-                          relighter.settings, relighter.object_paths)
-        fresh.set_lights(relighter.lights)
-        fresh.render()
+        relighter.relighter.invalidate()
+        relighter.render()
 
+    rays_before = relighter.visibility.num_rays
     for name, function in (("rays", rays), ("correspondence", correspondence), ("rerender", rerender)):
         row[f"{name}_ms"], row[f"{name}_cpu_ms"] = _ms(function, repeats)
+    row["rerender_rays"] = relighter.visibility.num_rays - rays_before
     row["light_edit_ms"] = relight_ms(relighter, repeats)
     return row
 
@@ -172,8 +178,15 @@ def run_scene(name: str, args: argparse.Namespace, out: Path) -> tuple[list[Swee
                                settings=settings)
         bake_s = time.perf_counter() - start
         parameters = read_cache_layer(layer).parameters
-        relighter = open_multiview_relighter(layer, settings=RelightSettings(area_samples=args.area_samples))
+        relighter = open_multiview_relighter(layer, settings=RelightSettings(area_samples=args.area_samples),
+                                             sample_groups=args.sample_groups, blend_lighting=args.blend_lighting,
+                                             edge_contrast=args.edge_contrast)
+        relighter.caster.num_threads = args.threads  # the shadow rays' caster too
         renderer = FrameRenderer(relighter, fill_holes=args.fill_holes)
+        start = time.perf_counter()
+        relighter.prepare_lighting()
+        print(f"{name} coverage {coverage:g}: lighting of {relighter.views.pool.num_samples} caching samples traced "
+              f"in {time.perf_counter() - start:.1f} s ({relighter.lighting_bytes() / 1e6:.0f} MB)", file=sys.stderr)
         views = []
         for i, (view, reference) in enumerate(zip(path, references)):
             measured = measure_view(scene, relighter, renderer, view, reference, args.repeats)
@@ -189,7 +202,9 @@ def run_scene(name: str, args: argparse.Namespace, out: Path) -> tuple[list[Swee
                                   "uncovered": round(parameters["uncoveredFraction"], 4),
                                   "maxResolution": args.caching_resolution, "views": args.views,
                                   "supersampling": args.supersampling, "fillHoles": int(args.fill_holes),
-                                  "areaSamples": args.area_samples}),
+                                  "areaSamples": args.area_samples, "sampleGroups": args.sample_groups,
+                                  "blendLighting": int(args.blend_lighting),
+                                  "edgeContrast": "none" if args.edge_contrast is None else args.edge_contrast}),
             psnr_db=mean.get("psnr_db", float("nan")), rel_mse=mean.get("rel_mse", float("nan")),
             cache_bytes=float(cache_bytes(layer)), bake_s=bake_s,
             relight_ms=float(np.median([v.get("light_edit_ms", float("nan")) for v in views]))))
@@ -209,6 +224,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spp", type=int, default=16, help="reference samples per pixel (default 16)")
     parser.add_argument("--area-samples", type=int, default=RelightSettings().area_samples,
                         help="relighter samples per area light and point (default: the relighter's)")
+    parser.add_argument("--sample-groups", type=int, default=1,
+                        help="light-sample groups whose BRDF a view evaluates together (default 1)")
+    parser.add_argument("--blend-lighting", action="store_true",
+                        help="blend the cached lighting of the four caching pixels (default: the nearest)")
+    parser.add_argument("--edge-contrast", type=lambda v: None if v == "none" else float(v), default=0.8,
+                        help="trace a light again at view points on its edges in the caching images "
+                             "(relative contrast, default 0.8; 'none': a camera move traces nothing)")
+    parser.add_argument("--threads", type=int, default=2, help="torch and Embree threads (default 2)")
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per median; 0: no timings")
     parser.add_argument("--fill-holes", action="store_true", help="bake large holes on demand")
     parser.add_argument("--no-reference", action="store_true", help="timings only")
@@ -216,6 +239,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--csv", type=Path, help="shared sweep CSV (default OUT/multiview.csv)")
     parser.add_argument("--table", type=Path, help="per-view CSV (default OUT/multiview_views.csv)")
     args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     rows, table = [], []
     for name in args.scenes:

@@ -3,9 +3,14 @@
 For a visible point p with unit normal n (facing the new camera), camera i at distance d_i in unit
 direction u_i scores
 
-    v_i(p) (n . u_i) / d_i^2
+    v_i(p) (n . u_i) / (d_i^2 a_i^2)
 
-and the point takes the sample of the best-scoring camera at the pixel p projects to. Visibility
+and the point takes the sample of the best-scoring camera at the pixel p projects to. a_i is the
+angle one pixel of camera i subtends: the paper's score (n . u_i) / d_i^2 is the surface's
+solid-angle density seen by camera i, which ranks cameras of one resolution; divided by a_i^2 it
+is the number of camera i's pixels per unit area of the surface, which also ranks a 64-pixel
+camera near a surface against a 256-pixel one further away (on the set scene the former won the
+floor next to the viewer, and its coarse samples of a sun patch's hard edges cost 7 dB there). Visibility
 v_i is a depth test against camera i's cached depth at that pixel: p is seen when its depth along
 the camera's axis is within a tolerance of the cached one. The tolerance is what a surface tilted
 by theta away from the camera spans across one pixel, depth x pixel_angle x (1 + 2 tan theta),
@@ -15,8 +20,8 @@ and corners that tolerance also admits the neighbouring surface's sample, so the
 must moreover be the same surface: the same object, with a geometric normal within
 `SAME_SURFACE_COS` of the point's (the paper's "artifacts at surface boundaries", removed).
 
-`correspondence_map` is the vectorised map (a loop over the K cameras, each over the points
-inside its frustum);
+`correspondence_map` is the vectorised map (every camera's score bound at once, then rounds
+testing each point against its best remaining camera);
 `correspondence_map_reference` is its slow twin, a loop over points and cameras written from the
 formula, used by the tests only.
 """
@@ -28,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from relight_torch.multiview.views import CachingViews, camera_column, world_from_camera
+from relight_torch.multiview.views import CachingViews, camera_column, take_rows, take_small, world_from_camera
 
 MAX_SLOPE = 20.0
 RELATIVE_DEPTH_TOLERANCE = 1e-3
@@ -94,10 +99,10 @@ class Correspondence:
 
 
 def same_surface(surface: torch.Tensor, object_id: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
-    """(...,) bool: cached samples (`CachingViews.surface_table` rows, (..., 4)) of the same surface as
-    points of `object_id` (...,) float32 with unit geometric normals (..., 3)."""
-    cos = surface[..., 1] * normal[..., 0] + surface[..., 2] * normal[..., 1] + surface[..., 3] * normal[..., 2]
-    return (surface[..., 0] == object_id) & (cos > SAME_SURFACE_COS)
+    """(...,) bool: cached samples (`CachingViews.surface_table` columns, (4, ...)) of the same surface
+    as points of `object_id` (...,) float32 with unit geometric normals (..., 3)."""
+    cos = surface[1] * normal[..., 0] + surface[2] * normal[..., 1] + surface[3] * normal[..., 2]
+    return (surface[0] == object_id) & (cos > SAME_SURFACE_COS)
 
 
 def _depth_tolerance(depth, pixel_angle, cos):
@@ -108,7 +113,14 @@ def _depth_tolerance(depth, pixel_angle, cos):
 
 def correspondence_map(views: CachingViews, position: torch.Tensor, normal: torch.Tensor,
                        object_id: torch.Tensor) -> Correspondence:
-    """Eq. 5 for every point.
+    """Eq. 5 for every point, all cameras at once.
+
+    The score without visibility, (n . u_i) / d_i^2, bounds each camera's score from above, so
+    a point's best camera is the first one, in decreasing bound, that passes the visibility test:
+    the bounds of all (K, N) pairs come from two matrix products, then each round tests every
+    pending point against its best remaining camera (one gather of that camera's projection per
+    point) and keeps the points it failed for. Most points are done in the first round or two;
+    the rounds never exceed K.
 
     Args:
         views: the caching cameras (on the points' device).
@@ -116,35 +128,86 @@ def correspondence_map(views: CachingViews, position: torch.Tensor, normal: torc
         normal: (N, 3) unit geometric normals at the points, facing the viewer.
         object_id: (N,) object of each point.
     """
-    object_id = object_id.to(torch.float32)
+    device = position.device
     num_points = position.shape[0]
-    best_score = torch.zeros(num_points, dtype=torch.float32, device=position.device)
-    best_view = torch.full((num_points,), -1, dtype=torch.int64, device=position.device)
-    best_row = torch.full((num_points,), -1, dtype=torch.int64, device=position.device)
-    best_pixel = torch.full((num_points, 2), torch.nan, dtype=torch.float32, device=position.device)
-    for k in range(views.num_views):
-        pixels, depth = views.project(k, position)
-        height, width = (int(v) for v in views.sizes[k])
-        column, row = torch.floor(pixels[:, 0]), torch.floor(pixels[:, 1])
-        # The rest only for the points inside the frustum (a cube face holds about a sixth).
-        index = torch.nonzero((depth > 0) & (column >= 0) & (column < width) & (row >= 0) & (row < height)).squeeze(-1)
-        point, point_normal, depth = position[index], normal[index], depth[index]
-        to_camera = views.camera_position(k) - point
-        distance_squared = (to_camera * to_camera).sum(-1)
-        cos = (point_normal * to_camera).sum(-1) * torch.rsqrt(torch.clamp(distance_squared, min=1e-30))
-        flat = (row[index] * width + column[index]).long() + views.image_offsets[k]
-        sample = views.pool_row[flat]
-        seen = (cos > 0) & ((depth - views.depth[flat]).abs() <= _depth_tolerance(depth, views.pixel_angle[k], cos))
-        sample = torch.where(seen, sample, torch.zeros_like(sample))
-        seen &= same_surface(views.surface_table[sample], object_id[index], point_normal)
-        score = torch.where(seen, cos / distance_squared, torch.zeros_like(cos))
-        better = score > best_score[index]
-        chosen = index[better]
-        best_score[chosen] = score[better]
-        best_view[chosen] = k
-        best_row[chosen] = sample[better]
-        best_pixel[chosen] = pixels[index[better]].float()
+    best_score = torch.zeros(num_points, dtype=torch.float32, device=device)
+    best_view = torch.full((num_points,), -1, dtype=torch.int64, device=device)
+    best_row = torch.full((num_points,), -1, dtype=torch.int64, device=device)
+    best_pixel = torch.full((num_points, 2), torch.nan, dtype=torch.float32, device=device)
+    if num_points == 0 or views.num_views == 0:
+        return Correspondence(best_view, best_row, best_score, best_pixel)
+    bound = _score_bounds(views, position, normal)                          # (N, K)
+    object_id = object_id.to(torch.float32)
+    pending = None                                                                  # every point
+    for _ in range(views.num_views):
+        rows = bound if pending is None else bound.index_select(0, pending)
+        value, camera = rows.max(1)
+        live = torch.nonzero(value > 0).squeeze(-1)
+        pending = live if pending is None else pending.index_select(0, live)
+        if pending.numel() == 0:
+            break
+        camera = camera.index_select(0, live)
+        pixel, row, score = _visible_sample(views, camera, position.index_select(0, pending),
+                                            normal.index_select(0, pending), object_id.index_select(0, pending))
+        seen = row >= 0
+        found = torch.nonzero(seen).squeeze(-1)
+        done = pending.index_select(0, found)
+        best_score.index_copy_(0, done, score.index_select(0, found))
+        best_view.index_copy_(0, done, camera.index_select(0, found))
+        best_row.index_copy_(0, done, row.index_select(0, found))
+        best_pixel.index_copy_(0, done, pixel.index_select(0, found))
+        failed = torch.nonzero(~seen).squeeze(-1)
+        pending = pending.index_select(0, failed)
+        bound.view(-1).index_fill_(0, pending * views.num_views + camera.index_select(0, failed), 0.0)
     return Correspondence(best_view, best_row, best_score, best_pixel)
+
+
+def _score_bounds(views: CachingViews, position: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """(N, K) float32 (n . u_k) / (d_k^2 a_k^2) of every point and camera, 0 where the camera is behind the
+    point's surface or the point outside the cone around the camera's frustum (`CachingViews.axes`;
+    a cube's six faces share a centre, so that is what tells them apart). From matrix products about
+    the points' mean (float32 rounding of the squared distance, relative to the scene's extent
+    squared: the order of near-ties only)."""
+    origin = position.mean(0)
+    points, centres = position - origin, views.centres.T.to(position.dtype) - origin
+    forward, cone = views.axes[:3].T.to(position.dtype), views.axes[3].to(position.dtype)
+    facing = torch.addmm(-(normal * points).sum(-1, keepdim=True), normal, centres.T)              # n.(c - p)
+    squared = torch.addmm((points * points).sum(-1, keepdim=True) + (centres * centres).sum(-1), points, centres.T,
+                          alpha=-2.0).clamp_(min=1e-30)
+    ahead = torch.addmm(-(forward * centres).sum(-1), points, forward.T)                          # f.(p - c)
+    inverse = squared.rsqrt_()
+    facing.clamp_(min=0.0).mul_(inverse).mul_(inverse).mul_(inverse).mul_(views.pixel_angle.to(position.dtype) ** -2)
+    return facing.mul_(ahead.mul_(inverse) > cone)
+
+
+def _visible_sample(views: CachingViews, camera: torch.Tensor, position: torch.Tensor, normal: torch.Tensor,
+                    object_id: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Each point (P, 3) seen by its own `camera` (P,): its continuous (column, row) (P, 2), the
+    cached sample's pool row (-1 where the depth or same-surface test fails) and eq. 5's score (P,)."""
+    p = take_small(views.projection, camera)                                      # (19, P)
+    x, y, z = position[:, 0], position[:, 1], position[:, 2]
+    local_x, local_y, local_z = (p[4 * i] * x + p[4 * i + 1] * y + p[4 * i + 2] * z + p[4 * i + 3] for i in range(3))
+    depth = -local_z
+    safe = torch.where(depth > 0, depth, torch.ones_like(depth))
+    focal, width, height = p[12], p[17], p[18]
+    column = ((focal * local_x / safe - p[15]) / p[13] + 0.5) * width
+    line = (0.5 - (focal * local_y / safe - p[16]) / p[14]) * height
+    column_index, line_index = torch.floor(column), torch.floor(line)
+    inside = (depth > 0) & (column_index >= 0) & (column_index < width) & (line_index >= 0) & (line_index < height)
+    flat = torch.where(inside, line_index * width + column_index, torch.zeros_like(column)).long()
+    flat += views.image_offsets.index_select(0, camera)
+    centre = take_small(views.centres, camera)
+    to_x, to_y, to_z = centre[0] - x, centre[1] - y, centre[2] - z
+    distance_squared = to_x * to_x + to_y * to_y + to_z * to_z
+    cos = (normal[:, 0] * to_x + normal[:, 1] * to_y + normal[:, 2] * to_z) * torch.rsqrt(
+        torch.clamp(distance_squared, min=1e-30))
+    angle = views.pixel_angle.index_select(0, camera)
+    tolerance = _depth_tolerance(depth, angle, cos)
+    seen = inside & (cos > 0) & ((depth - views.depth.index_select(0, flat)).abs() <= tolerance)
+    sample = torch.where(seen, views.pool_row.index_select(0, flat), torch.zeros_like(flat))
+    seen &= same_surface(take_rows(views.surface_table, sample), object_id, normal)
+    return (torch.stack((column, line), -1), torch.where(seen, sample, torch.full_like(sample, -1)),
+            cos / distance_squared / (angle * angle))
 
 
 def correspondence_map_reference(views: CachingViews, position: np.ndarray, normal: np.ndarray,
@@ -185,7 +248,7 @@ def correspondence_map_reference(views: CachingViews, position: np.ndarray, norm
             sample = pool_row[pixel]
             if pool_object[sample] != object_id[i] or float(pool_normal[sample] @ n) <= SAME_SURFACE_COS:
                 continue
-            score = cos / (d * d)
+            score = cos / (d * d) / float(pixel_angle[k]) ** 2
             if score > scores[i]:
                 view[i], rows[i], scores[i] = k, sample, score
     return Correspondence(torch.from_numpy(view), torch.from_numpy(rows), torch.from_numpy(scores))

@@ -1,4 +1,4 @@
-"""Relighting a multiview cache from any camera: correspondence map, then the direct Relighter.
+"""Relighting a multiview cache from any camera: correspondence map, cached lighting, the direct Relighter.
 
 For each new view (`set_view`), the caller's visible points (`ViewPoints`) are matched to caching
 camera samples (`correspondence_map`, eq. 5), small holes are filled (`fill_small_holes`), and a
@@ -7,17 +7,29 @@ samples' material parameters and shading frames, bilinearly resampled (`resample
 material does not perturb its normal, the view's own smooth normal replaces the cached one (the
 frame re-orthonormalised around it): a cached normal is the one at the caching pixel's centre,
 which on a curved surface seen by a coarser caching camera is off by up to a caching pixel and
-shifts highlights. The direct `Relighter` then shades it with the usual lights and shadows; there
-is no second shading path. Lights persist across views; a view change rebuilds the per-light
-transport (the shading points moved), a light edit at a fixed view re-renders only what it
-touches, as for a single-view cache.
+shifts highlights.
+
+Lighting: a camera move changes no light, so nothing about lights is traced again. Per light, the
+viewer-independent part of its transport (light samples, radiance, shaping, shadow rays; see
+`incident`) is kept for the caching cameras' samples; a view takes its points' entries from the
+nearest caching pixel (or, `blend_lighting`, blends the four with their materials' bilinear
+weights) and evaluates only the BRDF at its own view direction (`incident.group_images`). The resulting unit images go to a direct `Relighter` over the view
+(`Relighter.set_unit_images`), which applies colour, exposure, light links and light groups as for
+a single-view cache: there is no second shading path. Entries are traced lazily, for the caching
+samples a view uses and not yet lit (`prepare_lighting` traces them all); an edit of a light's
+transform or shaping drops its entries, a colour or link edit keeps them. Two kinds of view points
+are traced at the view instead: those on a light's edges in the caching images (`edge_contrast`:
+where the caching pixels are coarser than the view's, hard shadow edges would otherwise come out
+as their staircase) and the samples baked on demand for large holes (not in the pool).
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -28,18 +40,37 @@ from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.lights.light import Light
 from relight_torch.lights.linking import decode_paths
+from relight_torch.math.frame import to_local
 from relight_torch.multiview.correspondence import ViewPoints, correspondence_map
 from relight_torch.multiview.holes import HoleReport, fill_small_holes
+from relight_torch.multiview.incident import CHANNELS, group_images, incident_table, pool_light_samples, sample_groups
 from relight_torch.multiview.load import load_camera_table, load_view_gbuffers
 from relight_torch.multiview.resample import bilinear_samples
-from relight_torch.multiview.views import CachingViews, concat_gbuffers, gather_gbuffer
+from relight_torch.multiview.views import CachingViews, concat_gbuffers, gather_gbuffer, take_rows
 from relight_torch.relighter import Relighter, RelightSettings, embree_visibility, shot_lights
 from relight_torch.visibility.embree import EmbreeCaster
 
 
+class ViewSamples(NamedTuple):
+    """A new view's samples: its GBuffer, hole report, and how its first M rows blend pool rows.
+
+    Attributes:
+        gbuffer: the view's covered sub-samples: M rows from the pool, then any baked on demand.
+        report: the hole report.
+        rows: (M,) int64 the pool row nearest to each of the first M rows (its correspondence).
+        taps: (M, 4) int64 pool rows blended into each of the first M rows; weights: (M, 4) float32.
+    """
+
+    gbuffer: GBuffer
+    report: HoleReport
+    rows: torch.Tensor
+    taps: torch.Tensor
+    weights: torch.Tensor
+
+
 def view_gbuffer(views: CachingViews, view: ViewPoints, patch: GBuffer | None = None,
-                 normal_mapped: torch.Tensor | None = None) -> tuple[GBuffer, HoleReport]:
-    """The new view's GBuffer from the caching cameras' samples (see the module docstring).
+                 normal_mapped: torch.Tensor | None = None) -> ViewSamples:
+    """The new view's samples from the caching cameras' (see the module docstring).
 
     Args:
         views: the caching cameras, on the view's device.
@@ -50,22 +81,29 @@ def view_gbuffer(views: CachingViews, view: ViewPoints, patch: GBuffer | None = 
             every cached normal (and so does a view without `shading_normal`).
 
     Returns:
-        (the GBuffer over the view's (H, W) sub-sample image, the hole report).
+        The GBuffer over the view's (H, W) sub-sample image, the hole report and the blend.
     """
     correspondence = correspondence_map(views, view.position, view.geometric_normal, view.object_id)
     rows, report = fill_small_holes(view, correspondence.pool_row, views.pool)
     keep = torch.nonzero(rows >= 0).squeeze(-1)
+
+    def kept(values: torch.Tensor) -> torch.Tensor:
+        return values.index_select(0, keep)
+
     # Filled holes are resampled at their neighbour's pixel centre: that sample alone.
-    matched = (correspondence.pool_row[keep] >= 0)[:, None]
-    row = rows[keep]
-    chosen = bilinear_samples(views, torch.where(matched[:, 0], correspondence.view[keep], views.pool_view[row]),
-                              torch.where(matched, correspondence.pixel[keep], views.pool_pixel[row]), row,
-                              view.object_id[keep], view.geometric_normal[keep])
-    gbuffer = GBuffer(image_size=view.image_size, pixel_index=view.pixel_index[keep], position=view.position[keep],
-                      geometric_normal=view.geometric_normal[keep], depth=view.depth[keep],
-                      camera_position=view.camera_position, **chosen._asdict())
+    matched = kept(correspondence.pool_row) >= 0
+    row = kept(rows)
+    object_id, geometric_normal = kept(view.object_id), kept(view.geometric_normal)
+    camera = torch.where(matched, kept(correspondence.view), views.pool_view.index_select(0, row))
+    pixel = torch.where(matched[:, None], kept(correspondence.pixel), views.pool_pixel.index_select(0, row))
+    chosen = bilinear_samples(views, camera, pixel, row, object_id, geometric_normal)
+    gbuffer = GBuffer(image_size=view.image_size, pixel_index=kept(view.pixel_index), position=kept(view.position),
+                      geometric_normal=geometric_normal, depth=kept(view.depth), camera_position=view.camera_position,
+                      **{k: v for k, v in chosen._asdict().items() if k not in ("taps", "weights")})
     if view.shading_normal is not None and normal_mapped is not None:
-        gbuffer = _smooth_frames(gbuffer, view.shading_normal[keep], ~normal_mapped[gbuffer.material_id.long()])
+        gbuffer = _smooth_frames(gbuffer, kept(view.shading_normal),
+                                 ~normal_mapped.index_select(0, gbuffer.material_id.long()))
+    taps, weights = chosen.taps, chosen.weights
     if patch is not None:
         if patch.image_size != view.image_size:
             raise ValueError(f"hole patch is for a {patch.image_size} image, the view is {view.image_size}")
@@ -74,7 +112,7 @@ def view_gbuffer(views: CachingViews, view: ViewPoints, patch: GBuffer | None = 
         fresh = gather_gbuffer(patch, torch.nonzero(~taken[patch.pixel_index]).squeeze(-1))
         gbuffer = concat_gbuffers([gbuffer, fresh], view.image_size,
                                   torch.cat([gbuffer.pixel_index, fresh.pixel_index]), view.camera_position)
-    return gbuffer, report
+    return ViewSamples(gbuffer, report, row, taps, weights)
 
 
 def _smooth_frames(gbuffer: GBuffer, smooth: torch.Tensor, use: torch.Tensor) -> GBuffer:
@@ -90,10 +128,20 @@ class MultiviewRelighter:
 
     Args:
         views: the caching cameras and their deep framebuffers (device of every computation).
-        visibility: shadow queries for the direct Relighter.
+        visibility: shadow queries (traced for the caching samples, once per light edit).
         supersampling: s x s sub-samples per pixel of the new views.
         exposure_scale: the cache's camera exposure scale (`set_view` may change it).
         settings, object_paths: as `Relighter`.
+        sample_groups: G, groups of light samples whose BRDF is evaluated together at a view
+            (`incident`): the light's sample count (or more) evaluates every sample, fewer trade
+            highlight sharpness for speed (1: one BRDF evaluation per light and point).
+        blend_lighting: blend the cached lighting of the four caching pixels around a point with
+            the materials' bilinear weights; False takes the nearest one's (4x fewer gathers;
+            shadow edges then follow the caching camera's pixels).
+        edge_contrast: points whose four caching pixels' lighting differs by more than this
+            fraction of the largest (shadow edges, the edges of a light's pool) have that light
+            traced again at their own position, so that hard edges come out at the view's
+            resolution rather than the caching camera's; None traces nothing at a camera move.
 
     Attributes:
         caster: Embree over the cache's occluders, for the new views' primary rays.
@@ -102,12 +150,16 @@ class MultiviewRelighter:
         normal_mapped: (num_materials,) bool tensor, materials whose cached normals are kept, or None.
         description: the cache layer's description when opened with `open_multiview_relighter`.
         report: the last view's `HoleReport`.
+        counters: 'lit_samples' pool samples whose lighting was traced (per light), 'edge_samples'
+            and 'patch_samples' likewise for view points on edges and samples baked on demand,
+            'view_shading' (light, view) BRDF passes.
     """
 
     def __init__(self, views: CachingViews, visibility, supersampling: int = 1, exposure_scale: float = 1.0,
                  settings: RelightSettings = RelightSettings(), object_paths: list[str] | None = None,
                  caster: EmbreeCaster | None = None, occluder_objects: np.ndarray | None = None,
-                 corner_normals: np.ndarray | None = None, normal_mapped: torch.Tensor | None = None):
+                 corner_normals: np.ndarray | None = None, normal_mapped: torch.Tensor | None = None,
+                 sample_groups: int = 1, blend_lighting: bool = False, edge_contrast: float | None = 0.8):
         self.views = views
         self.visibility = visibility
         self.supersampling = supersampling
@@ -118,10 +170,22 @@ class MultiviewRelighter:
         self.occluder_objects = occluder_objects
         self.corner_normals = corner_normals
         self.normal_mapped = normal_mapped
+        self.sample_groups = sample_groups
+        self.blend_lighting = blend_lighting
+        self.edge_contrast = edge_contrast
         self.description: CacheDescription | None = None
         self.report: HoleReport | None = None
+        self.counters: collections.Counter[str] = collections.Counter()
         self._lights: dict[str, Light] = {}
         self._relighter: Relighter | None = None
+        self._view: ViewSamples | None = None
+        self._wo_local: torch.Tensor | None = None
+        # Per light: the pool's (7 G, R) incident table, channels first, and which rows are traced;
+        # per sample count, the pool's fixed light samples.
+        self._tables: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._u: dict[int, torch.Tensor] = {}
+        # A Relighter over the pool, for the lights' sample counts only (as over a view).
+        self._pool_relighter = Relighter(views.pool, visibility, 1, 1.0, settings, object_paths)
 
     @property
     def relighter(self) -> Relighter:
@@ -135,48 +199,152 @@ class MultiviewRelighter:
         return list(self._lights.values())
 
     def set_lights(self, lights: list[Light]) -> None:
-        self._lights = {light.path: light for light in lights}
-        if self._relighter is not None:
-            self._relighter.set_lights(lights)
+        for path in set(self._lights) - {light.path for light in lights}:
+            self.remove_light(path)
+        for light in lights:
+            self.set_light(light)
 
     def set_light(self, light: Light) -> None:
+        """Add or edit a light: an edit of its transform or shaping drops its cached lighting."""
+        relighter = self._relighter
+        had = relighter is not None and light.path in self._lights and relighter.unit_images(light.path) is not None
         self._lights[light.path] = light
-        if self._relighter is not None:
-            self._relighter.set_light(light)
+        if relighter is not None:
+            relighter.set_light(light)
+        if not (had and relighter.unit_images(light.path) is not None):
+            self._tables.pop(light.path, None)
 
     def remove_light(self, path: str) -> None:
         self._lights.pop(path, None)
-        if self._relighter is not None:
+        self._tables.pop(path, None)
+        if self._relighter is not None and path in {light.path for light in self._relighter.lights}:
             self._relighter.remove_light(path)
 
     def set_view(self, view: ViewPoints, patch: GBuffer | None = None,
                  exposure_scale: float | None = None) -> HoleReport:
-        """Move to a new view: correspondence map, hole filling, and a fresh Relighter over it."""
+        """Move to a new view: correspondence map, hole filling, and a Relighter over it (no tracing)."""
         if exposure_scale is not None:
             self.exposure_scale = exposure_scale
-        gbuffer, self.report = view_gbuffer(self.views, view.to(self.views.device), patch, self.normal_mapped)
+        self._view = view_gbuffer(self.views, view.to(self.views.device), patch, self.normal_mapped)
+        gbuffer = self._view.gbuffer
+        self._wo_local = to_local(gbuffer.wo_world(), gbuffer.tangent, gbuffer.bitangent, gbuffer.normal)
+        self.report = self._view.report
         self._relighter = Relighter(gbuffer, self.visibility, self.supersampling, self.exposure_scale,
                                     self.settings, self.object_paths)
         self._relighter.set_lights(self.lights)
         return self.report
 
+    def prepare_lighting(self) -> None:
+        """Trace every light's lighting at every caching sample now (later views then trace nothing)."""
+        every = torch.arange(self.views.pool.num_samples, device=self.views.device)
+        for light in self._lights.values():
+            self._pool_table(light, every)
+
+    def lighting_bytes(self) -> int:
+        """Bytes of the cached per-light lighting of the caching samples."""
+        return sum(table.numel() * table.element_size() + done.numel() for table, done in self._tables.values())
+
     def render(self) -> torch.Tensor:
         """(H, W, 3) linear image of the current view."""
-        return self.relighter.render()
+        return self._shaded().render()
 
     def light_image(self, path: str) -> torch.Tensor:
-        return self.relighter.light_image(path)
+        return self._shaded().light_image(path)
 
     def light_group_images(self) -> dict[str, torch.Tensor]:
-        return self.relighter.light_group_images()
+        return self._shaded().light_group_images()
 
     def emission_image(self) -> torch.Tensor:
-        return self.relighter.emission_image()
+        return self._shaded().emission_image()
+
+    def _shaded(self) -> Relighter:
+        """The view's Relighter with every light's unit images given (from the cached lighting)."""
+        relighter = self.relighter
+        for light in self._lights.values():
+            if relighter.unit_images(light.path) is None:
+                relighter.set_unit_images(light.path, self._view_images(light))
+        return relighter
+
+    def _light_samples(self, light: Light) -> torch.Tensor:
+        """(R, S, 2) the pool's fixed light samples for the light's sample count."""
+        num_samples = self._pool_relighter.num_light_samples(light)
+        if num_samples not in self._u:
+            views, counts = self.views, torch.bincount(self.views.pool_view, minlength=self.views.num_views)
+            self._u[num_samples] = pool_light_samples(counts.tolist(), num_samples, self.settings.seed, views.device,
+                                                      views.pool.position.dtype)
+        return self._u[num_samples]
+
+    def _pool_table(self, light: Light, rows: torch.Tensor) -> torch.Tensor:
+        """The light's (7 G, R) incident table (channels first, `incident.CHANNELS`) with at least
+        `rows` traced."""
+        pool = self.views.pool
+        u = self._light_samples(light)
+        if light.path not in self._tables:
+            groups = int(sample_groups(u.shape[1], self.sample_groups).max()) + 1
+            self._tables[light.path] = (pool.position.new_zeros(CHANNELS * groups, pool.num_samples),
+                                        torch.zeros(pool.num_samples, dtype=torch.bool, device=pool.device))
+        table, done = self._tables[light.path]
+        missing = torch.unique(rows[~done.index_select(0, rows)])
+        if missing.numel():
+            def pick(values: torch.Tensor) -> torch.Tensor:
+                return values.index_select(0, missing)
+
+            traced = incident_table(light, pick(pool.position), pick(pool.geometric_normal), pick(pool.normal), pick(u),
+                                    self.visibility, self.sample_groups, self.settings.chunk_samples)
+            table.index_copy_(1, missing, traced.permute(2, 1, 0).reshape(table.shape[0], -1))
+            done[missing] = True
+            self.counters["lit_samples"] += int(missing.numel())
+        return table
+
+    def _view_images(self, light: Light) -> torch.Tensor:
+        """(2, N, 3) the light's unit images at the view: cached lighting, the view's BRDF."""
+        view, gbuffer = self._view, self._view.gbuffer
+        refine = self.edge_contrast is not None
+        table = self._pool_table(light, view.taps.reshape(-1) if self.blend_lighting or refine else view.rows)
+        if self.blend_lighting:
+            columns = sum(take_rows(table, view.taps[:, t]) * view.weights[:, t] for t in range(view.taps.shape[1]))
+        else:
+            columns = take_rows(table, view.rows)
+        cached = view.rows.shape[0]
+        # Traced at the view: the points on the light's edges in the caching images, and the samples
+        # baked on demand (not in the pool).
+        traced = [self._edge_points(table, view)] if refine else []
+        self.counters["edge_samples"] += int(traced[0].numel()) if refine else 0
+        if gbuffer.num_samples > cached:
+            columns = torch.cat([columns, columns.new_zeros(columns.shape[0], gbuffer.num_samples - cached)], 1)
+            traced.append(torch.arange(cached, gbuffer.num_samples, device=gbuffer.device))
+            self.counters["patch_samples"] += gbuffer.num_samples - cached
+        points = torch.cat(traced) if traced else None
+        if points is not None and points.numel():
+            def pick(values: torch.Tensor) -> torch.Tensor:
+                return values.index_select(0, points)
+
+            u = pool_light_samples([points.numel()], self._light_samples(light).shape[1], self.settings.seed,
+                                   gbuffer.device, gbuffer.position.dtype)
+            fresh = incident_table(light, pick(gbuffer.position), pick(gbuffer.geometric_normal), pick(gbuffer.normal),
+                                   u, self.visibility, self.sample_groups, self.settings.chunk_samples)
+            columns.index_copy_(1, points, fresh.permute(2, 1, 0).reshape(columns.shape[0], -1))
+        self.counters["view_shading"] += 1
+        return group_images(gbuffer.params, self._wo_local, gbuffer.tangent, gbuffer.bitangent, gbuffer.normal,
+                            gbuffer.geometric_normal, columns.reshape(CHANNELS, -1, gbuffer.num_samples))
+
+    def _edge_points(self, table: torch.Tensor, view: ViewSamples) -> torch.Tensor:
+        """(E,) int64 rows of the view whose four caching taps (those of its surface) disagree on the
+        light's summed incident weight by more than `edge_contrast` of the largest: shadow and
+        light-shape edges, which the caching pixels resolve only as coarsely as they are large."""
+        groups = table.shape[0] // CHANNELS
+        total = take_rows(table[:3 * groups], view.taps).sum(0)                             # (M, 4)
+        used = view.weights > 0
+        high = torch.where(used, total, torch.zeros_like(total)).amax(-1)
+        low = torch.where(used, total, torch.full_like(total, torch.inf)).amin(-1)
+        return torch.nonzero(high - low > self.edge_contrast * high).squeeze(-1)
 
 
 def open_multiview_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
                              lights_layer: str | os.PathLike | None = None,
-                             settings: RelightSettings = RelightSettings()) -> MultiviewRelighter:
+                             settings: RelightSettings = RelightSettings(),
+                             sample_groups: int = 1, blend_lighting: bool = False,
+                             edge_contrast: float | None = 0.8) -> MultiviewRelighter:
     """A MultiviewRelighter for a 'multiview' cache layer, with the shot's lights (and `lights_layer`'s).
 
     No view is set: give it one with `set_view` (`pipeline.bake.multiview.view.view_points` traces
@@ -203,7 +371,8 @@ def open_multiview_relighter(path: str | os.PathLike, device: str | torch.device
     normal_mapped = torch.from_numpy(np.array(load_npy(layer_path, description, "normalMapped"), bool)).to(device)
     caster, visibility = embree_visibility(occluders, occluder_objects, object_paths)
     relighter = MultiviewRelighter(views, visibility, description.supersampling, description.exposure_scale,
-                                   settings, object_paths, caster, occluder_objects, corner_normals, normal_mapped)
+                                   settings, object_paths, caster, occluder_objects, corner_normals, normal_mapped,
+                                   sample_groups, blend_lighting, edge_contrast)
     relighter.description = description
     relighter.set_lights(shot_lights(description, lights_layer))
     return relighter

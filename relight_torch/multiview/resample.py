@@ -20,13 +20,15 @@ import torch
 
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.multiview.correspondence import same_surface
-from relight_torch.multiview.views import CachingViews, unpack_blend_table
+from relight_torch.multiview.views import CachingViews, take_rows, take_small, unpack_blend_table
 
 _TAPS = torch.tensor([[0, 0], [1, 0], [0, 1], [1, 1]])
 
 
 class Resampled(NamedTuple):
-    """N resampled samples: material, shading frame (N, 3) each, and the nearest pixel's ids (N,)."""
+    """N resampled samples: material, shading frame (N, 3) each, the nearest pixel's ids (N,), and
+    the blend itself: `taps` (N, 4) int64 pool rows and their `weights` (N, 4) float32 (summing to 1),
+    with which the samples' cached lighting is blended too (`multiview.incident`)."""
 
     params: PreviewSurfaceParams
     normal: torch.Tensor
@@ -34,6 +36,8 @@ class Resampled(NamedTuple):
     bitangent: torch.Tensor
     material_id: torch.Tensor
     object_id: torch.Tensor
+    taps: torch.Tensor
+    weights: torch.Tensor
 
 
 def bilinear_samples(views: CachingViews, view_index: torch.Tensor, pixel: torch.Tensor, rows: torch.Tensor,
@@ -47,7 +51,8 @@ def bilinear_samples(views: CachingViews, view_index: torch.Tensor, pixel: torch
         rows: (N,) int64 the nearest pixel's pool row (the correspondence's choice).
         object_id: (N,) object of each point; normal: (N, 3) its unit geometric normal.
     """
-    height, width = views.sizes[view_index, 0, None], views.sizes[view_index, 1, None]
+    size = take_small(views.sizes.T.contiguous(), view_index)
+    height, width = size[0][:, None], size[1][:, None]
     corner = pixel - 0.5
     base = torch.floor(corner)
     fraction = corner - base
@@ -55,10 +60,12 @@ def bilinear_samples(views: CachingViews, view_index: torch.Tensor, pixel: torch
     column = base[:, 0, None].long() + taps[:, 0]                                   # (N, 4)
     line = base[:, 1, None].long() + taps[:, 1]
     inside = (column >= 0) & (column < width) & (line >= 0) & (line < height)
-    flat = torch.where(inside, line * width + column, torch.zeros_like(column)) + views.image_offsets[view_index, None]
-    sample = torch.where(inside, views.pool_row[flat], torch.full_like(flat, -1))
+    flat = torch.where(inside, line * width + column, torch.zeros_like(column)) + views.image_offsets.index_select(
+        0, view_index)[:, None]
+    sample = torch.where(inside, take_rows(views.pool_row[None], flat)[0], torch.full_like(flat, -1))
     safe = sample.clamp(min=0)
-    same = (sample >= 0) & same_surface(views.surface_table[safe], object_id.float()[:, None], normal[:, None])
+    same = (sample >= 0) & same_surface(take_rows(views.surface_table, safe), object_id.float()[:, None],
+                                        normal[:, None])
     along = torch.where(taps[:, 0].bool(), fraction[:, 0, None], 1 - fraction[:, 0, None])
     across = torch.where(taps[:, 1].bool(), fraction[:, 1, None], 1 - fraction[:, 1, None])
     weight = torch.where(same, along * across, torch.zeros_like(along))
@@ -66,14 +73,19 @@ def bilinear_samples(views: CachingViews, view_index: torch.Tensor, pixel: torch
     # Where no tap qualifies (rounding at an image edge), the nearest sample alone.
     weight = torch.where(total > 0, weight / total.clamp(min=1e-12), taps.new_tensor([1.0, 0, 0, 0]).to(weight))
     safe = torch.where(total > 0, safe, rows[:, None].expand_as(safe))
+    # Tap by tap, whole (V, N) slabs times contiguous (N,) weights.
+    column_weights, column_taps = weight.T.contiguous(), safe.T.contiguous()
+    mixed = take_rows(views.blend_table, column_taps[0]).mul_(column_weights[0])                   # (V, N)
+    for t in range(1, taps.shape[0]):
+        mixed.addcmul_(take_rows(views.blend_table, column_taps[t]), column_weights[t])
     packed = views.blend_constants.expand(weight.shape[0], -1).clone()
-    packed[:, views.blend_columns] = (weight[..., None] * views.blend_table[safe]).sum(1)
+    packed.index_copy_(1, torch.nonzero(views.blend_columns).squeeze(-1), mixed.T)
     blended = unpack_blend_table(packed, views.pool)
     pool = views.pool
-    params = {f.name: blended[f.name] if f.name in blended else getattr(pool.params, f.name)[rows]
+    params = {f.name: blended[f.name] if f.name in blended else getattr(pool.params, f.name).index_select(0, rows)
               for f in dataclasses.fields(PreviewSurfaceParams)}
     shading = torch.nn.functional.normalize(blended["normal"], dim=-1)
     tangent = blended["tangent"]
     tangent = torch.nn.functional.normalize(tangent - shading * (tangent * shading).sum(-1, keepdim=True), dim=-1)
     return Resampled(PreviewSurfaceParams(**params), shading, tangent, torch.cross(shading, tangent, dim=-1),
-                     pool.material_id[rows], pool.object_id[rows])
+                     pool.material_id.index_select(0, rows), pool.object_id.index_select(0, rows), safe, weight)

@@ -83,6 +83,18 @@ def unpack_blend_table(table: torch.Tensor, like: GBuffer) -> dict[str, torch.Te
     return out
 
 
+def take_rows(columns: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """(C, ...) the columns (C, R) at `rows` (...) int64: one `index_select` per call, on the CPU
+    much faster than advanced indexing (`columns[:, rows]`) or a gather of (R, C) rows."""
+    return columns.index_select(1, rows.reshape(-1)).reshape(columns.shape[0], *rows.shape)
+
+
+def take_small(columns: torch.Tensor, rows: torch.Tensor) -> list[torch.Tensor]:
+    """The columns (C, K) of a small per-camera table at `rows` (N,): C contiguous (N,) tensors, one
+    one-dimensional `index_select` each (a gather of whole rows, then a transpose, costs ~10x more)."""
+    return [column.index_select(0, rows) for column in columns]
+
+
 def _concat_params(parts: list[PreviewSurfaceParams]) -> PreviewSurfaceParams:
     names = [f.name for f in dataclasses.fields(PreviewSurfaceParams)]
     return PreviewSurfaceParams(**{name: torch.cat([getattr(p, name) for p in parts]) for name in names})
@@ -123,13 +135,21 @@ class CachingViews:
         pixel_angle: (K,) float32 angle one sub-sample pixel subtends at the image centre (radians).
         pool_view: (R,) int64 the view of each pool row.
         pool_pixel: (R, 2) float32 (column, row) centre of each pool row's pixel in its view.
-        blend_table: (R, V) the pool's blendable values packed side by side (`BLEND_FIELDS`), the
-            V columns that vary over the pool only: one gather of V values per row is much
-            cheaper than V gathers, and constant columns (no emission, no clearcoat) cost nothing.
+        blend_table: (V, R) the pool's blendable values packed (`BLEND_FIELDS`), the V columns
+            that vary over the pool only (constant columns, no emission, no clearcoat, cost
+            nothing), column by column: `take_rows` gathers them as V one-dimensional gathers,
+            which torch's CPU kernels run several times faster than one gather of (R, V) rows.
         blend_columns: (C,) bool, which of the C packed columns `blend_table` holds.
         blend_constants: (C,) float32 the packed columns' values where constant.
-        surface_table: (R, 4) float32 object id (exact below 2^24) and geometric normal of each
-            row: what the same-surface tests read, in one gather.
+        surface_table: (4, R) float32 object id (exact below 2^24) and geometric normal of each
+            row, column by column: what the same-surface tests read.
+        projection: (19, K) float32, per camera what `project` reads: camera_from_world's top three
+            rows (12), focal length, horizontal and vertical aperture and offset, width, height,
+            so that the correspondence map projects every point into its own camera (`take_small`).
+        centres: (3, K) float32 camera positions.
+        axes: (4, K) float32 per camera its unit viewing direction (3) and the cosine of the
+            half-angle of a cone around it holding its whole frustum (1% wider): a point outside
+            that cone is outside the image, which the correspondence map tests before anything else.
     """
 
     table: np.ndarray
@@ -146,6 +166,9 @@ class CachingViews:
     blend_columns: torch.Tensor
     blend_constants: torch.Tensor
     surface_table: torch.Tensor
+    centres: torch.Tensor
+    projection: torch.Tensor
+    axes: torch.Tensor
 
     @property
     def num_views(self) -> int:
@@ -190,16 +213,31 @@ class CachingViews:
         pool = concat_gbuffers(gbuffers, (1, start), rows_all, torch.zeros(3, device=device))
         packed = pack_blend_table(pool)
         varying = (packed != packed[:1]).any(0)
+        camera_from_world = np.linalg.inv(world_from_camera(table))
+        film = np.stack([camera_column(table, name) for name in ("focalLength", "horizontalAperture",
+                                                                 "verticalAperture", "horizontalApertureOffset",
+                                                                 "verticalApertureOffset")], -1)
+        projection = np.concatenate([camera_from_world[:, :3, :].reshape(-1, 12), film,
+                                     size_tensor.cpu().numpy()[:, ::-1]], -1)
+        forward = -world_from_camera(table)[:, :3, 2]
+        forward /= np.linalg.norm(forward, axis=-1, keepdims=True)
+        corner = np.hypot(film[:, 1] / 2 + np.abs(film[:, 3]), film[:, 2] / 2 + np.abs(film[:, 4])) / film[:, 0]
+        cone = 1.0 / np.sqrt(1.0 + (1.01 * corner) ** 2)
         return CachingViews(
             table=np.asarray(table, np.float64), pool=pool,
-            camera_from_world=torch.from_numpy(np.linalg.inv(world_from_camera(table))).to(device),
+            camera_from_world=torch.from_numpy(camera_from_world).to(device),
             sizes=size_tensor, image_offsets=offsets, pool_row=torch.cat(rows), depth=torch.cat(depths),
             pixel_angle=torch.as_tensor(pixel_angle, dtype=torch.float32, device=device),
             pool_view=torch.cat(owners) if owners else torch.zeros(0, dtype=torch.int64, device=device),
             pool_pixel=torch.cat(centres) if centres else torch.zeros((0, 2), device=device),
-            blend_table=packed[:, varying], blend_columns=varying,
+            blend_table=packed[:, varying].T.contiguous(), blend_columns=varying,
             blend_constants=packed[0] if start else packed.new_zeros(packed.shape[1]),
-            surface_table=torch.cat([pool.object_id.float()[:, None], pool.geometric_normal.float()], -1))
+            surface_table=torch.cat([pool.object_id.float()[None], pool.geometric_normal.float().T]),
+            centres=torch.as_tensor(world_from_camera(table)[:, :3, 3].T.copy(), dtype=torch.float32,
+                                    device=device).reshape(3, -1),
+            projection=torch.as_tensor(projection, dtype=torch.float32, device=device).reshape(-1, 19).T.contiguous(),
+            axes=torch.as_tensor(np.concatenate([forward, cone[:, None]], -1).T.copy(), dtype=torch.float32,
+                                 device=device).reshape(4, -1))
 
     def camera_position(self, k: int) -> torch.Tensor:
         """(3,) float32 world position of camera k."""
