@@ -285,6 +285,7 @@ class Relighter:
         self._wo_local = to_local(gbuffer.wo_world(), gbuffer.tangent, gbuffer.bitangent, gbuffer.normal)
         # Whether the transport factors carry the clearcoat lobe: one answer for every chunk.
         self._coat = bool(gbuffer.params.clearcoat.any())
+        self._factor_colours: torch.Tensor | None = None  # (F, N, 3), made on first use
         self._u: dict[int, torch.Tensor] = {}
         # Every pixel covered in order: scattering into the image is a reshape.
         self._dense = gbuffer.num_samples == height * width and bool(
@@ -640,10 +641,12 @@ class Relighter:
             sums = factors[:, 0].unsqueeze(-1) * factor[0]
             for s in range(1, factors.shape[1]):
                 sums.addcmul_(factors[:, s].unsqueeze(-1), factor[s])
-        sums = sums.movedim(0, 1)  # (P, F, C)
-        g = self.gbuffer
-        params = g.params if transport.points is None else g.params.index(transport.points)
-        return torch.stack(preview_surface.combine_factors(params, sums[:, :2], sums[:, 2:])).mul_(transport.colour)
+        if self._factor_colours is None:
+            self._factor_colours = preview_surface.factor_colours(self.gbuffer.params, self._coat)
+        colours = self._factor_colours
+        if transport.points is not None:
+            colours = colours.index_select(1, transport.points)
+        return torch.stack(preview_surface.combine_factors(colours, sums)).mul_(transport.colour)
 
     def _emission_factor(self, light: Light, transport: _Transport) -> torch.Tensor | None:
         """(S, P, 3) ShapingAPI x Barzel factor of each cached sample; None when nothing applies."""

@@ -39,15 +39,17 @@ def test_factors_sum_to_split_times_light():
                                factors.movedim(-1, 0) * weight, rtol=1e-12, atol=0.0)
     sums_d = torch.einsum("nsf,nsc->nfc", factors[..., :2], diffuse_light)
     sums_s = torch.einsum("nsf,nsc->nfc", factors[..., 2:], specular_light)
-    combined = sum(preview_surface.combine_factors(params, sums_d, sums_s))
+    combined = sum(preview_surface.combine_factors(preview_surface.factor_colours(params, coat=True),
+                                                   torch.cat((sums_d, sums_s), dim=1).movedim(1, 0)))
     torch.testing.assert_close(combined, expected, rtol=1e-10, atol=1e-12)
     # Without a coat the first four factors give the same as clearcoat 0.
     uncoated = preview_surface.PreviewSurfaceParams(**{**params.__dict__, "clearcoat": torch.zeros(n, dtype=torch.float64)})
     diffuse, specular = preview_surface.split(uncoated.with_sample_axis(), wo, wi)
     four = preview_surface.split_factors(uncoated.with_sample_axis(), wo, wi, coat=False).movedim(0, -1)
     torch.testing.assert_close(four, factors[..., :4])
-    combined = sum(preview_surface.combine_factors(uncoated, torch.einsum("nsf,nsc->nfc", four[..., :2], diffuse_light),
-                                                   torch.einsum("nsf,nsc->nfc", four[..., 2:], specular_light)))
+    combined = sum(preview_surface.combine_factors(preview_surface.factor_colours(uncoated, coat=False), torch.cat(
+        (torch.einsum("nsf,nsc->nfc", four[..., :2], diffuse_light),
+         torch.einsum("nsf,nsc->nfc", four[..., 2:], specular_light)), dim=1).movedim(1, 0)))
     torch.testing.assert_close(combined, (diffuse * diffuse_light + specular * specular_light).sum(dim=1),
                                rtol=1e-10, atol=1e-12)
 

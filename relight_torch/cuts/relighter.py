@@ -443,7 +443,8 @@ class CutsRelighter:
                 state.sums.index_copy_(0, batch.rows.index_select(0, dirty_rows),
                                        _light_sums(columns.index_select(0, dirty_rows), table, out.dtype))
         state.dirty.zero_()
-        diffuse, specular = preview_surface.combine_factors(self.params, state.sums[:, :2], state.sums[:, 2:])
+        colours = preview_surface.factor_colours(self.params, state.sums.shape[1] > 4)
+        diffuse, specular = preview_surface.combine_factors(colours, state.sums.movedim(1, 0))
         return diffuse + specular
 
     def _new_columns(self, key: tuple, keep: bool) -> FactorColumns:
