@@ -157,6 +157,15 @@ def geometry_key(light: Light) -> tuple:
     return _key(light, _GEOMETRY_FIELDS)
 
 
+def replace_rig(relighter, lights: list[Light]) -> None:
+    """Make `lights` a relighter's whole rig through its `remove_light` and `set_light` (lights
+    matched by path), so that unchanged lights keep their cached work."""
+    for path in {light.path for light in relighter.lights} - {light.path for light in lights}:
+        relighter.remove_light(path)
+    for light in lights:
+        relighter.set_light(light)
+
+
 def light_group(light: Light) -> str:
     """The light-group AOV a light writes to: its `light_group`, else its prim's name."""
     return light.light_group or light.path.rsplit("/", 1)[-1]
@@ -303,10 +312,7 @@ class Relighter:
 
     def set_lights(self, lights: list[Light]) -> None:
         """Replace the whole rig; unchanged lights keep their cached work."""
-        for path in set(self._lights) - {light.path for light in lights}:
-            self.remove_light(path)
-        for light in lights:
-            self.set_light(light)
+        replace_rig(self, lights)
 
     def set_light(self, light: Light) -> None:
         """Add a light or edit one (matched by path); invalidates only what the edit touches."""

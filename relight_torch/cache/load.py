@@ -52,13 +52,6 @@ def check_payload_bytes(path: Path, payload: Payload) -> None:
                            f"(corrupt, edited, or overwritten by another bake)")
 
 
-def payload_path(layer_path: Path, payload: Payload) -> Path:
-    """The payload's file, verified against the size and sha256 the layer records."""
-    path = payload_file(layer_path, payload)
-    check_payload_bytes(path, payload)
-    return path
-
-
 def sub_sample_size(description: CacheDescription) -> tuple[int, int]:
     """(H, W) of the cache's EXR payloads: the resolution times the supersampling."""
     width, height = description.resolution

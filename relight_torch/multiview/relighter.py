@@ -47,7 +47,7 @@ from relight_torch.multiview.incident import CHANNELS, group_images, incident_ta
 from relight_torch.multiview.load import load_camera_table, load_view_gbuffers
 from relight_torch.multiview.resample import bilinear_samples
 from relight_torch.multiview.views import CachingViews, concat_gbuffers, gather_gbuffer, take_rows
-from relight_torch.relighter import Relighter, RelightSettings, embree_visibility, shot_lights
+from relight_torch.relighter import Relighter, RelightSettings, embree_visibility, replace_rig, shot_lights
 from relight_torch.visibility.embree import EmbreeCaster
 
 
@@ -199,10 +199,8 @@ class MultiviewRelighter:
         return list(self._lights.values())
 
     def set_lights(self, lights: list[Light]) -> None:
-        for path in set(self._lights) - {light.path for light in lights}:
-            self.remove_light(path)
-        for light in lights:
-            self.set_light(light)
+        """Replace the whole rig; unchanged lights keep their cached lighting."""
+        replace_rig(self, lights)
 
     def set_light(self, light: Light) -> None:
         """Add or edit a light: an edit of its transform or shaping drops its cached lighting."""
