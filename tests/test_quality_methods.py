@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pipeline.benchmarks.rows import parse_params
 from pipeline.cli import main
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
@@ -21,7 +22,7 @@ def test_cuts_sized_for_a_target_record_their_choice_and_meet_it(tmp_path):
                  "--method", "cuts", "--out", str(tmp_path / "sized"), "--quality", str(TARGET_DB)]) == 0
     layer = tmp_path / "sized" / "dome.relight.usda"
     parameters = read_cache_layer(layer).parameters
-    choice = dict(item.split("=") for item in parameters["qualityChoice"].split())
+    choice = parse_params(parameters["qualityChoice"])
     assert choice["mode"] == "env" and int(choice["lights"]) == parameters["cutsLights"]
     assert parameters["qualityMeasured"] >= TARGET_DB
 

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.benchmarks.bench.methods import MethodAdapter, adapters
+from pipeline.benchmarks.rows import format_params
 from pipeline.errors import RelightError
 from pipeline.reference.path_tracer import PathTracer, ReferenceImage, ReferenceSettings
 from pipeline.scene.types import Camera, Scene
@@ -232,7 +233,7 @@ def _record(layer: Path, point: dict[str, object], target_db: float, predicted_d
             raw_db: float, reference_spp: int, pilot: tuple[int, int]) -> None:
     """Add the quality parameters to the cache layer (and re-hash them into its content hash)."""
     description = read_cache_layer(layer)
-    parameters = {**description.parameters, "qualityChoice": " ".join(f"{k}={v}" for k, v in point.items()),
+    parameters = {**description.parameters, "qualityChoice": format_params(point),
                   "qualityTarget": float(target_db), "qualityPredicted": float(predicted_db),
                   "qualityMeasured": float(measured_db), "qualityRawPsnr": float(raw_db),
                   "qualityReferenceSpp": int(reference_spp), "qualityPilot": f"{pilot[0]}x{pilot[1]}"}

@@ -44,6 +44,7 @@ from pipeline.benchmarks.bench.transfer import culled_variants
 from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, format_params
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
+from relight_torch.cache.layer import CacheDescription
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.relighter import open_relighter, shot_lights
 from relight_torch.transfer.open import open_transfer_relighter
@@ -118,6 +119,11 @@ def time_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
                   flush=True)
 
 
+def _transfer_parameters(description: CacheDescription) -> dict[str, object]:
+    """The transfer bake's own parameters of a cache layer (`TransferSettings.parameters` keys)."""
+    return {key: description.parameters[key] for key in TransferSettings().parameters()}
+
+
 def time_caches(args: argparse.Namespace) -> None:
     """Print a part=total and a part=indirect relight_ms row per baked transfer cache."""
     for layer in args.cache:
@@ -125,7 +131,7 @@ def time_caches(args: argparse.Namespace) -> None:
         relighter.gather_samples = args.gather_samples
         description = relighter.direct.description
         height, width = (size // relighter.direct.supersampling for size in relighter.direct.gbuffer.image_size)
-        parameters = {**description.parameters, "cull": args.cull, "gatherSamples": args.gather_samples or "default",
+        parameters = {**_transfer_parameters(description), "cull": args.cull, "gatherSamples": args.gather_samples or "default",
                       "threads": torch.get_num_threads()}
         cache_bytes = sum(p.num_bytes for p in description.payloads)
         relighter.render()
@@ -146,7 +152,7 @@ def accuracy_caches(args: argparse.Namespace) -> None:
                           Path(layer).parent / "references")
         full, reference_indirect = refs.full("shot", relighter.num_bounces), refs.indirect("shot", relighter.num_bounces)
         image, indirect = relighter.render().numpy(), relighter.indirect_image().numpy()
-        params = format_params({**description.parameters, "cull": args.cull, "spp": args.spp})
+        params = format_params({**_transfer_parameters(description), "cull": args.cull, "spp": args.spp})
         print(csv_line(SweepRow("transfer", Path(description.source).stem, width, height, "shot", params,
                                 psnr(image, full), psnr(indirect, reference_indirect), rel_mse(image, full),
                                 sum(p.num_bytes for p in description.payloads))), flush=True)
