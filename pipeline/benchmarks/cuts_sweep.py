@@ -46,6 +46,7 @@ from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
 from pipeline.benchmarks.bench.measure import cache_bytes, device_name, moved, relight_ms
 from pipeline.benchmarks.bench.references import References
 from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, format_params, write_csv
+from pipeline.benchmarks.stopwatch import Stopwatch
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import read_cache_layer
@@ -89,15 +90,13 @@ def edit_timings(relighter: CutsRelighter, repeats: int) -> dict[str, tuple[floa
     num_samples = relighter.cuts.sample_vertices.shape[0]
     for kind, edit in edits.items():
         relighter.render()
-        wall, cpu, evaluated = [], [], []
+        watch, evaluated = Stopwatch(), []
         for index in range(repeats):
             edit(index)
-            start, start_cpu = time.perf_counter(), time.process_time()
-            relighter.render()
-            wall.append(time.perf_counter() - start)
-            cpu.append(time.process_time() - start_cpu)
+            with watch.section():
+                relighter.render()
             evaluated.append(relighter.stats["evaluated"] / num_samples)
-        timings[kind] = (1e3 * statistics.median(wall), 1e3 * statistics.median(cpu), statistics.median(evaluated))
+        timings[kind] = (*watch.median_ms(), statistics.median(evaluated))
         relighter.set_lights(lights)
         relighter.set_params(params)
     return timings
@@ -152,27 +151,25 @@ def cost_rows(bakes: list[tuple[CutsRelighter, Path, dict[str, object], float]],
     no kept columns serve: as after an edit that changes the whole illumination cut); params add
     `cpu_ms`."""
     cut_size = args.cut_sizes[0]
-    timings: list[list[float]] = [[] for _ in bakes]
-    cpu_times: list[list[float]] = [[] for _ in bakes]
+    watches = [Stopwatch() for _ in bakes]
     for relighter, _, _, _ in bakes:
         relighter.set_settings(CutsRelightSettings(max_cut=cut_size))
         relighter.render()
     for _ in range(args.repeats):
-        for times, cpu, (relighter, _, _, _) in zip(timings, cpu_times, bakes):
-            start, start_cpu = time.perf_counter(), time.process_time()
-            relighter.cut_samples([dataclasses.replace(light) for light in relighter.lights])  # not the kept lights
-            times.append(time.perf_counter() - start)
-            cpu.append(time.process_time() - start_cpu)
+        for watch, (relighter, _, _, _) in zip(watches, bakes):
+            with watch.section():
+                relighter.cut_samples([dataclasses.replace(light) for light in relighter.lights])  # not the kept lights
     rows = []
-    for times, cpu, (relighter, layer, parameters, bake_s) in zip(timings, cpu_times, bakes):
+    for watch, (relighter, layer, parameters, bake_s) in zip(watches, bakes):
         num_samples = relighter.cuts.sample_vertices.shape[0]
-        params = format_params({**parameters, "cut": cut_size, "cpu_ms": f"{1e3 * statistics.median(cpu):.1f}",
+        wall_ms, cpu_ms = watch.median_ms()
+        params = format_params({**parameters, "cut": cut_size, "cpu_ms": f"{cpu_ms:.1f}",
                                 "vis": f"{float(relighter.cuts.visibility.sizes().double().mean()):.1f}",
                                 "inputs": f"{relighter.stats['inputs'] / num_samples:.1f}",
                                 "merged": f"{relighter.stats['merged'] / num_samples:.1f}",
                                 "dark": f"{relighter.stats['dark'] / num_samples:.1f}"})
         rows.append(SweepRow("cuts", scene_name, args.width, args.height, "shot", params, NAN, NAN, NAN,
-                             float(cache_bytes(layer)), bake_s, 1e3 * statistics.median(times), device_name("cpu")))
+                             float(cache_bytes(layer)), bake_s, wall_ms, device_name("cpu")))
         print(csv_line(rows[-1]), file=sys.stderr, flush=True)
     return rows
 

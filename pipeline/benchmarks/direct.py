@@ -33,7 +33,6 @@ import io
 import math
 import resource
 import tempfile
-import time
 import tracemalloc
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -43,6 +42,7 @@ import numpy as np
 import torch
 
 from pipeline.bake.direct import bake_direct
+from pipeline.benchmarks.stopwatch import Stopwatch
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.io.atomic import write_text_atomic
@@ -170,16 +170,14 @@ def time_edits(relighter: Relighter, edit: Callable[[int], None],
     relighter.render()
     sync()
     before = dict(relighter.counters)
-    times, cpu_times = [], []
+    watch = Stopwatch()
     for k in range(repeats):
-        start, cpu_start = time.perf_counter(), time.process_time()
-        edit(k)
-        relighter.render()
-        sync()
-        times.append((time.perf_counter() - start) * 1e3)
-        cpu_times.append((time.process_time() - cpu_start) * 1e3)
+        with watch.section():
+            edit(k)
+            relighter.render()
+            sync()
     passes = [(relighter.counters[name] - before.get(name, 0)) / repeats for name in PASSES]
-    return times, cpu_times, *passes
+    return [1e3 * t for t in watch.wall], [1e3 * t for t in watch.cpu], *passes
 
 
 def _row(case: str, relighter: Relighter, edit: Callable[[int], None], repeats: int) -> Row:

@@ -49,6 +49,7 @@ from pipeline.bake.multiview.placement import PlacementSettings
 from pipeline.bake.multiview.view import view_points
 from pipeline.benchmarks.bench.measure import cache_bytes, relight_ms
 from pipeline.benchmarks.rows import SweepRow, format_params, write_csv
+from pipeline.benchmarks.stopwatch import Stopwatch
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scene.types import Camera, Scene
@@ -95,13 +96,11 @@ def _ms(function, repeats: int) -> tuple[float, float]:
 
     On a shared machine the wall time is an upper bound; the CPU time is the work itself."""
     function()
-    wall, cpu = [], []
+    watch = Stopwatch()
     for _ in range(repeats):
-        start, start_cpu = time.perf_counter(), time.process_time()
-        function()
-        wall.append(time.perf_counter() - start)
-        cpu.append(time.process_time() - start_cpu)
-    return 1000.0 * float(np.median(wall)), 1000.0 * float(np.median(cpu))
+        with watch.section():
+            function()
+    return watch.median_ms()
 
 
 def measure_view(scene: Scene, relighter, renderer: FrameRenderer, camera: Camera, reference: np.ndarray | None,
