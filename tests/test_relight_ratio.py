@@ -20,7 +20,7 @@ from pipeline.scenes import SCENES
 from relight_torch.lights import polygon
 from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr
-from relight_torch.relighter import Relighter, RelightSettings, open_relighter
+from relight_torch.relighter import Relighter, RelightSettings, auto_filter_radius, open_relighter
 from relight_torch.visibility.surface_filter import SurfaceFilter
 
 SIZE = 96
@@ -82,3 +82,28 @@ def test_the_filter_stays_on_one_surface(baked):
     assert float(counts[:, 1].max()) == (2 * radius + 1) ** 2 and float(counts[:, 1].min()) >= 1.0
     # Where every neighbour is fully lit, the filtered visibility is exactly 1.
     assert torch.equal(counts[:, 1] / counts[:, 1], torch.ones_like(floor))
+
+
+def test_the_automatic_filter_radius_follows_the_image_size():
+    assert [auto_filter_radius(size, 1) for size in ((48, 64), (160, 160), (239, 1000), (240, 320), (400, 400),
+                                                     (480, 640), (1080, 1920))] == [0, 0, 0, 2, 3, 4, 4]
+    assert auto_filter_radius((960, 1280), 2) == 8  # sub-samples: the same 4 pixels
+
+
+def test_a_filtered_light_takes_one_sample_unless_the_image_is_glossy(baked):
+    def image(gbuffer, **settings):
+        relighter = Relighter(gbuffer, baked.visibility, baked.supersampling, baked.exposure_scale,
+                              RelightSettings(**settings))
+        relighter.set_lights(baked.lights)
+        return relighter.render()
+
+    # The Cornell box is matte: a filtered rect light takes `filtered_area_samples`.
+    assert torch.equal(image(baked.gbuffer, shadow_filter_radius=1),
+                       image(baked.gbuffer, shadow_filter_radius=1, area_samples=1))
+    # One glossy point anywhere in the image: every light keeps `area_samples`.
+    roughness = baked.gbuffer.params.roughness.clone()
+    roughness[0] = 0.3
+    shiny = dataclasses.replace(baked.gbuffer, params=dataclasses.replace(baked.gbuffer.params, roughness=roughness))
+    kept = image(shiny, shadow_filter_radius=1)
+    assert torch.equal(kept, image(shiny, shadow_filter_radius=1, filtered_area_samples=16))
+    assert not torch.equal(kept, image(shiny, shadow_filter_radius=1, area_samples=1))

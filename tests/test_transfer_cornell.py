@@ -19,6 +19,7 @@ from pipeline.cli import main
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import cornell_box
+from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.exr import read_exr
 from relight_torch.lights.light import Light, LightKind, Shaping
 from relight_torch.metrics import psnr
@@ -89,17 +90,19 @@ def test_direct_caches_still_open_as_direct(tmp_path):
     path = cornell_box.write(tmp_path)
     out = tmp_path / "direct"
     assert main(["bake", str(path), "--camera", cornell_box.CAMERA, "--out", str(out), "--width", "8",
-                 "--height", "8", "--supersampling", "1"]) == 0
+                 "--height", "8"]) == 0
     relighter = open_cache_relighter(out / "cornell_box.relight.usda")
     assert isinstance(relighter, Relighter)
+    assert relighter.supersampling == 2  # the direct method's default (transfer's is 1: below)
 
 
 def test_cli_bakes_and_renders_a_quantised_transfer_cache(tmp_path):
     path = cornell_box.write(tmp_path)
     out = tmp_path / "cache"
     assert main(["bake", str(path), "--camera", cornell_box.CAMERA, "--out", str(out), "--width", "16",
-                 "--height", "16", "--supersampling", "1", "--method", "transfer", "--gathers", "256",
+                 "--height", "16", "--method", "transfer", "--gathers", "256",
                  "--coefficients", "30", "--quantize", "--indirect-scale", "2"]) == 0
+    assert read_cache_layer(out / "cornell_box.relight.usda").supersampling == 1  # transfer's default
     assert not list(out.glob(".cornell_box.transfer-*"))  # the resumable chunks are cleaned up
     assert np.load(out / "cornell_box.viewPixels.npy").max() < 8 * 8
     assert np.load(out / "cornell_box.finalGatherValues.npy").dtype == np.uint8

@@ -76,6 +76,17 @@ class PreviewSurfaceParams(BrdfParams):
     use_specular_workflow: torch.Tensor = flag()
 
 
+GLOSSY_ROUGHNESS = 0.5
+"""Roughness below which a lobe counts as glossy (`glossy`)."""
+
+
+def glossy(params: PreviewSurfaceParams) -> torch.Tensor:
+    """(N,) bool: points whose specular lobe, or clearcoat where there is one, is smoother than
+    GLOSSY_ROUGHNESS: their highlights need many light samples."""
+    coat = (params.clearcoat > 0) & (params.clearcoat_roughness < GLOSSY_ROUGHNESS)
+    return (params.roughness < GLOSSY_ROUGHNESS) | coat
+
+
 def storm_alpha(roughness: torch.Tensor) -> torch.Tensor:
     """GGX width Storm uses for a roughness (...): max(roughness, 0.001)^2."""
     return roughness.clamp_min(MIN_ROUGHNESS) ** 2

@@ -44,7 +44,8 @@ point towards the receiver; the light's axis is -Z):
 Sampling and MIS: `sample_light` returns solid-angle densities; rays that BSDF sampling sends get
 the same density from `light_pdf`, their emitted radiance from `emitted_radiance`, and their hit
 distance from `intersect_light`. Every technique is the same function of the direction, so
-`sample_light(...).pdf == light_pdf(..., sample.direction)` exactly. Delta lights (radius-0
+`sample_light(...).pdf == light_pdf(..., sample.direction)` (to rounding: rect and disk samples
+take their hits from the sampled point, `planar_hits`). Delta lights (radius-0
 sphere, angle-0 distant) set `is_delta`: their `radiance` is then the irradiance on a surface
 facing the light (I / d^2 for the point light, L for the distant light) with pdf 1, and BSDF rays
 never hit them.
@@ -60,8 +61,8 @@ import torch
 from pxr import UsdLux
 
 from relight_torch.lights.dome import dome_samplers, local_from_lookup, lookup_from_local, latlong_direction
-from relight_torch.lights.geometry import (LightFrame, check_transform, intersect_surface, sample_area_local,
-                                           surface_area, world_radius)
+from relight_torch.lights.geometry import (LightFrame, check_transform, intersect_surface, planar_hits,
+                                           sample_area_local, surface_area, world_radius)
 from relight_torch.lights.image import image_tensors, lookup_bilinear
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.shaping import emission_factor
@@ -192,6 +193,10 @@ def sample_light(light: Light, points: torch.Tensor, u: torch.Tensor) -> LightSa
     frame = LightFrame.of(light, points)
     if is_delta_light(light):
         sample = _sample_delta(light, frame, receivers, u)
+    elif light.kind in (LightKind.RECT, LightKind.DISK):
+        disk_points = concentric_disk(u)[0] if light.kind is LightKind.DISK else None
+        directions, hits = planar_hits(light, frame, receivers, sample_area_local(light, disk_points, u))
+        sample = LightSample(directions, *_trace(light, frame, receivers, directions, hits), False)
     else:
         directions = _sample_directions(light, frame, receivers, u)
         sample = LightSample(directions, *_trace(light, frame, receivers, directions), False)
@@ -200,7 +205,8 @@ def sample_light(light: Light, points: torch.Tensor, u: torch.Tensor) -> LightSa
 
 
 def _sample_directions(light: Light, frame: LightFrame, receivers: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-    """(S, N, 3) unit world directions from receivers (1, N, 3) towards a non-delta light, u (S, N, 2)."""
+    """(S, N, 3) unit world directions from receivers (1, N, 3) towards a sphere, distant, dome or
+    cylinder light, u (S, N, 2) (rect and disk samples: `planar_hits`)."""
     if light.kind is LightKind.SPHERE:
         to_centre = frame.origin - receivers
         distance = to_centre.norm(dim=-1)
@@ -212,8 +218,7 @@ def _sample_directions(light: Light, frame: LightFrame, receivers: torch.Tensor,
         return _cone_directions(u, _to_distant_light(frame).expand_as(receivers), cos_max)
     if light.kind is LightKind.DOME:
         return _dome_directions(light, frame, u)
-    disk_points = concentric_disk(u)[0] if light.kind is LightKind.DISK else None
-    emitting_points = frame.point_to_world(sample_area_local(light, disk_points, u))
+    emitting_points = frame.point_to_world(sample_area_local(light, None, u))  # the cylinder
     return torch.nn.functional.normalize(emitting_points - receivers, dim=-1)
 
 
@@ -247,10 +252,12 @@ def _checked_trace(light: Light, points: torch.Tensor, directions: torch.Tensor)
     return _trace(light, LightFrame.of(light, directions), points, directions)
 
 
-def _trace(light: Light, frame: LightFrame, points: torch.Tensor, directions: torch.Tensor):
+def _trace(light: Light, frame: LightFrame, points: torch.Tensor, directions: torch.Tensor,
+           hits: SurfaceHits | None = None):
     """(distance (...), radiance (..., 3), pdf (...)) of rays from `points` along `directions`.
 
-    `points` stay unbroadcast, so that per-point work is done once per point.
+    `points` stay unbroadcast, so that per-point work is done once per point. `hits`: the rays'
+    hits on a rect or disk light when known (`planar_hits`), else they are intersected.
     """
     directions = directions.expand(torch.broadcast_shapes(points.shape, directions.shape))
     scale = torch.as_tensor(light_radiance_scale(light), device=directions.device, dtype=directions.dtype)
@@ -268,7 +275,7 @@ def _trace(light: Light, frame: LightFrame, points: torch.Tensor, directions: to
         distance, pdf = _sphere_hits(light, frame, points, directions)
         texture = 1.0
     else:
-        hits = intersect_surface(light, frame, points, directions)
+        hits = intersect_surface(light, frame, points, directions) if hits is None else hits
         distance, pdf = hits.distance, hits.pdf
         has_texture = light.kind is LightKind.RECT and light.texture is not None
         texture = _rect_texture(light, hits.point_local) if has_texture else 1.0

@@ -183,14 +183,39 @@ def intersect_surface(light: Light, frame: LightFrame, origins: torch.Tensor, di
     first_cos = torch.zeros_like(first)
     for distance, normal_local in crossings:
         cos_light = -(frame.normal_to_world_unit(normal_local) * directions).sum(-1)
-        hit = torch.isfinite(distance)
-        safe_cos = torch.where(hit, cos_light.abs(), torch.ones_like(cos_light))
-        pdf = pdf + torch.where(hit, distance.square() / (area * safe_cos), torch.zeros_like(pdf))
+        pdf = pdf + _solid_angle_density(distance, cos_light, torch.isfinite(distance), area)
         nearer = distance < first
         first_cos = torch.where(nearer, cos_light, first_cos)
         first = torch.where(nearer, distance, first)
     point_local = origin_local + torch.where(torch.isfinite(first), first, 0.0).unsqueeze(-1) * direction_local
     return SurfaceHits(first, point_local, first_cos, pdf)
+
+
+def planar_hits(light: Light, frame: LightFrame, origins: torch.Tensor,
+                point_local: torch.Tensor) -> tuple[torch.Tensor, SurfaceHits]:
+    """Rays from `origins` (..., 3) aimed at local points (..., 3) of a rect or disk light.
+
+    A ray meets a plane once, at the point it was aimed at, so the hits need no intersection:
+    they equal `intersect_surface` along the returned directions up to rounding.
+
+    Returns:
+        (unit world directions (..., 3), SurfaceHits of the broadcast shape).
+    """
+    to_light = frame.point_to_world(point_local) - origins
+    distance = to_light.norm(dim=-1)
+    directions = to_light / distance.clamp_min(torch.finfo(distance.dtype).tiny).unsqueeze(-1)
+    emitting = frame.normal_to_world_unit(to_light.new_tensor([0.0, 0.0, -1.0]))
+    cos_light = -(directions @ emitting)
+    hit = (cos_light != 0) & (distance > 0)
+    return directions, SurfaceHits(torch.where(hit, distance, math.inf), point_local, cos_light,
+                                   _solid_angle_density(distance, cos_light, hit, surface_area(light)))
+
+
+def _solid_angle_density(distance: torch.Tensor, cos_light: torch.Tensor, hit: torch.Tensor,
+                         area: float) -> torch.Tensor:
+    """d^2 / (A |cos|) where `hit`, else 0: uniform area sampling's density in solid angle."""
+    safe_cos = torch.where(hit, cos_light.abs(), torch.ones_like(cos_light))
+    return torch.where(hit, distance.square() / (area * safe_cos), torch.zeros_like(distance))
 
 
 def _plane_crossing(light: Light, origin_local: torch.Tensor, direction_local: torch.Tensor):

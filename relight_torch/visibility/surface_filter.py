@@ -47,8 +47,8 @@ class SurfaceFilter:
 
     @staticmethod
     def _pair(image: torch.Tensor, axis: int, offset: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """(centre, neighbour) views of `image` (H, W, ...) over the pixels whose neighbour at
-        `offset` along `axis` lies inside the image."""
+        """(centre, neighbour) views of `image` over the pixels whose neighbour at `offset` along
+        `axis` lies inside the image."""
         size = image.shape[axis]
         centre = image.narrow(axis, max(0, -offset), size - abs(offset))
         return centre, image.narrow(axis, max(0, offset), size - abs(offset))
@@ -66,13 +66,20 @@ class SurfaceFilter:
     def __call__(self, values: torch.Tensor) -> torch.Tensor:
         """(N, C) per-point values filtered: sum over same-surface neighbours (the centre included)
         of a horizontal, then a vertical box of 2r + 1 taps. Sums, not means: filter a numerator
-        and a denominator and divide."""
-        image = self.gbuffer.scatter(values)
+        and a denominator and divide.
+
+        The passes run on (C, H, W) planes: each tap is one multiply-add of contiguous rows with
+        the (H', W') weights broadcast over C (with C trailing, (H, W, C), it ran ~10x slower).
+        """
+        height, width = self.gbuffer.image_size
+        planes = values.new_zeros(values.shape[-1], height * width)
+        planes[:, self.gbuffer.pixel_index] = values.t()
+        image = planes.reshape(-1, height, width)
         for axis in (1, 0):
             total = image.clone()
             for offset, weight in zip(self.offsets, self.weights[axis]):
-                centre, _ = self._pair(total, axis, offset)
-                _, neighbour = self._pair(image, axis, offset)
-                centre.addcmul_(neighbour, weight.unsqueeze(-1))
+                centre, _ = self._pair(total, axis + 1, offset)
+                _, neighbour = self._pair(image, axis + 1, offset)
+                centre.addcmul_(neighbour, weight)
             image = total
-        return image.reshape(-1, values.shape[-1])[self.gbuffer.pixel_index]
+        return image.reshape(values.shape[-1], -1)[:, self.gbuffer.pixel_index].t()

@@ -55,9 +55,10 @@ class DirectAdapter:
         defaults = RelightSettings()
         return [Variant({**point, "areaSamples": count, "shadowFilter": radius},
                         open_relighter(layer, device=device, shadows=shadows, settings=RelightSettings(
-                            area_samples=count, shadow_filter_radius=radius)), cache_bytes(layer))
+                            area_samples=count, filtered_area_samples=count, shadow_filter_radius=radius)),
+                        cache_bytes(layer))
                 for count in setting_values(point, "areaSamples", defaults.area_samples)
-                for radius in setting_values(point, "shadowFilter", defaults.shadow_filter_radius)]
+                for radius in setting_values(point, "shadowFilter", 0)]
 
 
 ADAPTER = DirectAdapter()
