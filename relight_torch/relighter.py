@@ -105,11 +105,11 @@ class RelightSettings:
             where penumbrae span many pixels and samples are few (Cornell box 640x480, 1 sample:
             35.7 -> 45.0 dB at r = 4) and blurs where they do not (64x64 with 16 samples: -1.3 to
             -1.6 dB at r = 2).
-        filtered_area_samples: samples per shading point of a light whose visibility is filtered
-            (the filter averages (2r + 1)^2 neighbours' samples), in images without glossy
-            surfaces (`preview_surface.glossy`): the filter denoises the diffuse term only, so
-            highlights keep `area_samples` (the set at 640x480, against 64 samples: 16 filtered
-            38.6 dB, 16 unfiltered 37.9, 1 filtered 34.8).
+        filtered_area_samples: samples per matte shading point of a light whose visibility is
+            filtered (the filter averages (2r + 1)^2 neighbours' samples); glossy points
+            (`preview_surface.glossy`) keep `area_samples`: the filter denoises the diffuse term
+            only, not highlights (the set at 640x480, against 64 samples: 1 filtered at matte
+            points and 16 at glossy ones 38.5 dB, 1 everywhere 34.8, 16 unfiltered 37.9).
     """
 
     area_samples: int = 16
@@ -282,7 +282,7 @@ class _LightState:
     light: Light
     geometry_key: tuple
     shading_key: tuple
-    transport: _Transport | None = None
+    transports: list[_Transport] | None = None  # one per sample group (`Relighter._sample_groups`)
     images: torch.Tensor | None = None  # (2, N, 3) diffuse and specular unit images
 
 
@@ -324,7 +324,12 @@ class Relighter:
         self._wo_local = to_local(gbuffer.wo_world(), gbuffer.tangent, gbuffer.bitangent, gbuffer.normal)
         # Whether the transport factors carry the clearcoat lobe: one answer for every chunk.
         self._coat = bool(gbuffer.params.clearcoat.any())
-        self._glossy = bool(preview_surface.glossy(gbuffer.params).any())
+        # The glossy and the matte points, or None for both when the image is all one kind.
+        glossy = preview_surface.glossy(gbuffer.params)
+        self._all_glossy = bool(glossy.all())
+        self._glossy_split = None
+        if glossy.any() and not self._all_glossy:
+            self._glossy_split = (torch.nonzero(~glossy).squeeze(-1), torch.nonzero(glossy).squeeze(-1))
         self._factor_colours: torch.Tensor | None = None  # (F, N, 3), made on first use
         self._u: dict[int, torch.Tensor] = {}
         # Every pixel covered in order: scattering into the image is a reshape.
@@ -378,14 +383,14 @@ class Relighter:
         for state in self._lights.values():
             state.images = None
             if visibility:
-                state.transport = None
+                state.transports = None
         self._others = None
 
     def cache_bytes(self) -> int:
         """Bytes held by the per-light caches (transport and images)."""
         total = 0
         for state in self._lights.values():
-            total += state.transport.num_bytes if state.transport is not None else 0
+            total += sum(transport.num_bytes for transport in state.transports or ())
             total += state.images.numel() * state.images.element_size() if state.images is not None else 0
         return total
 
@@ -487,9 +492,26 @@ class Relighter:
             self.counters["masks"] += 1
         return self._masks[link]
 
-    def _chunks(self, num_samples: int) -> list[slice]:
-        n, step = self.gbuffer.num_samples, max(1, self.settings.chunk_samples // num_samples)
+    def _chunks(self, num_samples: int, points: torch.Tensor | None) -> list[slice | torch.Tensor]:
+        """Consecutive chunks of all shading points (slices) or of `points` (index tensors)."""
+        step = max(1, self.settings.chunk_samples // num_samples)
+        if points is not None:
+            return [points[i:i + step] for i in range(0, points.shape[0], step)]
+        n = self.gbuffer.num_samples
         return [slice(i, min(i + step, n)) for i in range(0, n, step)]
+
+    def _sample_groups(self, light: Light) -> list[tuple[torch.Tensor | None, int]]:
+        """(points or None for all, samples per point) of each group the light's transport is
+        made in: a light whose visibility is filtered takes `filtered_area_samples` at matte
+        points and its usual count at glossy ones (`RelightSettings.filtered_area_samples`)."""
+        samples = self.num_light_samples(light)
+        if self.filter_radius == 0 or self._all_glossy or not has_closed_form(light):
+            return [(None, samples)]
+        few = self.settings.filtered_area_samples
+        if self._glossy_split is None:
+            return [(None, few)]
+        matte, glossy = self._glossy_split
+        return [(matte, few), (glossy, samples)]
 
     def num_light_samples(self, light: Light) -> int:
         """Light samples per point the light gets without a visibility filter (`RelightSettings`)."""
@@ -509,25 +531,26 @@ class Relighter:
                                                        g.device, g.position.dtype)
         return self._u[num_samples]
 
-    def _transport(self, state: _LightState) -> _Transport:
-        """Light samples, shadow rays and BRDF of the unshaped unit light at the points it reaches."""
-        if state.transport is not None:
-            return state.transport
+    def _transports(self, state: _LightState) -> list[_Transport]:
+        """Light samples, shadow rays and BRDF of the unshaped unit light at the points it reaches,
+        one transport per sample group (`_sample_groups`)."""
+        if state.transports is not None:
+            return state.transports
         light = dataclasses.replace(unit_light(state.light), shaping=None, barzel=None)
         if light.shadow_link is not None and not isinstance(self.visibility, RayVisibility):
             raise ValueError(f"{light.path}: shadow linking needs Embree shadow rays (shadows='embree')")
-        few = self.filter_radius > 0 and has_closed_form(light) and not self._glossy
-        num_samples = self.settings.filtered_area_samples if few else self.num_light_samples(light)
-        chunks = self._chunks(num_samples)
-        parts = [self._chunk_transport(light, chunk, num_samples) for chunk in chunks]
-        state.transport = parts[0] if len(parts) == 1 else self._joined(parts, chunks)
-        if state.transport.shadow_sums is not None:
-            self._filter_visibility(state.transport)
+        state.transports = []
+        for points, num_samples in self._sample_groups(light):
+            chunks = self._chunks(num_samples, points)
+            parts = [self._chunk_transport(light, chunk, num_samples) for chunk in chunks]
+            state.transports.append(parts[0] if len(parts) == 1 else self._joined(parts, chunks))
+        if state.transports[0].shadow_sums is not None:
+            self._filter_visibility(state.transports)
         state.images = None
         self.counters["visibility"] += 1
-        return state.transport
+        return state.transports
 
-    def _joined(self, parts: list[_Transport], chunks: list[slice]) -> _Transport:
+    def _joined(self, parts: list[_Transport], chunks: list[slice | torch.Tensor]) -> _Transport:
         """One transport from the transports of consecutive chunks of shading points.
 
         Sparse parts keep their point lists; when the points reached are over half of all, every
@@ -555,25 +578,32 @@ class Relighter:
                           join("diffuse_ratio", 0, 1.0), join("factors", 2, 0.0), parts[0].colour,
                           join("shadow_sums", 0, 0.0))
 
-    def _filter_visibility(self, transport: _Transport) -> None:
-        """Fold the filtered visibility F(sum w V) / F(sum w) into the transport's diffuse ratio
-        (Heitz et al. 2018; `visibility.surface_filter`) and drop the sums."""
+    def _filter_visibility(self, transports: list[_Transport]) -> None:
+        """Fold the filtered visibility F(sum w V) / F(sum w) into the transports' diffuse ratios
+        (Heitz et al. 2018; `visibility.surface_filter`) and drop the sums. The groups' sums
+        are filtered together: each sum is already its group's mean over its samples."""
         g = self.gbuffer
         if self._surface_filter is None:
             self._surface_filter = SurfaceFilter(g, self.filter_radius)
-        sums, points = transport.shadow_sums, transport.points
-        if points is not None:
-            sums = sums.new_zeros(g.num_samples, 2).index_copy_(0, points, sums)
-        filtered = self._surface_filter(sums)
-        if points is not None:
-            filtered = filtered[points]
-        shadowed, unshadowed = filtered.unbind(-1)
+        if len(transports) == 1 and transports[0].points is None:
+            sums = transports[0].shadow_sums
+        else:
+            sums = g.position.new_zeros(g.num_samples, 2)
+            for transport in transports:
+                if transport.points is None:
+                    sums += transport.shadow_sums
+                else:
+                    sums.index_add_(0, transport.points, transport.shadow_sums)
+        shadowed, unshadowed = self._surface_filter(sums).unbind(-1)
         visibility = torch.where(unshadowed > 0, shadowed / torch.where(unshadowed > 0, unshadowed, 1.0), 0.0)
-        transport.diffuse_ratio = transport.diffuse_ratio * visibility
-        transport.shadow_sums = None
+        for transport in transports:
+            points = transport.points
+            transport.diffuse_ratio = transport.diffuse_ratio * (visibility if points is None else visibility[points])
+            transport.shadow_sums = None
 
-    def _chunk_transport(self, light: Light, chunk: slice, num_samples: int) -> _Transport:
-        """The transport of an unshaped unit light at the shading points of `chunk`.
+    def _chunk_transport(self, light: Light, chunk: slice | torch.Tensor, num_samples: int) -> _Transport:
+        """The transport of an unshaped unit light at the shading points of `chunk` (a slice of
+        all of them, or their indices).
 
         Points that no sample can light (facing away, inside the light, outside its cone of
         directions) cast no shadow rays and are dropped, unless they are fewer than half the
@@ -595,11 +625,12 @@ class Relighter:
         if filtered:  # lit by the closed form even where no sample is (see `uncovered` below)
             lit |= exact > 0
         lit &= self._wo_local[chunk, 2] > 0
+        subset = not isinstance(chunk, slice)
         if 2 * int(lit.sum()) > lit.shape[0]:
-            local, rows, points = slice(None), chunk, None
+            local, rows, points = slice(None), chunk, chunk if subset else None
         else:
             local = torch.nonzero(lit).squeeze(-1)
-            rows = points = local + chunk.start
+            rows = points = chunk[local] if subset else local + chunk.start
         direction, wi_local = direction[:, local], wi_local[:, local]
         scalar, radiance = scalar[:, local], radiance[:, local]
         distance = self.visibility.occluder_distance(light, g.position[rows], g.geometric_normal[rows],
@@ -650,8 +681,23 @@ class Relighter:
         """The light's diffuse and specular unit images (2, N, 3): transport x shaping, per point."""
         if state.images is not None:
             return state.images
-        transport = self._transport(state)
-        factor = self._emission_factor(state.light, transport)
+        transports = self._transports(state)
+        if len(transports) == 1 and transports[0].points is None:
+            state.images = self._per_point(state.light, transports[0])
+        else:  # groups of points: disjoint, so their sums land side by side
+            state.images = self.gbuffer.position.new_zeros(2, self.gbuffer.num_samples, 3)
+            for transport in transports:
+                per_point = self._per_point(state.light, transport)
+                if transport.points is None:
+                    state.images += per_point
+                else:
+                    state.images.index_add_(1, transport.points, per_point)
+        self.counters["shading"] += 1
+        return state.images
+
+    def _per_point(self, light: Light, transport: _Transport) -> torch.Tensor:
+        """(2, P, 3) diffuse and specular sums of one transport's samples at its points, shaped."""
+        factor = self._emission_factor(light, transport)
         if transport.factors is not None:
             per_point = self._combined(transport, factor)
         else:
@@ -661,13 +707,7 @@ class Relighter:
                 per_point = per_point.clone()  # never scale the cache
         if transport.diffuse_ratio is not None:
             per_point[0].mul_(transport.diffuse_ratio.unsqueeze(-1))
-        if transport.points is None:
-            state.images = per_point
-        else:
-            state.images = per_point.new_zeros(2, self.gbuffer.num_samples, 3).index_copy_(
-                1, transport.points, per_point)
-        self.counters["shading"] += 1
-        return state.images
+        return per_point
 
     def _combined(self, transport: _Transport, factor: torch.Tensor | None) -> torch.Tensor:
         """(2, P, 3) diffuse and specular sums of a transport kept as scalar factors, each sample

@@ -90,20 +90,24 @@ def test_the_automatic_filter_radius_follows_the_image_size():
     assert auto_filter_radius((960, 1280), 2) == 8  # sub-samples: the same 4 pixels
 
 
-def test_a_filtered_light_takes_one_sample_unless_the_image_is_glossy(baked):
-    def image(gbuffer, **settings):
+def test_a_filtered_light_takes_one_sample_at_matte_points_and_all_at_glossy_ones(baked):
+    def samples(gbuffer, **settings):
         relighter = Relighter(gbuffer, baked.visibility, baked.supersampling, baked.exposure_scale,
                               RelightSettings(**settings))
         relighter.set_lights(baked.lights)
-        return relighter.render()
+        return relighter.render_samples()
 
-    # The Cornell box is matte: a filtered rect light takes `filtered_area_samples`.
-    assert torch.equal(image(baked.gbuffer, shadow_filter_radius=1),
-                       image(baked.gbuffer, shadow_filter_radius=1, area_samples=1))
-    # One glossy point anywhere in the image: every light keeps `area_samples`.
-    roughness = baked.gbuffer.params.roughness.clone()
-    roughness[0] = 0.3
+    # The Cornell box is matte: a filtered rect light takes `filtered_area_samples` everywhere.
+    assert torch.equal(samples(baked.gbuffer, shadow_filter_radius=1),
+                       samples(baked.gbuffer, shadow_filter_radius=1, area_samples=1))
+    # Make the floor and the boxes' tops glossy: they keep 16 samples, the rest takes 1. The filter
+    # never mixes the two (other surfaces), so each part equals a render with one count everywhere.
+    up = baked.gbuffer.normal[:, 1] > 0.99
+    roughness = torch.where(up, 0.3, baked.gbuffer.params.roughness)
     shiny = dataclasses.replace(baked.gbuffer, params=dataclasses.replace(baked.gbuffer.params, roughness=roughness))
-    kept = image(shiny, shadow_filter_radius=1)
-    assert torch.equal(kept, image(shiny, shadow_filter_radius=1, filtered_area_samples=16))
-    assert not torch.equal(kept, image(shiny, shadow_filter_radius=1, area_samples=1))
+    mixed = samples(shiny, shadow_filter_radius=1)
+    torch.testing.assert_close(mixed[up], samples(shiny, shadow_filter_radius=1, filtered_area_samples=16)[up],
+                               rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(mixed[~up], samples(shiny, shadow_filter_radius=1, area_samples=1)[~up],
+                               rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(mixed[up], samples(shiny, shadow_filter_radius=1, area_samples=1)[up])

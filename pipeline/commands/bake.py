@@ -25,10 +25,10 @@ from pipeline.scene import find_camera, load_scene
 from relight_torch.cache.layer import SUFFIX
 
 METHODS = ("direct", "transfer", "gather", "multiview", "cuts")
-DEFAULT_SUPERSAMPLING = {"transfer": 1, "gather": 1, "cuts": 1}
+DEFAULT_SUPERSAMPLING = {"transfer": 1, "gather": 1}
 """Methods baked at one sub-sample per pixel unless --supersampling says otherwise (2 for the rest):
-their relight cost grows with the sub-samples and their error lies in the indirect light or the cut
-approximation, not in the edges' aliasing (docs/ACCURACY.md, 'Supersampling')."""
+their relight cost grows with the sub-samples and their error lies mostly in the indirect light, not
+in the edges' aliasing (docs/ACCURACY.md, 'Size-aware defaults')."""
 
 
 def add_parser(subparsers) -> None:
@@ -43,7 +43,7 @@ def add_parser(subparsers) -> None:
                         help="relighting method to bake for (default: direct)")
     parser.add_argument("--supersampling", type=int, metavar="S",
                         help="S x S sub-samples per pixel, shaded separately and box-filtered (default 2; 1 for "
-                             "transfer, gather and cuts, whose every edit costs S^2 and whose error is not the edges')")
+                             "transfer and gather, whose every edit costs S^2 and whose error is mostly indirect light)")
     parser.add_argument("--texture-samples", type=int, default=2, metavar="T",
                         help="T x T material samples per sub-sample, averaged: texture filtering (default 2)")
     parser.add_argument("--stem", help="file name stem (default: the scene file's stem)")
