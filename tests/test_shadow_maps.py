@@ -143,6 +143,38 @@ def test_rasteriser_matches_brute_force_rays(kind, dense, monkeypatch):
     torch.testing.assert_close(fast, slow)
 
 
+def test_one_sided_cube_maps_rasterise_the_front_only():
+    """A cube map given a light's emitting side rasterises a window per face holding every texel
+    facing it, equal there to the whole map, and leaves the rest (the back face: all of it) empty."""
+    generator = torch.Generator().manual_seed(5)
+    corners = (torch.rand(40, 1, 3, generator=generator, dtype=torch.float64) * 6.0 - 3.0
+               + torch.rand(40, 3, 3, generator=generator, dtype=torch.float64) * 2.0 - 1.0)
+    centre = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)
+    front = torch.nn.functional.normalize(torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64), dim=0)
+    whole, half = CubeMap(centre, 32), CubeMap(centre, 32, front=front)
+    depth = rasterise_depth(half, corners)
+    faces, rows, cols = torch.meshgrid(*(torch.arange(n) for n in depth.shape), indexing="ij")
+    _, directions = whole.texel_rays(faces, rows, cols)
+    col_start, row_start, num_cols, num_rows = (half.window[faces, k] for k in range(4))
+    inside = (cols >= col_start) & (cols < col_start + num_cols) & (rows >= row_start) & (rows < row_start + num_rows)
+    assert bool(inside[directions @ front >= 0].all())
+    assert inside.float().mean().item() < 0.75  # measured 0.71 (the back face, parts of the tilted sides)
+    torch.testing.assert_close(depth[inside], rasterise_depth(whole, corners)[inside])
+    assert bool(torch.isinf(depth[~inside]).all()) and bool(torch.isfinite(depth[inside]).any())
+
+
+@pytest.mark.parametrize("lookup", LOOKUPS)
+def test_rect_light_shadow_agrees_with_embree(scene, lookup):
+    corners, points, normals = scene
+    light = light_at((0.0, 0.0, 3.0), kind=LightKind.RECT, width=0.6, height=0.4)  # emits down (-Z)
+    visibility = ShadowMapVisibility(torch.from_numpy(corners), resolution=RESOLUTION, lookup=lookup)
+    away, overall, blocked, blocked_found = agreement(light, corners, points, normals, visibility)
+    assert visibility.depth_map(light).window is not None
+    assert blocked > 0.03
+    assert away > 0.98 and overall > 0.97
+    assert blocked_found == pytest.approx(blocked, abs=0.005)
+
+
 @pytest.mark.parametrize("lookup", LOOKUPS)
 @pytest.mark.parametrize("radius, num_samples", [(0.0, 1), (0.05, NUM_SAMPLES), (0.3, NUM_SAMPLES)])
 def test_sphere_light_shadow_agrees_with_embree(scene, radius, num_samples, lookup):

@@ -9,7 +9,8 @@ and texel centres sit at u = (col + 0.5) * 2 / R - 1.
                  forward) and `tan_half_fov`: (u, v) = (x, y) / (z tan_half_fov) in face-local
                  coordinates. One face along a spot light's axis makes a perspective map; depth
                  is the distance to the centre.
-    CubeMap      six axis-aligned PinholeMaps faces with tan_half_fov = 1.
+    CubeMap      six axis-aligned PinholeMaps faces with tan_half_fov = 1; for a one-sided
+                 light, only the texels facing its emitting side are rasterised.
     OrthoMap     parallel rays along `forward` (a distant light's -direction) starting on a plane
                  above every occluder: a square window of that plane. Depth is the distance below
                  the plane.
@@ -32,6 +33,9 @@ from relight_torch.visibility.raster import rasterise_depth
 # Near clip of pinhole faces, relative to each triangle's largest face-local coordinate:
 # keeps the projection of a triangle passing through the centre finite.
 NEAR_CLIP_FRACTION = 1e-6
+FRONT_MARGIN_TEXELS = 4
+"""Texels a cube map rasterises beyond a one-sided light's emitting half-space on each side: a
+lookup's jitter (half a texel) and the depth slope of the texels it reads stay as a full build's."""
 
 
 @dataclass(frozen=True)
@@ -196,12 +200,14 @@ def _take(table: torch.Tensor, flat: torch.Tensor) -> torch.Tensor:
 def _axis_slope(depth: torch.Tensor, dim: int) -> torch.Tensor:
     """(F, R, R) smaller absolute one-sided depth difference along `dim`; 0 where both are undefined."""
     step = torch.diff(depth, dim=dim).abs()  # NaN between two empty texels, inf next to one
-    pad_shape = list(step.shape)
-    pad_shape[dim] = 1
-    pad = torch.full(pad_shape, torch.inf, device=depth.device, dtype=depth.dtype)
-    # fmin skips NaN (no defined difference on that side); what stays undefined (NaN, inf) is 0.
-    smaller = torch.fmin(torch.cat((pad, step), dim=dim), torch.cat((step, pad), dim=dim))
-    return smaller.nan_to_num(nan=0.0, posinf=0.0)
+    size = depth.shape[dim]
+    smaller = torch.empty_like(depth)
+    # fmin skips NaN (no defined difference on that side); the edge texels have one side only.
+    torch.fmin(step.narrow(dim, 0, size - 2), step.narrow(dim, 1, size - 2), out=smaller.narrow(dim, 1, size - 2))
+    smaller.narrow(dim, 0, 1).copy_(step.narrow(dim, 0, 1))
+    smaller.narrow(dim, size - 1, 1).copy_(step.narrow(dim, size - 2, 1))
+    # What stays undefined (NaN, inf) is 0.
+    return smaller.nan_to_num_(nan=0.0, posinf=0.0)
 
 
 def _texel_range(low: torch.Tensor, high: torch.Tensor, resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -320,7 +326,8 @@ class CubeMap(PinholeMaps):
         directions: as `PinholeMaps` (a cube map's do not depend on its centre).
     """
 
-    def __init__(self, centre: torch.Tensor, resolution: int, directions: torch.Tensor | None = None):
+    def __init__(self, centre: torch.Tensor, resolution: int, directions: torch.Tensor | None = None,
+                 front: torch.Tensor | None = None):
         eye = torch.eye(3, device=centre.device, dtype=centre.dtype)
         faces = []
         for axis in range(3):
@@ -329,6 +336,50 @@ class CubeMap(PinholeMaps):
                 right = eye[(axis + 1) % 3]
                 faces.append(torch.stack((right, torch.linalg.cross(forward, right), forward)))
         super().__init__(centre, torch.stack(faces), 1.0, resolution, directions)
+        self.window = None if front is None else self._front_window(front)
+
+    def _front_window(self, front: torch.Tensor) -> torch.Tensor:
+        """(F, 4) long texel box (col_start, row_start, num_cols, num_rows) of each face around its
+        directions d with d . front >= 0, widened by FRONT_MARGIN_TEXELS; empty behind the light.
+
+        A one-sided light (`front`: (3,) unit world normal of its emitting side, through the
+        centre) lights no receiver behind its plane, and the segments of those it lights stay
+        in front of it: the rest of the map is never read.
+        """
+        boxes = []
+        for right, up, forward in self.face_from_world.tolist():
+            # d(u, v) . front = a + b u + c v over the face's square of image coordinates.
+            a, b, c = (sum(f * x for f, x in zip(front.tolist(), row)) for row in (forward, right, up))
+            corners = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
+            values = [a + b * u + c * v for u, v in corners]
+            kept = []  # the square clipped to a + b u + c v >= 0
+            for k, (p, fp) in enumerate(zip(corners, values)):
+                q, fq = corners[(k + 1) % 4], values[(k + 1) % 4]
+                if fp >= 0.0:
+                    kept.append(p)
+                if (fp >= 0.0) != (fq >= 0.0):
+                    t = fp / (fp - fq)
+                    kept.append((p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1])))
+            if not kept:
+                boxes.append(torch.zeros(4, dtype=torch.long, device=self.centre.device))
+                continue
+            low = self.centre.new_tensor([min(u for u, _ in kept), min(v for _, v in kept)])
+            high = self.centre.new_tensor([max(u for u, _ in kept), max(v for _, v in kept)])
+            box = _bounds_from_uv(low, high, self.resolution)
+            start = (box[:2] - FRONT_MARGIN_TEXELS).clamp_min(0)
+            stop = (box[:2] + box[2:] + FRONT_MARGIN_TEXELS).clamp_max(self.resolution)
+            boxes.append(torch.cat((start, stop - start)))
+        return torch.stack(boxes)
+
+    def texel_bounds(self, corners):
+        """`PinholeMaps.texel_bounds` within each face's front window (when the light is one-sided)."""
+        bounds = super().texel_bounds(corners)
+        if self.window is None:
+            return bounds
+        window = self.window.unsqueeze(1)
+        start = torch.maximum(bounds[..., :2], window[..., :2])
+        stop = torch.minimum(bounds[..., :2] + bounds[..., 2:], window[..., :2] + window[..., 2:])
+        return torch.cat((start, (stop - start).clamp_min(0)), dim=-1)
 
     def project_components(self, x, y, z):
         """The face of the offset o's dominant axis a, elementwise (an argmax over the faces' z was

@@ -68,6 +68,7 @@ import numpy as np
 import torch
 
 from relight_torch.errors import RelightError
+from relight_torch.lights.geometry import LightFrame
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.math.frame import orthonormal_basis
 from relight_torch.visibility.depth_maps import CubeMap, DepthMap, MapSample, OrthoMap, PinholeMaps
@@ -213,7 +214,10 @@ class ShadowMapVisibility:
             right, up = orthonormal_basis(forward)
             tan_half_fov = math.tan(math.radians(shaping.cone_angle + SPOT_MARGIN_DEGREES))
             return PinholeMaps(centre, torch.stack((right, up, forward)).unsqueeze(0), tan_half_fov, self.resolution)
-        cube = CubeMap(centre, self.resolution, self._cube_directions)
+        front = None
+        if light.kind in (LightKind.RECT, LightKind.DISK):  # one-sided: emits towards local -Z
+            front = LightFrame.of(light, like).normal_to_world_unit(like.new_tensor([0.0, 0.0, -1.0]))
+        cube = CubeMap(centre, self.resolution, self._cube_directions, front)
         self._cube_directions = cube.directions
         return cube
 
