@@ -60,41 +60,6 @@ def _edge_term(ax, ay, az, bx, by, bz, nx, ny, nz) -> torch.Tensor:
     return torch.atan2(length, cosine).mul_(projection).div_(length.clamp_min_(1e-30))
 
 
-def polygon_cosine_integral(vertices: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
-    """G (N,) in sr: the cosine-weighted solid angle of a convex polygon above each receiver's horizon.
-
-    Args:
-        vertices: (K, N, 3) the polygon's K >= 3 corners in order (either winding), relative to
-            each of N receivers (corner - receiver position).
-        normal: (N, 3) unit receiver normals.
-
-    Returns:
-        (N,) 1/2 |sum theta_i n . Gamma_i| over the polygon clipped to n . x >= 0 (module doc).
-    """
-    closed = torch.cat((vertices, vertices[:1]))
-    return _closed_polygon_integral([closed[..., i].contiguous() for i in range(3)],
-                                    [normal[:, i].contiguous() for i in range(3)])
-
-
-def _closed_polygon_integral(v: list[torch.Tensor], n: list[torch.Tensor]) -> torch.Tensor:
-    """`polygon_cosine_integral` of components (K + 1, N) whose last row repeats the first.
-
-    Receivers with every corner above the horizon take the plain sum over the K edges; only those
-    whose tangent plane cuts the polygon are clipped (`_clipped_sum`).
-    """
-    start, end = [c[:-1] for c in v], [c[1:] for c in v]  # edge k: vertex k -> k + 1 (views)
-    height = start[0] * n[0]
-    height.addcmul_(start[1], n[1]).addcmul_(start[2], n[2])
-    num_corners = height.shape[0]
-    num_above = (height > 0).sum(0)
-    total = _edge_term(*start, *end, *n).sum(0)
-    total.masked_fill_(num_above < num_corners, 0.0)
-    cut = torch.nonzero((num_above > 0) & (num_above < num_corners)).squeeze(-1)
-    if cut.numel():
-        total[cut] = _clipped_sum([c[:, cut] for c in v], [c[cut] for c in n], height[:, cut])
-    return total.abs_().mul_(0.5)
-
-
 def _clipped_sum(v: list[torch.Tensor], n: list[torch.Tensor], height: torch.Tensor) -> torch.Tensor:
     """sum theta_i n . Gamma_i (M,) over closed polygons (components (K + 1, M)) cut by their
     tangent plane; height (K, M) of the first K vertices above it."""
@@ -135,14 +100,48 @@ def rect_cosine_integral(light: Light, points: torch.Tensor, normals: torch.Tens
 
 
 def _rect_block(frame: LightFrame, corners: torch.Tensor, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
-    """`rect_cosine_integral` of some receivers (N, 3), given the closed world corners (5, 3)."""
-    relative = [corners[:, i:i + 1] - points[:, i] for i in range(3)]  # (5, N) each
-    integral = _closed_polygon_integral(relative, [normals[:, i].contiguous() for i in range(3)])
+    """`rect_cosine_integral` of some receivers (N, 3), given the closed world corners (5, 3).
+
+    Worked in an orthonormal frame of the light's plane (x, y in the plane, z along its normal),
+    where every corner has z = 0: for an edge c -> d seen from p, a = c - p and b = d - p share
+    a_z = b_z = -p_z = Z, so a x b = (-e_y Z, e_x Z, a_x b_y - a_y b_x) with e = d - c, and each
+    edge costs a few multiply-adds of per-receiver rows (U_i, V_i) = corner_i - p. Receivers whose
+    tangent plane cuts the light are summed over the clipped polygon (`_clipped_sum`).
+    """
+    origin = corners[0]
+    along = torch.nn.functional.normalize(corners[1] - origin, dim=0)
+    plane_normal = torch.nn.functional.normalize(torch.linalg.cross(corners[1] - origin, corners[3] - origin), dim=0)
+    rotation = torch.stack((along, torch.linalg.cross(plane_normal, along), plane_normal))  # rows: x, y, z
+    x, y = ((corners - origin) @ rotation[:2].T).T.tolist()  # corner coordinates (z = 0), closed
+    px, py, pz = rotation @ (points - origin).T  # (N,) rows
+    nx, ny, nz = rotation @ normals.T
+    z = -pz
+    z2 = z.square()
+    u = [x[i] - px for i in range(4)]
+    v = [y[i] - py for i in range(4)]
+    height = torch.stack([(nx * u[i]).addcmul_(ny, v[i]).addcmul_(nz, z) for i in range(4)])  # (4, N)
+    above = (height > 0).sum(0)
+    slope_x, slope_y = z * ny, z * nx  # the in-plane part of n . (a x b) is Z (n_y e_x - n_x e_y)
+    total = torch.zeros_like(px)
+    for i in range(4):
+        j = (i + 1) % 4
+        ex, ey = x[i + 1] - x[i], y[i + 1] - y[i]
+        cross_z = u[i] * v[j]
+        cross_z.addcmul_(v[i], u[j], value=-1.0)
+        projection = (slope_x * ex).sub_(slope_y, alpha=ey).addcmul_(nz, cross_z)
+        length = cross_z.square_().add_(z2, alpha=ex * ex + ey * ey).sqrt_()
+        cosine = (u[i] * u[j]).addcmul_(v[i], v[j]).add_(z2)
+        total.add_(torch.atan2(length, cosine).mul_(projection).div_(length.clamp_min_(1e-30)))
+    total.masked_fill_(above < 4, 0.0)
+    cut = torch.nonzero((above > 0) & (above < 4)).squeeze(-1)
+    if cut.numel():
+        closed = [torch.stack([c[k][cut] for k in (0, 1, 2, 3, 0)]) for c in (u, v)]
+        total[cut] = _clipped_sum([*closed, z[cut].expand(5, -1)], [nx[cut], ny[cut], nz[cut]], height[:, cut])
     # The receiver's local z: corner 0 lies in the light's plane (local z 0), so the third row of
     # light_from_world takes (corner - point) to minus the receiver's local z.
     row = frame.light_from_world[2]
-    local_z = -(relative[0][0] * row[0] + relative[1][0] * row[1] + relative[2][0] * row[2])
-    return integral.masked_fill_(local_z >= 0, 0.0)
+    local_z = -((origin - points) @ row)
+    return total.abs_().mul_(0.5).masked_fill_(local_z >= 0, 0.0)
 
 
 def closed_form(light: Light, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor | None:
