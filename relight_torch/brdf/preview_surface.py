@@ -195,6 +195,76 @@ def split_factors(
     return torch.stack(columns)
 
 
+def split_factors_cosines(
+    roughnesses: tuple[torch.Tensor, ...], cos_e: torch.Tensor, cos_l: torch.Tensor, e_dot_l: torch.Tensor,
+    weight: torch.Tensor, out: torch.Tensor, scratch: torch.Tensor,
+    view_sq: torch.Tensor | float = 1.0, light_sq: torch.Tensor | float = 1.0,
+) -> torch.Tensor:
+    """`split_factors` times max(N.L, 0) from dot products, computed in place: for P points with
+    M light directions each, in blocks that stay in cache.
+
+    The half vector h = E + L enters only through |h|^2 = |E|^2 + |L|^2 + 2 E.L, N.h = N.E + N.L
+    and E.h = |E|^2 + E.L, so the factors need N.E, |E|^2 per point and N.L, E.L (and |L|^2 unless
+    unit) per direction: no 3-vectors. The same formulas as `split_factors` (exact GGX, Storm's G
+    and denominator, (1 - c)(1 + c) for sin^2), in about thirty in-place passes: ~6-10 ns per
+    direction on one CPU core against ~45 ns. Equal to `split_factors(weight=weight * N.L)` to
+    float rounding, for local directions of any length (a frame stored in low precision is not
+    quite orthonormal).
+
+    Args:
+        roughnesses: (P, 1) roughness, then (P, 1) clearcoat roughness if the coat's factors are wanted.
+        cos_e: (P, 1) N.E. cos_l, e_dot_l: (P, M) N.L and E.L (may be strided views).
+        weight: (P, M) e.g. solid angle times visibility (the cosine is applied here).
+        out: (F, P, M) the factors (F = 2 + 2 len(roughnesses)), written.
+        scratch: (4, P, M) work space of the same dtype, overwritten.
+        view_sq: |E|^2, (P, 1) or 1. light_sq: |L|^2, (P, M) or 1.
+
+    Returns:
+        `out`: [lit, lit s, g, g s (, g_c, g_c s)] as `split_factors`, each times weight max(N.L, 0); 0
+        below either horizon.
+    """
+    lit, schlick = out[0], out[1]
+    temp, temp2, cos_h, lit_cos = scratch[0], scratch[1], scratch[2], scratch[3]
+    cos_e_clamped = cos_e.clamp(0.0, 1.0)
+    torch.clamp(cos_l, 0.0, 1.0, out=temp2)                    # N.L, 0 below the horizon
+    torch.mul(temp2, weight, out=lit)
+    if not bool((cos_e > 0).all()):
+        lit.mul_(cos_e > 0)
+    torch.mul(lit, temp2, out=lit_cos)
+    torch.add(e_dot_l, view_sq, out=schlick)                    # E.h |h|
+    torch.add(schlick, light_sq, out=temp)
+    temp.add_(e_dot_l).clamp_min_(1e-24).rsqrt_()               # 1 / |h|
+    schlick.mul_(temp).clamp_(0.0, 1.0)                         # E.h
+    torch.add(cos_l, cos_e, out=cos_h)
+    cos_h.mul_(temp).clamp_(0.0, 1.0)                           # N.h
+    schlick.neg_().add_(1.0)
+    torch.mul(schlick, schlick, out=temp)
+    temp.mul_(temp)
+    schlick.mul_(temp)                                          # (1 - E.h)^5
+    for index, roughness in enumerate(roughnesses):
+        alpha = storm_alpha(roughness)
+        a2, k = alpha * alpha, 0.5 * alpha
+        # D G / (4 N.L N.E + eps) = a^2 / pi G1(N.E) N.L / (sin^2 + a^2 cos^2)^2 / (N.L (1 - k) + k) / (4 N.L N.E + eps)
+        scale = a2 / math.pi * cos_e_clamped / (cos_e_clamped * (1.0 - k) + k)
+        lobe = out[2 + 2 * index]
+        torch.neg(cos_h, out=temp)
+        temp.add_(1.0)
+        torch.add(cos_h, 1.0, out=lobe)
+        temp.mul_(lobe)
+        torch.mul(cos_h, cos_h, out=lobe)
+        temp.add_(lobe.mul_(a2))
+        temp.mul_(temp)
+        torch.mul(temp2, 1.0 - k, out=lobe)
+        temp.mul_(lobe.add_(k))
+        torch.mul(temp2, 4.0 * cos_e_clamped, out=lobe)
+        temp.mul_(lobe.add_(STORM_EPSILON))
+        torch.div(lit_cos, temp, out=lobe)
+        lobe.mul_(scale)
+        torch.mul(lobe, schlick, out=out[3 + 2 * index])
+    schlick.mul_(lit)
+    return out
+
+
 def factor_colours(params: PreviewSurfaceParams, coat: bool) -> torch.Tensor:
     """(F, N, 3) the colour each `split_factors` factor is weighted by (F = 4, or 6 with `coat`).
 

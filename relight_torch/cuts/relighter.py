@@ -14,12 +14,13 @@ that (as `merge.refine_nodes`, batched in `CutsRelighter._factor_columns`), then
 with <x_k> the direction to the merged cluster (its mean direction, or its mean position in
 indirect mode, where <v_k> is visibility times the leaves' solid angle), f_r UsdPreviewSurface from the
 sub-sample's current parameters (a dome's diffuse and specular multipliers apply per lobe),
-computed as the scalars f_r is linear in (`preview_surface.split_factors`) summed per
-illumination-cut node, times the nodes' light, combined with the current colours
-(`preview_surface.combine_factors`). What each edit recomputes (`FactorColumns`): a light edit
-that keeps the illumination cut's nodes, the products with the light; one that changes them, the
-entries of the new nodes too; a colour edit of a material, only the combination; a roughness
-edit, the entries of that material's sub-samples; none of them the visibility merge.
+computed as the scalars f_r is linear in (`preview_surface.split_factors`, evaluated in place
+from dot products by `preview_surface.split_factors_cosines`) summed per illumination-cut node,
+times the nodes' light, combined with the current colours (`preview_surface.combine_factors`).
+What each edit recomputes (`FactorColumns`): a light edit that keeps the illumination cut's
+nodes, the products with the light; one that changes them, the entries of the new nodes too; a
+colour edit of a material, only the combination; a roughness edit, the lobes' factors of that
+material's sub-samples; none of them the visibility merge.
 Everything else is the direct relighter's.
 """
 
@@ -93,22 +94,23 @@ class CutsCache:
 
 @dataclass(frozen=True)
 class VisibilityBatch:
-    """The lit clusters of the merged visibility cuts of a batch of sub-samples (no lights, no materials).
+    """The lit clusters of the merged visibility cuts of a batch of sub-samples (no lights, no
+    materials), one row per sub-sample, padded to the batch's largest row M.
 
     Attributes:
         rows: (P,) int64 the batch's sub-samples.
-        frame: (P, 3, 3) their shading frames, columns tangent, bitangent, normal (world -> local
-            by right-multiplication).
-        local: (Q,) int32 row (into `rows`) of each merged cluster, ascending.
-        node: (Q,) int32 its node, ascending within a row.
-        visibility: (Q,) barycentric blend of the three vertices' means (> 0).
+        geometry: (P, 3, 4) their shading frames (tangent, bitangent, normal) and the direction
+            to the viewer in that frame taken back to world (frame @ wo_local), as columns: a
+            world direction's row times it gives its local coordinates and E.L (`_geometry`).
+        node: (P, M) int32 each row's merged clusters' nodes, ascending, then padding (2L - 1:
+            one past the last node).
+        visibility: (P, M) barycentric blend of the three vertices' means (> 0; padding 0).
         inputs: entries of the batch's vertices' visibility cuts (the merge's input).
         dark: merged clusters dark at all three vertices (dropped).
     """
 
     rows: torch.Tensor
-    frame: torch.Tensor
-    local: torch.Tensor
+    geometry: torch.Tensor
     node: torch.Tensor
     visibility: torch.Tensor
     inputs: int
@@ -122,14 +124,14 @@ class FactorColumns:
     Per batch of `visibility_batches`, the BRDF factors (`preview_surface.split_factors`) of the
     merged cut summed per illumination-cut node, in K = max_cut column slots: a light edit that
     keeps a node keeps its column, a node new to the cut gets a free slot and only its column is
-    computed; a material edit recomputes the rows whose lobe changed (roughnesses).
+    computed; a material edit recomputes the lobes' factors (the third on) of the rows whose
+    lobe changed (roughnesses).
 
     Attributes:
         key: (max_cut, factors F, dtype, rows per batch): a change starts afresh.
         slot_node: (K,) int64 the illumination-cut node in each slot, -1 if free.
         columns: per batch (P, F, K) factor sums (factor_dtype).
-        counts: per batch (2, K) int64 merged entries and shaded entries (lit, above the
-            horizon) per slot.
+        counts: per batch (K,) int64 merged entries per slot.
         sums: (N, F, 3) float the factor sums times the light (diffuse light for the first two
             factors, specular for the others), summed over the cut.
         light_key: the illumination cut `sums` were made with.
@@ -166,10 +168,9 @@ class CutsRelighter:
         stats: of the last cuts render, summed over the sub-samples: 'inputs' (entries of the
             three vertices' visibility cuts, the merge's input), 'merged' (entries of the
             merged cuts built with the illumination cut), 'dark' (visibility clusters dark at all
-            three vertices, dropped before the illumination cut is merged in), 'shaded' (merged
-            entries lit and above the horizon), 'evaluated' (merged entries whose BRDF factors
-            this render computed; the rest were kept, `FactorColumns`) and 'illumination_cut'
-            (its size).
+            three vertices, dropped before the illumination cut is merged in), 'evaluated'
+            (merged entries whose BRDF factors this render computed; the rest were kept,
+            `FactorColumns`) and 'illumination_cut' (its size).
     """
 
     def __init__(self, direct: Relighter, cuts: CutsCache, settings: CutsRelightSettings = CutsRelightSettings()):
@@ -182,17 +183,26 @@ class CutsRelighter:
         self.params = direct.gbuffer.params
         self.stats: collections.Counter[str] = collections.Counter()
         g, tree = direct.gbuffer, cuts.tree
-        self._wo_local = to_local(g.wo_world(), g.tangent, g.bitangent, g.normal)
+        # The BRDF is evaluated in the stored frames, as `preview_surface.split` is given
+        # `to_local` directions: stored in low precision they are not quite orthonormal, and
+        # sharp lobes see it, so dot products are taken with the frame's vectors, not world ones.
+        frames = torch.stack((g.tangent, g.bitangent, g.normal), dim=-1)
+        wo_local = to_local(g.wo_world(), g.tangent, g.bitangent, g.normal)
+        self._cos_e, self._view_sq = wo_local[:, 2], (wo_local * wo_local).sum(-1)
+        self._geometry = torch.cat((frames, (frames @ wo_local.unsqueeze(-1))), dim=-1)
         self._node_size = tree.size.to(g.position.dtype)
+        # (3, 2L) per node its mean direction (env) or mean position (indirect) by component,
+        # and a last column for the padding node of `VisibilityBatch` (weight 0).
         if cuts.mode == "env":
-            self._node_directions = torch.nn.functional.normalize(tree.aggregate(cuts.leaf_directions), dim=-1)
+            points = torch.nn.functional.normalize(tree.aggregate(cuts.leaf_directions), dim=-1)
         else:
-            points = cuts.leaf_points
-            self._node_position = tree.aggregate(points.position) / tree.size.to(g.position.dtype).unsqueeze(-1)
+            points = tree.aggregate(cuts.leaf_points.position) / tree.size.to(g.position.dtype).unsqueeze(-1)
+        self._node_points = torch.cat((points, points.new_zeros((1, 3)))).t().contiguous()
         self._domes: dict[str, Light] = {}
         self._leaf_radiance: dict[str, tuple[Light, torch.Tensor]] = {}
         self._samples: torch.Tensor | None = None
         self._visibility_batches: tuple[int, list[VisibilityBatch]] | None = None
+        self._by_node: list[tuple[torch.Tensor, torch.Tensor] | None] | None = None
         # The last illumination cut: (key of its lights, the lights (kept alive, so their ids stay
         # theirs), (nodes, diffuse, specular)).
         self._illumination: tuple[tuple, list[Light], tuple[torch.Tensor, ...]] | None = None
@@ -411,32 +421,38 @@ class CutsRelighter:
         table = table.to(settings.factor_dtype)
         relit = state.light_key != key
         state.light_key = key
-        everything = torch.ones_like(new)
-        touched = None if bool(new.all()) else _touched_nodes(self.cuts.tree, nodes, new)
-        cut_of = leaf_cut_index(self.cuts.tree, nodes)
+        # Tables of the nodes to evaluate: every node into its slot (a new cut, dirty rows), or
+        # the nodes new to the cut in cut order.
+        num_slots = state.slot_node.shape[0]
+        every_table = _NodeTable.of(self.cuts.tree, nodes, torch.ones_like(new), self._node_size, slot, num_slots) if (
+            bool(new.all()) or bool(state.dirty.any())) else None
+        new_table = every_table if bool(new.all()) else (
+            _NodeTable.of(self.cuts.tree, nodes, new, self._node_size) if bool(new.any()) else None)
         for index, batch in enumerate(self.visibility_batches()):
             self.stats["inputs"] += batch.inputs
             self.stats["dark"] += batch.dark
             shape = (batch.rows.shape[0], num_factors, state.slot_node.shape[0])
             columns = state.columns[index] if keep else torch.zeros(shape, dtype=settings.factor_dtype,
                                                                    device=out.device)
-            counts = state.counts[index] if keep else torch.zeros((2, shape[2]), dtype=torch.int64, device=out.device)
-            if bool(new.any()):
-                values, new_counts = self._factor_columns(batch, cut_of, nodes, new, touched, num_factors)
-                columns.index_copy_(2, slot[new], values.to(columns.dtype))
-                counts[:, slot[new]] = new_counts
-                self.stats["evaluated"] += int(new_counts[0].sum())
+            counts = state.counts[index] if keep else torch.zeros(shape[2], dtype=torch.int64, device=out.device)
+            if new_table is not None:
+                by_node = None if new_table.everything else self._entries_by_node(index)
+                values, new_counts = self._factor_columns(batch, new_table, num_factors, by_node=by_node)
+                if new_table.everything:
+                    columns.copy_(values[:, :, :num_slots].transpose(0, 1))
+                    counts.copy_(new_counts)
+                else:
+                    columns.index_copy_(2, slot[new],
+                                        values[:, :, :new_counts.shape[0]].transpose(0, 1).to(columns.dtype))
+                    counts[slot[new]] = new_counts
+                self.stats["evaluated"] += int(new_counts.sum())
             dirty = state.dirty.index_select(0, batch.rows)
             dirty_rows = torch.nonzero(dirty).squeeze(1)
-            if dirty_rows.shape[0]:
-                values, dirty_counts = self._factor_columns(batch, cut_of, nodes, everything, None, num_factors,
-                                                              dirty_rows)
-                self.stats["evaluated"] += int(dirty_counts[0].sum())
-                part = columns.index_select(0, dirty_rows)
-                part.index_copy_(2, slot, values.to(columns.dtype))
-                columns.index_copy_(0, dirty_rows, part)
-            self.stats["merged"] += int(counts[0, slot].sum())
-            self.stats["shaded"] += int(counts[1, slot].sum())
+            if dirty_rows.shape[0] and not bool(new.all()):   # the lobes' factors (2 on) of their rows
+                values, dirty_counts = self._factor_columns(batch, every_table, num_factors, dirty_rows, first_factor=2)
+                self.stats["evaluated"] += int(dirty_counts.sum())
+                columns[:, 2:].index_copy_(0, dirty_rows, values[2:, :, :num_slots].transpose(0, 1).to(columns.dtype))
+            self.stats["merged"] += int(counts[slot].sum())
             if relit or bool(new.any()):
                 state.sums.index_copy_(0, batch.rows, _light_sums(columns, table, out.dtype))
             elif dirty_rows.shape[0]:
@@ -455,126 +471,178 @@ class CutsRelighter:
         if keep:
             for batch in self.visibility_batches():
                 columns.append(torch.zeros((batch.rows.shape[0], num_factors, max_cut), dtype=dtype, device=device))
-                counts.append(torch.zeros((2, max_cut), dtype=torch.int64, device=device))
+                counts.append(torch.zeros(max_cut, dtype=torch.int64, device=device))
         num_samples = self.direct.gbuffer.num_samples
         return FactorColumns(key, torch.full((max_cut,), -1, dtype=torch.int64, device=device), columns, counts,
                              torch.zeros((num_samples, num_factors, 3), dtype=self.direct.gbuffer.position.dtype,
                                          device=device), None,
                              torch.zeros(num_samples, dtype=torch.bool, device=device))
 
-    def _factor_columns(self, batch: VisibilityBatch, cut_of: torch.Tensor, nodes: torch.Tensor, wanted: torch.Tensor,
-                        touched: torch.Tensor | None, num_factors: int, rows: torch.Tensor | None = None
-                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    def _factor_columns(self, batch: VisibilityBatch, table: _NodeTable, num_factors: int,
+                        rows: torch.Tensor | None = None, by_node: tuple[torch.Tensor, torch.Tensor] | None = None,
+                        first_factor: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
         """BRDF factors of a batch's merged cut (its visibility clusters merged with the
-        illumination cut `nodes` (K,)), summed per wanted illumination-cut node.
+        illumination cut), summed per wanted illumination-cut node (`table`).
 
         A visibility cluster spanning several illumination-cut nodes is refined into them: each
         node j inside it is one entry, in j's direction, weighted |C_j| <v>. A row's clusters
         partition the leaves, so a row meets each node so at most once: these entries are shaded
         on a (P, W) grid, one column per wanted node, whose factors are the column sums; each
         cell's cluster is a running sum over the row of the clusters' ranges of wanted nodes. A
-        cluster inside one illumination-cut node is one entry in its own direction: such entries
-        are laid out densely, (P, M), M the largest row (padding of weight 0), and summed into
-        their columns. Either way a row's frame and material broadcast over its entries.
+        cluster inside one illumination-cut node is one entry in its own direction, summed into
+        its column: shaded on the batch's (P, M) rows when every node is wanted (padding and
+        spanning clusters weigh 0, a row's frame and material broadcast over its entries), else
+        only the entries under or above wanted nodes are found (`by_node`) and shaded one by
+        one. The BRDF runs on cache-sized blocks (`preview_surface.split_factors_cosines`).
 
         Args:
-            cut_of: (2L - 1,) int64 `merge.leaf_cut_index` of `nodes`.
-            wanted: (K,) bool the columns to compute (W of them, in cut order).
-            touched: (2L - 1,) bool the nodes sharing a leaf with a wanted node (`_touched_nodes`):
-                only visibility clusters there are looked at; None: every cluster.
-            rows: (P,) int64 rows of the batch to compute (default: all).
+            table: the wanted nodes of the illumination cut and what each tree node is to them.
+            rows: (P,) int64 rows of the batch to compute (default: all; every node wanted).
+            by_node: the batch's `_entries_by_node` (needed unless every node is wanted).
+            first_factor: factors before it are left 0 (a lobe's width changes only the later ones).
 
         Returns:
-            ((P, F, W) float factor sums; (2, W) int64 merged and shaded entries per wanted node).
+            ((F, P, C + 2) float factor sums per column (`table`), then two zero columns; (C,)
+            int64 merged entries per column).
         """
-        tree = self.cuts.tree
-        node, local, visibility = batch.node, batch.local, batch.visibility
-        if rows is None:
-            rows = torch.arange(batch.rows.shape[0], device=node.device)
-        else:   # a row's entries are contiguous (`local` ascending)
-            bounds = torch.searchsorted(local, torch.stack((rows, rows + 1)).to(local.dtype))
-            counts = bounds[1] - bounds[0]
-            local = torch.repeat_interleave(torch.arange(rows.shape[0], device=node.device), counts)
-            entry = (bounds[0] - (torch.cumsum(counts, 0) - counts)).index_select(0, local) + torch.arange(
-                local.shape[0], device=node.device)
-            node, visibility = node.index_select(0, entry), visibility.index_select(0, entry)
-        if touched is not None:
-            chosen = torch.nonzero(touched.index_select(0, node)).squeeze(1)
-            node, local, visibility = node.index_select(0, chosen), local.index_select(0, chosen), \
-                visibility.index_select(0, chosen)
-        node, local = node.long(), local.long()
-        num_rows, num_wanted, coat = rows.shape[0], int(wanted.sum()), num_factors == 6
-        first = cut_of.index_select(0, tree.leftleaf.index_select(0, node))
-        last = cut_of.index_select(0, node - tree.height.index_select(0, node))
-        rank = torch.cumsum(wanted, 0)
-        start = rank.index_select(0, first) - wanted.index_select(0, first).long()   # wanted nodes [start, end)
-        end = rank.index_select(0, last)
-        samples = batch.rows.index_select(0, rows)
-        frame = batch.frame.index_select(0, rows)
-        params = self.params.index(samples).with_sample_axis()
-        wo_local = self._wo_local.index_select(0, samples).unsqueeze(1)
-        # Clusters spanning several illumination-cut nodes: the grid.
-        spanning = torch.nonzero((first != last) & (end > start)).squeeze(1)
+        node, visibility = batch.node, batch.visibility
+        samples, geometry = batch.rows, batch.geometry
+        if rows is not None:
+            node, visibility = node.index_select(0, rows), visibility.index_select(0, rows)
+            samples, geometry = samples.index_select(0, rows), geometry.index_select(0, rows)
+        (num_rows, width), num_columns = node.shape, table.nodes.shape[0]
+        flat_node, flat_visibility = node.view(-1), visibility.view(-1)
+        roughnesses = (self.params.roughness, self.params.clearcoat_roughness)[:num_factors // 2 - 1]
+        roughnesses = tuple(r.index_select(0, samples).unsqueeze(1) for r in roughnesses)
+        cos_e = self._cos_e.index_select(0, samples).unsqueeze(1)
+        view_sq = self._view_sq.index_select(0, samples).unsqueeze(1)
+        # Column of each entry: < C its wanted node's, C + 1 spanning several cut nodes (some
+        # wanted), C none (or padding); the sums have two dump columns C, C + 1 of weight 0.
+        if table.everything:
+            entry = None    # every entry of the (P, M) rows
+            column = table.column.index_select(0, flat_node)
+        else:   # only the entries of the wanted nodes' subtrees and of the nodes above them
+            order, offsets = by_node
+            entry = order.index_select(0, _concatenated_ranges(offsets.index_select(0, table.ranges[0]).long(),
+                                                               offsets.index_select(0, table.ranges[1]).long())).long()
+            column = table.column.index_select(0, flat_node.index_select(0, entry))
+        counts = torch.bincount(column, minlength=num_columns + 2)
+        # Clusters spanning several illumination-cut nodes: a grid of the wanted nodes in cut order.
+        spanning = torch.nonzero(column == num_columns + 1).squeeze(1)
+        if entry is not None:
+            spanning = entry.index_select(0, spanning)
+        spanning_node = flat_node.index_select(0, spanning)
+        num_wanted = num_columns if table.grid_source is None else int((table.grid_source < num_columns).sum())
         label = torch.arange(1, spanning.shape[0] + 1, device=node.device)
-        base = local.index_select(0, spanning) * (num_wanted + 1)
+        base = torch.div(spanning, width, rounding_mode="floor") * (num_wanted + 1)
         steps = torch.zeros(num_rows * (num_wanted + 1), dtype=torch.int64, device=node.device)
-        steps.index_add_(0, base + start.index_select(0, spanning), label)
-        steps.index_add_(0, base + end.index_select(0, spanning), -label)
-        cluster = torch.cumsum(steps.view(num_rows, num_wanted + 1)[:, :num_wanted], dim=1)   # 0: none
-        cell_visibility = torch.cat((visibility.new_zeros(1), visibility.index_select(0, spanning))).index_select(
-            0, cluster.view(-1)).view(num_rows, num_wanted)
-        wanted_nodes = nodes[wanted]
-        wi_local = self._incident_local(wanted_nodes, samples, frame)
-        weight = self._node_size.index_select(0, wanted_nodes) * cell_visibility * wi_local[..., 2]
-        sums = preview_surface.split_factors(params, wo_local, wi_local, coat=coat, weight=weight)   # (F, P, W)
-        merged_counts, shaded = (cluster > 0).sum(dim=0), (weight > 0).sum(dim=0)
-        # Clusters inside one illumination-cut node: dense rows, summed into their columns.
-        inside = torch.nonzero((first == last) & wanted.index_select(0, first)).squeeze(1)
-        if inside.shape[0]:
-            row, merged = local.index_select(0, inside), node.index_select(0, inside)
-            column = start.index_select(0, inside)
-            counts = torch.bincount(row, minlength=num_rows)
-            width = int(counts.max())
-            slot = row * width + torch.arange(row.shape[0], device=row.device) - (torch.cumsum(counts, 0) - counts
-                                                                                   ).index_select(0, row)
-            dense_node = torch.full((num_rows * width,), tree.root, dtype=merged.dtype, device=merged.device)
-            dense_node.index_copy_(0, slot, merged)
-            dense_cell = (torch.arange(num_rows, device=row.device).unsqueeze(1) * num_wanted).expand(
-                num_rows, width).reshape(-1).index_copy(0, slot, row * num_wanted + column)
-            dense_weight = visibility.new_zeros(dense_node.shape).index_copy_(
-                0, slot, self._node_size.index_select(0, merged) * visibility.index_select(0, inside))
-            wi_local = torch.bmm(self._incident_dense(dense_node, samples).view(num_rows, width, 3), frame)
-            dense_weight = dense_weight.view(num_rows, width) * wi_local[..., 2]
-            factors = preview_surface.split_factors(params, wo_local, wi_local, coat=coat, weight=dense_weight)
-            sums.view(num_factors, -1).index_add_(1, dense_cell, factors.view(num_factors, -1))
-            merged_counts += torch.bincount(column, minlength=num_wanted)
-            shaded += torch.bincount(dense_cell[dense_weight.view(-1) > 0] % num_wanted, minlength=num_wanted)
-        return sums.transpose(0, 1), torch.stack((merged_counts, shaded))
+        steps.index_add_(0, base + table.start.index_select(0, spanning_node), label)
+        steps.index_add_(0, base + table.end.index_select(0, spanning_node), -label)
+        cluster = torch.cumsum(steps.view(num_rows, num_wanted + 1), dim=1)   # 0: none (last column: 0)
+        weight = torch.cat((visibility.new_zeros(1), flat_visibility.index_select(0, spanning))).index_select(
+            0, cluster.view(-1)).view(num_rows, num_wanted + 1)
+        weight = weight[:, :num_wanted] if table.grid_source is None else weight.index_select(1, table.grid_source)
+        weight = weight.mul_(table.size)
+        sums = weight.new_zeros((num_factors, num_rows, num_columns + 2))
+        buffers = _SlabBuffers(num_factors, weight.dtype, weight.device)
+        for part in _slabs(num_rows, num_columns):
+            out, scratch, dots = buffers.get(part.stop - part.start, num_columns)
+            local = self._grid_dots(table.nodes, samples[part], geometry[part])
+            torch.mul(local[:, 0], local[:, 0], out=dots[2])
+            dots[2].addcmul_(local[:, 1], local[:, 1]).addcmul_(local[:, 2], local[:, 2])
+            preview_surface.split_factors_cosines(
+                tuple(r[part] for r in roughnesses), cos_e[part], local[:, 2], local[:, 3], weight[part],
+                sums[:, part, :num_columns], scratch, view_sq[part], dots[2])
+        merged_counts = (weight > 0).sum(dim=0) + counts[:num_columns]
+        # Clusters inside one wanted illumination-cut node, summed into their columns: the
+        # (P, M) rows as they are (padding and spanning clusters weigh 0), or one per line.
+        if entry is None:
+            lines = torch.arange(num_rows, device=node.device)
+            column = column.view(num_rows, width)
+        else:
+            inside = torch.nonzero(column < num_columns).squeeze(1)
+            entry = entry.index_select(0, inside)
+            lines = torch.div(entry, width, rounding_mode="floor")
+            node = flat_node.index_select(0, entry).view(-1, 1)
+            visibility = flat_visibility.index_select(0, entry).view(-1, 1)
+            column = column.index_select(0, inside).view(-1, 1)
+            roughnesses = tuple(r.index_select(0, lines) for r in roughnesses)
+            cos_e, view_sq = cos_e.index_select(0, lines), view_sq.index_select(0, lines)
+            samples, geometry = samples.index_select(0, lines), geometry.index_select(0, lines)
+        weight = table.inside_size.index_select(0, node.reshape(-1)).view(node.shape).mul_(visibility)
+        cell = column.add_((lines * (num_columns + 2)).unsqueeze(1))
+        flat = sums.view(num_factors, -1)
+        for part in _slabs(*node.shape):
+            out, scratch, dots = buffers.get(part.stop - part.start, node.shape[1])
+            self._dense_dots(node[part], samples[part], geometry[part], dots, scratch)
+            preview_surface.split_factors_cosines(
+                tuple(r[part] for r in roughnesses), cos_e[part], dots[0], dots[1], weight[part], out, scratch,
+                view_sq[part], dots[2])
+            cells = cell[part].reshape(-1)
+            for factor in range(first_factor, num_factors):
+                flat[factor].index_add_(0, cells, out[factor].view(-1))
+        return sums, merged_counts
 
     def kept_bytes(self) -> int:
-        """Bytes kept between frames: the merged visibility batches and the factor columns."""
+        """Bytes kept between frames: the merged visibility batches (and their entries by node)
+        and the factor columns."""
         tensors = [t for batch in (self._visibility_batches or (0, []))[1]
-                   for t in (batch.rows, batch.frame, batch.local, batch.node, batch.visibility)]
+                   for t in (batch.rows, batch.geometry, batch.node, batch.visibility)]
+        tensors += [t for index in (self._by_node or []) if index is not None for t in index]
         if self._columns is not None:
             tensors += [*self._columns.columns, *self._columns.counts, self._columns.sums, self._columns.dirty]
         return sum(t.numel() * t.element_size() for t in tensors)
 
-    def _incident_local(self, nodes: torch.Tensor, rows: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
-        """(P, W, 3) directions towards the clusters `nodes` (W,) from every sub-sample `rows` (P,)
-        in its local frame `frame` (P, 3, 3) (env: one matrix product for all of them)."""
+    def _grid_dots(self, nodes: torch.Tensor, rows: torch.Tensor, geometry: torch.Tensor) -> torch.Tensor:
+        """(P, 4, C) local coordinates (x, y, N.L) and E.L of the unit world directions towards
+        the clusters `nodes` (C,) (env: their mean directions; indirect: towards their mean
+        positions) from every sub-sample `rows` (P,) of `geometry` (P, 3, 4) (env: one matrix product)."""
         if self.mode == "env":
-            world = self._node_directions.index_select(0, nodes)
-            return (world @ frame.transpose(0, 1).reshape(3, -1)).view(nodes.shape[0], rows.shape[0], 3).transpose(0, 1)
-        return torch.bmm(self._incident_dense(nodes.repeat(rows.shape[0]), rows).view(rows.shape[0], -1, 3), frame)
-
-    def _incident_dense(self, node: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-        """(P M, 3) unit world directions towards merged clusters `node` (P M,) from sub-samples
-        `rows` (P,), each sub-sample's M clusters consecutive."""
-        if self.mode == "env":
-            return self._node_directions.index_select(0, node)
+            world = self._node_points.index_select(1, nodes)
+            return (geometry.transpose(1, 2).reshape(-1, 3) @ world).view(rows.shape[0], 4, nodes.shape[0])
         position = self.direct.gbuffer.position.index_select(0, rows)
-        offset = self._node_position.index_select(0, node).view(rows.shape[0], -1, 3) - position.unsqueeze(1)
-        return torch.nn.functional.normalize(offset, dim=-1).view(-1, 3)
+        offset = self._node_points.index_select(1, nodes).t().unsqueeze(0) - position.unsqueeze(1)
+        return torch.bmm(geometry.transpose(1, 2), torch.nn.functional.normalize(offset, dim=-1).transpose(1, 2))
+
+    def _dense_dots(self, node: torch.Tensor, rows: torch.Tensor, geometry: torch.Tensor, out: torch.Tensor,
+                    scratch: torch.Tensor) -> None:
+        """N.L, E.L and |L|^2 (local coordinates: `_grid_dots`) of the unit world directions
+        towards merged clusters `node` (P, M) from sub-samples `rows` (P,) of `geometry` (P, 3, 4),
+        into `out` (3, P, M); `scratch` (4, P, M) overwritten. Componentwise multiply-adds: on
+        the CPU a batched (M, 3) x (3, 4) product per row costs several times as much."""
+        index = node.reshape(-1)
+        for axis in range(3):
+            torch.index_select(self._node_points[axis], 0, index, out=scratch[axis].view(-1))
+        if self.mode == "indirect":    # towards the clusters' mean positions
+            position = self.direct.gbuffer.position.index_select(0, rows)
+            for axis in range(3):
+                scratch[axis].sub_(position[:, axis:axis + 1])
+            torch.mul(scratch[0], scratch[0], out=scratch[3])
+            scratch[3].addcmul_(scratch[1], scratch[1]).addcmul_(scratch[2], scratch[2]).clamp_min_(1e-24).rsqrt_()
+            for axis in range(3):
+                scratch[axis].mul_(scratch[3])
+        targets = (scratch[3], scratch[3], out[0], out[1])    # x, y (only squared), N.L, E.L
+        for column, target in enumerate(targets):
+            torch.mul(scratch[0], geometry[:, 0, column:column + 1], out=target)
+            target.addcmul_(scratch[1], geometry[:, 1, column:column + 1]).addcmul_(
+                scratch[2], geometry[:, 2, column:column + 1])
+            if column == 0:
+                torch.mul(target, target, out=out[2])
+            elif column < 3:
+                out[2].addcmul_(target, target)
+
+    def _entries_by_node(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Batch `index`'s entries by node: ((P M,) int32 the flat entries of its rows sorted by
+        node, (2L + 2,) int32 offsets: node n's entries are [offsets[n], offsets[n + 1])). Made
+        on first use (a light edit that changes part of the illumination cut) and kept."""
+        if self._by_node is None or len(self._by_node) != len(self.visibility_batches()):
+            self._by_node = [None] * len(self.visibility_batches())
+        if self._by_node[index] is None:
+            node = self.visibility_batches()[index].node.view(-1)
+            counts = torch.bincount(node, minlength=self.cuts.tree.num_nodes + 1)
+            self._by_node[index] = (torch.argsort(node, stable=True).int(),
+                                    torch.cat((counts.new_zeros(1), torch.cumsum(counts, 0))).int())
+        return self._by_node[index]
 
     def visibility_batches(self) -> list[VisibilityBatch]:
         """The merged visibility cuts of every covered sub-sample, in batches of
@@ -586,7 +654,6 @@ class CutsRelighter:
             cuts, g = self.cuts, self.direct.gbuffer
             inputs = cuts.visibility.sizes()[cuts.sample_vertices].sum(dim=1)
             order = torch.argsort(inputs, stable=True)
-            frames = torch.stack((g.tangent, g.bitangent, g.normal), dim=-1)
             batches = []
             for start in range(0, g.num_samples, batch_rows):
                 rows = order[start:start + batch_rows]
@@ -595,9 +662,12 @@ class CutsRelighter:
                 # Clusters all three vertices see as dark stay dark however the illumination cut
                 # would split them: they are dropped before the illumination cut is merged in.
                 lit = visibility > 0
-                batches.append(VisibilityBatch(rows, frames[rows], merged.row[lit].int(), merged.node[lit].int(),
-                                               visibility[lit], int(inputs[rows].sum()), int((~lit).sum())))
+                node, visibility = _padded_rows(merged.row[lit], (merged.node[lit], visibility[lit]), rows.shape[0],
+                                                (self.cuts.tree.num_nodes, 0.0))
+                batches.append(VisibilityBatch(rows, self._geometry[rows], node.int(), visibility,
+                                               int(inputs[rows].sum()), int((~lit).sum())))
             self._visibility_batches = (batch_rows, batches)
+            self._by_node = None
         return self._visibility_batches[1]
 
     def _visibility(self, merged: MergedCuts, weights: torch.Tensor) -> torch.Tensor:
@@ -631,10 +701,94 @@ def _assign_slots(slot_node: torch.Tensor, nodes: torch.Tensor, num_nodes: int) 
     return slot, new
 
 
-def _touched_nodes(tree: LightTree, nodes: torch.Tensor, wanted: torch.Tensor) -> torch.Tensor:
-    """(2L - 1,) bool: the tree nodes sharing a leaf with a `wanted` (K,) node of the cut `nodes` (K,)."""
-    leaf_wanted = torch.repeat_interleave(wanted, tree.size.index_select(0, nodes))
-    return tree.aggregate(leaf_wanted.to(torch.float32)) > 0
+@dataclass(frozen=True)
+class _NodeTable:
+    """What each tree node is to the wanted nodes of an illumination cut (per frame), and the
+    C output columns they are summed into.
+
+    Attributes:
+        nodes: (C,) int64 each column's illumination-cut node (2L - 1, the padding node, if none).
+        size: (C,) float their leaf counts |C| (0 if none).
+        column: (2L,) int64 per tree node (and the padding node 2L - 1 of `VisibilityBatch`):
+            the column of the wanted node it lies in (< C), C if it lies in no wanted node (or is
+            the padding), C + 1 if it spans several cut nodes, some of them wanted.
+        start, end: (2L,) int64 the wanted nodes [start, end) a node overlaps, numbered in cut order.
+        grid_source: (C,) int64 each column's wanted node in cut order (W: none); None if the
+            columns are the wanted nodes in cut order.
+        ranges: (2, R) int64 node ranges [first, end) holding every node of column != C: the
+            wanted nodes' subtrees [leftleaf, node + 1) and the spanning nodes.
+        inside_size: (2L,) float |C| of the nodes with column < C, else 0.
+        everything: whether every node of the cut is wanted.
+    """
+
+    nodes: torch.Tensor
+    size: torch.Tensor
+    column: torch.Tensor
+    start: torch.Tensor
+    end: torch.Tensor
+    grid_source: torch.Tensor | None
+    ranges: torch.Tensor
+    inside_size: torch.Tensor
+    everything: bool
+
+    @staticmethod
+    def of(tree: LightTree, nodes: torch.Tensor, wanted: torch.Tensor, node_size: torch.Tensor,
+           columns: torch.Tensor | None = None, num_columns: int = 0) -> _NodeTable:
+        """The table of the cut `nodes` (K,) (sorted) whose `wanted` (K,) bool nodes are to be
+        computed, into `num_columns` columns, `columns` (K,) int64 giving a wanted node's (e.g.
+        its slot), or by default in cut order (C = W); `node_size` (2L - 1,) float |C| of
+        every node. A node overlaps the cut nodes from the one holding its leftmost leaf to the
+        one holding its rightmost (`leaf_cut_index`)."""
+        cut_of = leaf_cut_index(tree, nodes)
+        first = cut_of.index_select(0, tree.leftleaf)
+        last = cut_of.index_select(0, torch.arange(tree.num_nodes, device=nodes.device) - tree.height)
+        rank = torch.cumsum(wanted, 0)
+        start = rank.index_select(0, first) - wanted.index_select(0, first).long()
+        end = rank.index_select(0, last)
+        wanted_index = torch.nonzero(wanted).squeeze(1)
+        num_wanted = wanted_index.shape[0]
+        grid_source = None
+        if columns is None:
+            columns, num_columns = rank - 1, num_wanted
+        else:
+            grid_source = torch.full((num_columns,), num_wanted, dtype=torch.int64, device=nodes.device).index_copy_(
+                0, columns.index_select(0, wanted_index), torch.arange(num_wanted, device=nodes.device))
+        column_nodes = torch.full((num_columns,), tree.num_nodes, dtype=torch.int64, device=nodes.device).index_copy_(
+            0, columns.index_select(0, wanted_index), nodes.index_select(0, wanted_index))
+        column = torch.where(first == last, torch.where(wanted.index_select(0, first), columns.index_select(0, first),
+                                                        num_columns),
+                             torch.where(end > start, num_columns + 1, num_columns))
+        pad = column.new_zeros(1)
+        padded_size = torch.cat((node_size, node_size.new_zeros(1)))
+        inside_size = torch.where(column < num_columns, node_size, 0.0)
+        wanted_nodes = nodes.index_select(0, wanted_index)
+        spanning = torch.nonzero(column == num_columns + 1).squeeze(1)
+        ranges = torch.stack((torch.cat((tree.leftleaf.index_select(0, wanted_nodes), spanning)),
+                              torch.cat((wanted_nodes, spanning)) + 1))
+        return _NodeTable(column_nodes, padded_size.index_select(0, column_nodes),
+                          torch.cat((column, pad + num_columns)), torch.cat((start, pad)), torch.cat((end, pad)),
+                          grid_source, ranges,
+                          torch.cat((inside_size, inside_size.new_zeros(1))), num_wanted == nodes.shape[0])
+
+
+def _concatenated_ranges(low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
+    """(sum(high - low),) int64 the integers of the ranges [low, high) (R,), one after another."""
+    counts = high - low
+    owner = torch.repeat_interleave(torch.arange(low.shape[0], device=low.device), counts)
+    return (low - (torch.cumsum(counts, 0) - counts)).index_select(0, owner) + torch.arange(
+        owner.shape[0], device=low.device)
+
+
+def _padded_rows(row: torch.Tensor, values: tuple[torch.Tensor, ...], num_rows: int,
+                 fills: tuple[float, ...]) -> tuple[torch.Tensor, ...]:
+    """(P, M) arrays of per-row entries: `values` (Q,) each, in rows `row` (Q,) int64 ascending,
+    each row's entries in order then its `fill`; M the longest row (at least 1)."""
+    counts = torch.bincount(row, minlength=num_rows)
+    width = max(int(counts.max()) if num_rows else 0, 1)
+    slot = row * width + torch.arange(row.shape[0], device=row.device) - (torch.cumsum(counts, 0) - counts
+                                                                           ).index_select(0, row)
+    return tuple(torch.full((num_rows * width,), fill, dtype=value.dtype, device=value.device).index_copy_(
+        0, slot, value).view(num_rows, width) for value, fill in zip(values, fills))
 
 
 def _light_sums(columns: torch.Tensor, table: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
@@ -642,3 +796,31 @@ def _light_sums(columns: torch.Tensor, table: torch.Tensor, dtype: torch.dtype) 
     (first three columns) for the first two factors, specular light for the others."""
     products = (columns.reshape(-1, columns.shape[2]) @ table).view(columns.shape[0], columns.shape[1], 6).to(dtype)
     return torch.cat((products[:, :2, :3], products[:, 2:, 3:]), dim=1)
+
+
+SLAB_ENTRIES = 1 << 17
+"""Entries per block of the BRDF factor kernel: its eleven to thirteen (block,) float32 buffers stay in cache."""
+
+
+def _slabs(num_rows: int, width: int) -> list[slice]:
+    """Row ranges of about `SLAB_ENTRIES` entries of a (num_rows, width) grid."""
+    step = max(1, SLAB_ENTRIES // max(width, 1))
+    return [slice(start, min(start + step, num_rows)) for start in range(0, num_rows, step)]
+
+
+class _SlabBuffers:
+    """Reused output (F, S, M), scratch (4, S, M) and dot product (3, S, M) blocks of
+    `preview_surface.split_factors_cosines`."""
+
+    def __init__(self, num_factors: int, dtype: torch.dtype, device: torch.device):
+        self._flat = torch.empty(0, dtype=dtype, device=device)
+        self._num_factors = num_factors
+
+    def get(self, rows: int, width: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """((F, rows, width) output, (4, rows, width) scratch, (3, rows, width) dot products),
+        views of one reused buffer."""
+        size = (self._num_factors + 7) * rows * width
+        if self._flat.numel() < size:
+            self._flat = self._flat.new_empty(size)
+        blocks = self._flat[:size].view(-1, rows, width)
+        return blocks[:self._num_factors], blocks[self._num_factors:self._num_factors + 4], blocks[-3:]
