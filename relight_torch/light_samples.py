@@ -50,7 +50,7 @@ def angular_radius(light: Light, points: torch.Tensor) -> float:
         return math.pi
     if light.kind is LightKind.DISTANT:
         return min(max(math.radians(light.angle) / 2.0, 0.0), math.pi)
-    radius = _bounding_radius(light)
+    radius = bounding_radius(light)
     if radius == 0.0 or points.shape[0] == 0:
         return 0.0
     centre = torch.as_tensor(light.world_from_light[:3, 3], device=points.device, dtype=points.dtype)
@@ -72,7 +72,7 @@ def adaptive_sample_count(max_samples: int, min_samples: int, angle: float, full
     return min(max_samples, max(min_samples, math.ceil(max_samples * fraction)))
 
 
-def _bounding_radius(light: Light) -> float:
+def bounding_radius(light: Light) -> float:
     """World radius of a sphere around the light's origin that holds its emitting surface."""
     scale_x, scale_y, _ = axis_scales(light)
     if light.kind is LightKind.SPHERE:

@@ -1,7 +1,10 @@
 """The parts of the multiview method: projection, eq. 5 against its slow twin, hole filling,
-maximal spheres, importance sampling (no full bake)."""
+maximal spheres, importance sampling, resampling taps and material columns, BRDF groups (no full
+bake)."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -18,9 +21,12 @@ from pipeline.scene.camera import project
 from pipeline.scenes import SCENES
 from pipeline.tracing import Tracer
 from relight_torch.multiview.correspondence import ViewPoints, correspondence_map, correspondence_map_reference
+from relight_torch.math.frame import orthonormal_basis
 from relight_torch.multiview.holes import fill_small_holes
+from relight_torch.multiview.incident import group_images
 from relight_torch.multiview.resample import bilinear_samples
-from relight_torch.multiview.views import PRIMARY, SECONDARY, CachingViews
+from relight_torch.multiview.views import (CONSTANT, PER_MATERIAL, PRIMARY, SECONDARY, TEXTURED, CachingViews,
+                                           column_kinds)
 
 
 @pytest.fixture(scope="module")
@@ -159,11 +165,92 @@ def test_bilinear_resampling_is_exact_at_pixel_centres_and_blends_between(views)
         centre[:, 0] + 1 < int(caching.sizes[0, 1]))
     rows, right, centre = rows[ok][:50], right[ok][:50], centre[ok][:50]
     assert rows.numel() == 50
-    view = torch.zeros_like(rows)
-    at_centre = bilinear_samples(caching, view, centre, rows, pool.object_id[rows], pool.geometric_normal[rows])
+    at_centre = bilinear_samples(caching, centre, rows, pool.geometric_normal[rows])
     torch.testing.assert_close(at_centre.params.diffuse_color, pool.params.diffuse_color[rows])
     torch.testing.assert_close(at_centre.normal, pool.normal[rows], atol=1e-5, rtol=1e-5)
-    between = bilinear_samples(caching, view, centre + torch.tensor([0.5, 0.0]), rows, pool.object_id[rows],
+    between = bilinear_samples(caching, centre + torch.tensor([0.5, 0.0]), rows,
                                pool.geometric_normal[rows])
     expected = 0.5 * (pool.params.diffuse_color[rows] + pool.params.diffuse_color[right])
     torch.testing.assert_close(between.params.diffuse_color, expected, atol=1e-5, rtol=1e-5)
+
+
+def _block_taps(caching, view_index, pixel, object_id, normal):
+    """The 2 x 2 caching pixels around `pixel` (N, 2) in cameras `view_index` (N,), kept where the
+    same surface as the points (object, geometric normal): a direct (slow) twin of the resampling
+    taps, as (N, 4) pool rows (-1 where not kept) and bilinear weights renormalised over those kept."""
+    taps, weights = [], []
+    for k, (x, y), obj, n in zip(view_index.tolist(), pixel.tolist(), object_id.tolist(), normal):
+        height, width = (int(v) for v in caching.sizes[k])
+        bx, by = int(np.floor(x - 0.5)), int(np.floor(y - 0.5))
+        fx, fy = x - 0.5 - bx, y - 0.5 - by
+        row_taps, row_weights = [], []
+        for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+            cx, cy = bx + dx, by + dy
+            row = int(caching.pool_row[caching.image_offsets[k] + cy * width + cx]) if (
+                0 <= cx < width and 0 <= cy < height) else -1
+            same = row >= 0 and int(caching.pool.object_id[row]) == obj and float(
+                caching.pool.geometric_normal[row] @ n) > 0.7
+            row_taps.append(row if same else -1)
+            row_weights.append((fx if dx else 1 - fx) * (fy if dy else 1 - fy) if same else 0.0)
+        total = sum(row_weights)
+        taps.append(row_taps)
+        weights.append([w / total for w in row_weights])
+    return torch.tensor(taps), torch.tensor(weights)
+
+
+def test_resampling_taps_from_the_neighbour_table_equal_the_pixel_block(cornell, views):
+    """The taps read from `CachingViews.neighbours` are the 2 x 2 block of same-surface caching pixels
+    around each point's projection, with the same bilinear weights."""
+    _, scene, tracer = cornell
+    caching, _ = views
+    camera = find_camera(scene, SCENES["cornell_box"].camera)
+    view = view_points(tracer, scene.geometry.object_ids, camera)
+    found = correspondence_map(caching, view.position, view.geometric_normal, view.object_id)
+    covered = torch.nonzero(found.covered).squeeze(-1)
+    pick = covered[torch.from_numpy(np.random.default_rng(2).choice(covered.numel(), 300, replace=False))]
+    pixel, rows, normal = found.pixel[pick], found.pool_row[pick], view.geometric_normal[pick]
+    resampled = bilinear_samples(caching, pixel, rows, normal)
+    taps, weights = _block_taps(caching, found.view[pick], pixel, view.object_id[pick], normal)
+    for got_taps, got_weights, want_taps, want_weights in zip(resampled.taps, resampled.weights, taps, weights):
+        used = want_weights > 0
+        assert set(got_taps[got_weights > 0].tolist()) == set(want_taps[used].tolist())
+        assert torch.allclose(got_weights.sort().values, want_weights.sort().values, atol=1e-5)
+    assert (weights > 0).sum(-1).float().mean() > 2.0  # blends are exercised, not only single taps
+
+
+def test_material_columns_by_kind_and_frames_without_cached_tangents(views):
+    """Packed material columns are classed constant / per material / textured; resampled frames are
+    orthonormal from the normal alone (zero cached tangents, as meshes without UVs have, do not matter)."""
+    packed = torch.tensor([[1.0, 2.0, 5.0], [1.0, 2.0, 6.0], [1.0, 3.0, 7.0]])
+    assert column_kinds(packed, torch.tensor([0, 0, 1])).tolist() == [CONSTANT, PER_MATERIAL, TEXTURED]
+    caching, _ = views
+    pool = caching.pool
+    rows = torch.arange(0, pool.num_samples, 7)
+    bare = dataclasses.replace(caching, pool=dataclasses.replace(pool, tangent=torch.zeros_like(pool.tangent)))
+    resampled = bilinear_samples(bare, caching.pool_pixel[rows], rows, pool.geometric_normal[rows])
+    frame = torch.stack([resampled.tangent, resampled.bitangent, resampled.normal], -2)     # (N, 3, 3)
+    torch.testing.assert_close(frame @ frame.transpose(-1, -2), torch.eye(3).expand_as(frame), atol=1e-5, rtol=0)
+    torch.testing.assert_close(resampled.normal, torch.nn.functional.normalize(pool.normal[rows], dim=-1),
+                               atol=1e-5, rtol=0)
+    for name in ("diffuse_color", "roughness", "metallic"):
+        torch.testing.assert_close(getattr(resampled.params, name), getattr(pool.params, name)[rows])
+
+
+def test_one_group_shading_equals_the_general_path(views):
+    """`group_images` with one group (its light factored out of the BRDF sum) equals the general
+    per-group sum (here with an unlit second group)."""
+    caching, _ = views
+    pool = caching.pool
+    rows = torch.arange(0, pool.num_samples, 5)
+    generator = torch.Generator().manual_seed(3)
+    normal = pool.geometric_normal[rows]
+    tangent, bitangent = orthonormal_basis(normal)
+    wo_local = torch.nn.functional.normalize(torch.rand(rows.numel(), 3, generator=generator) + 0.2, dim=-1)
+    one = torch.cat([torch.rand(3, 1, rows.numel(), generator=generator),
+                     torch.randn(3, 1, rows.numel(), generator=generator) + normal.T[:, None],
+                     torch.full((1, 1, rows.numel()), 0.7)])
+    unlit = torch.cat([torch.zeros(3, 1, rows.numel()), normal.T[:, None], torch.full((1, 1, rows.numel()), 0.7)])
+    args = (pool.params.index(rows), wo_local, tangent, bitangent, normal, normal)
+    single = group_images(*args, one)
+    assert float(single.abs().max()) > 0
+    torch.testing.assert_close(single, group_images(*args, torch.cat([one, unlit], 1)), rtol=1e-5, atol=1e-6)

@@ -2,7 +2,7 @@
 
     python -m pipeline.benchmarks.multiview_path SCENE [SCENE...] [--width 640 --height 480]
         [--views 8] [--coverage 0.1 0.05 0.02] [--caching-resolution 512] [--spp 16]
-        [--sample-groups G] [--blend-lighting] [--edge-contrast C|none] [--threads T]
+        [--sample-groups G] [--blend-lighting] [--edge-contrast C|none] [--near-field F|none] [--threads T]
         [--fill-holes] [--no-reference] [--out DIR] [--csv FILE] [--table FILE]
 
 Per scene and coverage threshold it bakes a multiview cache (placement and one deep framebuffer
@@ -17,8 +17,9 @@ the three steps of a camera move: primary rays (Embree, CPU), the correspondence
 (`MultiviewRelighter.set_view`: eq. 5, hole filling, GBuffer gather, a Relighter over the view)
 and the re-render (`render` with every light's images dropped: the cached lighting of the
 caching samples gathered and the BRDF evaluated at the view; the shadow rays it traced are
-counted, `rerender_rays`: only those of the points on a light's edges, `--edge-contrast`, once
-`prepare_lighting` has lit the pool), and of a light move
+counted per re-render, `rerender_rays`: once `prepare_lighting` has lit the pool, only those of
+the points on a light's edges, `--edge-contrast`, or in its near field, `--near-field`), and of a
+light move
 re-rendered at that view (`relight_ms`, the shared measure: the moved light's lighting is traced
 again for the caching samples the view uses). Timings are warm medians of `--repeats` runs,
 wall time (an upper bound on a shared machine) and, for the three steps, this process's CPU time
@@ -142,7 +143,7 @@ def measure_view(scene: Scene, relighter, renderer: FrameRenderer, camera: Camer
     rays_before = relighter.visibility.num_rays
     for name, function in (("rays", rays), ("correspondence", correspondence), ("rerender", rerender)):
         row[f"{name}_ms"], row[f"{name}_cpu_ms"] = _ms(function, repeats)
-    row["rerender_rays"] = relighter.visibility.num_rays - rays_before
+    row["rerender_rays"] = (relighter.visibility.num_rays - rays_before) / (repeats + 1)  # warm-up and repeats
     row["light_edit_ms"] = relight_ms(relighter, repeats)
     return row
 
@@ -179,7 +180,7 @@ def run_scene(name: str, args: argparse.Namespace, out: Path) -> tuple[list[Swee
         parameters = read_cache_layer(layer).parameters
         relighter = open_multiview_relighter(layer, settings=RelightSettings(area_samples=args.area_samples),
                                              sample_groups=args.sample_groups, blend_lighting=args.blend_lighting,
-                                             edge_contrast=args.edge_contrast)
+                                             edge_contrast=args.edge_contrast, near_field=args.near_field)
         relighter.caster.num_threads = args.threads  # the shadow rays' caster too
         renderer = FrameRenderer(relighter, fill_holes=args.fill_holes)
         start = time.perf_counter()
@@ -203,7 +204,8 @@ def run_scene(name: str, args: argparse.Namespace, out: Path) -> tuple[list[Swee
                                   "supersampling": args.supersampling, "fillHoles": int(args.fill_holes),
                                   "areaSamples": args.area_samples, "sampleGroups": args.sample_groups,
                                   "blendLighting": int(args.blend_lighting),
-                                  "edgeContrast": "none" if args.edge_contrast is None else args.edge_contrast}),
+                                  "edgeContrast": "none" if args.edge_contrast is None else args.edge_contrast,
+                                  "nearField": "none" if args.near_field is None else args.near_field}),
             psnr_db=mean.get("psnr_db", float("nan")), rel_mse=mean.get("rel_mse", float("nan")),
             cache_bytes=float(cache_bytes(layer)), bake_s=bake_s,
             relight_ms=float(np.median([v.get("light_edit_ms", float("nan")) for v in views]))))
@@ -230,6 +232,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--edge-contrast", type=lambda v: None if v == "none" else float(v), default=0.8,
                         help="trace a light again at view points on its edges in the caching images "
                              "(relative contrast, default 0.8; 'none': a camera move traces nothing)")
+    parser.add_argument("--near-field", type=lambda v: None if v == "none" else float(v), default=0.1,
+                        help="trace a light again at view points farther from their caching sample than this "
+                             "fraction of their distance to the light (default 0.1; 'none': never)")
     parser.add_argument("--threads", type=int, default=2, help="torch and Embree threads (default 2)")
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per median; 0: no timings")
     parser.add_argument("--fill-holes", action="store_true", help="bake large holes on demand")

@@ -33,11 +33,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from relight_torch.multiview.views import CachingViews, camera_column, take_rows, take_small, world_from_camera
+from relight_torch.multiview.views import (SAME_SURFACE_COS, CachingViews, camera_column, take_rows, take_small,
+                                           world_from_camera)
 
 MAX_SLOPE = 20.0
 RELATIVE_DEPTH_TOLERANCE = 1e-3
-SAME_SURFACE_COS = 0.7
 
 
 @dataclass(frozen=True)

@@ -133,15 +133,26 @@ def _chunk_table(light: Light, unit: Light, position: torch.Tensor, normal: torc
     return table
 
 
+def view_colours(params: PreviewSurfaceParams) -> torch.Tensor:
+    """(F, N, 3) `preview_surface.factor_colours` of a view's N materials (F = 6 with a clearcoat
+    anywhere, else 4): what `group_images` weighs the BRDF's factors by, the same for every light."""
+    return preview_surface.factor_colours(params, bool(params.clearcoat.any()))
+
+
 def group_images(params: PreviewSurfaceParams, wo_local: torch.Tensor, tangent: torch.Tensor,
                  bitangent: torch.Tensor, normal: torch.Tensor, geometric_normal: torch.Tensor,
-                 table: torch.Tensor) -> torch.Tensor:
+                 table: torch.Tensor, colours: torch.Tensor | None = None) -> torch.Tensor:
     """(2, N, 3) diffuse and specular unit images of N points from their W and D.
+
+    The BRDF is `preview_surface.split` through its factored form (`split_factors`, scalars per
+    group and point, times the per-material `factor_colours`): equal to it, with the colour
+    work done once per view rather than once per light and group.
 
     Args:
         params: (N,) materials; wo_local: (N, 3) unit direction to the viewer in the shading frame
             (tangent, bitangent, normal), each (N, 3); geometric_normal: (N, 3), facing the viewer.
         table: (7, G, N) the points' (blended) incident groups, channels first (`CHANNELS`).
+        colours: (F, N, 3) `view_colours(params)`, or None to compute them here.
     """
     num_points = wo_local.shape[0]
     # Points the light reaches and whose shading normal faces the viewer (as the Relighter's transport).
@@ -149,6 +160,8 @@ def group_images(params: PreviewSurfaceParams, wo_local: torch.Tensor, tangent: 
     count = int(reached.sum())
     if count == 0:
         return wo_local.new_zeros(2, num_points, 3)
+    if colours is None:
+        colours = view_colours(params)
     # Most points lit: shade them all (masked) rather than gather the lit ones and scatter back.
     live = None if 2 * count > num_points else torch.nonzero(reached).squeeze(-1)
 
@@ -157,6 +170,7 @@ def group_images(params: PreviewSurfaceParams, wo_local: torch.Tensor, tangent: 
 
     if live is not None:
         table = table.index_select(2, live)
+        colours = colours.index_select(1, live)
     # Unit group directions and their local frame, component by component ((G, P) slabs).
     dx, dy, dz = table[3], table[4], table[5]
     inverse = torch.rsqrt((dx * dx + dy * dy + dz * dz).clamp_(min=1e-30))
@@ -169,13 +183,19 @@ def group_images(params: PreviewSurfaceParams, wo_local: torch.Tensor, tangent: 
     valid = (cosine > 0) & facing
     if live is None:
         valid &= reached
-    scalar = cosine * valid
-    weight = torch.stack([table[c] * scalar for c in range(3)], -1)                          # (G, P, 3)
     material = dataclasses.replace(params, **{f.name: pick(getattr(params, f.name))
                                               for f in dataclasses.fields(params)})
-    diffuse, specular = preview_surface.split(material, pick(wo_local), wi_local)
-    diffuse = (diffuse * weight).sum(0).mul_(table[6, 0, :, None])
-    specular = (specular * weight).sum(0)
+    factors = preview_surface.split_factors(material, pick(wo_local), wi_local, colours.shape[0] > 4,
+                                            weight=cosine * valid)                           # (F, G, P)
+    light = table[:3].permute(1, 2, 0)                                                      # (G, P, 3)
+    if light.shape[0] == 1:  # one group: its light factors out of the sum
+        diffuse, specular = preview_surface.combine_factors(colours, factors[:, 0, :, None])
+        diffuse.mul_(light[0]).mul_(table[6, 0, :, None])
+        specular.mul_(light[0])
+    else:
+        sums = (factors.unsqueeze(-1) * light).sum(1)                                       # (F, P, 3)
+        diffuse, specular = preview_surface.combine_factors(colours, sums)
+        diffuse.mul_(table[6, 0, :, None])
     if live is None:
         return torch.stack([diffuse, specular])
     return wo_local.new_zeros(2, num_points, 3).index_copy_(1, live, torch.stack([diffuse, specular]))

@@ -13,14 +13,18 @@ Lighting: a camera move changes no light, so nothing about lights is traced agai
 viewer-independent part of its transport (light samples, radiance, shaping, shadow rays; see
 `incident`) is kept for the caching cameras' samples; a view takes its points' entries from the
 nearest caching pixel (or, `blend_lighting`, blends the four with their materials' bilinear
-weights) and evaluates only the BRDF at its own view direction (`incident.group_images`). The resulting unit images go to a direct `Relighter` over the view
-(`Relighter.set_unit_images`), which applies colour, exposure, light links and light groups as for
-a single-view cache: there is no second shading path. Entries are traced lazily, for the caching
+weights) and evaluates only the BRDF at its own view direction (`incident.group_images`). The
+resulting unit images go to a direct `Relighter` over the view (`Relighter.set_unit_images`),
+which applies colour, exposure, light links and light groups as for a single-view cache: there is
+no second shading path. Entries are traced lazily, for the caching
 samples a view uses and not yet lit (`prepare_lighting` traces them all); an edit of a light's
-transform or shaping drops its entries, a colour or link edit keeps them. Two kinds of view points
-are traced at the view instead: those on a light's edges in the caching images (`edge_contrast`:
-where the caching pixels are coarser than the view's, hard shadow edges would otherwise come out
-as their staircase) and the samples baked on demand for large holes (not in the pool).
+transform or shaping drops its entries, a colour or link edit keeps them. Three kinds of view
+points are traced at the view instead: those on a light's edges in the caching images
+(`edge_contrast`: where the caching pixels are coarser than the view's, hard shadow edges would
+otherwise come out as their staircase), those in a light's near field (`near_field`: where the
+nearest caching sample lies far from the point relative to the light's distance, as on a window
+frame next to a rect light, its lighting is not the point's) and the samples baked on demand for
+large holes (not in the pool).
 """
 
 from __future__ import annotations
@@ -38,12 +42,14 @@ from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import check_inputs, load_npy
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
-from relight_torch.lights.light import Light
+from relight_torch.light_samples import bounding_radius
+from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import decode_paths
-from relight_torch.math.frame import to_local
+from relight_torch.math.frame import orthonormal_basis, to_local
 from relight_torch.multiview.correspondence import ViewPoints, correspondence_map
 from relight_torch.multiview.holes import HoleReport, fill_small_holes
-from relight_torch.multiview.incident import CHANNELS, group_images, incident_table, pool_light_samples, sample_groups
+from relight_torch.multiview.incident import (CHANNELS, group_images, incident_table, pool_light_samples, sample_groups,
+                                              view_colours)
 from relight_torch.multiview.load import load_camera_table, load_view_gbuffers
 from relight_torch.multiview.resample import bilinear_samples
 from relight_torch.multiview.views import CachingViews, concat_gbuffers, gather_gbuffer, take_rows
@@ -93,16 +99,13 @@ def view_gbuffer(views: CachingViews, view: ViewPoints, patch: GBuffer | None = 
     # Filled holes are resampled at their neighbour's pixel centre: that sample alone.
     matched = kept(correspondence.pool_row) >= 0
     row = kept(rows)
-    object_id, geometric_normal = kept(view.object_id), kept(view.geometric_normal)
-    camera = torch.where(matched, kept(correspondence.view), views.pool_view.index_select(0, row))
+    geometric_normal = kept(view.geometric_normal)
     pixel = torch.where(matched[:, None], kept(correspondence.pixel), views.pool_pixel.index_select(0, row))
-    chosen = bilinear_samples(views, camera, pixel, row, object_id, geometric_normal)
+    chosen = bilinear_samples(views, pixel, row, geometric_normal,
+                              None if view.shading_normal is None else kept(view.shading_normal), normal_mapped)
     gbuffer = GBuffer(image_size=view.image_size, pixel_index=kept(view.pixel_index), position=kept(view.position),
                       geometric_normal=geometric_normal, depth=kept(view.depth), camera_position=view.camera_position,
                       **{k: v for k, v in chosen._asdict().items() if k not in ("taps", "weights")})
-    if view.shading_normal is not None and normal_mapped is not None:
-        gbuffer = _smooth_frames(gbuffer, kept(view.shading_normal),
-                                 ~normal_mapped.index_select(0, gbuffer.material_id.long()))
     taps, weights = chosen.taps, chosen.weights
     if patch is not None:
         if patch.image_size != view.image_size:
@@ -110,17 +113,13 @@ def view_gbuffer(views: CachingViews, view: ViewPoints, patch: GBuffer | None = 
         taken = torch.zeros(view.image_size[0] * view.image_size[1], dtype=torch.bool, device=view.position.device)
         taken[gbuffer.pixel_index] = True
         fresh = gather_gbuffer(patch, torch.nonzero(~taken[patch.pixel_index]).squeeze(-1))
+        # The frame from the normal alone, as resampling builds it (a baked tangent is zero without UVs).
+        tangent, bitangent = orthonormal_basis(torch.nn.functional.normalize(fresh.normal, dim=-1))
+        fresh = dataclasses.replace(fresh, tangent=tangent.to(fresh.tangent.dtype),
+                                    bitangent=bitangent.to(fresh.bitangent.dtype))
         gbuffer = concat_gbuffers([gbuffer, fresh], view.image_size,
                                   torch.cat([gbuffer.pixel_index, fresh.pixel_index]), view.camera_position)
     return ViewSamples(gbuffer, report, row, taps, weights)
-
-
-def _smooth_frames(gbuffer: GBuffer, smooth: torch.Tensor, use: torch.Tensor) -> GBuffer:
-    """`gbuffer` with the normal replaced by `smooth` (N, 3) where `use` (N,), tangent frame rebuilt."""
-    normal = torch.where(use[:, None], smooth.to(gbuffer.normal.dtype), gbuffer.normal)
-    tangent = gbuffer.tangent - normal * (gbuffer.tangent * normal).sum(-1, keepdim=True)
-    tangent = torch.nn.functional.normalize(tangent, dim=-1)
-    return dataclasses.replace(gbuffer, normal=normal, tangent=tangent, bitangent=torch.cross(normal, tangent, dim=-1))
 
 
 class MultiviewRelighter:
@@ -141,7 +140,11 @@ class MultiviewRelighter:
         edge_contrast: points whose four caching pixels' lighting differs by more than this
             fraction of the largest (shadow edges, the edges of a light's pool) have that light
             traced again at their own position, so that hard edges come out at the view's
-            resolution rather than the caching camera's; None traces nothing at a camera move.
+            resolution rather than the caching camera's.
+        near_field: points farther from their nearest caching sample than this fraction of their
+            distance to a light's bounding sphere have that light traced again at their own
+            position (sphere, disk, rect and cylinder lights). With both None a camera move traces
+            nothing.
 
     Attributes:
         caster: Embree over the cache's occluders, for the new views' primary rays.
@@ -159,7 +162,8 @@ class MultiviewRelighter:
                  settings: RelightSettings = RelightSettings(), object_paths: list[str] | None = None,
                  caster: EmbreeCaster | None = None, occluder_objects: np.ndarray | None = None,
                  corner_normals: np.ndarray | None = None, normal_mapped: torch.Tensor | None = None,
-                 sample_groups: int = 1, blend_lighting: bool = False, edge_contrast: float | None = 0.8):
+                 sample_groups: int = 1, blend_lighting: bool = False, edge_contrast: float | None = 0.8,
+                 near_field: float | None = 0.1):
         self.views = views
         self.visibility = visibility
         self.supersampling = supersampling
@@ -173,6 +177,7 @@ class MultiviewRelighter:
         self.sample_groups = sample_groups
         self.blend_lighting = blend_lighting
         self.edge_contrast = edge_contrast
+        self.near_field = near_field
         self.description: CacheDescription | None = None
         self.report: HoleReport | None = None
         self.counters: collections.Counter[str] = collections.Counter()
@@ -180,10 +185,18 @@ class MultiviewRelighter:
         self._relighter: Relighter | None = None
         self._view: ViewSamples | None = None
         self._wo_local: torch.Tensor | None = None
-        # Per light: the pool's (7 G, R) incident table, channels first, and which rows are traced;
-        # per sample count, the pool's fixed light samples.
-        self._tables: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._colours: torch.Tensor | None = None
+        self._edge_taps: torch.Tensor | None = None   # (4, M) the view's taps for `_refined_points`
+        # The view's (3, M) positions and (M,) distances to their nearest samples (near field).
+        self._offsets: tuple[torch.Tensor, torch.Tensor] | None = None
+        # Per light: the pool's (7 G, R) incident table, channels first, which rows are traced, and
+        # (1, R) the summed W of each row (what `_refined_points` compares); per sample count, the
+        # pool's fixed light samples; (light, taps) whose table holds every row the current view uses
+        # (its nearest rows, or with taps its four taps' rows).
+        self._tables: dict[str, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+        self._ready: set[tuple[str, bool]] = set()
         self._u: dict[int, torch.Tensor] = {}
+        self._num_samples: dict[str, int] = {}
         # A Relighter over the pool, for the lights' sample counts only (as over a view).
         self._pool_relighter = Relighter(views.pool, visibility, 1, 1.0, settings, object_paths)
 
@@ -211,10 +224,14 @@ class MultiviewRelighter:
             relighter.set_light(light)
         if not (had and relighter.unit_images(light.path) is not None):
             self._tables.pop(light.path, None)
+            self._num_samples.pop(light.path, None)
+            self._ready -= {(light.path, False), (light.path, True)}
 
     def remove_light(self, path: str) -> None:
         self._lights.pop(path, None)
         self._tables.pop(path, None)
+        self._num_samples.pop(path, None)
+        self._ready -= {(path, False), (path, True)}
         if self._relighter is not None and path in {light.path for light in self._relighter.lights}:
             self._relighter.remove_light(path)
 
@@ -226,6 +243,9 @@ class MultiviewRelighter:
         self._view = view_gbuffer(self.views, view.to(self.views.device), patch, self.normal_mapped)
         gbuffer = self._view.gbuffer
         self._wo_local = to_local(gbuffer.wo_world(), gbuffer.tangent, gbuffer.bitangent, gbuffer.normal)
+        self._colours = view_colours(gbuffer.params)
+        self._edge_taps = self._offsets = None
+        self._ready.clear()
         self.report = self._view.report
         self._relighter = Relighter(gbuffer, self.visibility, self.supersampling, self.exposure_scale,
                                     self.settings, self.object_paths)
@@ -240,7 +260,8 @@ class MultiviewRelighter:
 
     def lighting_bytes(self) -> int:
         """Bytes of the cached per-light lighting of the caching samples."""
-        return sum(table.numel() * table.element_size() + done.numel() for table, done in self._tables.values())
+        return sum(table.numel() * table.element_size() + done.numel() + total.numel() * total.element_size()
+                   for table, done, total in self._tables.values())
 
     def render(self) -> torch.Tensor:
         """(H, W, 3) linear image of the current view."""
@@ -264,25 +285,35 @@ class MultiviewRelighter:
         return relighter
 
     def _light_samples(self, light: Light) -> torch.Tensor:
-        """(R, S, 2) the pool's fixed light samples for the light's sample count."""
-        num_samples = self._pool_relighter.num_light_samples(light)
+        """(R, S, 2) the pool's fixed light samples for the light's sample count (found once per
+        light: it depends on the light's shape and position, whose edits drop it with the table)."""
+        if light.path not in self._num_samples:
+            self._num_samples[light.path] = self._pool_relighter.num_light_samples(light)
+        num_samples = self._num_samples[light.path]
         if num_samples not in self._u:
             views, counts = self.views, torch.bincount(self.views.pool_view, minlength=self.views.num_views)
             self._u[num_samples] = pool_light_samples(counts.tolist(), num_samples, self.settings.seed, views.device,
                                                       views.pool.position.dtype)
         return self._u[num_samples]
 
-    def _pool_table(self, light: Light, rows: torch.Tensor) -> torch.Tensor:
-        """The light's (7 G, R) incident table (channels first, `incident.CHANNELS`) with at least
-        `rows` traced."""
+    def _pool_table(self, light: Light, rows: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The light's (7 G, R) incident table (channels first, `incident.CHANNELS`) and (1, R) summed W,
+        with at least `rows` traced (None: the current view's, checked once per view and light)."""
         pool = self.views.pool
         u = self._light_samples(light)
         if light.path not in self._tables:
             groups = int(sample_groups(u.shape[1], self.sample_groups).max()) + 1
             self._tables[light.path] = (pool.position.new_zeros(CHANNELS * groups, pool.num_samples),
-                                        torch.zeros(pool.num_samples, dtype=torch.bool, device=pool.device))
-        table, done = self._tables[light.path]
-        missing = torch.unique(rows[~done.index_select(0, rows)])
+                                        torch.zeros(pool.num_samples, dtype=torch.bool, device=pool.device),
+                                        pool.position.new_zeros(1, pool.num_samples))
+        table, done, total = self._tables[light.path]
+        taps = self.blend_lighting or self.edge_contrast is not None
+        ready = (light.path, taps) if rows is None else None
+        if ready is not None:
+            if ready in self._ready:
+                return table, total
+            rows = self._view.taps.reshape(-1) if taps else self._view.rows
+        missing = rows.new_zeros(0) if bool(done.all()) else torch.unique(rows[~done.index_select(0, rows)])
         if missing.numel():
             def pick(values: torch.Tensor) -> torch.Tensor:
                 return values.index_select(0, missing)
@@ -290,23 +321,26 @@ class MultiviewRelighter:
             traced = incident_table(light, pick(pool.position), pick(pool.geometric_normal), pick(pool.normal), pick(u),
                                     self.visibility, self.sample_groups, self.settings.chunk_samples)
             table.index_copy_(1, missing, traced.permute(2, 1, 0).reshape(table.shape[0], -1))
+            total.index_copy_(1, missing, traced[..., :3].sum((1, 2))[None])
             done[missing] = True
             self.counters["lit_samples"] += int(missing.numel())
-        return table
+        if ready is not None:
+            self._ready.add(ready)
+        return table, total
 
     def _view_images(self, light: Light) -> torch.Tensor:
         """(2, N, 3) the light's unit images at the view: cached lighting, the view's BRDF."""
         view, gbuffer = self._view, self._view.gbuffer
-        refine = self.edge_contrast is not None
-        table = self._pool_table(light, view.taps.reshape(-1) if self.blend_lighting or refine else view.rows)
+        refine = self.edge_contrast is not None or self.near_field is not None
+        table, total = self._pool_table(light, None)
         if self.blend_lighting:
             columns = sum(take_rows(table, view.taps[:, t]) * view.weights[:, t] for t in range(view.taps.shape[1]))
         else:
             columns = take_rows(table, view.rows)
         cached = view.rows.shape[0]
-        # Traced at the view: the points on the light's edges in the caching images, and the samples
-        # baked on demand (not in the pool).
-        traced = [self._edge_points(table, view)] if refine else []
+        # Traced at the view: the points on the light's edges in the caching images or in its near field,
+        # and the samples baked on demand (not in the pool).
+        traced = [self._refined_points(light, total)] if refine else []
         self.counters["edge_samples"] += int(traced[0].numel()) if refine else 0
         if gbuffer.num_samples > cached:
             columns = torch.cat([columns, columns.new_zeros(columns.shape[0], gbuffer.num_samples - cached)], 1)
@@ -324,25 +358,47 @@ class MultiviewRelighter:
             columns.index_copy_(1, points, fresh.permute(2, 1, 0).reshape(columns.shape[0], -1))
         self.counters["view_shading"] += 1
         return group_images(gbuffer.params, self._wo_local, gbuffer.tangent, gbuffer.bitangent, gbuffer.normal,
-                            gbuffer.geometric_normal, columns.reshape(CHANNELS, -1, gbuffer.num_samples))
+                            gbuffer.geometric_normal, columns.reshape(CHANNELS, -1, gbuffer.num_samples),
+                            self._colours)
 
-    def _edge_points(self, table: torch.Tensor, view: ViewSamples) -> torch.Tensor:
-        """(E,) int64 rows of the view whose four caching taps (those of its surface) disagree on the
-        light's summed incident weight by more than `edge_contrast` of the largest: shadow and
-        light-shape edges, which the caching pixels resolve only as coarsely as they are large."""
-        groups = table.shape[0] // CHANNELS
-        total = take_rows(table[:3 * groups], view.taps).sum(0)                             # (M, 4)
-        used = view.weights > 0
-        high = torch.where(used, total, torch.zeros_like(total)).amax(-1)
-        low = torch.where(used, total, torch.full_like(total, torch.inf)).amin(-1)
-        return torch.nonzero(high - low > self.edge_contrast * high).squeeze(-1)
+    def _refined_points(self, light: Light, summed: torch.Tensor) -> torch.Tensor:
+        """(E,) int64 rows of the view traced at their own position for `light`: with `edge_contrast`,
+        those whose four caching taps (those of its surface) disagree on the light's summed incident
+        weight (`summed`, (1, R)) by more than that fraction of the largest (shadow and light-shape
+        edges, which the caching pixels resolve only as coarsely as they are large); with
+        `near_field`, those whose nearest caching sample is farther from them than that fraction
+        of their distance to the light's bounding sphere."""
+        view = self._view
+        count = view.rows.shape[0]
+        refined = torch.zeros(count, dtype=torch.bool, device=summed.device)
+        if self.edge_contrast is not None:
+            if self._edge_taps is None:
+                # (4, M): taps of another surface (weight 0) stand in for the nearest one, which always
+                # counts; rows of taps, so that the extremes are three element-wise maxima and minima.
+                self._edge_taps = torch.where(view.weights > 0, view.taps, view.rows[:, None]).T.contiguous()
+            total = take_rows(summed, self._edge_taps)[0]                                   # (4, M)
+            high = torch.maximum(torch.maximum(total[0], total[1]), torch.maximum(total[2], total[3]))
+            low = torch.minimum(torch.minimum(total[0], total[1]), torch.minimum(total[2], total[3]))
+            refined |= high - low > self.edge_contrast * high
+        if self.near_field is not None and light.kind not in (LightKind.DISTANT, LightKind.DOME):
+            if self._offsets is None:
+                position = view.gbuffer.position[:count].T.contiguous()                    # (3, M)
+                offset = position - self.views.pool.position.index_select(0, view.rows).T
+                self._offsets = position, (offset * offset).sum(0).sqrt_()
+            position, offsets = self._offsets
+            centre = light.world_from_light[:3, 3]
+            squared = (position[0] - float(centre[0])).square_()
+            for axis in (1, 2):
+                squared.add_((position[axis] - float(centre[axis])).square_())
+            refined |= offsets > self.near_field * (squared.sqrt_() - bounding_radius(light))
+        return torch.nonzero(refined).squeeze(-1)
 
 
 def open_multiview_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
                              lights_layer: str | os.PathLike | None = None,
                              settings: RelightSettings = RelightSettings(),
                              sample_groups: int = 1, blend_lighting: bool = False,
-                             edge_contrast: float | None = 0.8) -> MultiviewRelighter:
+                             edge_contrast: float | None = 0.8, near_field: float | None = 0.1) -> MultiviewRelighter:
     """A MultiviewRelighter for a 'multiview' cache layer, with the shot's lights (and `lights_layer`'s).
 
     No view is set: give it one with `set_view` (`pipeline.bake.multiview.view.view_points` traces
@@ -370,7 +426,7 @@ def open_multiview_relighter(path: str | os.PathLike, device: str | torch.device
     caster, visibility = embree_visibility(occluders, occluder_objects, object_paths)
     relighter = MultiviewRelighter(views, visibility, description.supersampling, description.exposure_scale,
                                    settings, object_paths, caster, occluder_objects, corner_normals, normal_mapped,
-                                   sample_groups, blend_lighting, edge_contrast)
+                                   sample_groups, blend_lighting, edge_contrast, near_field)
     relighter.description = description
     relighter.set_lights(shot_lights(description, lights_layer))
     return relighter

@@ -57,14 +57,13 @@ def check_camera_table(table: np.ndarray, source: str) -> None:
 
 
 BLEND_FIELDS = tuple(f.name for f in dataclasses.fields(PreviewSurfaceParams)
-                     if f.name != "use_specular_workflow") + ("normal", "tangent")
-"""What bilinear resampling blends: the floating material parameters, then the shading normal and
-tangent (params first, in `PreviewSurfaceParams` field order)."""
+                     if f.name != "use_specular_workflow")
+"""What bilinear resampling blends into the material: the floating material parameters, in
+`PreviewSurfaceParams` field order (the shading normal is blended apart, where it is kept)."""
 
 
 def _blend_sources(gbuffer: GBuffer) -> list[torch.Tensor]:
-    return [getattr(gbuffer.params, name) if hasattr(gbuffer.params, name) else getattr(gbuffer, name)
-            for name in BLEND_FIELDS]
+    return [getattr(gbuffer.params, name) for name in BLEND_FIELDS]
 
 
 def pack_blend_table(gbuffer: GBuffer) -> torch.Tensor:
@@ -72,15 +71,70 @@ def pack_blend_table(gbuffer: GBuffer) -> torch.Tensor:
     return torch.cat([t.float().reshape(t.shape[0], -1) for t in _blend_sources(gbuffer)], -1)
 
 
-def unpack_blend_table(table: torch.Tensor, like: GBuffer) -> dict[str, torch.Tensor]:
-    """`BLEND_FIELDS` name -> values from an (N, C) table, shaped and typed as `like`'s fields."""
+def unpack_blend_columns(columns: list[torch.Tensor], like: GBuffer) -> dict[str, torch.Tensor]:
+    """`BLEND_FIELDS` name -> values from the C packed columns, (N,) each, shaped and typed as
+    `like`'s fields."""
     out, start = {}, 0
     for name, source in zip(BLEND_FIELDS, _blend_sources(like)):
         width = source[0].numel() if source.dim() > 1 else 1
-        values = table[:, start:start + width]
-        out[name] = (values if source.dim() > 1 else values[:, 0]).to(source.dtype)
+        values = torch.stack(columns[start:start + width], -1) if source.dim() > 1 else columns[start]
+        out[name] = values.to(source.dtype)
         start += width
     return out
+
+
+SAME_SURFACE_COS = 0.7
+"""Two samples are of the same surface when of the same object with geometric normals within this
+cosine (the correspondence map's test, and which caching pixels resampling blends)."""
+
+NEIGHBOURS = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
+"""(drow, dcol) of a pixel's eight neighbours, in the order of `CachingViews.neighbours`."""
+
+
+def neighbour_slot(drow: torch.Tensor, dcol: torch.Tensor) -> torch.Tensor:
+    """Index into `NEIGHBOURS` of the offsets (drow, dcol) (...) int64, not both 0."""
+    slot = (drow + 1) * 3 + dcol + 1
+    return slot - (slot > 4).long()
+
+
+def same_object_neighbours(image: torch.Tensor, size: tuple[int, int], pixel: torch.Tensor, rows: torch.Tensor,
+                           object_id: torch.Tensor) -> torch.Tensor:
+    """(8, n) int32 the pool rows at each `NEIGHBOURS` offset of n samples of one view, -1 where
+    outside the image, empty or another object than the sample's.
+
+    Args:
+        image: (H W,) int64 pool row of each of the view's pixels (-1: empty); size: (H, W).
+        pixel: (n,) int64 flat pixel of each sample; rows: (n,) int64 its pool row.
+        object_id: (R,) the pool's objects.
+    """
+    height, width = size
+    line, column = pixel // width, pixel % width
+    out = []
+    for dy, dx in NEIGHBOURS:
+        y, x = line + dy, column + dx
+        inside = (y >= 0) & (y < height) & (x >= 0) & (x < width)
+        other = torch.where(inside, image[(y.clamp(0, height - 1) * width + x.clamp(0, width - 1))], -1)
+        same = (other >= 0) & (object_id[other.clamp(min=0)] == object_id[rows])
+        out.append(torch.where(same, other, -1))
+    return torch.stack(out).to(torch.int32)
+
+
+CONSTANT, PER_MATERIAL, TEXTURED = 0, 1, 2
+"""Kinds of packed material columns (`CachingViews.blend_kind`): the same over the whole pool, the
+same within each material, or varying within a material (textures: what resampling blends)."""
+
+
+def column_kinds(packed: torch.Tensor, material_id: torch.Tensor) -> torch.Tensor:
+    """(C,) int64 kind of each column of an (R, C) packed table over samples of `material_id` (R,)."""
+    if packed.shape[0] == 0:
+        return torch.zeros(packed.shape[1], dtype=torch.int64, device=packed.device)
+    index = material_id.long()[:, None].expand_as(packed)
+    size = (int(material_id.max()) + 1, packed.shape[1])
+    low = packed.new_full(size, torch.inf).scatter_reduce(0, index, packed, "amin")
+    high = packed.new_full(size, -torch.inf).scatter_reduce(0, index, packed, "amax")
+    textured = (high > low).any(0)
+    varying = (packed != packed[:1]).any(0)
+    return torch.where(textured, TEXTURED, torch.where(varying, PER_MATERIAL, CONSTANT))
 
 
 def take_rows(columns: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
@@ -135,12 +189,18 @@ class CachingViews:
         pixel_angle: (K,) float32 angle one sub-sample pixel subtends at the image centre (radians).
         pool_view: (R,) int64 the view of each pool row.
         pool_pixel: (R, 2) float32 (column, row) centre of each pool row's pixel in its view.
-        blend_table: (V, R) the pool's blendable values packed (`BLEND_FIELDS`), the V columns
-            that vary over the pool only (constant columns, no emission, no clearcoat, cost
-            nothing), column by column: `take_rows` gathers them as V one-dimensional gathers,
-            which torch's CPU kernels run several times faster than one gather of (R, V) rows.
-        blend_columns: (C,) bool, which of the C packed columns `blend_table` holds.
+        blend_kind: (C,) int64 kind of each of the C packed material columns (`BLEND_FIELDS`,
+            `column_kinds`): constant columns (no emission, no clearcoat) cost nothing, those
+            constant within each material are read from the nearest sample, and only textured
+            ones are blended.
+        blend_table: (V, R) the V `TEXTURED` columns, column by column (`take_rows`: one gather
+            along the rows, several times faster on the CPU than a gather of (R, V) rows).
+        material_table: (U, R) the U `PER_MATERIAL` columns, likewise.
         blend_constants: (C,) float32 the packed columns' values where constant.
+        normal_table: (3, R) float32 shading normal of each row, column by column.
+        neighbours: (8, R) int32 per row the pool rows of its eight neighbouring pixels in its
+            view (`NEIGHBOURS` order), -1 where there is none of the same object
+            (`same_object_neighbours`): the taps resampling may blend.
         surface_table: (4, R) float32 object id (exact below 2^24) and geometric normal of each
             row, column by column: what the same-surface tests read.
         projection: (19, K) float32, per camera what `project` reads: camera_from_world's top three
@@ -162,9 +222,12 @@ class CachingViews:
     pixel_angle: torch.Tensor
     pool_view: torch.Tensor
     pool_pixel: torch.Tensor
+    blend_kind: torch.Tensor
     blend_table: torch.Tensor
-    blend_columns: torch.Tensor
+    material_table: torch.Tensor
     blend_constants: torch.Tensor
+    normal_table: torch.Tensor
+    neighbours: torch.Tensor
     surface_table: torch.Tensor
     centres: torch.Tensor
     projection: torch.Tensor
@@ -211,8 +274,12 @@ class CachingViews:
         pixel_angle = aperture / focal / np.maximum(size_tensor[:, 1].cpu().numpy(), 1)
         rows_all = torch.arange(start, device=device)
         pool = concat_gbuffers(gbuffers, (1, start), rows_all, torch.zeros(3, device=device))
+        neighbours = [same_object_neighbours(row, size, g.pixel_index, torch.arange(offset, offset + g.num_samples,
+                                                                                   device=device), pool.object_id)
+                      for row, size, g, offset in zip(rows, sizes, gbuffers,
+                                                      np.cumsum([0] + [g.num_samples for g in gbuffers]).tolist())]
         packed = pack_blend_table(pool)
-        varying = (packed != packed[:1]).any(0)
+        kind = column_kinds(packed, pool.material_id)
         camera_from_world = np.linalg.inv(world_from_camera(table))
         film = np.stack([camera_column(table, name) for name in ("focalLength", "horizontalAperture",
                                                                  "verticalAperture", "horizontalApertureOffset",
@@ -230,8 +297,11 @@ class CachingViews:
             pixel_angle=torch.as_tensor(pixel_angle, dtype=torch.float32, device=device),
             pool_view=torch.cat(owners) if owners else torch.zeros(0, dtype=torch.int64, device=device),
             pool_pixel=torch.cat(centres) if centres else torch.zeros((0, 2), device=device),
-            blend_table=packed[:, varying].T.contiguous(), blend_columns=varying,
+            blend_kind=kind, blend_table=packed[:, kind == TEXTURED].T.contiguous(),
+            material_table=packed[:, kind == PER_MATERIAL].T.contiguous(),
             blend_constants=packed[0] if start else packed.new_zeros(packed.shape[1]),
+            normal_table=pool.normal.float().T.contiguous(),
+            neighbours=torch.cat(neighbours, 1) if neighbours else torch.zeros((8, 0), dtype=torch.int32),
             surface_table=torch.cat([pool.object_id.float()[None], pool.geometric_normal.float().T]),
             centres=torch.as_tensor(world_from_camera(table)[:, :3, 3].T.copy(), dtype=torch.float32,
                                     device=device).reshape(3, -1),
