@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.scene.surface import evaluate_materials, orthonormal_tangent, shading_frame, triangle_tangents
+from pipeline.scene.surface import evaluate_materials, orthonormal_tangent, shading_frame, tangent_about, triangle_tangents
 from pipeline.scene.types import Material, MaterialInput, Texture
 
 
@@ -123,3 +123,18 @@ def test_shading_frame_is_right_handed_and_orthonormal():
     np.testing.assert_allclose(np.linalg.det(frames), 1.0, atol=1e-5)
     # The mapped normal stays on the geometric normal's side for z > 0.
     assert np.all(np.sum(n * normal, axis=-1) > 0)
+
+
+def test_tangent_about_a_normal_is_unit_and_perpendicular_even_along_it():
+    rng = np.random.default_rng(5)
+    normal = rng.normal(size=(100, 3))
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    tangent = rng.normal(size=(100, 3))
+    tangent[:3] = normal[:3] * -3.0  # along the normal (an averaged normal at an edge): a fallback
+    tangent[3] = 0.0
+    result = tangent_about(normal, tangent)
+    np.testing.assert_allclose(np.linalg.norm(result, axis=-1), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(np.sum(result * normal, axis=-1), 0.0, atol=1e-6)
+    np.testing.assert_allclose(result[:4], orthonormal_tangent(normal[:4]), atol=1e-6)
+    # Elsewhere it keeps the tangent's direction within the plane.
+    assert np.all(np.sum(result[4:] * tangent[4:], axis=-1) > 0)

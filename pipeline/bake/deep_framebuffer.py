@@ -15,7 +15,7 @@ import dataclasses
 import numpy as np
 
 from pipeline.scene.camera import camera_rays
-from pipeline.scene.surface import triangle_tangents
+from pipeline.scene.surface import tangent_about, triangle_tangents
 from pipeline.scene.types import Camera, Scene
 from pipeline.shading_points import ShadingPoints, shading_points
 from pipeline.tracing import Tracer
@@ -173,7 +173,7 @@ def _filter_materials(scene: Scene, tracer: Tracer, tangents: np.ndarray, camera
     length = np.clip(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-6, 1.0)
     normal /= length
     _fold_normal_spread(filtered, length[:, 0])
-    tangent = centre.tangent - normal * np.sum(centre.tangent * normal, axis=-1, keepdims=True)
-    tangent /= np.maximum(np.linalg.norm(tangent, axis=-1, keepdims=True), 1e-12)
+    # The averaged normal may lie along the centre's tangent (samples on both sides of an edge).
+    tangent = tangent_about(normal, centre.tangent)
     bitangent = np.cross(normal, tangent).astype(np.float32)
     return PreviewSurfaceParams.from_numpy(filtered), normal, tangent.astype(np.float32), bitangent

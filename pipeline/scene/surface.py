@@ -146,6 +146,15 @@ def triangle_tangents(positions: np.ndarray, uvs: np.ndarray) -> np.ndarray:
     return tangent.astype(np.float32)
 
 
+def tangent_about(normal: np.ndarray, tangent: np.ndarray) -> np.ndarray:
+    """(N, 3) unit tangents: `tangent` (N, 3) made perpendicular to the unit `normal` (N, 3)
+    (Gram-Schmidt), or `orthonormal_tangent(normal)` where it is parallel to it or zero."""
+    result, squared = _normalize(tangent - normal * np.sum(normal * tangent, axis=-1, keepdims=True))
+    degenerate = squared <= _DEGENERATE_SQUARED
+    result[degenerate] = orthonormal_tangent(normal[degenerate])
+    return result
+
+
 def shading_frame(
     normal: np.ndarray, tangent: np.ndarray, normal_tangent: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -168,9 +177,7 @@ def shading_frame(
     normal, _ = _normalize(np.asarray(normal, np.float32))
     tangent = np.asarray(tangent, np.float32)
     normal_tangent = np.asarray(normal_tangent, np.float32)
-    t0, squared = _normalize(tangent - normal * np.sum(normal * tangent, axis=-1, keepdims=True))
-    degenerate = squared <= _DEGENERATE_SQUARED
-    t0[degenerate] = orthonormal_tangent(normal[degenerate])
+    t0 = tangent_about(normal, tangent)
     b0 = np.cross(normal, t0)
     mapped = t0 * normal_tangent[:, :1] + b0 * normal_tangent[:, 1:2] + normal * normal_tangent[:, 2:3]
     n, mapped_squared = _normalize(mapped)

@@ -61,7 +61,7 @@ import torch
 from pxr import UsdLux
 
 from relight_torch.lights.dome import dome_samplers, local_from_lookup, lookup_from_local, latlong_direction
-from relight_torch.lights.geometry import (LightFrame, check_transform, intersect_surface, planar_hits,
+from relight_torch.lights.geometry import (LightFrame, SurfaceHits, check_transform, intersect_surface, planar_hits,
                                            sample_area_local, surface_area, world_radius)
 from relight_torch.lights.image import image_tensors, lookup_bilinear
 from relight_torch.lights.light import Light, LightKind
