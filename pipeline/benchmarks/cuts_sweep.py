@@ -21,7 +21,8 @@ With `--timing` only the shot's lights are relit (no references: PSNR columns Na
 640 x 480, cut size 256 figure of the issue, one row per kind of edit (`edit_timings`: the dome
 moved, turned, a material's colour, its roughness, a small object's roughness; params add `cpu_ms`, the median CPU time, and
 `evaluated`, the merged entries per sub-sample whose BRDF factors the edit recomputed, and
-`kept_mb`, `CutsRelighter.kept_bytes`). With `--cost` (implies --timing) the bakes are timed
+`kept_mb`, `CutsRelighter.kept_bytes`; with `--compiled` also `warmup_cpu_s`, one round of every
+edit run first, which compiles the variants the edits use). With `--cost` (implies --timing) the bakes are timed
 round-robin instead, `--repeats` rounds of the cuts' light fully evaluated per bake, so that a
 shared machine's load changes affect every bake alike: for reading relight_ms against `merged` as the
 number of point lights grows (seed 004: the cost follows the merged cut size, not the lights).
@@ -112,7 +113,7 @@ def cut_rows(relighter: CutsRelighter, layer: Path, scene_name: str, args: argpa
     mean_vis = float(relighter.cuts.visibility.sizes().double().mean())
     rows = []
     for cut_size in args.cut_sizes:
-        relighter.set_settings(CutsRelightSettings(max_cut=cut_size))
+        relighter.set_settings(CutsRelightSettings(max_cut=cut_size, compiled=args.compiled))
         for edit, lights_layer in layers.items():
             relighter.set_lights(shot_lights(description, lights_layer))
             image = relighter.render().cpu().numpy()
@@ -121,6 +122,10 @@ def cut_rows(relighter: CutsRelighter, layer: Path, scene_name: str, args: argpa
                       "inputs": f"{stats['inputs'] / num_samples:.1f}", "merged": f"{stats['merged'] / num_samples:.1f}",
                       "dark": f"{stats['dark'] / num_samples:.1f}"}
             if args.timing:
+                if args.compiled:    # one round of every edit first: compiles the variants they use
+                    start = time.process_time()
+                    edit_timings(relighter, 1)
+                    params["warmup_cpu_s"] = f"{time.process_time() - start:.1f}"
                 for kind, (wall, cpu, evaluated) in edit_timings(relighter, args.repeats).items():
                     row = SweepRow("cuts", scene_name, args.width, args.height, kind, format_params(
                         {**params, "cpu_ms": f"{cpu:.1f}", "evaluated": f"{evaluated:.1f}",
@@ -153,7 +158,7 @@ def cost_rows(bakes: list[tuple[CutsRelighter, Path, dict[str, object], float]],
     cut_size = args.cut_sizes[0]
     watches = [Stopwatch() for _ in bakes]
     for relighter, _, _, _ in bakes:
-        relighter.set_settings(CutsRelightSettings(max_cut=cut_size))
+        relighter.set_settings(CutsRelightSettings(max_cut=cut_size, compiled=args.compiled))
         relighter.render()
     for _ in range(args.repeats):
         for watch, (relighter, _, _, _) in zip(watches, bakes):
@@ -219,6 +224,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spp", type=int, default=256)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--timing", action="store_true", help="relight the shot's lights only, no references")
+    parser.add_argument("--compiled", action="store_true",
+                        help="CutsRelightSettings(compiled=True): the BRDF blocks through torch.compile")
     parser.add_argument("--cost", action="store_true", help="time the bakes round-robin (implies --timing)")
     parser.add_argument("--out", type=Path, help="working directory (default: a temporary one)")
     parser.add_argument("--csv", type=Path, help="write the rows here (default: stdout)")

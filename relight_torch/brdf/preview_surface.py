@@ -228,7 +228,7 @@ def split_factors_cosines(
     cos_e_clamped = cos_e.clamp(0.0, 1.0)
     torch.clamp(cos_l, 0.0, 1.0, out=temp2)                    # N.L, 0 below the horizon
     torch.mul(temp2, weight, out=lit)
-    if not bool((cos_e > 0).all()):
+    if torch.compiler.is_compiling() or not bool((cos_e > 0).all()):   # compiled: no data-dependent branch
         lit.mul_(cos_e > 0)
     torch.mul(lit, temp2, out=lit_cos)
     torch.add(e_dot_l, view_sq, out=schlick)                    # E.h |h|

@@ -34,6 +34,7 @@ import torch
 
 from relight_torch.brdf import preview_surface
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
+from relight_torch.cuts.blocks import BlockEvaluator, slabs
 from relight_torch.cuts.cuts import Cuts, intensity_cut
 from relight_torch.cuts.env import dome_leaf_light
 from relight_torch.cuts.merge import MergedCuts, leaf_cut_index, merge
@@ -56,11 +57,17 @@ class CutsRelightSettings:
         factor_dtype: dtype of the kept BRDF factor sums per (sub-sample, illumination-cut node)
             and of their product with the light: bfloat16 (default; half the memory, ~3x faster
             products on CPU, ~0.3 % relative error) or float32.
+        compiled: evaluate the BRDF factors of each block of merged entries with code compiled by
+            `torch.compile` (inductor: C++ on the CPU, needs a C++ compiler; compiled on first
+            use, a few variants per process) instead of eager torch passes; the same functions
+            (`relight_torch.cuts.blocks`), equal to float rounding. A failure to compile raises
+            `RelightError`.
     """
 
     max_cut: int = 256
     rows_per_batch: int = 2048
     factor_dtype: torch.dtype = torch.bfloat16
+    compiled: bool = False
 
 
 @dataclass(frozen=True)
@@ -493,7 +500,8 @@ class CutsRelighter:
         its column: shaded on the batch's (P, M) rows when every node is wanted (padding and
         spanning clusters weigh 0, a row's frame and material broadcast over its entries), else
         only the entries under or above wanted nodes are found (`by_node`) and shaded one by
-        one. The BRDF runs on cache-sized blocks (`preview_surface.split_factors_cosines`).
+        one. The BRDF runs on cache-sized blocks (`blocks.BlockEvaluator`: `preview_surface.split_factors_cosines`,
+        eager or compiled, `CutsRelightSettings.compiled`).
 
         Args:
             table: the wanted nodes of the illumination cut and what each tree node is to them.
@@ -544,15 +552,11 @@ class CutsRelighter:
         weight = weight[:, :num_wanted] if table.grid_source is None else weight.index_select(1, table.grid_source)
         weight = weight.mul_(table.size)
         sums = weight.new_zeros((num_factors, num_rows, num_columns + 2))
-        buffers = _SlabBuffers(num_factors, weight.dtype, weight.device)
-        for part in _slabs(num_rows, num_columns):
-            out, scratch, dots = buffers.get(part.stop - part.start, num_columns)
-            local = self._grid_dots(table.nodes, samples[part], geometry[part])
-            torch.mul(local[:, 0], local[:, 0], out=dots[2])
-            dots[2].addcmul_(local[:, 1], local[:, 1]).addcmul_(local[:, 2], local[:, 2])
-            preview_surface.split_factors_cosines(
-                tuple(r[part] for r in roughnesses), cos_e[part], local[:, 2], local[:, 3], weight[part],
-                sums[:, part, :num_columns], scratch, view_sq[part], dots[2])
+        blocks = BlockEvaluator(num_factors, weight.dtype, weight.device, self.settings.compiled)
+        for part in slabs(num_rows, num_columns):
+            blocks.grid(self._node_points, table.nodes, geometry[part], self._positions(samples[part]),
+                        tuple(r[part] for r in roughnesses), cos_e[part], view_sq[part], weight[part],
+                        sums[:, part, :num_columns])
         merged_counts = (weight > 0).sum(dim=0) + counts[:num_columns]
         # Clusters inside one wanted illumination-cut node, summed into their columns: the
         # (P, M) rows as they are (padding and spanning clusters weigh 0), or one per line.
@@ -571,16 +575,11 @@ class CutsRelighter:
             samples, geometry = samples.index_select(0, lines), geometry.index_select(0, lines)
         weight = table.inside_size.index_select(0, node.reshape(-1)).view(node.shape).mul_(visibility)
         cell = column.add_((lines * (num_columns + 2)).unsqueeze(1))
-        flat = sums.view(num_factors, -1)
-        for part in _slabs(*node.shape):
-            out, scratch, dots = buffers.get(part.stop - part.start, node.shape[1])
-            self._dense_dots(node[part], samples[part], geometry[part], dots, scratch)
-            preview_surface.split_factors_cosines(
-                tuple(r[part] for r in roughnesses), cos_e[part], dots[0], dots[1], weight[part], out, scratch,
-                view_sq[part], dots[2])
-            cells = cell[part].reshape(-1)
-            for factor in range(first_factor, num_factors):
-                flat[factor].index_add_(0, cells, out[factor].view(-1))
+        flat = sums.view(-1)
+        for part in slabs(*node.shape):
+            blocks.dense(self._node_points, node[part], geometry[part], self._positions(samples[part]),
+                         tuple(r[part] for r in roughnesses), cos_e[part], view_sq[part], weight[part],
+                         cell[part].reshape(-1), flat, first_factor)
         return sums, merged_counts
 
     def kept_bytes(self) -> int:
@@ -593,43 +592,10 @@ class CutsRelighter:
             tensors += [*self._columns.columns, *self._columns.counts, self._columns.sums, self._columns.dirty]
         return sum(t.numel() * t.element_size() for t in tensors)
 
-    def _grid_dots(self, nodes: torch.Tensor, rows: torch.Tensor, geometry: torch.Tensor) -> torch.Tensor:
-        """(P, 4, C) local coordinates (x, y, N.L) and E.L of the unit world directions towards
-        the clusters `nodes` (C,) (env: their mean directions; indirect: towards their mean
-        positions) from every sub-sample `rows` (P,) of `geometry` (P, 3, 4) (env: one matrix product)."""
-        if self.mode == "env":
-            world = self._node_points.index_select(1, nodes)
-            return (geometry.transpose(1, 2).reshape(-1, 3) @ world).view(rows.shape[0], 4, nodes.shape[0])
-        position = self.direct.gbuffer.position.index_select(0, rows)
-        offset = self._node_points.index_select(1, nodes).t().unsqueeze(0) - position.unsqueeze(1)
-        return torch.bmm(geometry.transpose(1, 2), torch.nn.functional.normalize(offset, dim=-1).transpose(1, 2))
-
-    def _dense_dots(self, node: torch.Tensor, rows: torch.Tensor, geometry: torch.Tensor, out: torch.Tensor,
-                    scratch: torch.Tensor) -> None:
-        """N.L, E.L and |L|^2 (local coordinates: `_grid_dots`) of the unit world directions
-        towards merged clusters `node` (P, M) from sub-samples `rows` (P,) of `geometry` (P, 3, 4),
-        into `out` (3, P, M); `scratch` (4, P, M) overwritten. Componentwise multiply-adds: on
-        the CPU a batched (M, 3) x (3, 4) product per row costs several times as much."""
-        index = node.reshape(-1)
-        for axis in range(3):
-            torch.index_select(self._node_points[axis], 0, index, out=scratch[axis].view(-1))
-        if self.mode == "indirect":    # towards the clusters' mean positions
-            position = self.direct.gbuffer.position.index_select(0, rows)
-            for axis in range(3):
-                scratch[axis].sub_(position[:, axis:axis + 1])
-            torch.mul(scratch[0], scratch[0], out=scratch[3])
-            scratch[3].addcmul_(scratch[1], scratch[1]).addcmul_(scratch[2], scratch[2]).clamp_min_(1e-24).rsqrt_()
-            for axis in range(3):
-                scratch[axis].mul_(scratch[3])
-        targets = (scratch[3], scratch[3], out[0], out[1])    # x, y (only squared), N.L, E.L
-        for column, target in enumerate(targets):
-            torch.mul(scratch[0], geometry[:, 0, column:column + 1], out=target)
-            target.addcmul_(scratch[1], geometry[:, 1, column:column + 1]).addcmul_(
-                scratch[2], geometry[:, 2, column:column + 1])
-            if column == 0:
-                torch.mul(target, target, out=out[2])
-            elif column < 3:
-                out[2].addcmul_(target, target)
+    def _positions(self, rows: torch.Tensor) -> torch.Tensor | None:
+        """(P, 3) positions of sub-samples `rows` (P,) in indirect mode (directions towards the
+        clusters' mean positions); None in env mode (the clusters' mean directions)."""
+        return None if self.mode == "env" else self.direct.gbuffer.position.index_select(0, rows)
 
     def _entries_by_node(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Batch `index`'s entries by node: ((P M,) int32 the flat entries of its rows sorted by
@@ -796,31 +762,3 @@ def _light_sums(columns: torch.Tensor, table: torch.Tensor, dtype: torch.dtype) 
     (first three columns) for the first two factors, specular light for the others."""
     products = (columns.reshape(-1, columns.shape[2]) @ table).view(columns.shape[0], columns.shape[1], 6).to(dtype)
     return torch.cat((products[:, :2, :3], products[:, 2:, 3:]), dim=1)
-
-
-SLAB_ENTRIES = 1 << 17
-"""Entries per block of the BRDF factor kernel: its eleven to thirteen (block,) float32 buffers stay in cache."""
-
-
-def _slabs(num_rows: int, width: int) -> list[slice]:
-    """Row ranges of about `SLAB_ENTRIES` entries of a (num_rows, width) grid."""
-    step = max(1, SLAB_ENTRIES // max(width, 1))
-    return [slice(start, min(start + step, num_rows)) for start in range(0, num_rows, step)]
-
-
-class _SlabBuffers:
-    """Reused output (F, S, M), scratch (4, S, M) and dot product (3, S, M) blocks of
-    `preview_surface.split_factors_cosines`."""
-
-    def __init__(self, num_factors: int, dtype: torch.dtype, device: torch.device):
-        self._flat = torch.empty(0, dtype=dtype, device=device)
-        self._num_factors = num_factors
-
-    def get(self, rows: int, width: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """((F, rows, width) output, (4, rows, width) scratch, (3, rows, width) dot products),
-        views of one reused buffer."""
-        size = (self._num_factors + 7) * rows * width
-        if self._flat.numel() < size:
-            self._flat = self._flat.new_empty(size)
-        blocks = self._flat[:size].view(-1, rows, width)
-        return blocks[:self._num_factors], blocks[self._num_factors:self._num_factors + 4], blocks[-3:]
