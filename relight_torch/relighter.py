@@ -520,6 +520,8 @@ class Relighter:
             return 1
         if light.kind is LightKind.DOME:
             return settings.dome_samples
+        if settings.full_sampling_angle <= 0.0:  # every light takes them all: no pass over the points
+            return settings.area_samples
         return adaptive_sample_count(settings.area_samples, settings.min_area_samples,
                                      angular_radius(light, self.gbuffer.position),
                                      np.radians(settings.full_sampling_angle))
@@ -585,15 +587,12 @@ class Relighter:
         g = self.gbuffer
         if self._surface_filter is None:
             self._surface_filter = SurfaceFilter(g, self.filter_radius)
-        if len(transports) == 1 and transports[0].points is None:
-            sums = transports[0].shadow_sums
-        else:
-            sums = g.position.new_zeros(g.num_samples, 2)
-            for transport in transports:
-                if transport.points is None:
-                    sums += transport.shadow_sums
-                else:
-                    sums.index_add_(0, transport.points, transport.shadow_sums)
+        sums = g.position.new_zeros(g.num_samples, 2)
+        for transport in transports:
+            if transport.points is None:
+                sums += transport.shadow_sums
+            else:
+                sums.index_add_(0, transport.points, transport.shadow_sums)
         shadowed, unshadowed = self._surface_filter(sums).unbind(-1)
         visibility = torch.where(unshadowed > 0, shadowed / torch.where(unshadowed > 0, unshadowed, 1.0), 0.0)
         for transport in transports:
