@@ -61,6 +61,7 @@ from relight_torch.lights.shadow import shadow_factor, shadow_strength
 from relight_torch.lights.shaping import emission_factor
 from relight_torch.lights.usd import read_stage_lights
 from relight_torch.math.frame import dot, to_local
+from relight_torch.parallel import parallel_map, tile_threads
 from relight_torch.stage import open_stage, time_code
 from relight_torch.visibility import Visibility
 from relight_torch.visibility.embree import EmbreeCaster, ShadowLinkCasters
@@ -492,12 +493,13 @@ class Relighter:
             self.counters["masks"] += 1
         return self._masks[link]
 
-    def _chunks(self, num_samples: int, points: torch.Tensor | None) -> list[slice | torch.Tensor]:
-        """Consecutive chunks of all shading points (slices) or of `points` (index tensors)."""
-        step = max(1, self.settings.chunk_samples // num_samples)
+    def _chunks(self, num_samples: int, points: torch.Tensor | None, pieces: int = 1) -> list[slice | torch.Tensor]:
+        """Consecutive chunks of all shading points (slices) or of `points` (index tensors), at
+        least `pieces` of them (where there are enough points)."""
+        n = self.gbuffer.num_samples if points is None else points.shape[0]
+        step = max(1, min(self.settings.chunk_samples // num_samples, -(-n // pieces)))
         if points is not None:
-            return [points[i:i + step] for i in range(0, points.shape[0], step)]
-        n = self.gbuffer.num_samples
+            return [points[i:i + step] for i in range(0, n, step)]
         return [slice(i, min(i + step, n)) for i in range(0, n, step)]
 
     def _sample_groups(self, light: Light) -> list[tuple[torch.Tensor | None, int]]:
@@ -542,9 +544,12 @@ class Relighter:
         if light.shadow_link is not None and not isinstance(self.visibility, RayVisibility):
             raise ValueError(f"{light.path}: shadow linking needs Embree shadow rays (shadows='embree')")
         state.transports = []
+        # Tiles of points on threads of their own on the CPU (`relight_torch.parallel`).
+        threads = tile_threads(self.gbuffer.device, self.visibility.thread_safe)
         for points, num_samples in self._sample_groups(light):
-            chunks = self._chunks(num_samples, points)
-            parts = [self._chunk_transport(light, chunk, num_samples) for chunk in chunks]
+            chunks = self._chunks(num_samples, points, threads)
+            self._fixed_u(num_samples)
+            parts = parallel_map(lambda chunk: self._chunk_transport(light, chunk, num_samples), chunks, threads)
             state.transports.append(parts[0] if len(parts) == 1 else self._joined(parts, chunks))
         if state.transports[0].shadow_sums is not None:
             self._filter_visibility(state.transports)

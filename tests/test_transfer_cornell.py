@@ -132,15 +132,17 @@ def _light_at(light: Light, kind: LightKind, position, emit_direction, **fields)
 # Where the method fails, measured when the test was written (32 x 32, 1,024 gathers, 2 bounces,
 # 128-path references): a lamp 10 mm from the back wall, facing it, throws a hot spot a few gathers
 # wide (full image 18.8 dB, indirect 20.5 dB against ~35 dB with the ceiling lamp; indirect mean
-# 0.95 of the reference), and a 3-degree spot light covers ~2 gathers of the floor, which the
-# gathers' point-sampled irradiance mostly misses (indirect mean 0.34 of the reference; 34.6 and
-# 38.2 dB only because that indirect light is dim). Bounds: the measured figures less ~1.5 dB, and
-# the mean ratio as measured +- ~0.15 (an improvement should move them).
+# 0.95 of the reference; 1.03 since the rect's closed form reaches the gathers), and a 3-degree
+# spot light covers ~2 gathers of the floor, which the gathers' point-sampled irradiance mostly
+# misses (34.6 and 38.2 dB only because that indirect light is dim; indirect mean 0.51 of the
+# reference at the default 4 light samples per gather, 0.32 / 0.34 / 0.42 at 1 / 16 / 64: the two
+# gathers' sampled irradiance decides it). Bounds: the measured figures less ~1.5 dB, and the mean
+# ratio as measured +- ~0.15 (an improvement should move them).
 FAILURES = {
     "lamp_at_wall": (dict(kind=LightKind.RECT, position=(278.0, 274.0, 549.2), emit_direction=(0.0, 0.0, 1.0)),
                      17.5, 19.0, (0.8, 1.1)),
     "narrow_spot": (dict(kind=LightKind.SPHERE, position=(278.0, 540.0, 280.0), emit_direction=(0.0, -1.0, 0.0),
-                         radius=5.0, intensity=4e4, shaping=Shaping(cone_angle=3.0)), 33.0, 36.5, (0.2, 0.5)),
+                         radius=5.0, intensity=4e4, shaping=Shaping(cone_angle=3.0)), 33.0, 36.5, (0.35, 0.65)),
 }
 
 

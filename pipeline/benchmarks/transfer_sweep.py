@@ -48,7 +48,7 @@ from relight_torch.cache.layer import CacheDescription
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.relighter import open_relighter, shot_lights
 from relight_torch.transfer.open import open_transfer_relighter
-from relight_torch.transfer.relighter import TransferRelighter
+from relight_torch.transfer.relighter import GATHER_SAMPLES, TransferRelighter
 from relight_torch.transfer.sparse import SparseRows
 
 
@@ -121,7 +121,7 @@ def time_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
 
 def _transfer_parameters(description: CacheDescription) -> dict[str, object]:
     """The transfer bake's own parameters of a cache layer (`TransferSettings.parameters` keys)."""
-    return {key: description.parameters[key] for key in TransferSettings().parameters()}
+    return {key: description.parameters[key] for key in TransferSettings(indirect_scale=1).parameters()}
 
 
 def time_caches(args: argparse.Namespace) -> None:
@@ -131,7 +131,7 @@ def time_caches(args: argparse.Namespace) -> None:
         relighter.gather_samples = args.gather_samples
         description = relighter.direct.description
         height, width = (size // relighter.direct.supersampling for size in relighter.direct.gbuffer.image_size)
-        parameters = {**_transfer_parameters(description), "cull": args.cull, "gatherSamples": args.gather_samples or "default",
+        parameters = {**_transfer_parameters(description), "cull": args.cull, "gatherSamples": args.gather_samples,
                       "threads": torch.get_num_threads()}
         cache_bytes = sum(p.num_bytes for p in description.payloads)
         relighter.render()
@@ -172,13 +172,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shadows", default="embree", choices=("embree", "shadowmaps"))
     parser.add_argument("--quantize", action="store_true", help="8-bit coefficients")
     parser.add_argument("--rgb", action="store_true", help="RGB coefficients instead of one colour per row")
-    parser.add_argument("--indirect-scale", type=int, default=1, help="F for an image this many times smaller per side")
+    parser.add_argument("--indirect-scale", type=int,
+                        help="F for an image this many times smaller per side (default: sized from the image)")
     parser.add_argument("--timing", action="store_true", help="relight_ms only, synthetic F rows")
     parser.add_argument("--cache", nargs="+", metavar="LAYER",
                         help="baked transfer caches: their accuracy against the reference at their size (--spp), "
                              "or with --timing their relight times")
     parser.add_argument("--cull", type=float, default=0.0, help="with --cache: culling tolerance of weak wavelet lights")
-    parser.add_argument("--gather-samples", type=int, help="with --cache: light samples per gather (default: the direct's)")
+    parser.add_argument("--gather-samples", type=int, default=GATHER_SAMPLES,
+                        help=f"with --cache: light samples per gather (default {GATHER_SAMPLES})")
     parser.add_argument("--out", help="directory for the scenes and caches (default: a temporary one)")
     args = parser.parse_args(argv)
     directory = Path(args.out or tempfile.mkdtemp(prefix="relight-transfer-sweep-"))

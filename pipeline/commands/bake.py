@@ -70,7 +70,8 @@ def add_parser(subparsers) -> None:
                           help="store coefficients as 8 bits with a per-row scale and offset (default float16)")
     transfer.add_argument("--indirect-scale", type=int, default=defaults.indirect_scale, metavar="S",
                           help="bake the final gather for an image S times smaller per side, upsampled edge-aware "
-                               "at relight time (S must divide the width and height; default 1)")
+                               "at relight time (S must divide the width and height; default 2 from 240 pixels on "
+                               "the shorter side, else 1)")
     gather = parser.add_argument_group("gather (--method gather)")
     gather_defaults = GatherSettings()
     gather.add_argument("--directions", type=int, default=gather_defaults.num_directions, metavar="N",
@@ -169,7 +170,7 @@ def _bake_method(args: argparse.Namespace, stem: str) -> Path:
                                     num_bounces=args.bounces, num_bounce_coefficients=args.bounce_coefficients,
                                     encoding="uint8" if args.quantize else "float16",
                                     indirect_scale=args.indirect_scale)
-        _check("transfer", settings.check, lambda: reduced_view(scene, camera, settings.indirect_scale))
+        _check("transfer", settings.check, lambda: reduced_view(scene, camera, settings.for_view(camera).indirect_scale))
         layer = bake_transfer(scene, camera, args.out, stem, args.supersampling, args.texture_samples,
                               time_code=args.time, settings=settings)
     elif args.method == "gather":

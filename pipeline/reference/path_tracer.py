@@ -27,7 +27,6 @@ threads never wait for each other (torch, numpy and Embree release the GIL in th
 
 from __future__ import annotations
 
-import contextlib
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -47,6 +46,7 @@ from relight_torch.lights.emission import emitted_radiance, intersect_light, is_
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import linked_objects
 from relight_torch.math.frame import to_local, to_world
+from relight_torch.parallel import torch_threads
 from relight_torch.shading import reflected_radiance
 from relight_torch.visibility.embree import ShadowLinkCasters
 
@@ -124,17 +124,6 @@ def _power_heuristic(pdf_a: torch.Tensor, pdf_b: torch.Tensor) -> torch.Tensor:
     return torch.where(a2 > 0, a2 / (a2 + b2), torch.zeros_like(a2))
 
 
-@contextlib.contextmanager
-def _torch_threads(num_threads: int):
-    """Run the block with torch's intra-op thread count set to `num_threads`, then restore it."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(num_threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
-
-
 class PathTracer:
     """Renders one scene from any of its cameras; Embree BVH and tangents built once."""
 
@@ -181,7 +170,7 @@ class PathTracer:
             return radiance * camera.exposure_scale, num_vertices
 
         done = num_vertices = 0
-        with _torch_threads(1), ThreadPoolExecutor(self.num_workers) as pool:
+        with torch_threads(1), ThreadPoolExecutor(self.num_workers) as pool:
             # Batches are summed in order (the image does not depend on scheduling), a window of
             # num_workers at a time so that memory stays bounded.
             for window in range(0, len(batches), self.num_workers):

@@ -178,30 +178,26 @@ def split_factors(
     first two factors times Ld and of the others times Ls. Params broadcast as in `split`;
     `weight` (...), if given, multiplies every factor (e.g. a cosine and a solid angle). The
     factor axis comes first: stacking it last costs as much as the rest on the CPU.
+
+    Evaluated by `split_factors_cosines` (without its cosine) from the directions' dot products.
     """
     check_pair(wo_local, wi_local)
-    cos_e, cos_l, cos_h, e_dot_h, above = _half_angles(wo_local, wi_local)
-    schlick = schlick_fresnel(0.0, 1.0, e_dot_h)
-    scale = torch.ones_like(schlick) if weight is None else weight
-
-    def masked_lobe(roughness: torch.Tensor) -> torch.Tensor:
-        return torch.where(above, _storm_lobe(storm_alpha(roughness), cos_l, cos_e, cos_h) * scale, 0.0)
-
-    lit, lobe = torch.where(above, scale, 0.0), masked_lobe(params.roughness)
-    columns = [lit, lit * schlick, lobe, lobe * schlick]
-    if coat:
-        coat_lobe = masked_lobe(params.clearcoat_roughness)
-        columns += [coat_lobe, coat_lobe * schlick]
-    return torch.stack(columns)
+    roughnesses = (params.roughness, params.clearcoat_roughness)[:1 + coat]
+    batch = torch.broadcast_shapes(wo_local.shape[:-1], wi_local.shape[:-1], *(r.shape for r in roughnesses),
+                                   () if weight is None else weight.shape)
+    out = wi_local.new_empty(2 + 2 * len(roughnesses), *batch)
+    return split_factors_cosines(roughnesses, wo_local[..., 2], wi_local[..., 2], dot(wo_local, wi_local),
+                                 1.0 if weight is None else weight, out, wi_local.new_empty(4, *batch),
+                                 dot(wo_local, wo_local), dot(wi_local, wi_local), cosine=False)
 
 
 def split_factors_cosines(
     roughnesses: tuple[torch.Tensor, ...], cos_e: torch.Tensor, cos_l: torch.Tensor, e_dot_l: torch.Tensor,
     weight: torch.Tensor, out: torch.Tensor, scratch: torch.Tensor,
-    view_sq: torch.Tensor | float = 1.0, light_sq: torch.Tensor | float = 1.0,
+    view_sq: torch.Tensor | float = 1.0, light_sq: torch.Tensor | float = 1.0, cosine: bool = True,
 ) -> torch.Tensor:
-    """`split_factors` times max(N.L, 0) from dot products, computed in place: for P points with
-    M light directions each, in blocks that stay in cache.
+    """`split_factors` times max(N.L, 0) (or without it: `cosine` False) from dot products,
+    computed in place: for P points with M light directions each, in blocks that stay in cache.
 
     The half vector h = E + L enters only through |h|^2 = |E|^2 + |L|^2 + 2 E.L, N.h = N.E + N.L
     and E.h = |E|^2 + E.L, so the factors need N.E, |E|^2 per point and N.L, E.L (and |L|^2 unless
@@ -214,23 +210,25 @@ def split_factors_cosines(
     Args:
         roughnesses: (P, 1) roughness, then (P, 1) clearcoat roughness if the coat's factors are wanted.
         cos_e: (P, 1) N.E. cos_l, e_dot_l: (P, M) N.L and E.L (may be strided views).
-        weight: (P, M) e.g. solid angle times visibility (the cosine is applied here).
+        weight: (P, M) e.g. solid angle times visibility (the cosine is applied here), or a number.
         out: (F, P, M) the factors (F = 2 + 2 len(roughnesses)), written.
         scratch: (4, P, M) work space of the same dtype, overwritten.
         view_sq: |E|^2, (P, 1) or 1. light_sq: |L|^2, (P, M) or 1.
+        cosine: whether the factors carry max(N.L, 0).
+        (Any shapes broadcasting to out's (P, M) will do.)
 
     Returns:
-        `out`: [lit, lit s, g, g s (, g_c, g_c s)] as `split_factors`, each times weight max(N.L, 0); 0
-        below either horizon.
+        `out`: [lit, lit s, g, g s (, g_c, g_c s)] as `split_factors`, each times weight (and
+        max(N.L, 0)); 0 below either horizon.
     """
     lit, schlick = out[0], out[1]
     temp, temp2, cos_h, lit_cos = scratch[0], scratch[1], scratch[2], scratch[3]
     cos_e_clamped = cos_e.clamp(0.0, 1.0)
     torch.clamp(cos_l, 0.0, 1.0, out=temp2)                    # N.L, 0 below the horizon
-    torch.mul(temp2, weight, out=lit)
+    torch.mul(temp2 if cosine else temp2 > 0, weight, out=lit)
     if torch.compiler.is_compiling() or not bool((cos_e > 0).all()):   # compiled: no data-dependent branch
         lit.mul_(cos_e > 0)
-    torch.mul(lit, temp2, out=lit_cos)
+    torch.mul(lit, temp2, out=lit_cos)                          # the N.L of G1(N.L) (times the cosine's)
     torch.add(e_dot_l, view_sq, out=schlick)                    # E.h |h|
     torch.add(schlick, light_sq, out=temp)
     temp.add_(e_dot_l).clamp_min_(1e-24).rsqrt_()               # 1 / |h|

@@ -34,6 +34,7 @@ class RememberedVisibility:
 
     def __init__(self, visibility: Visibility):
         self.visibility = visibility
+        self.thread_safe = False  # its memory is one list per light
         self.counters: collections.Counter[str] = collections.Counter()
         self._answers: dict[str, tuple[tuple, list[tuple[tuple[torch.Tensor, ...], torch.Tensor]]]] = {}
 

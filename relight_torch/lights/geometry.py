@@ -52,23 +52,32 @@ class LightFrame:
 
     def point_to_local(self, points: torch.Tensor) -> torch.Tensor:
         """World points (..., 3) to light-local points (..., 3)."""
-        return (points - self.origin) @ self.light_from_world.T
+        return transform_rows(points - self.origin, self.light_from_world)
 
     def vector_to_local(self, vectors: torch.Tensor) -> torch.Tensor:
         """World vectors (..., 3) to light-local vectors (..., 3), not renormalised."""
-        return vectors @ self.light_from_world.T
+        return transform_rows(vectors, self.light_from_world)
 
     def point_to_world(self, points_local: torch.Tensor) -> torch.Tensor:
         """Light-local points (..., 3) to world points (..., 3)."""
-        return points_local @ self.world_from_light.T + self.origin
+        return transform_rows(points_local, self.world_from_light).add_(self.origin)
 
     def vector_to_world(self, vectors_local: torch.Tensor) -> torch.Tensor:
         """Light-local vectors (..., 3) to world vectors (..., 3), not renormalised."""
-        return vectors_local @ self.world_from_light.T
+        return transform_rows(vectors_local, self.world_from_light)
 
     def normal_to_world_unit(self, normals_local: torch.Tensor) -> torch.Tensor:
         """Light-local normals (..., 3) to unit world normals (..., 3) (inverse transpose)."""
-        return torch.nn.functional.normalize(normals_local @ self.normal_to_world.T, dim=-1)
+        return torch.nn.functional.normalize(transform_rows(normals_local, self.normal_to_world), dim=-1)
+
+
+def transform_rows(vectors: torch.Tensor, matrix: torch.Tensor) -> torch.Tensor:
+    """matrix (3, 3) applied to row vectors (..., 3): vectors @ matrix^T, as a new tensor.
+
+    Through a contiguous copy of the transpose: torch's CPU matmul with a transposed (3, 3) view
+    takes a path 2-3x slower (300,000 rows on one thread: 5.5-7.5 ms against 2.3 ms).
+    """
+    return vectors @ matrix.T.contiguous()
 
 
 def check_transform(light: Light) -> None:

@@ -25,6 +25,9 @@ from relight_torch.transfer.haar import haar2d
 from relight_torch.transfer.sparse import SparseRows, column_norms, cull_light
 from relight_torch.transfer.upsample import EdgeAwareUpsampler
 
+GATHER_SAMPLES = 4
+"""Light samples per gather for area lights by default (see `TransferRelighter`)."""
+
 
 @dataclasses.dataclass
 class _IndirectState:
@@ -46,12 +49,14 @@ class TransferRelighter(IndirectRelighter):
         final_gather: F, R wavelet rows over G.
         bounce: M, G wavelet rows over G, or None for one bounce.
         num_bounces: B >= 1; M is applied B - 1 times.
-        gather_samples: light samples per gather for area lights; None: the direct settings'
-            `area_samples` (dome lights always take `dome_samples`). The gather light costs about
-            as many shadow rays as samples. Fewer are safe for lights far from every surface (64 x 64
-            Cornell box, 16,384 gathers: 1 / 4 / 16 samples put the indirect image 2.5 / 0.7 / 0.4 %
-            RMS from 64 samples) but not near one: with a lamp 10 mm from a wall the indirect mean
-            fell from 0.95 to 0.70 of the reference at 4 samples, so the default keeps the direct count.
+        gather_samples: light samples per gather for area lights (dome lights always take the
+            direct settings' `dome_samples`). The gather light costs about as many shadow rays as
+            samples, and F averages its noise over many gathers: against 256 samples, the indirect
+            image is 2.3 / 0.5 / 0.1 % RMS off at 1 / 4 / 16 samples on the glossy scene's sphere
+            lights and 2.3 / 1.2 / 0.7 % on the Cornell box's rect (96 x 96, 4,096 gathers), far
+            below the method's own ~6 % (docs/TRANSFER.md). A lamp 10 mm from a wall, which lost
+            a third of its indirect light at 4 samples before the rect's closed form (the ratio
+            estimator) reached the gathers, now gives the same image at 1 to 64 samples.
         upsampler: for F rows baked at a reduced resolution (`--indirect-scale`), the edge-aware
             map from them to the full image's pixels (`upsample.edge_aware_upsampler`); None when
             `view_pixels` are pixels of the full image.
@@ -66,7 +71,7 @@ class TransferRelighter(IndirectRelighter):
 
     def __init__(self, direct: Relighter, gathers: GatherSamples, view_pixels: torch.Tensor,
                  final_gather: SparseRows, bounce: SparseRows | None = None, num_bounces: int = 1,
-                 gather_samples: int | None = None, upsampler: EdgeAwareUpsampler | None = None,
+                 gather_samples: int = GATHER_SAMPLES, upsampler: EdgeAwareUpsampler | None = None,
                  cull_tolerance: float = 0.0):
         if final_gather.num_columns != gathers.num_gathers or final_gather.num_rows != view_pixels.shape[0]:
             raise ValueError(f"F is {final_gather.num_rows}x{final_gather.num_columns}; expected "
@@ -74,7 +79,7 @@ class TransferRelighter(IndirectRelighter):
         if num_bounces < 1 or (num_bounces > 1 and (bounce is None or bounce.num_rows != gathers.num_gathers)):
             raise ValueError(f"{num_bounces} bounces need M as {gathers.num_gathers} rows (got "
                              f"{None if bounce is None else bounce.num_rows})")
-        if gather_samples is not None and gather_samples < 1:
+        if gather_samples < 1:
             raise ValueError(f"gather_samples must be >= 1, got {gather_samples}")
         if not 0.0 <= cull_tolerance < 1.0:
             raise ValueError(f"cull_tolerance must lie in [0, 1), got {cull_tolerance}")
@@ -131,7 +136,7 @@ class TransferRelighter(IndirectRelighter):
         state = self._per_light.get(light.path)
         if state is None or state.gather_key != key:
             settings = self.direct.settings
-            num_samples = self._gather_samples(unit, self.gather_samples or settings.area_samples)
+            num_samples = self._gather_samples(unit, self.gather_samples)
             radiance = gather_radiance(gather_light, self.gathers, self.direct.visibility, num_samples, settings.seed)
             self.counters["gather_light"] += 1
             state = _IndirectState(key, radiance)

@@ -15,7 +15,15 @@ from relight_torch.lights.light import Light
 
 
 class Visibility(Protocol):
-    """Answers shadow queries for one light's samples at N shading points."""
+    """Answers shadow queries for one light's samples at N shading points.
+
+    Attributes:
+        thread_safe: whether `occluder_distance` may run on several threads at once (tiles of
+            points on the CPU, `relight_torch.parallel`); an implementation without it is
+            called from one thread.
+    """
+
+    thread_safe: bool
 
     def occluder_distance(self, light: Light, points: torch.Tensor, normals: torch.Tensor,
                           directions: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:

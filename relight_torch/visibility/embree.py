@@ -17,6 +17,7 @@ Embreex facts this module relies on (embreex 4.4.0.post1, checked by the tests):
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -24,6 +25,7 @@ import numpy as np
 from embreex import mesh_construction, rtcore_scene
 
 from relight_torch.lights.linking import linked_objects
+from relight_torch.parallel import in_worker
 
 # Rays per embreex call: bounds the temporary arrays of one chunk (~100 bytes per ray).
 CHUNK_RAYS = 1 << 20
@@ -160,7 +162,7 @@ class EmbreeCaster:
                          min(self.num_threads, num_rays // MIN_THREAD_CHUNK_RAYS), 1)
         bounds = np.linspace(0, num_rays, num_chunks + 1).astype(np.int64)
         chunks = [slice(int(start), int(stop)) for start, stop in zip(bounds[:-1], bounds[1:])]
-        if len(chunks) == 1 or self.num_threads == 1:
+        if len(chunks) == 1 or self.num_threads == 1 or in_worker():  # a worker's batch stays on its thread
             for chunk in chunks:
                 trace(chunk)
             return
@@ -188,13 +190,16 @@ class ShadowLinkCasters:
         self.corners, self.object_ids, self.object_paths = corners, np.asarray(object_ids), object_paths
         self.epsilon, self.num_threads = epsilon, num_threads
         self._casters: dict[tuple[str, ...], EmbreeCaster] = {}
+        self._lock = threading.Lock()  # tiles of points ask from several threads: build each once
 
     def __call__(self, link: tuple[str, ...]) -> EmbreeCaster:
         """The caster over the triangles of the objects in `link` (a `Light.shadow_link`)."""
-        if link not in self._casters:
-            keep = linked_objects(self.object_paths, link)[self.object_ids]
-            self._casters[link] = EmbreeCaster(np.ascontiguousarray(self.corners[keep]), self.num_threads, self.epsilon)
-        return self._casters[link]
+        with self._lock:
+            if link not in self._casters:
+                keep = linked_objects(self.object_paths, link)[self.object_ids]
+                self._casters[link] = EmbreeCaster(np.ascontiguousarray(self.corners[keep]), self.num_threads,
+                                                   self.epsilon)
+            return self._casters[link]
 
 
 def _scene_epsilon(corners: np.ndarray) -> float:

@@ -7,6 +7,7 @@ offset); `pipeline.tracing.Tracer` and `relight_torch.visibility.embree.EmbreeCa
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from typing import Protocol
 
@@ -26,7 +27,7 @@ class RayCaster(Protocol):
 
 
 class RayVisibility:
-    """Exact visibility: one shadow ray per light sample.
+    """Exact visibility: one shadow ray per light sample. Thread-safe (Embree scenes are).
 
     Args:
         caster: the caster over every occluder.
@@ -38,7 +39,9 @@ class RayVisibility:
     def __init__(self, caster: RayCaster, shadow_link_caster: Callable[[tuple[str, ...]], RayCaster] | None = None):
         self.caster = caster
         self.shadow_link_caster = shadow_link_caster
+        self.thread_safe = True
         self.num_rays = 0
+        self._count_lock = threading.Lock()  # tiles of points query from several threads
 
     def caster_for(self, light: Light) -> RayCaster:
         """The caster over the occluders that shadow `light` (its `shadow_link`)."""
@@ -69,7 +72,8 @@ class RayVisibility:
         t = _float32_rows(t_far.reshape(-1))
         live = t > 0
         num_live = int(live.sum())
-        self.num_rays += num_live
+        with self._count_lock:
+            self.num_rays += num_live
         if num_live < t.shape[0]:
             o, d, t = o[live], d[live], t[live]
         if light.shadow.distance >= 0.0:

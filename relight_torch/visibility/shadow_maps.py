@@ -68,7 +68,7 @@ import numpy as np
 import torch
 
 from relight_torch.errors import RelightError
-from relight_torch.lights.geometry import LightFrame
+from relight_torch.lights.geometry import LightFrame, transform_rows
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.math.frame import orthonormal_basis
 from relight_torch.visibility.depth_maps import CubeMap, DepthMap, MapSample, OrthoMap, PinholeMaps
@@ -138,6 +138,7 @@ class ShadowMapVisibility:
         self.lookup = lookup
         self.receivers = None if receivers is None else receivers.to(occluders.device, occluders.dtype).reshape(-1, 3)
         self.max_spot_half_angle = max_spot_half_angle
+        self.thread_safe = False  # maps are built and cached on first use
         self.num_builds = 0
         self.seconds: collections.Counter[str] = collections.Counter()
         self._maps: dict[str, tuple[tuple, DepthMap]] = {}
@@ -236,12 +237,12 @@ class ShadowMapVisibility:
         shadow falls outside them); the occluders' bounds when that is empty.
         """
         frame = self._distant_frame(light)
-        corners = self.occluders.reshape(-1, 3) @ frame.T
+        corners = transform_rows(self.occluders.reshape(-1, 3), frame)
         occluder_low, occluder_high = corners[:, :2].amin(0), corners[:, :2].amax(0)
         receivers = [p.reshape(-1, 3) for p in (points, self.receivers) if p is not None]
         if not receivers:
             return _as_window(occluder_low, occluder_high)
-        local = torch.cat(receivers).to(frame.dtype) @ frame.T
+        local = transform_rows(torch.cat(receivers).to(frame.dtype), frame)
         theta = min(math.radians(light.angle) / 2.0, MAX_DISTANT_WINDOW_ANGLE)
         margin = (local[:, 2].amax() - corners[:, 2].amin()).clamp_min(0.0) * math.tan(theta)
         low = torch.maximum(local[:, :2].amin(0) - margin, occluder_low)
@@ -252,7 +253,7 @@ class ShadowMapVisibility:
 
     def _distant_map(self, light: Light, window: tuple[float, float, float, float]) -> OrthoMap:
         frame = self._distant_frame(light)
-        corners = self.occluders.reshape(-1, 3) @ frame.T
+        corners = transform_rows(self.occluders.reshape(-1, 3), frame)
         extent = float((corners.amax(0) - corners.amin(0)).max())
         top = float(corners[:, 2].amin()) - TOP_MARGIN_FRACTION * extent
         u_low, v_low, u_high, v_high = window

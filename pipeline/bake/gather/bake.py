@@ -23,11 +23,9 @@ is rewritten last (method 'gather'), then the chunk directory is removed.
 
 from __future__ import annotations
 
-import contextlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import torch
@@ -46,6 +44,7 @@ from relight_torch.brdf.preview_surface import diffuse_albedo
 from relight_torch.cache.layer import Payload
 from relight_torch.gbuffer import GBuffer
 from relight_torch.math.sampling import sobol
+from relight_torch.parallel import torch_threads
 
 REFERENCE_PIXELS = 400 * 400
 _FIELD_DTYPES = {"position": np.float32, "normal": np.float16, "albedo": np.float16, "weight": np.float32,
@@ -122,18 +121,6 @@ def set_sizes(view: GBuffer, settings: GatherSettings) -> dict[str, int]:
     return {name: count for name, count in sizes.items() if count > 0}
 
 
-@contextlib.contextmanager
-def _single_threaded_torch() -> Iterator[None]:
-    """Run torch ops on one thread each: the bake parallelises over batches instead (the many
-    small ops of the clustering ran ~100x slower with intra-op threads on a busy machine)."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
-
-
 @per_process
 def gather_inputs(shot: ShotSpec, texture_samples: int) -> tuple[Tracer, np.ndarray, GBuffer]:
     """The shot's BVH, triangle tangents and view samples (one per pixel centre), built once per process."""
@@ -158,7 +145,9 @@ def _gather_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
         points = gather(scene, tracer, tangents, view, batch, spec.name, directions_u, shifts[batch])
         return cluster_gathers(points, spec.param("clusters"), position_weight)
 
-    with _single_threaded_torch(), ThreadPoolExecutor(spec.option("threads") or chunk_threads()) as pool:
+    # torch on one thread per batch: the many small ops of the clustering ran ~100x slower with
+    # intra-op threads on a busy machine.
+    with torch_threads(1), ThreadPoolExecutor(spec.option("threads") or chunk_threads()) as pool:
         parts = list(pool.map(work, range(0, samples.size, per_batch)))
     arrays = {name: np.concatenate([getattr(p, name) for p in parts]) for name in _FIELD_DTYPES}
     arrays["counts"] = np.concatenate([p.counts for p in parts])
@@ -195,7 +184,7 @@ def bake_gather(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
                 bake.payload(stem, "viewAlbedo", diffuse_albedo(view.params).numpy().astype(np.float32))]
     clustered: dict[str, dict[str, np.ndarray]] = {}
     for lobe, clusters_per_tile in set_sizes(view, settings).items():
-        with _single_threaded_torch():
+        with torch_threads(1):
             samples = choose_representatives(view, clusters_per_tile, settings.tile, position_weight)
         specs = [ChunkSpec(shot, lobe, parameters + (("samples", tuple(samples[first:last].tolist())),), first, last,
                            (("threads", settings.num_threads),))

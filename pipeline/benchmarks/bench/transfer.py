@@ -8,6 +8,7 @@ layer would store it (its parts written under `<cache>/culled`).
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from pipeline.bake.transfer.bake import F_PREFIX, TransferSettings, bake_transfer, matrix_payloads
@@ -65,6 +66,8 @@ def culled_variants(layer: Path, baked: TransferRelighter, baked_settings: Trans
     culled to that count and encoded as the bake would (parts written under `<cache>/culled`,
     counted in the variant's cache bytes)."""
     description = read_cache_layer(layer)
+    # The settings as baked: the indirect scale sized from the image is the layer's.
+    parameters = dataclasses.replace(baked_settings, indirect_scale=int(description.parameters["indirectScale"])).parameters()
     base_bytes = sum(p.num_bytes for p in description.payloads if not p.name.startswith(F_PREFIX))
     stored = baked.final_gather.to("cpu", baked.final_gather.values.dtype)
     device = baked.final_gather.values.device
@@ -77,7 +80,7 @@ def culled_variants(layer: Path, baked: TransferRelighter, baked_settings: Trans
         final_gather = decode_rows(encoded).to(device, stored.values.dtype)
         relighter = TransferRelighter(baked.direct, baked.gathers, baked.view_pixels, final_gather, baked.bounce,
                                       baked.num_bounces, upsampler=baked.upsampler)
-        out.append(Variant({**baked_settings.parameters(), "coefficients": num_kept}, relighter,
+        out.append(Variant({**parameters, "coefficients": num_kept}, relighter,
                            base_bytes + sum(p.num_bytes for p in payloads)))
     return out
 
