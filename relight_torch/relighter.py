@@ -548,7 +548,7 @@ class Relighter:
         threads = tile_threads(self.gbuffer.device, self.visibility.thread_safe)
         for points, num_samples in self._sample_groups(light):
             chunks = self._chunks(num_samples, points, threads)
-            self._fixed_u(num_samples)
+            self._fixed_u(num_samples)  # made once, before the tiles share it
             parts = parallel_map(lambda chunk: self._chunk_transport(light, chunk, num_samples), chunks, threads)
             state.transports.append(parts[0] if len(parts) == 1 else self._joined(parts, chunks))
         if state.transports[0].shadow_sums is not None:

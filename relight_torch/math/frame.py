@@ -31,12 +31,13 @@ def orthonormal_basis(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]
 
 
 def dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Dot products (...) of broadcasting vectors (..., 3), summed by components.
+    """Dot products (...) of broadcasting vectors (..., 3), summed by components in place.
 
-    On the CPU, `(a * b).sum(-1)` reduces over a last axis of 3 and costs several times the three
-    products; the components broadcast like scalars.
+    On the CPU a reduction over a last axis of 3, `(a * b).sum(-1)`, costs ~2.5x one product and
+    two multiply-adds into it, and summing three product temporaries ~5x (150,000 vectors on one
+    thread: 0.70 and 1.37 ms against 0.27 ms).
     """
-    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+    return (a[..., 0] * b[..., 0]).addcmul_(a[..., 1], b[..., 1]).addcmul_(a[..., 2], b[..., 2])
 
 
 def to_local(

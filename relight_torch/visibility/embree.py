@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from embreex import mesh_construction, rtcore_scene
 
 from relight_torch.lights.linking import linked_objects
-from relight_torch.parallel import in_worker
+from relight_torch.parallel import parallel_map
 
 # Rays per embreex call: bounds the temporary arrays of one chunk (~100 bytes per ray).
 CHUNK_RAYS = 1 << 20
@@ -157,18 +156,13 @@ class EmbreeCaster:
         return (points + (np.float32(self.epsilon) * side)[:, None] * normals).astype(np.float32)
 
     def _map_chunks(self, trace, num_rays: int) -> None:
-        """Call `trace(chunk_slice)` over the batch, on a thread pool when it pays."""
+        """Call `trace(chunk_slice)` over the batch, on the kept worker threads when it pays
+        (`relight_torch.parallel`; inside a worker, on its thread)."""
         num_chunks = max(-(-num_rays // CHUNK_RAYS),
                          min(self.num_threads, num_rays // MIN_THREAD_CHUNK_RAYS), 1)
         bounds = np.linspace(0, num_rays, num_chunks + 1).astype(np.int64)
         chunks = [slice(int(start), int(stop)) for start, stop in zip(bounds[:-1], bounds[1:])]
-        if len(chunks) == 1 or self.num_threads == 1 or in_worker():  # a worker's batch stays on its thread
-            for chunk in chunks:
-                trace(chunk)
-            return
-        with ThreadPoolExecutor(min(self.num_threads, len(chunks))) as pool:
-            # list() re-raises the first exception of a chunk.
-            list(pool.map(trace, chunks))
+        parallel_map(trace, chunks, self.num_threads)
 
 
 class ShadowLinkCasters:
