@@ -26,8 +26,7 @@ from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.exr import read_rgb_exr, write_rgb_exr
 from relight_torch.metrics import psnr
 from relight_torch.light_samples import fixed_light_samples
-from relight_torch.math.frame import to_local
-from relight_torch.multiview.incident import group_images, incident_table
+from relight_torch.multiview.incident import group_images, incident_table, view_directions
 from relight_torch.multiview.relighter import MultiviewRelighter
 from relight_torch.multiview.views import camera_column, gather_gbuffer
 from relight_torch.relighter import Relighter
@@ -191,16 +190,24 @@ def test_cached_lighting_per_sample_equals_the_direct_relighter(baked):
     direct = Relighter(gbuffer, relighter.visibility, 1, 1.0, relighter.settings, relighter.object_paths)
     direct.set_lights(relighter.lights)
     direct.render()
-    wo_local = to_local(gbuffer.wo_world(), gbuffer.tangent, gbuffer.bitangent, gbuffer.normal)
+    shadowed = 0
     for light in relighter.lights:
         samples = direct.num_light_samples(light)
-        table = incident_table(light, gbuffer.position, gbuffer.geometric_normal, gbuffer.normal,
-                               fixed_light_samples(gbuffer.num_samples, samples), relighter.visibility, samples)
-        images = group_images(gbuffer.params, wo_local, gbuffer.tangent, gbuffer.bitangent, gbuffer.normal,
-                              gbuffer.geometric_normal, table.permute(2, 1, 0))
+        u = fixed_light_samples(gbuffer.num_samples, samples)
+        table, unshadowed = incident_table(light, gbuffer.position, gbuffer.geometric_normal, gbuffer.normal, u,
+                                           relighter.visibility, samples)
+        # The unshadowed sum (what edge detection divides by) is the table of the light without shadows.
+        unlit, _ = incident_table(dataclasses.replace(light, shadow=dataclasses.replace(light.shadow, enable=False)),
+                                  gbuffer.position, gbuffer.geometric_normal, gbuffer.normal, u, relighter.visibility, 1)
+        torch.testing.assert_close(unshadowed, unlit[..., :3].sum((1, 2)))
+        assert bool((table[..., :3].sum((1, 2)) <= unshadowed * (1 + 1e-5)).all())
+        shadowed += int((table[..., :3].sum((1, 2)) < 0.5 * unshadowed).sum())
+        images = group_images(gbuffer.params, view_directions(gbuffer.wo_world(), gbuffer.normal,
+                                                              gbuffer.geometric_normal), table.permute(2, 1, 0))
         expected = direct.unit_images(light.path)
         assert float(expected.abs().max()) > 0
         torch.testing.assert_close(images, expected, rtol=1e-4, atol=1e-5 * float(expected.abs().max()))
+    assert shadowed > 0  # the unshadowed sums were compared where shadows matter
 
 
 def test_camera_move_traces_no_shadow_rays(baked):
@@ -231,6 +238,8 @@ def test_camera_move_traces_no_shadow_rays(baked):
     edges = relighter.counters["edge_samples"]
     assert 0 < edges < MAX_EDGES * relighter.report.num_points * len(relighter.lights)
     assert rays < relighter.visibility.num_rays <= rays + edges * relighter.settings.area_samples
+    # Edge points' light samples: the first rows of one kept draw, equal to a draw of that many.
+    assert torch.equal(relighter._point_samples(7, 16), fixed_light_samples(7, 16, relighter.settings.seed))
     assert psnr(image, expected) > PSNR_RETRACED_EDGES, psnr(image, expected)
     # Near-field refinement: the points far from their caching sample for their distance to the light.
     relighter.edge_contrast, relighter.near_field = None, 0.1

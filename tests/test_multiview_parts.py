@@ -12,7 +12,9 @@ import torch
 from pxr import Usd
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
-from pipeline.bake.multiview.cameras import camera_from_row, camera_row, look_camera, resolution_from_coverage
+from pipeline.bake.multiview.cameras import (CUBE_FORWARD, camera_from_row, camera_row, look_camera,
+                                             resolution_from_coverage)
+from pipeline.bake.multiview.placement import CUBE_UP
 from pipeline.bake.multiview.samples import SurfaceSamples, object_importance, sample_surfaces
 from pipeline.bake.multiview.spheres import maximal_spheres
 from pipeline.bake.multiview.view import view_points
@@ -21,9 +23,8 @@ from pipeline.scene.camera import project
 from pipeline.scenes import SCENES
 from pipeline.tracing import Tracer
 from relight_torch.multiview.correspondence import ViewPoints, correspondence_map, correspondence_map_reference
-from relight_torch.math.frame import orthonormal_basis
 from relight_torch.multiview.holes import fill_small_holes
-from relight_torch.multiview.incident import group_images
+from relight_torch.multiview.incident import group_images, view_directions
 from relight_torch.multiview.resample import bilinear_samples
 from relight_torch.multiview.views import (CONSTANT, PER_MATERIAL, PRIMARY, SECONDARY, TEXTURED, CachingViews,
                                            column_kinds)
@@ -65,12 +66,11 @@ def test_camera_rows_round_trip_and_project_as_the_pipeline_does(views):
         assert np.isnan(pixels.numpy()[~front]).all()
 
 
-def test_correspondence_map_matches_its_slow_twin(cornell, views):
+def _matches_slow_twin(caching: CachingViews, cornell, count: int):
+    """`correspondence_map` of `count` points of the Cornell shot against the slow twin; the fast one."""
     _, scene, tracer = cornell
-    caching, _ = views
-    camera = find_camera(scene, SCENES["cornell_box"].camera)
-    view = view_points(tracer, scene.geometry.object_ids, camera)
-    pick = torch.from_numpy(np.random.default_rng(1).choice(view.num_points, 150, replace=False))
+    view = view_points(tracer, scene.geometry.object_ids, find_camera(scene, SCENES["cornell_box"].camera))
+    pick = torch.from_numpy(np.random.default_rng(1).choice(view.num_points, count, replace=False))
     position, normal, objects = view.position[pick], view.geometric_normal[pick], view.object_id[pick]
     fast = correspondence_map(caching, position, normal, objects)
     slow = correspondence_map_reference(caching, position.numpy(), normal.numpy(), objects.numpy())
@@ -79,7 +79,30 @@ def test_correspondence_map_matches_its_slow_twin(cornell, views):
     assert distinct.float().mean() > 0.98
     assert torch.equal(fast.pool_row[distinct], slow.pool_row[distinct])
     assert torch.equal(fast.view[distinct], slow.view[distinct])
+    return fast
+
+
+def test_correspondence_map_matches_its_slow_twin(cornell, views):
+    caching, _ = views
+    fast = _matches_slow_twin(caching, cornell, 150)
     assert 0.3 < float(fast.covered.float().mean()) < 1.0  # both covered and uncovered points are exercised
+
+
+def test_a_cube_is_scored_through_the_face_a_point_lies_in(cornell):
+    """An omni-directional camera (five faces: the floor's dropped) and a single camera: the map
+    scores the cube once, through the face of each point's direction, and still equals the twin's
+    camera-by-camera maximum."""
+    _, scene, tracer = cornell
+    centre = (scene.bounds[0] + scene.bounds[1]) / 2
+    faces = [look_camera(f"/Cube/{f}", centre, CUBE_FORWARD[f], CUBE_UP[f], 90.0, 16, 1.0, 2000.0)
+             for f in (0, 1, 2, 4, 5)]
+    single = look_camera("/C/1", centre + [150, 100, -150], (-1, -1, 1), (0, 1, 0), 100.0, 32, 1.0, 2000.0)
+    table = np.stack([camera_row(c, PRIMARY, 0) for c in faces] + [camera_row(single, SECONDARY, 0)])
+    caching = CachingViews.build(table, [bake_deep_framebuffer(scene, c, 1, 1, tracer).gbuffer
+                                         for c in faces + [single]])
+    assert caching.cubes.tolist() == [[0, 1, 2, -1, 3, 4]] and caching.singles.tolist() == [5]
+    fast = _matches_slow_twin(caching, cornell, 300)
+    assert len(set(fast.view[fast.covered].tolist())) >= 4  # several faces and the single camera chosen
 
 
 def _grid_view(height, width, holes):
@@ -244,13 +267,12 @@ def test_one_group_shading_equals_the_general_path(views):
     rows = torch.arange(0, pool.num_samples, 5)
     generator = torch.Generator().manual_seed(3)
     normal = pool.geometric_normal[rows]
-    tangent, bitangent = orthonormal_basis(normal)
-    wo_local = torch.nn.functional.normalize(torch.rand(rows.numel(), 3, generator=generator) + 0.2, dim=-1)
+    wo = torch.nn.functional.normalize(torch.rand(rows.numel(), 3, generator=generator) - 0.5 + normal, dim=-1)
     one = torch.cat([torch.rand(3, 1, rows.numel(), generator=generator),
                      torch.randn(3, 1, rows.numel(), generator=generator) + normal.T[:, None],
                      torch.full((1, 1, rows.numel()), 0.7)])
     unlit = torch.cat([torch.zeros(3, 1, rows.numel()), normal.T[:, None], torch.full((1, 1, rows.numel()), 0.7)])
-    args = (pool.params.index(rows), wo_local, tangent, bitangent, normal, normal)
+    args = (pool.params.index(rows), view_directions(wo, normal, normal))
     single = group_images(*args, one)
     assert float(single.abs().max()) > 0
     torch.testing.assert_close(single, group_images(*args, torch.cat([one, unlit], 1)), rtol=1e-5, atol=1e-6)

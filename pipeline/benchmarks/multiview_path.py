@@ -3,7 +3,7 @@
     python -m pipeline.benchmarks.multiview_path SCENE [SCENE...] [--width 640 --height 480]
         [--views 8] [--coverage 0.1 0.05 0.02] [--caching-resolution 512] [--spp 16]
         [--sample-groups G] [--blend-lighting] [--edge-contrast C|none] [--near-field F|none] [--threads T]
-        [--fill-holes] [--no-reference] [--out DIR] [--csv FILE] [--table FILE]
+        [--fill-holes] [--no-reference] [--reuse-bake] [--out DIR] [--csv FILE] [--table FILE]
 
 Per scene and coverage threshold it bakes a multiview cache (placement and one deep framebuffer
 per caching camera), then renders a path of `--views` novel views: the shot camera orbited about
@@ -57,6 +57,7 @@ from pipeline.scene.types import Camera, Scene
 from pipeline.scenes import SCENES
 from pipeline.tracing import Tracer
 from relight_torch.cache.layer import read_cache_layer
+from relight_torch.errors import RelightError
 from relight_torch.io.atomic import atomic_path, write_text_atomic
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.multiview.relighter import open_multiview_relighter
@@ -159,6 +160,21 @@ def cached_reference(tracer: PathTracer, camera: Camera, path: Path) -> np.ndarr
     return image
 
 
+def reused_bake(folder: Path, stem: str, args: argparse.Namespace, coverage: float) -> Path | None:
+    """The layer an earlier run baked into `folder` with these placement and sampling settings, or
+    None (absent, unreadable or other settings). Opening it checks it against the shot's inputs."""
+    layer = folder / f"{stem}.relight.usda"
+    try:
+        description = read_cache_layer(layer)
+    except (OSError, RelightError):
+        return None
+    p = description.parameters
+    same = (description.method == "multiview" and description.supersampling == args.supersampling
+            and description.resolution == (args.width, args.height)
+            and p.get("maxResolution") == args.caching_resolution and p.get("coverage") == coverage)
+    return layer if same else None
+
+
 def run_scene(name: str, args: argparse.Namespace, out: Path) -> tuple[list[SweepRow], list[dict]]:
     shot = SCENES[name].write(out / name)
     scene = load_scene(shot, width=args.width, height=args.height)
@@ -174,9 +190,12 @@ def run_scene(name: str, args: argparse.Namespace, out: Path) -> tuple[list[Swee
     for coverage in args.coverage:
         settings = PlacementSettings(coverage=coverage, max_resolution=args.caching_resolution)
         start = time.perf_counter()
-        layer = bake_multiview(scene, camera, out / name / f"coverage{coverage:g}", name, args.supersampling,
-                               settings=settings)
-        bake_s = time.perf_counter() - start
+        folder = out / name / f"coverage{coverage:g}"
+        layer = reused_bake(folder, name, args, coverage) if args.reuse_bake else None
+        bake_s = float("nan")
+        if layer is None:
+            layer = bake_multiview(scene, camera, folder, name, args.supersampling, settings=settings)
+            bake_s = time.perf_counter() - start
         parameters = read_cache_layer(layer).parameters
         relighter = open_multiview_relighter(layer, settings=RelightSettings(area_samples=args.area_samples),
                                              sample_groups=args.sample_groups, blend_lighting=args.blend_lighting,
@@ -231,7 +250,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="blend the cached lighting of the four caching pixels (default: the nearest)")
     parser.add_argument("--edge-contrast", type=lambda v: None if v == "none" else float(v), default=0.8,
                         help="trace a light again at view points on its edges in the caching images "
-                             "(relative contrast, default 0.8; 'none': a camera move traces nothing)")
+                             "(contrast of the caching taps' fractions of the light reaching them, and of "
+                             "their unshadowed light; default 0.8; 'none': a camera move traces nothing)")
     parser.add_argument("--near-field", type=lambda v: None if v == "none" else float(v), default=0.1,
                         help="trace a light again at view points farther from their caching sample than this "
                              "fraction of their distance to the light (default 0.1; 'none': never)")
@@ -239,6 +259,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per median; 0: no timings")
     parser.add_argument("--fill-holes", action="store_true", help="bake large holes on demand")
     parser.add_argument("--no-reference", action="store_true", help="timings only")
+    parser.add_argument("--reuse-bake", action="store_true",
+                        help="open the cache an earlier run baked in OUT with the same settings (bake_s NaN)")
     parser.add_argument("--out", type=Path, default=Path("multiview_path"))
     parser.add_argument("--csv", type=Path, help="shared sweep CSV (default OUT/multiview.csv)")
     parser.add_argument("--table", type=Path, help="per-view CSV (default OUT/multiview_views.csv)")

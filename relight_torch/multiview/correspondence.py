@@ -117,10 +117,13 @@ def correspondence_map(views: CachingViews, position: torch.Tensor, normal: torc
 
     The score without visibility, (n . u_i) / d_i^2, bounds each camera's score from above, so
     a point's best camera is the first one, in decreasing bound, that passes the visibility test:
-    the bounds of all (K, N) pairs come from two matrix products, then each round tests every
-    pending point against its best remaining camera (one gather of that camera's projection per
-    point) and keeps the points it failed for. Most points are done in the first round or two;
-    the rounds never exceed K.
+    the bounds of all (N, J) pairs come from matrix products, then each round tests every pending
+    point against its best remaining camera (one gather of that camera's projection per point)
+    and keeps the points it failed for. Most points are done in the first round or two; the
+    rounds never exceed J. The J columns are the single cameras and the omni-directional ones
+    (`CachingViews.cubes`): a point can only be seen by the face of a cube its direction from the
+    centre falls in, so a cube is one column, scored through that face (its other faces would
+    fail the test, at the price of a round each).
 
     Args:
         views: the caching cameras (on the points' device).
@@ -136,17 +139,18 @@ def correspondence_map(views: CachingViews, position: torch.Tensor, normal: torc
     best_pixel = torch.full((num_points, 2), torch.nan, dtype=torch.float32, device=device)
     if num_points == 0 or views.num_views == 0:
         return Correspondence(best_view, best_row, best_score, best_pixel)
-    bound = _score_bounds(views, position, normal)                          # (N, K)
+    bound, faces = _score_bounds(views, position, normal)                   # (N, J), (C, N)
     object_id = object_id.to(torch.float32)
     pending = None                                                                  # every point
-    for _ in range(views.num_views):
+    for _ in range(bound.shape[1]):
         rows = bound if pending is None else bound.index_select(0, pending)
-        value, camera = rows.max(1)
+        value, column = rows.max(1)
         live = torch.nonzero(value > 0).squeeze(-1)
         pending = live if pending is None else pending.index_select(0, live)
         if pending.numel() == 0:
             break
-        camera = camera.index_select(0, live)
+        column = column.index_select(0, live)
+        camera = _column_camera(views, faces, column, pending)
         pixel, row, score = _visible_sample(views, camera, position.index_select(0, pending),
                                             normal.index_select(0, pending), object_id.index_select(0, pending))
         seen = row >= 0
@@ -158,26 +162,61 @@ def correspondence_map(views: CachingViews, position: torch.Tensor, normal: torc
         best_pixel.index_copy_(0, done, pixel.index_select(0, found))
         failed = torch.nonzero(~seen).squeeze(-1)
         pending = pending.index_select(0, failed)
-        bound.view(-1).index_fill_(0, pending * views.num_views + camera.index_select(0, failed), 0.0)
+        bound.view(-1).index_fill_(0, pending * bound.shape[1] + column.index_select(0, failed), 0.0)
     return Correspondence(best_view, best_row, best_score, best_pixel)
 
 
-def _score_bounds(views: CachingViews, position: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
-    """(N, K) float32 (n . u_k) / (d_k^2 a_k^2) of every point and camera, 0 where the camera is behind the
-    point's surface or the point outside the cone around the camera's frustum (`CachingViews.axes`;
-    a cube's six faces share a centre, so that is what tells them apart). From matrix products about
-    the points' mean (float32 rounding of the squared distance, relative to the scene's extent
-    squared: the order of near-ties only)."""
+def _column_camera(views: CachingViews, faces: torch.Tensor, column: torch.Tensor,
+                   points: torch.Tensor) -> torch.Tensor:
+    """(P,) int64 the camera of bound columns `column` (P,) at `points` (P,): a single camera's own,
+    a cube's face the point lies in (`faces`, (C, N), from `_score_bounds`)."""
+    num_singles = views.singles.shape[0]
+    if faces.shape[0] == 0:
+        return views.singles.index_select(0, column)
+    face = faces.view(-1).index_select(0, (column - num_singles).clamp_(min=0) * faces.shape[1] + points)
+    if num_singles == 0:
+        return face
+    return torch.where(column < num_singles, views.singles.index_select(0, column.clamp(max=num_singles - 1)), face)
+
+
+def _score_bounds(views: CachingViews, position: torch.Tensor,
+                  normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, J) float32 (n . u_j) / (d_j^2 a_j^2) of every point and bound column, and (C, N) int64 the
+    camera of the face of each cube each point lies in (-1: a dropped face).
+
+    The J = S + C columns are the S single cameras (`CachingViews.singles`), 0 where the point is
+    outside the cone around the camera's frustum (`CachingViews.axes`), then the C cubes
+    (`CachingViews.cubes`), whose a_j is that face's (0 for a dropped one). 0 where the camera is
+    behind the point's surface. From matrix products about the points' mean (float32 rounding of
+    the squared distance, relative to the scene's extent squared: the order of near-ties only)."""
+    singles, cubes = views.singles, views.cubes
+    num_singles = singles.shape[0]
+    dtype = position.dtype
     origin = position.mean(0)
-    points, centres = position - origin, views.centres.T.to(position.dtype) - origin
-    forward, cone = views.axes[:3].T.to(position.dtype), views.axes[3].to(position.dtype)
+    members = torch.cat([singles, cubes.amax(1)])          # a camera of each column (a cube's: any face)
+    points, centres = position - origin, views.centres.index_select(1, members).T.to(dtype) - origin
     facing = torch.addmm(-(normal * points).sum(-1, keepdim=True), normal, centres.T)              # n.(c - p)
     squared = torch.addmm((points * points).sum(-1, keepdim=True) + (centres * centres).sum(-1), points, centres.T,
                           alpha=-2.0).clamp_(min=1e-30)
-    ahead = torch.addmm(-(forward * centres).sum(-1), points, forward.T)                          # f.(p - c)
     inverse = squared.rsqrt_()
-    facing.clamp_(min=0.0).mul_(inverse).mul_(inverse).mul_(inverse).mul_(views.pixel_angle.to(position.dtype) ** -2)
-    return facing.mul_(ahead.mul_(inverse) > cone)
+    facing.clamp_(min=0.0).mul_(inverse).mul_(inverse).mul_(inverse)
+    angle = views.pixel_angle.to(dtype)
+    if num_singles:
+        forward, cone = views.axes[:3].index_select(1, singles).T.to(dtype), views.axes[3].index_select(0, singles)
+        ahead = torch.addmm(-(forward * centres[:num_singles]).sum(-1), points, forward.T)          # f.(p - c)
+        facing[:, :num_singles].mul_(angle.index_select(0, singles) ** -2).mul_(
+            ahead.mul_(inverse[:, :num_singles]) > cone.to(dtype))
+    faces = []
+    for c in range(cubes.shape[0]):
+        direction = points - centres[num_singles + c]
+        x, y, z = direction.abs().unbind(-1)
+        axis = torch.where((x >= y) & (x >= z), 0, torch.where(y >= z, 1, 2))
+        face = 2 * axis + (direction.gather(1, axis[:, None])[:, 0] < 0)
+        camera = cubes[c].index_select(0, face)
+        facing[:, num_singles + c].mul_(torch.where(camera >= 0, angle.index_select(0, camera.clamp(min=0)) ** -2, 0.0))
+        faces.append(camera)
+    return facing, torch.stack(faces) if faces else torch.zeros((0, position.shape[0]), dtype=torch.int64,
+                                                                   device=position.device)
 
 
 def _visible_sample(views: CachingViews, camera: torch.Tensor, position: torch.Tensor, normal: torch.Tensor,

@@ -13,9 +13,12 @@ groups of neighbouring light samples (blocks of the stratified grid):
 
 and, for lights with a closed-form unshadowed irradiance, the direct Relighter's ratio-estimator
 factor on the diffuse sum (exact over the samples' estimate of it, at the sample's shading normal).
+`incident_table` also returns each point's unshadowed W (summed over samples and channels): the
+MultiviewRelighter keeps, per caching sample, the fraction of the light reaching it past
+occluders, which its edge detection compares between neighbouring caching pixels.
 `group_images` shades a new view's points from their blended W, D: the direct BRDF
-(`preview_surface.split`, the only BRDF) at the point's own wo and frame, evaluated once per group
-at wi_g = D_g / |D_g|:
+(`preview_surface.split`, the only BRDF) at the point's own wo and normal, evaluated once per
+group at wi_g = D_g / |D_g|:
 
     (diffuse, specular) = sum_g split(params, wo, wi_g) cos(wi_g) W_g     (diffuse x the ratio)
 
@@ -74,8 +77,10 @@ def pool_light_samples(counts: list[int], num_samples: int, seed: int, device: t
 
 
 def incident_table(light: Light, position: torch.Tensor, normal: torch.Tensor, shading_normal: torch.Tensor,
-                   u: torch.Tensor, visibility, num_groups: int, chunk_samples: int = 1 << 20) -> torch.Tensor:
-    """(P, G, 7) float32 W, D and the diffuse ratio (module docstring) of `light` at P points.
+                   u: torch.Tensor, visibility, num_groups: int,
+                   chunk_samples: int = 1 << 20) -> tuple[torch.Tensor, torch.Tensor]:
+    """(P, G, 7) float32 W, D and the diffuse ratio (module docstring) of `light` at P points, and
+    (P,) their unshadowed W summed over samples and channels (what edge detection divides by).
 
     Args:
         light: the light (its colour is ignored: the unit light's table, as the Relighter's transport).
@@ -93,44 +98,60 @@ def incident_table(light: Light, position: torch.Tensor, normal: torch.Tensor, s
     step = max(1, chunk_samples // num_samples)
     parts = [_chunk_table(light, unit, position[i:i + step], normal[i:i + step], shading_normal[i:i + step],
                           u[i:i + step], visibility, groups, num_groups) for i in range(0, position.shape[0], step)]
-    return torch.cat(parts) if parts else position.new_zeros(0, num_groups, CHANNELS)
+    if not parts:
+        return position.new_zeros(0, num_groups, CHANNELS), position.new_zeros(0)
+    return torch.cat([table for table, _ in parts]), torch.cat([unshadowed for _, unshadowed in parts])
 
 
 def _chunk_table(light: Light, unit: Light, position: torch.Tensor, normal: torch.Tensor,
                  shading_normal: torch.Tensor, u: torch.Tensor, visibility, groups: torch.Tensor,
-                 num_groups: int) -> torch.Tensor:
-    """(P, G, 7) of the points `position`, `normal`, `shading_normal` (P, 3) with light samples u (P, S, 2)."""
+                 num_groups: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(P, G, 7) and (P,) of the points `position`, `normal`, `shading_normal` (P, 3) with light samples
+    u (P, S, 2)."""
     num_samples = u.shape[1]
     sample = sample_light(unit, position, u)
     direction = sample.direction.transpose(0, 1)                                  # (S, P, 3)
     scalar = sample.inverse_pdf().transpose(0, 1) * (dot(direction, normal) > 0) / num_samples
     weight = sample.radiance.transpose(0, 1) * scalar.unsqueeze(-1)               # (S, P, 3)
+    table = position.new_zeros(position.shape[0], num_groups, CHANNELS)
+    unshadowed = position.new_zeros(position.shape[0])
     live = (weight != 0).any(-1).any(0)
     index = torch.nonzero(live).squeeze(-1)
-    table = position.new_zeros(position.shape[0], num_groups, CHANNELS)
     if index.numel() == 0:
-        return table
+        return table, unshadowed
+    reaching = torch.isfinite(sample.distance).transpose(0, 1)
+    distance = sample.distance.transpose(0, 1)
+    if index.numel() < live.shape[0]:  # else every point: no copies
+        def pick(values: torch.Tensor) -> torch.Tensor:
+            return values.index_select(0, index)
+
+        position, normal, shading_normal = pick(position), pick(normal), pick(shading_normal)
+        direction, weight, scalar, reaching, distance = (v.index_select(1, index)
+                                                         for v in (direction, weight, scalar, reaching, distance))
     # The samples' unshadowed estimate of the cosine-weighted solid angle, for the ratio estimator.
-    cosine = dot(direction[:, index], shading_normal[index])
-    reaching = torch.isfinite(sample.distance).transpose(0, 1)[:, index]
-    ratio = analytic_ratio(unit, position[index], shading_normal[index],
-                           (scalar[:, index] * cosine.clamp(min=0.0) * reaching).sum(0))
-    direction, weight = direction[:, index], weight[:, index]
-    distance = visibility.occluder_distance(unit, position[index], normal[index], direction.transpose(0, 1),
-                                            sample.distance.transpose(0, 1)[:, index].transpose(0, 1))
-    distance = distance.transpose(0, 1)
-    if unit.shadow.enable:
-        weight = weight * shadow_factor(unit.shadow, torch.isfinite(distance), distance)
+    cosine = dot(direction, shading_normal)
+    ratio = analytic_ratio(unit, position, shading_normal, (scalar * cosine.clamp(min=0.0) * reaching).sum(0))
+    distance = visibility.occluder_distance(unit, position, normal, direction.transpose(0, 1),
+                                            distance.transpose(0, 1)).transpose(0, 1)
     if light.shaping is not None or light.barzel is not None:
         local = torch.nn.functional.normalize(LightFrame.of(light, direction).vector_to_local(-direction), dim=-1)
         origin = torch.as_tensor(light.world_from_light[:3, 3], device=position.device, dtype=position.dtype)
-        weight = weight * emission_factor(light, local, position[index], origin)
+        weight = weight * emission_factor(light, local, position, origin)
+    lit = weight.sum((0, 2))
+    if unit.shadow.enable:
+        weight = weight * shadow_factor(unit.shadow, torch.isfinite(distance), distance)
     values = torch.cat([weight, direction * weight.mean(-1, keepdim=True)], -1)  # (S, P, 6)
-    grouped = values.new_zeros(num_groups, index.shape[0], CHANNELS)
-    grouped[..., :6].index_add_(0, groups, values)
+    grouped = values.new_zeros(num_groups, values.shape[1], CHANNELS)
+    if num_groups == 1:
+        grouped[0, :, :6] = values.sum(0)
+    else:
+        grouped[..., :6].index_add_(0, groups, values)
     grouped[..., 6] = 1.0 if ratio is None else ratio
-    table[index] = grouped.transpose(0, 1)
-    return table
+    if index.numel() < live.shape[0]:
+        table.index_copy_(0, index, grouped.transpose(0, 1))
+        unshadowed.index_copy_(0, index, lit)
+        return table, unshadowed
+    return grouped.transpose(0, 1).contiguous(), lit
 
 
 def view_colours(params: PreviewSurfaceParams) -> torch.Tensor:
@@ -139,56 +160,62 @@ def view_colours(params: PreviewSurfaceParams) -> torch.Tensor:
     return preview_surface.factor_colours(params, bool(params.clearcoat.any()))
 
 
-def group_images(params: PreviewSurfaceParams, wo_local: torch.Tensor, tangent: torch.Tensor,
-                 bitangent: torch.Tensor, normal: torch.Tensor, geometric_normal: torch.Tensor,
-                 table: torch.Tensor, colours: torch.Tensor | None = None) -> torch.Tensor:
+def view_directions(wo: torch.Tensor, normal: torch.Tensor, geometric_normal: torch.Tensor) -> torch.Tensor:
+    """(9, N) what `group_images` reads of a view's N points, component rows: the unit world
+    directions to the viewer, the unit shading normals and the geometric normals (facing the
+    viewer), each (N, 3). The same for every light: made once per view."""
+    return torch.cat([wo, normal, geometric_normal], 1).T.contiguous()
+
+
+def group_images(params: PreviewSurfaceParams, directions: torch.Tensor, table: torch.Tensor,
+                 colours: torch.Tensor | None = None) -> torch.Tensor:
     """(2, N, 3) diffuse and specular unit images of N points from their W and D.
 
-    The BRDF is `preview_surface.split` through its factored form (`split_factors`, scalars per
-    group and point, times the per-material `factor_colours`): equal to it, with the colour
-    work done once per view rather than once per light and group.
+    The BRDF is `preview_surface.split` through its factored form (scalars per group and point,
+    times the per-material `factor_colours`): equal to it, with the colour work done once per view
+    rather than once per light and group. It is isotropic, so the scalars need only N.E, N.L and
+    E.L (`preview_surface.split_factors_cosines`, in place): no tangent frame, no local directions.
 
     Args:
-        params: (N,) materials; wo_local: (N, 3) unit direction to the viewer in the shading frame
-            (tangent, bitangent, normal), each (N, 3); geometric_normal: (N, 3), facing the viewer.
+        params: (N,) materials; directions: (9, N) `view_directions` of the points.
         table: (7, G, N) the points' (blended) incident groups, channels first (`CHANNELS`).
         colours: (F, N, 3) `view_colours(params)`, or None to compute them here.
     """
-    num_points = wo_local.shape[0]
+    num_points, rows = directions.shape[1], directions
+    cos_e = rows[0] * rows[3] + rows[1] * rows[4] + rows[2] * rows[5]
     # Points the light reaches and whose shading normal faces the viewer (as the Relighter's transport).
-    reached = (table[:3].abs().sum(0) > 0).any(0) & (wo_local[:, 2] > 0)
+    reached = (table[:3].abs().sum(0) > 0).any(0) & (cos_e > 0)
     count = int(reached.sum())
     if count == 0:
-        return wo_local.new_zeros(2, num_points, 3)
+        return rows.new_zeros(2, num_points, 3)
     if colours is None:
         colours = view_colours(params)
+    coat = colours.shape[0] > 4
+    roughnesses = (params.roughness, params.clearcoat_roughness)[:1 + coat]
     # Most points lit: shade them all (masked) rather than gather the lit ones and scatter back.
     live = None if 2 * count > num_points else torch.nonzero(reached).squeeze(-1)
-
-    def pick(values: torch.Tensor) -> torch.Tensor:
-        return values if live is None else values.index_select(0, live)
-
     if live is not None:
-        table = table.index_select(2, live)
-        colours = colours.index_select(1, live)
-    # Unit group directions and their local frame, component by component ((G, P) slabs).
+        table, colours, rows = table.index_select(2, live), colours.index_select(1, live), rows.index_select(1, live)
+        cos_e, roughnesses = cos_e.index_select(0, live), tuple(r.index_select(0, live) for r in roughnesses)
+    # Unit group directions, component by component ((G, P) slabs), against the view's directions.
     dx, dy, dz = table[3], table[4], table[5]
     inverse = torch.rsqrt((dx * dx + dy * dy + dz * dz).clamp_(min=1e-30))
-    dx, dy, dz = dx * inverse, dy * inverse, dz * inverse
-    tangent, bitangent, normal, geometric_normal = (pick(v) for v in (tangent, bitangent, normal, geometric_normal))
-    wi_local = torch.stack([dx * frame[:, 0] + dy * frame[:, 1] + dz * frame[:, 2]
-                            for frame in (tangent, bitangent, normal)], -1)                  # (G, P, 3)
-    cosine = wi_local[..., 2]
-    facing = dx * geometric_normal[:, 0] + dy * geometric_normal[:, 1] + dz * geometric_normal[:, 2] > 0
-    valid = (cosine > 0) & facing
+
+    def along(axis: int) -> torch.Tensor:
+        return dx * rows[axis] + dy * rows[axis + 1] + dz * rows[axis + 2]
+
+    e_dot_l, cos_l = along(0).mul_(inverse), along(3).mul_(inverse)
+    valid = along(6) > 0                          # the light on the geometric side too (N.L: the function's)
     if live is None:
         valid &= reached
-    material = dataclasses.replace(params, **{f.name: pick(getattr(params, f.name))
-                                              for f in dataclasses.fields(params)})
-    factors = preview_surface.split_factors(material, pick(wo_local), wi_local, colours.shape[0] > 4,
-                                            weight=cosine * valid)                           # (F, G, P)
+    groups, points = cos_l.shape
+    factors = cos_l.new_empty(4 + 2 * coat, groups, points)
+    # Points first, groups last, as the function lays them out: views of the (G, P) slabs.
+    preview_surface.split_factors_cosines(tuple(r[:, None] for r in roughnesses), cos_e[:, None], cos_l.T,
+                                          e_dot_l.T, valid.to(cos_l.dtype).T, factors.transpose(1, 2),
+                                          cos_l.new_empty(4, points, groups))                 # (F, G, P)
     light = table[:3].permute(1, 2, 0)                                                      # (G, P, 3)
-    if light.shape[0] == 1:  # one group: its light factors out of the sum
+    if groups == 1:  # one group: its light factors out of the sum
         diffuse, specular = preview_surface.combine_factors(colours, factors[:, 0, :, None])
         diffuse.mul_(light[0]).mul_(table[6, 0, :, None])
         specular.mul_(light[0])
@@ -198,4 +225,4 @@ def group_images(params: PreviewSurfaceParams, wo_local: torch.Tensor, tangent: 
         diffuse.mul_(table[6, 0, :, None])
     if live is None:
         return torch.stack([diffuse, specular])
-    return wo_local.new_zeros(2, num_points, 3).index_copy_(1, live, torch.stack([diffuse, specular]))
+    return rows.new_zeros(2, num_points, 3).index_copy_(1, live, torch.stack([diffuse, specular]))

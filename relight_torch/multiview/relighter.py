@@ -42,14 +42,14 @@ from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import check_inputs, load_npy
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
-from relight_torch.light_samples import bounding_radius
+from relight_torch.light_samples import bounding_radius, fixed_light_samples
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import decode_paths
-from relight_torch.math.frame import orthonormal_basis, to_local
+from relight_torch.math.frame import orthonormal_basis
 from relight_torch.multiview.correspondence import ViewPoints, correspondence_map
 from relight_torch.multiview.holes import HoleReport, fill_small_holes
 from relight_torch.multiview.incident import (CHANNELS, group_images, incident_table, pool_light_samples, sample_groups,
-                                              view_colours)
+                                              view_colours, view_directions)
 from relight_torch.multiview.load import load_camera_table, load_view_gbuffers
 from relight_torch.multiview.resample import bilinear_samples
 from relight_torch.multiview.views import CachingViews, concat_gbuffers, gather_gbuffer, take_rows
@@ -137,10 +137,11 @@ class MultiviewRelighter:
         blend_lighting: blend the cached lighting of the four caching pixels around a point with
             the materials' bilinear weights; False takes the nearest one's (4x fewer gathers;
             shadow edges then follow the caching camera's pixels).
-        edge_contrast: points whose four caching pixels' lighting differs by more than this
-            fraction of the largest (shadow edges, the edges of a light's pool) have that light
-            traced again at their own position, so that hard edges come out at the view's
-            resolution rather than the caching camera's.
+        edge_contrast: points whose four caching pixels disagree on a light by more than this
+            have that light traced again at their own position, so that hard edges come out at
+            the view's resolution rather than the caching camera's: the fractions of the light
+            reaching them past occluders differ by more (shadow edges), or the unshadowed light
+            by more than this fraction of the largest (the edges of a light's pool).
         near_field: points farther from their nearest caching sample than this fraction of their
             distance to a light's bounding sphere have that light traced again at their own
             position (sphere, disk, rect and cylinder lights). With both None a camera move traces
@@ -184,18 +185,20 @@ class MultiviewRelighter:
         self._lights: dict[str, Light] = {}
         self._relighter: Relighter | None = None
         self._view: ViewSamples | None = None
-        self._wo_local: torch.Tensor | None = None
+        self._directions: torch.Tensor | None = None   # (9, N) `incident.view_directions` of the view
         self._colours: torch.Tensor | None = None
         self._edge_taps: torch.Tensor | None = None   # (4, M) the view's taps for `_refined_points`
         # The view's (3, M) positions and (M,) distances to their nearest samples (near field).
         self._offsets: tuple[torch.Tensor, torch.Tensor] | None = None
         # Per light: the pool's (7 G, R) incident table, channels first, which rows are traced, and
-        # (1, R) the summed W of each row (what `_refined_points` compares); per sample count, the
-        # pool's fixed light samples; (light, taps) whose table holds every row the current view uses
-        # (its nearest rows, or with taps its four taps' rows).
+        # (2, R) the fraction of the light reaching each row and its summed unshadowed W (what
+        # `_refined_points` compares); per sample count, the pool's fixed light samples; (light, taps)
+        # whose table holds every row the current view uses (its nearest rows, or with taps its four
+        # taps' rows).
         self._tables: dict[str, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
         self._ready: set[tuple[str, bool]] = set()
         self._u: dict[int, torch.Tensor] = {}
+        self._traced_u: dict[int, torch.Tensor] = {}   # per sample count, `_point_samples`' draw
         self._num_samples: dict[str, int] = {}
         # A Relighter over the pool, for the lights' sample counts only (as over a view).
         self._pool_relighter = Relighter(views.pool, visibility, 1, 1.0, settings, object_paths)
@@ -242,7 +245,7 @@ class MultiviewRelighter:
             self.exposure_scale = exposure_scale
         self._view = view_gbuffer(self.views, view.to(self.views.device), patch, self.normal_mapped)
         gbuffer = self._view.gbuffer
-        self._wo_local = to_local(gbuffer.wo_world(), gbuffer.tangent, gbuffer.bitangent, gbuffer.normal)
+        self._directions = view_directions(gbuffer.wo_world(), gbuffer.normal, gbuffer.geometric_normal)
         self._colours = view_colours(gbuffer.params)
         self._edge_taps = self._offsets = None
         self._ready.clear()
@@ -296,16 +299,30 @@ class MultiviewRelighter:
                                                       views.pool.position.dtype)
         return self._u[num_samples]
 
+    def _point_samples(self, num_points: int, num_samples: int) -> torch.Tensor:
+        """(num_points, S, 2) fixed light samples for view points traced at their own position: the
+        first rows of one draw kept for the relighter's life (`fixed_light_samples` draws row by row
+        from one seeded generator, so these equal a draw of num_points; kept, each render skips it)."""
+        drawn = self._traced_u.get(num_samples)
+        if drawn is None or drawn.shape[0] < num_points:
+            size = max(num_points, 0 if drawn is None else 2 * drawn.shape[0])
+            drawn = fixed_light_samples(size, num_samples, self.settings.seed, self.views.device,
+                                        self.views.pool.position.dtype)
+            self._traced_u[num_samples] = drawn
+        return drawn[:num_points]
+
     def _pool_table(self, light: Light, rows: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """The light's (7 G, R) incident table (channels first, `incident.CHANNELS`) and (1, R) summed W,
-        with at least `rows` traced (None: the current view's, checked once per view and light)."""
+        """The light's (7 G, R) incident table (channels first, `incident.CHANNELS`) and (2, R) each row's
+        fraction of the light reaching it past occluders (summed W over summed unshadowed W, 0 where
+        that is 0) and its summed unshadowed W, with at least `rows` traced (None: the current view's,
+        checked once per view and light)."""
         pool = self.views.pool
         u = self._light_samples(light)
         if light.path not in self._tables:
             groups = int(sample_groups(u.shape[1], self.sample_groups).max()) + 1
             self._tables[light.path] = (pool.position.new_zeros(CHANNELS * groups, pool.num_samples),
                                         torch.zeros(pool.num_samples, dtype=torch.bool, device=pool.device),
-                                        pool.position.new_zeros(1, pool.num_samples))
+                                        pool.position.new_zeros(2, pool.num_samples))
         table, done, total = self._tables[light.path]
         taps = self.blend_lighting or self.edge_contrast is not None
         ready = (light.path, taps) if rows is None else None
@@ -318,10 +335,12 @@ class MultiviewRelighter:
             def pick(values: torch.Tensor) -> torch.Tensor:
                 return values.index_select(0, missing)
 
-            traced = incident_table(light, pick(pool.position), pick(pool.geometric_normal), pick(pool.normal), pick(u),
-                                    self.visibility, self.sample_groups, self.settings.chunk_samples)
+            traced, unshadowed = incident_table(light, pick(pool.position), pick(pool.geometric_normal),
+                                                pick(pool.normal), pick(u), self.visibility, self.sample_groups,
+                                                self.settings.chunk_samples)
             table.index_copy_(1, missing, traced.permute(2, 1, 0).reshape(table.shape[0], -1))
-            total.index_copy_(1, missing, traced[..., :3].sum((1, 2))[None])
+            reaching = traced[..., :3].sum((1, 2)).div_(torch.where(unshadowed > 0, unshadowed, 1.0))
+            total.index_copy_(1, missing, torch.stack([reaching, unshadowed]))
             done[missing] = True
             self.counters["lit_samples"] += int(missing.numel())
         if ready is not None:
@@ -332,7 +351,7 @@ class MultiviewRelighter:
         """(2, N, 3) the light's unit images at the view: cached lighting, the view's BRDF."""
         view, gbuffer = self._view, self._view.gbuffer
         refine = self.edge_contrast is not None or self.near_field is not None
-        table, total = self._pool_table(light, None)
+        table, totals = self._pool_table(light, None)
         if self.blend_lighting:
             columns = sum(take_rows(table, view.taps[:, t]) * view.weights[:, t] for t in range(view.taps.shape[1]))
         else:
@@ -340,7 +359,7 @@ class MultiviewRelighter:
         cached = view.rows.shape[0]
         # Traced at the view: the points on the light's edges in the caching images or in its near field,
         # and the samples baked on demand (not in the pool).
-        traced = [self._refined_points(light, total)] if refine else []
+        traced = [self._refined_points(light, totals)] if refine else []
         self.counters["edge_samples"] += int(traced[0].numel()) if refine else 0
         if gbuffer.num_samples > cached:
             columns = torch.cat([columns, columns.new_zeros(columns.shape[0], gbuffer.num_samples - cached)], 1)
@@ -351,34 +370,35 @@ class MultiviewRelighter:
             def pick(values: torch.Tensor) -> torch.Tensor:
                 return values.index_select(0, points)
 
-            u = pool_light_samples([points.numel()], self._light_samples(light).shape[1], self.settings.seed,
-                                   gbuffer.device, gbuffer.position.dtype)
-            fresh = incident_table(light, pick(gbuffer.position), pick(gbuffer.geometric_normal), pick(gbuffer.normal),
-                                   u, self.visibility, self.sample_groups, self.settings.chunk_samples)
+            u = self._point_samples(points.numel(), self._light_samples(light).shape[1])
+            fresh, _ = incident_table(light, pick(gbuffer.position), pick(gbuffer.geometric_normal),
+                                      pick(gbuffer.normal), u, self.visibility, self.sample_groups,
+                                      self.settings.chunk_samples)
             columns.index_copy_(1, points, fresh.permute(2, 1, 0).reshape(columns.shape[0], -1))
         self.counters["view_shading"] += 1
-        return group_images(gbuffer.params, self._wo_local, gbuffer.tangent, gbuffer.bitangent, gbuffer.normal,
-                            gbuffer.geometric_normal, columns.reshape(CHANNELS, -1, gbuffer.num_samples),
+        return group_images(gbuffer.params, self._directions, columns.reshape(CHANNELS, -1, gbuffer.num_samples),
                             self._colours)
 
-    def _refined_points(self, light: Light, summed: torch.Tensor) -> torch.Tensor:
-        """(E,) int64 rows of the view traced at their own position for `light`: with `edge_contrast`,
-        those whose four caching taps (those of its surface) disagree on the light's summed incident
-        weight (`summed`, (1, R)) by more than that fraction of the largest (shadow and light-shape
-        edges, which the caching pixels resolve only as coarsely as they are large); with
+    def _refined_points(self, light: Light, totals: torch.Tensor) -> torch.Tensor:
+        """(E,) int64 rows of the view traced at their own position for `light`: with `edge_contrast` c,
+        those whose four caching taps (those of its surface) disagree on the light (`totals`, (2, R),
+        `_pool_table`'s): the fractions of the light reaching them past occluders differ by more
+        than c (shadow edges sharper than a caching pixel), or the unshadowed W differs by more
+        than c of the largest (the edges of a light's pool: cone, shaping, the horizon); with
         `near_field`, those whose nearest caching sample is farther from them than that fraction
         of their distance to the light's bounding sphere."""
         view = self._view
         count = view.rows.shape[0]
-        refined = torch.zeros(count, dtype=torch.bool, device=summed.device)
+        refined = torch.zeros(count, dtype=torch.bool, device=totals.device)
         if self.edge_contrast is not None:
             if self._edge_taps is None:
                 # (4, M): taps of another surface (weight 0) stand in for the nearest one, which always
                 # counts; rows of taps, so that the extremes are three element-wise maxima and minima.
                 self._edge_taps = torch.where(view.weights > 0, view.taps, view.rows[:, None]).T.contiguous()
-            total = take_rows(summed, self._edge_taps)[0]                                   # (4, M)
-            high = torch.maximum(torch.maximum(total[0], total[1]), torch.maximum(total[2], total[3]))
-            low = torch.minimum(torch.minimum(total[0], total[1]), torch.minimum(total[2], total[3]))
+            reaching, unshadowed = take_rows(totals, self._edge_taps).unbind(0)             # (4, M) each
+            high, low = _extremes(reaching)
+            refined |= high - low > self.edge_contrast
+            high, low = _extremes(unshadowed)
             refined |= high - low > self.edge_contrast * high
         if self.near_field is not None and light.kind not in (LightKind.DISTANT, LightKind.DOME):
             if self._offsets is None:
@@ -392,6 +412,12 @@ class MultiviewRelighter:
                 squared.add_((position[axis] - float(centre[axis])).square_())
             refined |= offsets > self.near_field * (squared.sqrt_() - bounding_radius(light))
         return torch.nonzero(refined).squeeze(-1)
+
+
+def _extremes(values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(M,) maximum and minimum over the four rows of (4, M) `values`: element-wise, no reduction kernel."""
+    return (torch.maximum(torch.maximum(values[0], values[1]), torch.maximum(values[2], values[3])),
+            torch.minimum(torch.minimum(values[0], values[1]), torch.minimum(values[2], values[3])))
 
 
 def open_multiview_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",

@@ -137,6 +137,44 @@ def column_kinds(packed: torch.Tensor, material_id: torch.Tensor) -> torch.Tenso
     return torch.where(textured, TEXTURED, torch.where(varying, PER_MATERIAL, CONSTANT))
 
 
+def cube_faces(table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((C, 6) int64 camera of each face of each cube, -1 where dropped; (S,) int64 the other cameras)
+    of a (K, C) camera table.
+
+    A cube is the PRIMARY cameras of one group at one centre, each a square, centred 90-degree view
+    down a world axis, no two down the same one: face 2 axis + (negative) (+x, -x, +y, -y, +z, -z,
+    as the baker places them). Its six frusta tile the sphere of directions, so a point lies in the
+    face of the largest component of its direction from the centre. Anything else is single.
+    """
+    world = world_from_camera(table)
+    forward = -world[:, :3, 2] / np.linalg.norm(world[:, :3, 2], axis=-1, keepdims=True)
+    axis = np.abs(forward).argmax(-1)
+    face = 2 * axis + (forward[np.arange(len(table)), axis] < 0)
+    focal = camera_column(table, "focalLength")
+    square = (np.isclose(camera_column(table, "horizontalAperture"), 2.0 * focal)
+              & np.isclose(camera_column(table, "verticalAperture"), 2.0 * focal)
+              & (camera_column(table, "horizontalApertureOffset") == 0)
+              & (camera_column(table, "verticalApertureOffset") == 0)
+              & (camera_column(table, "width") == camera_column(table, "height"))
+              & np.isclose(np.abs(forward).max(-1), 1.0))
+    candidates = (camera_column(table, "kind") == PRIMARY) & square
+    groups: dict[int, list[int]] = {}
+    for k in np.flatnonzero(candidates):
+        groups.setdefault(int(camera_column(table, "group")[k]), []).append(int(k))
+    cubes, singles = [], [int(k) for k in np.flatnonzero(~candidates)]
+    for members in groups.values():
+        centre = world[members[0], :3, 3]
+        if (len({int(face[k]) for k in members}) < len(members)
+                or not all(np.allclose(world[k, :3, 3], centre) for k in members)):
+            singles += members
+            continue
+        faces = [-1] * 6
+        for k in members:
+            faces[int(face[k])] = k
+        cubes.append(faces)
+    return np.array(cubes, np.int64).reshape(-1, 6), np.array(sorted(singles), np.int64)
+
+
 def take_rows(columns: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
     """(C, ...) the columns (C, R) at `rows` (...) int64: one `index_select` per call, on the CPU
     much faster than advanced indexing (`columns[:, rows]`) or a gather of (R, C) rows."""
@@ -207,6 +245,9 @@ class CachingViews:
             rows (12), focal length, horizontal and vertical aperture and offset, width, height,
             so that the correspondence map projects every point into its own camera (`take_small`).
         centres: (3, K) float32 camera positions.
+        cubes: (C, 6) int64 the camera of each face of each omni-directional camera (`cube_faces`:
+            +x, -x, +y, -y, +z, -z), -1 where the face was dropped; singles: (S,) int64 the other
+            cameras. The correspondence map scores a cube once, through the face a point lies in.
         axes: (4, K) float32 per camera its unit viewing direction (3) and the cosine of the
             half-angle of a cone around it holding its whole frustum (1% wider): a point outside
             that cone is outside the image, which the correspondence map tests before anything else.
@@ -231,6 +272,8 @@ class CachingViews:
     surface_table: torch.Tensor
     centres: torch.Tensor
     projection: torch.Tensor
+    cubes: torch.Tensor
+    singles: torch.Tensor
     axes: torch.Tensor
 
     @property
@@ -290,6 +333,7 @@ class CachingViews:
         forward /= np.linalg.norm(forward, axis=-1, keepdims=True)
         corner = np.hypot(film[:, 1] / 2 + np.abs(film[:, 3]), film[:, 2] / 2 + np.abs(film[:, 4])) / film[:, 0]
         cone = 1.0 / np.sqrt(1.0 + (1.01 * corner) ** 2)
+        cubes, singles = cube_faces(table)
         return CachingViews(
             table=np.asarray(table, np.float64), pool=pool,
             camera_from_world=torch.from_numpy(camera_from_world).to(device),
@@ -306,6 +350,8 @@ class CachingViews:
             centres=torch.as_tensor(world_from_camera(table)[:, :3, 3].T.copy(), dtype=torch.float32,
                                     device=device).reshape(3, -1),
             projection=torch.as_tensor(projection, dtype=torch.float32, device=device).reshape(-1, 19).T.contiguous(),
+            cubes=torch.as_tensor(cubes, dtype=torch.int64, device=device).reshape(-1, 6),
+            singles=torch.as_tensor(singles, dtype=torch.int64, device=device).reshape(-1),
             axes=torch.as_tensor(np.concatenate([forward, cone[:, None]], -1).T.copy(), dtype=torch.float32,
                                  device=device).reshape(4, -1))
 
