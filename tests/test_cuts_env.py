@@ -4,6 +4,7 @@ edits without re-baking, light edits, and the merge's cost counters."""
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 from pathlib import Path
 
@@ -16,13 +17,14 @@ from pipeline.bake.cuts.lights import sphere_directions
 from pipeline.bake.cuts.tree import build_leaf_order
 from pipeline.bake.cuts.vertices import build_lattice
 from pipeline.benchmarks.bench.measure import moved
-from pipeline.benchmarks.cuts_sweep import rotated
+from pipeline.benchmarks.cuts_sweep import baked_cache, rotated
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scene.types import MaterialInput
 from pipeline.scenes import SCENES, write_light_edits
 from relight_torch.brdf import preview_surface
 from relight_torch.cache.layer import read_cache_layer
+from relight_torch.cuts import relighter as cuts_relighter
 from relight_torch.cuts.merge import refine
 from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
 from relight_torch.math.frame import to_local
@@ -155,10 +157,14 @@ def test_cached_dense_batches_match_a_per_cluster_evaluation(dome):
     torch.testing.assert_close(batched, fresh.cut_samples(fresh.lights), rtol=1e-4, atol=1e-5)
 
 
-def test_kept_factor_columns_follow_light_and_material_edits(dome):
+def test_kept_factor_columns_follow_light_and_material_edits(dome, monkeypatch):
     # The beauty render keeps the BRDF factors per (sub-sample, illumination-cut node): a turned
     # dome recomputes only the columns of nodes new to the cut, a colour edit nothing, a
     # roughness edit only its material's rows; each frame must equal a plain per-cluster evaluation.
+    # Small chunks of rows for the merge (and a roughness edit's rows) and for the products, so
+    # that batches of 97 rows are cut into several of each.
+    monkeypatch.setattr(cuts_relighter, "MERGE_ROWS", 13)
+    monkeypatch.setattr(cuts_relighter, "PRODUCT_ROWS", 11)
     scene, _, layer, _, _ = dome
     relighter = open_cache_relighter(layer)
     relighter.set_settings(CutsRelightSettings(rows_per_batch=97, factor_dtype=torch.float32))
@@ -175,7 +181,8 @@ def test_kept_factor_columns_follow_light_and_material_edits(dome):
     merged = relighter.stats["merged"]
     assert 0 < relighter.stats["evaluated"] < 0.5 * merged
     relighter.set_light(moved(turned, 0.01))       # a dome at infinity: same light, nothing evaluated
-    relighter.cut_samples(relighter.lights, keep=True)
+    torch.testing.assert_close(relighter.cut_samples(relighter.lights, keep=True), _per_cluster(relighter),
+                               rtol=1e-4, atol=1e-5)
     assert relighter.stats["evaluated"] == 0 and relighter.stats["merged"] == merged
     index = next(i for i, material in enumerate(scene.materials) if material.path.endswith("RedPlastic"))
     relighter.edit_material(index, diffuse_color=(0.1, 0.5, 0.15))
@@ -200,6 +207,18 @@ def test_bfloat16_factors_stay_within_their_rounding(dome):
     exact = relighter.cut_samples(relighter.lights)
     assert float((rounded - exact).abs().max() / exact.abs().max()) < 0.005
     assert _psnr(rounded, exact) > 60.0
+
+
+def test_the_sweep_reuses_only_a_cache_baked_alike(dome):
+    # `cuts_sweep --reuse` relights a cache of the same size and bake parameters instead of baking.
+    _, _, layer, _, directory = dome
+    settings = CutsSettings(num_lights=LIGHTS, sigma=2.0, lattice_edge=0.03)
+    args = argparse.Namespace(width=WIDTH, height=HEIGHT, supersampling=2, texture_samples=2)
+    assert baked_cache(layer, settings, args) == layer
+    assert baked_cache(layer, dataclasses.replace(settings, sigma=3.0), args) is None
+    assert baked_cache(layer, settings, argparse.Namespace(**{**vars(args), "width": 2 * WIDTH})) is None
+    assert baked_cache(layer, settings, argparse.Namespace(**{**vars(args), "supersampling": 1})) is None
+    assert baked_cache(directory / "none" / "dome.relight.usda", settings, args) is None
 
 
 def test_lattice_interpolates_the_hit_points():

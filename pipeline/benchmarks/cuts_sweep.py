@@ -2,15 +2,15 @@
 
     python -m pipeline.benchmarks.cuts_sweep [SCENE...] --width W --height H [--lights 1024 4096 ...]
         [--sigmas 1.5 2 3] [--cut-sizes 128 256 512] [--betas 1 0.5] [--mode env|indirect]
-        [--spp N] [--repeats R] [--csv FILE]
+        [--spp N] [--repeats R] [--csv FILE] [--out DIR [--reuse]]
 
 Per scene, light count, sigma and tree blend beta (1 = geometric tree, < 1 data-driven) it bakes once (bake_s, cache_bytes: that bake's payloads) and
 relights with every illumination cut size, under the shot's lights and every example light edit,
 against `PathTracer(max_bounces=0)` (PSNR, relMSE; indirect mode: `max_bounces=1`, and
 psnr_indirect_db against its 1-bounce minus 0-bounce part). relight_ms is the median of the first
 light moved and re-rendered (`pipeline.benchmarks.bench.measure.relight_ms`; env mode: a dome
-translated, whose light and illumination cut do not change, so only the kept factor columns'
-products with the light run again; see `edit_timings` for edits that change more). params also record what the cost follows: `vis` = mean visibility
+translated, whose light does not change: its illumination cut is made again, nothing else of
+the cuts' light; see `edit_timings` for edits that change more). params also record what the cost follows: `vis` = mean visibility
 cut size per lattice vertex, and per sub-sample `inputs` = visibility cut entries merged (its
 three vertices'), `merged` = merged-cut entries shaded or tested and `dark` = dark visibility
 clusters dropped before the illumination cut is merged in, so relight_ms can be read against the
@@ -26,6 +26,9 @@ edit run first, which compiles the variants the edits use). With `--cost` (impli
 round-robin instead, `--repeats` rounds of the cuts' light fully evaluated per bake, so that a
 shared machine's load changes affect every bake alike: for reading relight_ms against `merged` as the
 number of point lights grows (seed 004: the cost follows the merged cut size, not the lights).
+
+With `--reuse` the caches already baked in `--out` with the same size and bake parameters are
+relit instead of baked again (bake_s NaN): for timing relighter changes at 640 x 480.
 """
 
 from __future__ import annotations
@@ -179,6 +182,19 @@ def cost_rows(bakes: list[tuple[CutsRelighter, Path, dict[str, object], float]],
     return rows
 
 
+def baked_cache(layer: Path, settings: CutsSettings, args: argparse.Namespace) -> Path | None:
+    """`layer` if a cache baked there earlier has this sweep's size and bake parameters (`--reuse`:
+    the bake at 640 x 480 takes minutes), else None. Its code version is not compared: the bake's
+    code may have changed since."""
+    if not layer.is_file():
+        return None
+    description = read_cache_layer(layer)
+    wanted = {**settings.parameters(), "supersampling": args.supersampling, "textureSamples": args.texture_samples}
+    same = (tuple(description.resolution) == (args.width, args.height)
+            and all(description.parameters.get(key) == value for key, value in wanted.items()))
+    return layer if same else None
+
+
 def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[SweepRow]:
     """Every (lights, sigma) bake of one scene and its rows."""
     bundled = SCENES[name]
@@ -194,10 +210,14 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[Sw
     for num_lights, sigma, beta in itertools.product(args.lights, args.sigmas, args.betas):
         settings = CutsSettings(mode=args.mode, num_lights=num_lights, sigma=sigma, lattice_edge=args.lattice_edge,
                                 beta=beta)
-        start = time.perf_counter()
-        layer = bake_cuts(scene, camera, directory / f"cache-{num_lights}-{sigma}-{beta}", name, args.supersampling,
-                          args.texture_samples, settings=settings)
-        bake_s = time.perf_counter() - start
+        cache_dir = directory / f"cache-{num_lights}-{sigma}-{beta}"
+        layer = baked_cache(cache_dir / f"{name}.relight.usda", settings, args) if args.reuse else None
+        bake_s = NAN
+        if layer is None:
+            start = time.perf_counter()
+            layer = bake_cuts(scene, camera, cache_dir, name, args.supersampling, args.texture_samples,
+                              settings=settings)
+            bake_s = time.perf_counter() - start
         relighter = open_cuts_relighter(layer)
         parameters = {"mode": settings.mode, "lights": num_lights, "sigma": sigma, "beta": beta,
                       "latticeEdge": f"{args.lattice_edge:.4g}", "supersampling": args.supersampling}
@@ -228,6 +248,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="CutsRelightSettings(compiled=True): the BRDF blocks through torch.compile")
     parser.add_argument("--cost", action="store_true", help="time the bakes round-robin (implies --timing)")
     parser.add_argument("--out", type=Path, help="working directory (default: a temporary one)")
+    parser.add_argument("--reuse", action="store_true",
+                        help="relight the caches an earlier run baked in --out with the same size and bake "
+                             "parameters instead of baking again (bake_s NaN)")
     parser.add_argument("--csv", type=Path, help="write the rows here (default: stdout)")
     args = parser.parse_args(argv)
     args.timing |= args.cost

@@ -24,7 +24,7 @@ CELL_SAMPLES = 16
 """Directions averaged per leaf cell (a Fibonacci spiral over the cell's disk)."""
 
 
-def _cell_pattern(directions: torch.Tensor, solid_angles: torch.Tensor) -> torch.Tensor:
+def cell_pattern(directions: torch.Tensor, solid_angles: torch.Tensor) -> torch.Tensor:
     """(L, S, 3) unit directions spread over equal-area disks around (L, 3) `directions`."""
     k = torch.arange(CELL_SAMPLES, device=directions.device, dtype=directions.dtype) + 0.5
     radius = torch.sqrt(k / CELL_SAMPLES)
@@ -38,19 +38,20 @@ def _cell_pattern(directions: torch.Tensor, solid_angles: torch.Tensor) -> torch
     return torch.nn.functional.normalize(world, dim=-1)
 
 
-def dome_leaf_light(lights: list[Light], directions: torch.Tensor,
+def dome_leaf_light(lights: list[Light], pattern: torch.Tensor,
                     solid_angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(diffuse, specular) (L, 3) light of every leaf from the given dome lights, for the two BRDF
     lobes: each dome's radiance over the leaf's cell, evaluated once, times its per-lobe multiplier.
 
     Args:
         lights: dome lights.
-        directions: (L, 3) unit world directions of the leaves; solid_angles: (L,) their cells.
+        pattern: (L, S, 3) the leaves' cells' directions (`cell_pattern`, made once per cache).
+        solid_angles: (L,) the cells' solid angles.
     """
-    diffuse, specular = torch.zeros_like(directions), torch.zeros_like(directions)
+    diffuse = pattern.new_zeros((pattern.shape[0], 3))
+    specular = torch.zeros_like(diffuse)
     if not lights:
         return diffuse, specular
-    pattern = _cell_pattern(directions, solid_angles)
     origin = torch.zeros_like(pattern)
     for light in lights:
         if light.diffuse == 0.0 and light.specular == 0.0:

@@ -18,7 +18,7 @@ computed as the scalars f_r is linear in (`preview_surface.split_factors`, evalu
 from dot products by `preview_surface.split_factors_cosines`) summed per illumination-cut node,
 times the nodes' light, combined with the current colours (`preview_surface.combine_factors`).
 What each edit recomputes (`FactorColumns`): a light edit that keeps the illumination cut's
-nodes, the products with the light; one that changes them, the entries of the new nodes too; a
+nodes, the products with the light (none if the nodes' light is unchanged); one that changes them, the entries of the new nodes too; a
 colour edit of a material, only the combination; a roughness edit, the lobes' factors of that
 material's sub-samples; none of them the visibility merge.
 Everything else is the direct relighter's.
@@ -36,7 +36,7 @@ from relight_torch.brdf import preview_surface
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.cuts.blocks import BlockEvaluator, slabs
 from relight_torch.cuts.cuts import Cuts, intensity_cut
-from relight_torch.cuts.env import dome_leaf_light
+from relight_torch.cuts.env import cell_pattern, dome_leaf_light
 from relight_torch.cuts.merge import MergedCuts, leaf_cut_index, merge
 from relight_torch.cuts.tree import LightTree
 from relight_torch.lights.dome import REC709_LUMINANCE
@@ -47,13 +47,27 @@ from relight_torch.relighter import Relighter, light_group
 from relight_torch.transfer.gathers import GatherSamples, gather_radiance
 
 
+MERGE_ROWS = 2048
+"""Sub-samples whose visibility cuts are merged together (`CutsRelighter.visibility_batches`), and
+whose every merged entry is evaluated together (a new illumination cut, a roughness edit's rows),
+each chunk cut to its own longest row: bounds the temporaries (the column sums' scatter stays in
+cache), whatever `CutsRelightSettings.rows_per_batch`."""
+
+PRODUCT_ROWS = 1024
+"""Sub-samples whose factor columns are updated and multiplied with the light together: 4 MiB of
+bfloat16 columns at a cut of 256, which stay in cache between the two."""
+
+
 @dataclass(frozen=True)
 class CutsRelightSettings:
     """Per-frame settings.
 
     Attributes:
         max_cut: illumination cut size (seed 004: 128, 256 or 512).
-        rows_per_batch: sub-samples merged and shaded together (bounds the temporaries' memory).
+        rows_per_batch: sub-samples shaded together, their merged visibility cuts kept padded to
+            the batch's longest row (bounds the temporaries' memory; larger batches make fewer,
+            larger torch calls per frame: a 640 x 480 dome turn ~20 % faster at 16,384 than at
+            2,048, for ~55 % padding of the kept rows instead of ~25 %, +120 MiB).
         factor_dtype: dtype of the kept BRDF factor sums per (sub-sample, illumination-cut node)
             and of their product with the light: bfloat16 (default; half the memory, ~3x faster
             products on CPU, ~0.3 % relative error) or float32.
@@ -65,7 +79,7 @@ class CutsRelightSettings:
     """
 
     max_cut: int = 256
-    rows_per_batch: int = 2048
+    rows_per_batch: int = 16384
     factor_dtype: torch.dtype = torch.bfloat16
     compiled: bool = False
 
@@ -142,6 +156,9 @@ class FactorColumns:
         sums: (N, F, 3) float the factor sums times the light (diffuse light for the first two
             factors, specular for the others), summed over the cut.
         light_key: the illumination cut `sums` were made with.
+        table: (K, 6) the slots' diffuse and specular light `sums` were made with (factor_dtype):
+            a light edit that leaves it as it was (a dome moved: its directions are at infinity)
+            makes no products.
         dirty: (N,) bool sub-samples whose columns are to be recomputed (material edits).
     """
 
@@ -151,6 +168,7 @@ class FactorColumns:
     counts: list[torch.Tensor]
     sums: torch.Tensor
     light_key: tuple | None
+    table: torch.Tensor | None
     dirty: torch.Tensor
 
 
@@ -207,6 +225,7 @@ class CutsRelighter:
         self._node_points = torch.cat((points, points.new_zeros((1, 3)))).t().contiguous()
         self._domes: dict[str, Light] = {}
         self._leaf_radiance: dict[str, tuple[Light, torch.Tensor]] = {}
+        self._leaf_pattern: torch.Tensor | None = None    # env: the leaves' cells' directions (`env.cell_pattern`)
         self._samples: torch.Tensor | None = None
         self._visibility_batches: tuple[int, list[VisibilityBatch]] | None = None
         self._by_node: list[tuple[torch.Tensor, torch.Tensor] | None] | None = None
@@ -343,7 +362,9 @@ class CutsRelighter:
         """
         cuts = self.cuts
         if self.mode == "env":
-            return dome_leaf_light(lights, cuts.leaf_directions, cuts.leaf_weights)
+            if self._leaf_pattern is None:
+                self._leaf_pattern = cell_pattern(cuts.leaf_directions, cuts.leaf_weights)
+            return dome_leaf_light(lights, self._leaf_pattern, cuts.leaf_weights)
         points = cuts.leaf_points
         radiance = points.emission.clone() if emission else torch.zeros_like(points.position)
         for light in lights:
@@ -426,8 +447,8 @@ class CutsRelighter:
         table = torch.zeros((state.slot_node.shape[0], 6), dtype=out.dtype, device=out.device)
         table[slot] = torch.cat((diffuse_light, specular_light), dim=1)
         table = table.to(settings.factor_dtype)
-        relit = state.light_key != key
-        state.light_key = key
+        relit = state.table is None or not torch.equal(state.table, table)
+        state.light_key, state.table = key, table
         # Tables of the nodes to evaluate: every node into its slot (a new cut, dirty rows), or
         # the nodes new to the cut in cut order.
         num_slots = state.slot_node.shape[0]
@@ -442,26 +463,38 @@ class CutsRelighter:
             columns = state.columns[index] if keep else torch.zeros(shape, dtype=settings.factor_dtype,
                                                                    device=out.device)
             counts = state.counts[index] if keep else torch.zeros(shape[2], dtype=torch.int64, device=out.device)
-            if new_table is not None:
-                by_node = None if new_table.everything else self._entries_by_node(index)
-                values, new_counts = self._factor_columns(batch, new_table, num_factors, by_node=by_node)
-                if new_table.everything:
-                    columns.copy_(values[:, :, :num_slots].transpose(0, 1))
-                    counts.copy_(new_counts)
-                else:
-                    columns.index_copy_(2, slot[new],
-                                        values[:, :, :new_counts.shape[0]].transpose(0, 1).to(columns.dtype))
-                    counts[slot[new]] = new_counts
+            fresh = None    # (P, F, new nodes) float the columns of the nodes new to the cut, for their slots
+            if new_table is not None and new_table.everything:
+                counts.zero_()
+                # Chunks of rows, each without the padding all its rows have (the column sums'
+                # scatter stays in cache).
+                for part in torch.arange(shape[0], device=out.device).split(MERGE_ROWS):
+                    values, new_counts = self._factor_columns(batch, new_table, num_factors, part)
+                    columns[int(part[0]):int(part[-1]) + 1].copy_(values[:, :, :num_slots].transpose(0, 1))
+                    counts += new_counts
+                self.stats["evaluated"] += int(counts.sum())
+            elif new_table is not None:
+                values, new_counts = self._factor_columns(batch, new_table, num_factors,
+                                                          by_node=self._entries_by_node(index))
+                fresh = values[:, :, :new_counts.shape[0]].transpose(0, 1)
+                counts[slot[new]] = new_counts
                 self.stats["evaluated"] += int(new_counts.sum())
             dirty = state.dirty.index_select(0, batch.rows)
             dirty_rows = torch.nonzero(dirty).squeeze(1)
             if dirty_rows.shape[0] and not bool(new.all()):   # the lobes' factors (2 on) of their rows
-                values, dirty_counts = self._factor_columns(batch, every_table, num_factors, dirty_rows, first_factor=2)
-                self.stats["evaluated"] += int(dirty_counts.sum())
-                columns[:, 2:].index_copy_(0, dirty_rows, values[2:, :, :num_slots].transpose(0, 1).to(columns.dtype))
+                for part in dirty_rows.split(MERGE_ROWS):   # the column sums' scatter stays in cache
+                    values, dirty_counts = self._factor_columns(batch, every_table, num_factors, part, first_factor=2)
+                    self.stats["evaluated"] += int(dirty_counts.sum())
+                    columns[:, 2:].index_copy_(0, part, values[2:, :, :num_slots].transpose(0, 1).to(columns.dtype))
             self.stats["merged"] += int(counts[slot].sum())
             if relit or bool(new.any()):
-                state.sums.index_copy_(0, batch.rows, _light_sums(columns, table, out.dtype))
+                # Chunks of rows: the new slots written (scattered along the last axis: every
+                # cache line of the columns is read and written) just before the products read them.
+                for part in range(0, shape[0], PRODUCT_ROWS):
+                    chunk = columns[part:part + PRODUCT_ROWS]
+                    if fresh is not None:
+                        chunk.index_copy_(2, slot[new], fresh[part:part + PRODUCT_ROWS].to(chunk.dtype))
+                    state.sums[batch.rows[part:part + PRODUCT_ROWS]] = _light_sums(chunk, table, out.dtype)
             elif dirty_rows.shape[0]:
                 state.sums.index_copy_(0, batch.rows.index_select(0, dirty_rows),
                                        _light_sums(columns.index_select(0, dirty_rows), table, out.dtype))
@@ -482,7 +515,7 @@ class CutsRelighter:
         num_samples = self.direct.gbuffer.num_samples
         return FactorColumns(key, torch.full((max_cut,), -1, dtype=torch.int64, device=device), columns, counts,
                              torch.zeros((num_samples, num_factors, 3), dtype=self.direct.gbuffer.position.dtype,
-                                         device=device), None,
+                                         device=device), None, None,
                              torch.zeros(num_samples, dtype=torch.bool, device=device))
 
     def _factor_columns(self, batch: VisibilityBatch, table: _NodeTable, num_factors: int,
@@ -515,8 +548,10 @@ class CutsRelighter:
         """
         node, visibility = batch.node, batch.visibility
         samples, geometry = batch.rows, batch.geometry
-        if rows is not None:
-            node, visibility = node.index_select(0, rows), visibility.index_select(0, rows)
+        if rows is not None:   # their entries, less the padding all of them have
+            visibility = visibility.index_select(0, rows)
+            width = max(int((visibility > 0).sum(dim=1).max()), 1)
+            node, visibility = node[:, :width].index_select(0, rows), visibility[:, :width].contiguous()
             samples, geometry = samples.index_select(0, rows), geometry.index_select(0, rows)
         (num_rows, width), num_columns = node.shape, table.nodes.shape[0]
         flat_node, flat_visibility = node.view(-1), visibility.view(-1)
@@ -543,21 +578,29 @@ class CutsRelighter:
         num_wanted = num_columns if table.grid_source is None else int((table.grid_source < num_columns).sum())
         label = torch.arange(1, spanning.shape[0] + 1, device=node.device)
         base = torch.div(spanning, width, rounding_mode="floor") * (num_wanted + 1)
+        start, end = table.start.index_select(0, spanning_node), table.end.index_select(0, spanning_node)
         steps = torch.zeros(num_rows * (num_wanted + 1), dtype=torch.int64, device=node.device)
-        steps.index_add_(0, base + table.start.index_select(0, spanning_node), label)
-        steps.index_add_(0, base + table.end.index_select(0, spanning_node), -label)
+        steps.index_add_(0, base + start, label)
+        steps.index_add_(0, base + end, -label)
         cluster = torch.cumsum(steps.view(num_rows, num_wanted + 1), dim=1)   # 0: none (last column: 0)
+        # Grid cells holding a cluster, per wanted node in cut order (the last: none).
+        covered = torch.cumsum(torch.bincount(start, minlength=num_wanted + 1)
+                               - torch.bincount(end, minlength=num_wanted + 1), 0)
         weight = torch.cat((visibility.new_zeros(1), flat_visibility.index_select(0, spanning))).index_select(
             0, cluster.view(-1)).view(num_rows, num_wanted + 1)
-        weight = weight[:, :num_wanted] if table.grid_source is None else weight.index_select(1, table.grid_source)
+        if table.grid_source is None:
+            weight, covered = weight[:, :num_wanted], covered[:num_wanted]
+        else:
+            weight, covered = weight.index_select(1, table.grid_source), covered.index_select(0, table.grid_source)
         weight = weight.mul_(table.size)
-        sums = weight.new_zeros((num_factors, num_rows, num_columns + 2))
+        sums = weight.new_empty((num_factors, num_rows, num_columns + 2))    # the grid writes every column < C
+        sums[:, :, num_columns:].zero_()
         blocks = BlockEvaluator(num_factors, weight.dtype, weight.device, self.settings.compiled)
         for part in slabs(num_rows, num_columns):
             blocks.grid(self._node_points, table.nodes, geometry[part], self._positions(samples[part]),
                         tuple(r[part] for r in roughnesses), cos_e[part], view_sq[part], weight[part],
                         sums[:, part, :num_columns])
-        merged_counts = (weight > 0).sum(dim=0) + counts[:num_columns]
+        merged_counts = covered + counts[:num_columns]
         # Clusters inside one wanted illumination-cut node, summed into their columns: the
         # (P, M) rows as they are (padding and spanning clusters weigh 0), or one per line.
         if entry is None:
@@ -570,16 +613,15 @@ class CutsRelighter:
             node = flat_node.index_select(0, entry).view(-1, 1)
             visibility = flat_visibility.index_select(0, entry).view(-1, 1)
             column = column.index_select(0, inside).view(-1, 1)
-            roughnesses = tuple(r.index_select(0, lines) for r in roughnesses)
-            cos_e, view_sq = cos_e.index_select(0, lines), view_sq.index_select(0, lines)
-            samples, geometry = samples.index_select(0, lines), geometry.index_select(0, lines)
         weight = table.inside_size.index_select(0, node.reshape(-1)).view(node.shape).mul_(visibility)
         cell = column.add_((lines * (num_columns + 2)).unsqueeze(1))
         flat = sums.view(-1)
+        picked = None if entry is None else lines    # one entry per line: its row's values gathered per block
         for part in slabs(*node.shape):
-            blocks.dense(self._node_points, node[part], geometry[part], self._positions(samples[part]),
-                         tuple(r[part] for r in roughnesses), cos_e[part], view_sq[part], weight[part],
-                         cell[part].reshape(-1), flat, first_factor)
+            blocks.dense(self._node_points, node[part], _lines_of(geometry, part, picked),
+                         self._positions(_lines_of(samples, part, picked)),
+                         tuple(_lines_of(r, part, picked) for r in roughnesses), _lines_of(cos_e, part, picked),
+                         _lines_of(view_sq, part, picked), weight[part], cell[part].reshape(-1), flat, first_factor)
         return sums, merged_counts
 
     def kept_bytes(self) -> int:
@@ -598,16 +640,19 @@ class CutsRelighter:
         return None if self.mode == "env" else self.direct.gbuffer.position.index_select(0, rows)
 
     def _entries_by_node(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Batch `index`'s entries by node: ((P M,) int32 the flat entries of its rows sorted by
-        node, (2L + 2,) int32 offsets: node n's entries are [offsets[n], offsets[n + 1])). Made
-        on first use (a light edit that changes part of the illumination cut) and kept."""
+        """Batch `index`'s entries by node: ((Q,) int32 the flat (P M) positions of its rows'
+        clusters, padding left out, sorted by node, (2L + 2,) int32 offsets: node n's entries are
+        [offsets[n], offsets[n + 1]), n < 2L - 1). Made on first use (a light edit that changes
+        part of the illumination cut) and kept."""
         if self._by_node is None or len(self._by_node) != len(self.visibility_batches()):
             self._by_node = [None] * len(self.visibility_batches())
         if self._by_node[index] is None:
             node = self.visibility_batches()[index].node.view(-1)
             counts = torch.bincount(node, minlength=self.cuts.tree.num_nodes + 1)
-            self._by_node[index] = (torch.argsort(node, stable=True).int(),
-                                    torch.cat((counts.new_zeros(1), torch.cumsum(counts, 0))).int())
+            offsets = torch.cat((counts.new_zeros(1), torch.cumsum(counts, 0)))
+            # The padding (node 2L - 1, sorted last) is never looked up: not kept.
+            order = torch.argsort(node, stable=True)[:int(offsets[self.cuts.tree.num_nodes])].int()
+            self._by_node[index] = (order, offsets.int())
         return self._by_node[index]
 
     def visibility_batches(self) -> list[VisibilityBatch]:
@@ -623,15 +668,22 @@ class CutsRelighter:
             batches = []
             for start in range(0, g.num_samples, batch_rows):
                 rows = order[start:start + batch_rows]
-                merged = self.merged_visibility(rows)
-                visibility = self._visibility(merged, cuts.sample_weights[rows])
-                # Clusters all three vertices see as dark stay dark however the illumination cut
-                # would split them: they are dropped before the illumination cut is merged in.
-                lit = visibility > 0
-                node, visibility = _padded_rows(merged.row[lit], (merged.node[lit], visibility[lit]), rows.shape[0],
-                                                (self.cuts.tree.num_nodes, 0.0))
+                row, node, visibility, dark = [], [], [], 0
+                for first in range(0, rows.shape[0], MERGE_ROWS):   # the merge's temporaries stay small
+                    part = rows[first:first + MERGE_ROWS]
+                    merged = self.merged_visibility(part)
+                    blend = self._visibility(merged, cuts.sample_weights[part])
+                    # Clusters all three vertices see as dark stay dark however the illumination
+                    # cut would split them: they are dropped before the illumination cut is merged in.
+                    lit = blend > 0
+                    row.append(merged.row[lit] + first)
+                    node.append(merged.node[lit])
+                    visibility.append(blend[lit])
+                    dark += int((~lit).sum())
+                node, visibility = _padded_rows(torch.cat(row), (torch.cat(node), torch.cat(visibility)),
+                                                rows.shape[0], (self.cuts.tree.num_nodes, 0.0))
                 batches.append(VisibilityBatch(rows, self._geometry[rows], node.int(), visibility,
-                                               int(inputs[rows].sum()), int((~lit).sum())))
+                                               int(inputs[rows].sum()), dark))
             self._visibility_batches = (batch_rows, batches)
             self._by_node = None
         return self._visibility_batches[1]
@@ -735,6 +787,12 @@ class _NodeTable:
                           torch.cat((column, pad + num_columns)), torch.cat((start, pad)), torch.cat((end, pad)),
                           grid_source, ranges,
                           torch.cat((inside_size, inside_size.new_zeros(1))), num_wanted == nodes.shape[0])
+
+
+def _lines_of(values: torch.Tensor, part: slice, lines: torch.Tensor | None) -> torch.Tensor:
+    """Per-row `values` (P, ...) for the lines `part` of a block: the rows themselves (`lines`
+    None), or those of the lines' rows `lines` (E,) int64, gathered for this block only."""
+    return values[part] if lines is None else values.index_select(0, lines[part])
 
 
 def _concatenated_ranges(low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
