@@ -322,7 +322,7 @@ class Relighter:
         self.object_paths = object_paths
         self._lights: dict[str, _LightState] = {}
         self._masks: dict[tuple[str, ...], torch.Tensor] = {}
-        self._wo_local = to_local(gbuffer.wo_world(), gbuffer.tangent, gbuffer.bitangent, gbuffer.normal)
+        self._wo_local: torch.Tensor | None = None  # (N, 3), made on first use (`_view_directions`)
         # Whether the transport factors carry the clearcoat lobe: one answer for every chunk.
         self._coat = bool(gbuffer.params.clearcoat.any())
         # The glossy and the matte points, or None for both when the image is all one kind.
@@ -548,7 +548,8 @@ class Relighter:
         threads = tile_threads(self.gbuffer.device, self.visibility.thread_safe)
         for points, num_samples in self._sample_groups(light):
             chunks = self._chunks(num_samples, points, threads)
-            self._fixed_u(num_samples)  # made once, before the tiles share it
+            self._fixed_u(num_samples)  # made once, before the tiles share them
+            self._view_directions()
             parts = parallel_map(lambda chunk: self._chunk_transport(light, chunk, num_samples), chunks, threads)
             state.transports.append(parts[0] if len(parts) == 1 else self._joined(parts, chunks))
         if state.transports[0].shadow_sums is not None:
@@ -556,6 +557,14 @@ class Relighter:
         state.images = None
         self.counters["visibility"] += 1
         return state.transports
+
+    def _view_directions(self) -> torch.Tensor:
+        """(N, 3) unit directions to the viewer in the points' shading frames, made on first use: a
+        Relighter handed its unit images (the multiview relighter's) never reads them."""
+        if self._wo_local is None:
+            g = self.gbuffer
+            self._wo_local = to_local(g.wo_world(), g.tangent, g.bitangent, g.normal)
+        return self._wo_local
 
     def _joined(self, parts: list[_Transport], chunks: list[slice | torch.Tensor]) -> _Transport:
         """One transport from the transports of consecutive chunks of shading points.
@@ -628,7 +637,7 @@ class Relighter:
         filtered = exact is not None and self.filter_radius > 0
         if filtered:  # lit by the closed form even where no sample is (see `uncovered` below)
             lit |= exact > 0
-        lit &= self._wo_local[chunk, 2] > 0
+        lit &= self._view_directions()[chunk, 2] > 0
         subset = not isinstance(chunk, slice)
         if 2 * int(lit.sum()) > lit.shape[0]:
             local, rows, points = slice(None), chunk, chunk if subset else None
@@ -644,7 +653,7 @@ class Relighter:
         # The samples' unshadowed estimate of the cosine-weighted solid angle, for the ratio estimator.
         reaching = torch.isfinite(sample.distance).transpose(0, 1)[:, local]
         ratio = None if exact is None else ratio_of(exact[local], (scalar * reaching).sum(0))
-        params, wo_local, shadow = g.params.index(rows), self._wo_local[rows], light.shadow
+        params, wo_local, shadow = g.params.index(rows), self._view_directions()[rows], light.shadow
         scale = light_radiance_scale(light)
         if light.texture is None and scale.any() and len(set(shadow.color)) == 1:
             # L_i V = colour x scalar: keep per-sample scalars, not (S, P, 3) colours.

@@ -84,8 +84,16 @@ def rect_cosine_integral(light: Light, points: torch.Tensor, normals: torch.Tens
     """G (N,) of a RectLight's emitting rectangle at receivers (N, 3) with unit normals (N, 3).
 
     0 behind the light (local z >= 0: the rect emits towards local -Z only). Any invertible
-    affine transform is honoured: its corners are mapped to world space. Evaluated in blocks of
-    CHUNK_POINTS receivers, whose temporaries stay in cache (2-3x faster on a CPU than one pass).
+    affine transform is honoured: its corners are mapped to world space.
+
+    Worked in an orthonormal frame of the light's plane (x, y in the plane, z along its normal),
+    where every corner has z = 0: for an edge c -> d seen from p, a = c - p and b = d - p
+    share a_z = b_z = Z, so a x b = (-e_y Z, e_x Z, a_x b_y - a_y b_x) with e = d - c, and each
+    edge costs a few multiply-adds of per-receiver rows (U_i, V_i) = corner_i - p. Receivers whose
+    tangent plane cuts the light are summed over the clipped polygon (`_clipped_sum`). The
+    receivers go to that frame in one product, as component rows; the edges are evaluated in
+    blocks of CHUNK_POINTS receivers, whose temporaries stay in cache (2-3x faster on a CPU than
+    one pass).
     """
     frame = LightFrame.of(light, points)
     half_x, half_y = 0.5 * light.width, 0.5 * light.height
@@ -93,34 +101,43 @@ def rect_cosine_integral(light: Light, points: torch.Tensor, normals: torch.Tens
                                   [half_x, -half_y, 0.0], [half_x, half_y, 0.0]],
                                  device=points.device, dtype=points.dtype)
     corners = frame.point_to_world(corners_local)  # (5, 3): closed
-    if points.shape[0] <= CHUNK_POINTS:
-        return _rect_block(frame, corners, points, normals)
-    return torch.cat([_rect_block(frame, corners, points[i:i + CHUNK_POINTS], normals[i:i + CHUNK_POINTS])
-                      for i in range(0, points.shape[0], CHUNK_POINTS)])
-
-
-def _rect_block(frame: LightFrame, corners: torch.Tensor, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
-    """`rect_cosine_integral` of some receivers (N, 3), given the closed world corners (5, 3).
-
-    Worked in an orthonormal frame of the light's plane (x, y in the plane, z along its normal),
-    where every corner has z = 0: for an edge c -> d seen from p, a = c - p and b = d - p share
-    a_z = b_z = -p_z = Z, so a x b = (-e_y Z, e_x Z, a_x b_y - a_y b_x) with e = d - c, and each
-    edge costs a few multiply-adds of per-receiver rows (U_i, V_i) = corner_i - p. Receivers whose
-    tangent plane cuts the light are summed over the clipped polygon (`_clipped_sum`).
-    """
     origin = corners[0]
     along = torch.nn.functional.normalize(corners[1] - origin, dim=0)
     plane_normal = torch.nn.functional.normalize(torch.linalg.cross(corners[1] - origin, corners[3] - origin), dim=0)
     rotation = torch.stack((along, torch.linalg.cross(plane_normal, along), plane_normal))  # rows: x, y, z
     x, y = ((corners - origin) @ rotation[:2].T).T.tolist()  # corner coordinates (z = 0), closed
-    px, py, pz = rotation @ (points - origin).T  # (N,) rows
-    nx, ny, nz = rotation @ normals.T
-    z = -pz
+    # (3, N) rows; a (3, 3) by transposed (3, N) product is 8x faster on the CPU than the
+    # contiguous copy of a product's transpose.
+    position, normal = rotation @ (points - origin).T, rotation @ normals.T
+    # The receiver's local z is (p - corner) . light_from_world[2], a row normal to the light's
+    # plane: its sign is that of the receiver's z in the plane's frame (-Z) times that row's
+    # component along the plane's normal.
+    facing = float(frame.light_from_world[2] @ plane_normal)
+    blocks = [_rect_block(x, y, -position[2, i:i + CHUNK_POINTS], position[0, i:i + CHUNK_POINTS],
+                          position[1, i:i + CHUNK_POINTS], normal[:, i:i + CHUNK_POINTS], facing)
+              for i in range(0, points.shape[0], CHUNK_POINTS)]
+    return blocks[0] if len(blocks) == 1 else torch.cat(blocks)
+
+
+def _rect_block(x: list[float], y: list[float], z: torch.Tensor, px: torch.Tensor, py: torch.Tensor,
+                normal: torch.Tensor, facing: float) -> torch.Tensor:
+    """G (M,) of M receivers in the light plane's frame (`rect_cosine_integral`).
+
+    Args:
+        x, y: the closed corners' in-plane coordinates (5 each).
+        z: (M,) Z = -(the receivers' distance along the plane's normal); px, py: (M,) their
+            in-plane coordinates (the frame's origin: corner 0).
+        normal: (3, M) their unit normals in the plane's frame.
+        facing: the sign of the light's local z against the plane's normal (G is 0 where
+            -Z facing >= 0: behind the light, or in its plane).
+    """
+    nx, ny, nz = normal
     z2 = z.square()
     u = [x[i] - px for i in range(4)]
     v = [y[i] - py for i in range(4)]
-    height = torch.stack([(nx * u[i]).addcmul_(ny, v[i]).addcmul_(nz, z) for i in range(4)])  # (4, N)
-    above = (height > 0).sum(0)
+    height = [(nx * u[i]).addcmul_(ny, v[i]).addcmul_(nz, z) for i in range(4)]  # above the tangent plane
+    lowest = torch.minimum(torch.minimum(height[0], height[1]), torch.minimum(height[2], height[3]))
+    highest = torch.maximum(torch.maximum(height[0], height[1]), torch.maximum(height[2], height[3]))
     slope_x, slope_y = z * ny, z * nx  # the in-plane part of n . (a x b) is Z (n_y e_x - n_x e_y)
     total = torch.zeros_like(px)
     for i in range(4):
@@ -132,16 +149,14 @@ def _rect_block(frame: LightFrame, corners: torch.Tensor, points: torch.Tensor, 
         length = cross_z.square_().add_(z2, alpha=ex * ex + ey * ey).sqrt_()
         cosine = (u[i] * u[j]).addcmul_(v[i], v[j]).add_(z2)
         total.add_(torch.atan2(length, cosine).mul_(projection).div_(length.clamp_min_(1e-30)))
-    total.masked_fill_(above < 4, 0.0)
-    cut = torch.nonzero((above > 0) & (above < 4)).squeeze(-1)
+    total.masked_fill_(lowest <= 0, 0.0)  # wholly above the tangent plane, or clipped below
+    cut = torch.nonzero((lowest <= 0) & (highest > 0)).squeeze(-1)
     if cut.numel():
-        closed = [torch.stack([c[k][cut] for k in (0, 1, 2, 3, 0)]) for c in (u, v)]
-        total[cut] = _clipped_sum([*closed, z[cut].expand(5, -1)], [nx[cut], ny[cut], nz[cut]], height[:, cut])
-    # The receiver's local z: corner 0 lies in the light's plane (local z 0), so the third row of
-    # light_from_world takes (corner - point) to minus the receiver's local z.
-    row = frame.light_from_world[2]
-    local_z = -((origin - points) @ row)
-    return total.abs_().mul_(0.5).masked_fill_(local_z >= 0, 0.0)
+        closed = [torch.stack([c[k].index_select(0, cut) for k in (0, 1, 2, 3, 0)]) for c in (u, v)]
+        total.index_copy_(0, cut, _clipped_sum([*closed, z.index_select(0, cut).expand(5, -1)],
+                                               [c.index_select(0, cut) for c in (nx, ny, nz)],
+                                               torch.stack([h.index_select(0, cut) for h in height])))
+    return total.abs_().mul_(0.5).masked_fill_(z * facing <= 0, 0.0)
 
 
 def closed_form(light: Light, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor | None:
