@@ -22,12 +22,13 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scene.camera import project
 from pipeline.scenes import SCENES
 from pipeline.tracing import Tracer
-from relight_torch.multiview.correspondence import ViewPoints, correspondence_map, correspondence_map_reference
+from relight_torch.multiview.correspondence import (MAX_SLOPE, RELATIVE_DEPTH_TOLERANCE, Correspondence, ViewPoints,
+                                                    correspondence_map)
 from relight_torch.multiview.holes import fill_small_holes
 from relight_torch.multiview.incident import group_images, view_directions
 from relight_torch.multiview.resample import bilinear_samples
-from relight_torch.multiview.views import (CONSTANT, PER_MATERIAL, PRIMARY, SECONDARY, TEXTURED, CachingViews,
-                                           column_kinds)
+from relight_torch.multiview.views import (CONSTANT, PER_MATERIAL, PRIMARY, SAME_SURFACE_COS, SECONDARY, TEXTURED,
+                                           CachingViews, camera_column, column_kinds, world_from_camera)
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +74,7 @@ def _matches_slow_twin(caching: CachingViews, cornell, count: int):
     pick = torch.from_numpy(np.random.default_rng(1).choice(view.num_points, count, replace=False))
     position, normal, objects = view.position[pick], view.geometric_normal[pick], view.object_id[pick]
     fast = correspondence_map(caching, position, normal, objects)
-    slow = correspondence_map_reference(caching, position.numpy(), normal.numpy(), objects.numpy())
+    slow = _correspondence_loop(caching, position.numpy(), normal.numpy(), objects.numpy())
     # float32 against float64: scores may tie within rounding, so compare where they are distinct.
     distinct = (fast.score - slow.score).abs() <= 1e-5 * slow.score.abs()
     assert distinct.float().mean() > 0.98
@@ -276,3 +277,47 @@ def test_one_group_shading_equals_the_general_path(views):
     single = group_images(*args, one)
     assert float(single.abs().max()) > 0
     torch.testing.assert_close(single, group_images(*args, torch.cat([one, unlit], 1)), rtol=1e-5, atol=1e-6)
+
+
+def _correspondence_loop(views: CachingViews, position: np.ndarray, normal: np.ndarray,
+                                 object_id: np.ndarray) -> Correspondence:
+    """`correspondence_map` written from the formula: a Python loop over points and cameras."""
+    table = views.table
+    world = world_from_camera(table)
+    sizes = views.sizes.cpu().numpy()
+    offsets = views.image_offsets.cpu().numpy()
+    cached_depth, pool_row = views.depth.cpu().numpy(), views.pool_row.cpu().numpy()
+    pool_object, pool_normal = views.pool.object_id.cpu().numpy(), views.pool.geometric_normal.cpu().numpy()
+    pixel_angle = views.pixel_angle.cpu().numpy()
+    focal, h_ap, v_ap = (camera_column(table, n) for n in ("focalLength", "horizontalAperture", "verticalAperture"))
+    h_off, v_off = camera_column(table, "horizontalApertureOffset"), camera_column(table, "verticalApertureOffset")
+    view = np.full(len(position), -1, np.int64)
+    rows = np.full(len(position), -1, np.int64)
+    scores = np.zeros(len(position), np.float32)
+    for i, (p, n) in enumerate(zip(np.asarray(position, np.float64), np.asarray(normal, np.float64))):
+        for k in range(len(table)):
+            centre, axes = world[k][:3, 3], world[k][:3, :3]
+            offset = centre - p
+            d = np.linalg.norm(offset)
+            cos = float(n @ offset / d)
+            local = np.linalg.solve(axes, p - centre)
+            depth = -local[2]
+            if cos <= 0 or depth <= 0:
+                continue
+            height, width = sizes[k]
+            x = ((focal[k] * local[0] / depth - h_off[k]) / h_ap[k] + 0.5) * width
+            y = (0.5 - (focal[k] * local[1] / depth - v_off[k]) / v_ap[k]) * height
+            if not (0 <= x < width and 0 <= y < height):
+                continue
+            pixel = offsets[k] + int(np.floor(y)) * width + int(np.floor(x))
+            slope = min(np.sqrt(max(1 - cos * cos, 0.0)) / max(cos, 1 / MAX_SLOPE), MAX_SLOPE)
+            tolerance = depth * (pixel_angle[k] * (1 + 2 * slope) + RELATIVE_DEPTH_TOLERANCE)
+            if abs(depth - cached_depth[pixel]) > tolerance:
+                continue
+            sample = pool_row[pixel]
+            if pool_object[sample] != object_id[i] or float(pool_normal[sample] @ n) <= SAME_SURFACE_COS:
+                continue
+            score = cos / (d * d) / float(pixel_angle[k]) ** 2
+            if score > scores[i]:
+                view[i], rows[i], scores[i] = k, sample, score
+    return Correspondence(torch.from_numpy(view), torch.from_numpy(rows), torch.from_numpy(scores))

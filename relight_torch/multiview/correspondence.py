@@ -21,20 +21,17 @@ must moreover be the same surface: the same object, with a geometric normal with
 `SAME_SURFACE_COS` of the point's (the paper's "artifacts at surface boundaries", removed).
 
 `correspondence_map` is the vectorised map (every camera's score bound at once, then rounds
-testing each point against its best remaining camera);
-`correspondence_map_reference` is its slow twin, a loop over points and cameras written from the
-formula, used by the tests only.
+testing each point against its best remaining camera); the tests compare it with a loop over
+points and cameras written from the formula (tests/test_multiview_parts.py).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
-from relight_torch.multiview.views import (SAME_SURFACE_COS, CachingViews, camera_column, take_rows, take_small,
-                                           world_from_camera)
+from relight_torch.multiview.views import SAME_SURFACE_COS, CachingViews, take_rows, take_small
 
 MAX_SLOPE = 20.0
 RELATIVE_DEPTH_TOLERANCE = 1e-3
@@ -247,47 +244,3 @@ def _visible_sample(views: CachingViews, camera: torch.Tensor, position: torch.T
     seen &= same_surface(take_rows(views.surface_table, sample), object_id, normal)
     return (torch.stack((column, line), -1), torch.where(seen, sample, torch.full_like(sample, -1)),
             cos / distance_squared / (angle * angle))
-
-
-def correspondence_map_reference(views: CachingViews, position: np.ndarray, normal: np.ndarray,
-                                 object_id: np.ndarray) -> Correspondence:
-    """The slow twin of `correspondence_map`: a Python loop over points and cameras (tests only)."""
-    table = views.table
-    world = world_from_camera(table)
-    sizes = views.sizes.cpu().numpy()
-    offsets = views.image_offsets.cpu().numpy()
-    cached_depth, pool_row = views.depth.cpu().numpy(), views.pool_row.cpu().numpy()
-    pool_object, pool_normal = views.pool.object_id.cpu().numpy(), views.pool.geometric_normal.cpu().numpy()
-    pixel_angle = views.pixel_angle.cpu().numpy()
-    focal, h_ap, v_ap = (camera_column(table, n) for n in ("focalLength", "horizontalAperture", "verticalAperture"))
-    h_off, v_off = camera_column(table, "horizontalApertureOffset"), camera_column(table, "verticalApertureOffset")
-    view = np.full(len(position), -1, np.int64)
-    rows = np.full(len(position), -1, np.int64)
-    scores = np.zeros(len(position), np.float32)
-    for i, (p, n) in enumerate(zip(np.asarray(position, np.float64), np.asarray(normal, np.float64))):
-        for k in range(len(table)):
-            centre, axes = world[k][:3, 3], world[k][:3, :3]
-            offset = centre - p
-            d = np.linalg.norm(offset)
-            cos = float(n @ offset / d)
-            local = np.linalg.solve(axes, p - centre)
-            depth = -local[2]
-            if cos <= 0 or depth <= 0:
-                continue
-            height, width = sizes[k]
-            x = ((focal[k] * local[0] / depth - h_off[k]) / h_ap[k] + 0.5) * width
-            y = (0.5 - (focal[k] * local[1] / depth - v_off[k]) / v_ap[k]) * height
-            if not (0 <= x < width and 0 <= y < height):
-                continue
-            pixel = offsets[k] + int(np.floor(y)) * width + int(np.floor(x))
-            slope = min(np.sqrt(max(1 - cos * cos, 0.0)) / max(cos, 1 / MAX_SLOPE), MAX_SLOPE)
-            tolerance = depth * (pixel_angle[k] * (1 + 2 * slope) + RELATIVE_DEPTH_TOLERANCE)
-            if abs(depth - cached_depth[pixel]) > tolerance:
-                continue
-            sample = pool_row[pixel]
-            if pool_object[sample] != object_id[i] or float(pool_normal[sample] @ n) <= SAME_SURFACE_COS:
-                continue
-            score = cos / (d * d) / float(pixel_angle[k]) ** 2
-            if score > scores[i]:
-                view[i], rows[i], scores[i] = k, sample, score
-    return Correspondence(torch.from_numpy(view), torch.from_numpy(rows), torch.from_numpy(scores))
