@@ -84,5 +84,5 @@ class GBuffer:
         """Place per-sample values (N, C) into the sub-sample image (H, W, C)."""
         height, width = self.image_size
         image = values.new_full((height * width, values.shape[-1]), background)
-        image[self.pixel_index] = values
+        image.index_copy_(0, self.pixel_index, values)  # on the CPU 2-3x faster than image[index] = values
         return image.reshape(height, width, values.shape[-1])

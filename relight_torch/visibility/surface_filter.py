@@ -70,10 +70,11 @@ class SurfaceFilter:
 
         The passes run on (C, H, W) planes: each tap is one multiply-add of contiguous rows with
         the (H', W') weights broadcast over C (a trailing C of 2 defeats the CPU's vector loops).
+        In and out by `index_copy_` / `index_select` (on the CPU 1.5-4x faster than indexing).
         """
         height, width = self.gbuffer.image_size
         planes = values.new_zeros(values.shape[-1], height * width)
-        planes[:, self.gbuffer.pixel_index] = values.t()
+        planes.index_copy_(1, self.gbuffer.pixel_index, values.t())
         image = planes.reshape(-1, height, width)
         for axis in (1, 0):
             total = image.clone()
@@ -82,4 +83,4 @@ class SurfaceFilter:
                 _, neighbour = self._pair(image, axis + 1, offset)
                 centre.addcmul_(neighbour, weight)
             image = total
-        return image.reshape(values.shape[-1], -1)[:, self.gbuffer.pixel_index].t()
+        return image.reshape(values.shape[-1], -1).index_select(1, self.gbuffer.pixel_index).t()
