@@ -322,7 +322,7 @@ class Relighter:
         self.object_paths = object_paths
         self._lights: dict[str, _LightState] = {}
         self._masks: dict[tuple[str, ...], torch.Tensor] = {}
-        self._wo_local: torch.Tensor | None = None  # (N, 3), made on first use (`_view_directions`)
+        self._viewer: tuple[torch.Tensor, ...] | None = None  # made on first use (`_view_directions`)
         # Whether the transport factors carry the clearcoat lobe: one answer for every chunk.
         self._coat = bool(gbuffer.params.clearcoat.any())
         # The glossy and the matte points, or None for both when the image is all one kind.
@@ -558,13 +558,18 @@ class Relighter:
         self.counters["visibility"] += 1
         return state.transports
 
-    def _view_directions(self) -> torch.Tensor:
-        """(N, 3) unit directions to the viewer in the points' shading frames, made on first use: a
-        Relighter handed its unit images (the multiview relighter's) never reads them."""
-        if self._wo_local is None:
-            g = self.gbuffer
-            self._wo_local = to_local(g.wo_world(), g.tangent, g.bitangent, g.normal)
-        return self._wo_local
+    def _view_directions(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(N, 3) unit world directions E to the viewer, (N,) N.E and (N,) 1 / |N| of the shading
+        normals N (stored in half precision: |N| = 1 to ~5e-4), made on first use: a Relighter
+        handed its unit images (the multiview relighter's) never reads them.
+
+        The BRDF takes N.E and N.L of the unit normal: with E, L and N unit in one space, N.h
+        never exceeds |h|, which a sharp lobe's peak would otherwise see."""
+        if self._viewer is None:
+            wo, normal = self.gbuffer.wo_world(), self.gbuffer.normal
+            inverse_norm = dot(normal, normal).rsqrt_()
+            self._viewer = (wo, dot(wo, normal).mul_(inverse_norm), inverse_norm)
+        return self._viewer
 
     def _joined(self, parts: list[_Transport], chunks: list[slice | torch.Tensor]) -> _Transport:
         """One transport from the transports of consecutive chunks of shading points.
@@ -626,10 +631,9 @@ class Relighter:
         g = self.gbuffer
         sample = sample_light(light, g.position[chunk], self._fixed_u(num_samples)[chunk])
         direction = sample.direction.transpose(0, 1)  # (S, C, 3), contiguous: see sample_light
-        wi_local = to_local(direction, g.tangent[chunk], g.bitangent[chunk], g.normal[chunk])
+        cosine = dot(direction, g.normal[chunk])  # N.L at the shading normal as stored: the closed form's
         facing = dot(direction, g.geometric_normal[chunk]) > 0
         # Every per-sample scalar in one (S, C) factor: 1 / pdf, both hemispheres, cos / S.
-        cosine = wi_local[..., 2]
         scalar = sample.inverse_pdf().transpose(0, 1) * ((cosine > 0) & facing) * (cosine / num_samples)
         radiance = sample.radiance.transpose(0, 1)
         lit = ((scalar != 0) & (radiance != 0).any(-1)).any(0)
@@ -637,14 +641,15 @@ class Relighter:
         filtered = exact is not None and self.filter_radius > 0
         if filtered:  # lit by the closed form even where no sample is (see `uncovered` below)
             lit |= exact > 0
-        lit &= self._view_directions()[chunk, 2] > 0
+        wo, cos_e, inverse_norm = self._view_directions()
+        lit &= cos_e[chunk] > 0
         subset = not isinstance(chunk, slice)
         if 2 * int(lit.sum()) > lit.shape[0]:
             local, rows, points = slice(None), chunk, chunk if subset else None
         else:
             local = torch.nonzero(lit).squeeze(-1)
             rows = points = chunk[local] if subset else local + chunk.start
-        direction, wi_local = direction[:, local], wi_local[:, local]
+        direction, cosine = direction[:, local], cosine[:, local]
         scalar, radiance = scalar[:, local], radiance[:, local]
         distance = self.visibility.occluder_distance(light, g.position[rows], g.geometric_normal[rows],
                                                      direction.transpose(0, 1),
@@ -653,7 +658,7 @@ class Relighter:
         # The samples' unshadowed estimate of the cosine-weighted solid angle, for the ratio estimator.
         reaching = torch.isfinite(sample.distance).transpose(0, 1)[:, local]
         ratio = None if exact is None else ratio_of(exact[local], (scalar * reaching).sum(0))
-        params, wo_local, shadow = g.params.index(rows), self._view_directions()[rows], light.shadow
+        params, wo, shadow = g.params.index(rows), wo[rows], light.shadow
         scale = light_radiance_scale(light)
         if light.texture is None and scale.any() and len(set(shadow.color)) == 1:
             # L_i V = colour x scalar: keep per-sample scalars, not (S, P, 3) colours.
@@ -663,7 +668,8 @@ class Relighter:
             if shadow.enable:
                 weight = weight * (1.0 - (1.0 - shadow.color[0]) * shadow_strength(
                     shadow, torch.isfinite(distance), distance))
-            factors = preview_surface.split_factors(params, wo_local, wi_local, self._coat)
+            factors = preview_surface.split_factors(params, cos_e[rows], cosine * inverse_norm[rows],
+                                                    dot(direction, wo), self._coat)
             # With a filtered visibility the diffuse factors stay unshadowed (see _Transport).
             factors[:2] *= unshadowed if filtered else weight
             factors[2:] *= weight
@@ -682,7 +688,8 @@ class Relighter:
         weight = radiance * scalar.unsqueeze(-1)
         if shadow.enable:
             weight = weight * shadow_factor(shadow, torch.isfinite(distance), distance)
-        diffuse, specular = preview_surface.split(params, wo_local, wi_local)
+        frame = (g.tangent[rows], g.bitangent[rows], g.normal[rows])
+        diffuse, specular = preview_surface.split(params, to_local(wo, *frame), to_local(direction, *frame))
         lobes = weight.new_empty(2, *weight.shape)
         torch.mul(diffuse, weight, out=lobes[0])
         torch.mul(specular, weight, out=lobes[1])

@@ -20,6 +20,12 @@ def _random_params(n: int, generator: torch.Generator) -> preview_surface.Previe
         use_specular_workflow=uniform(n) > 0.5)
 
 
+def _factors(params, wo: torch.Tensor, wi: torch.Tensor, coat: bool, weight: torch.Tensor | None = None):
+    """`split_factors` of local directions wo, wi (of any length) through their dot products."""
+    return preview_surface.split_factors(params, wo[..., 2], wi[..., 2], (wo * wi).sum(-1), coat, weight,
+                                         (wo * wo).sum(-1), (wi * wi).sum(-1))
+
+
 def test_factors_sum_to_split_times_light():
     # Sums over S directions of the factors times the light, combined with the colours, equal
     # the sum of split()'s diffuse and specular parts times the light (both workflows, clearcoat,
@@ -32,10 +38,10 @@ def test_factors_sum_to_split_times_light():
     diffuse_light, specular_light = (torch.rand(n, s, 3, generator=generator, dtype=torch.float64) for _ in range(2))
     diffuse, specular = preview_surface.split(params.with_sample_axis(), wo, wi)
     expected = (diffuse * diffuse_light + specular * specular_light).sum(dim=1)
-    factors = preview_surface.split_factors(params.with_sample_axis(), wo, wi, coat=True).movedim(0, -1)
+    factors = _factors(params.with_sample_axis(), wo, wi, coat=True).movedim(0, -1)
     assert factors.shape == (n, s, 6)
     weight = torch.randn(n, s, generator=generator, dtype=torch.float64)
-    torch.testing.assert_close(preview_surface.split_factors(params.with_sample_axis(), wo, wi, coat=True, weight=weight),
+    torch.testing.assert_close(_factors(params.with_sample_axis(), wo, wi, coat=True, weight=weight),
                                factors.movedim(-1, 0) * weight, rtol=1e-12, atol=0.0)
     sums_d = torch.einsum("nsf,nsc->nfc", factors[..., :2], diffuse_light)
     sums_s = torch.einsum("nsf,nsc->nfc", factors[..., 2:], specular_light)
@@ -45,7 +51,7 @@ def test_factors_sum_to_split_times_light():
     # Without a coat the first four factors give the same as clearcoat 0.
     uncoated = preview_surface.PreviewSurfaceParams(**{**params.__dict__, "clearcoat": torch.zeros(n, dtype=torch.float64)})
     diffuse, specular = preview_surface.split(uncoated.with_sample_axis(), wo, wi)
-    four = preview_surface.split_factors(uncoated.with_sample_axis(), wo, wi, coat=False).movedim(0, -1)
+    four = _factors(uncoated.with_sample_axis(), wo, wi, coat=False).movedim(0, -1)
     torch.testing.assert_close(four, factors[..., :4])
     combined = sum(preview_surface.combine_factors(preview_surface.factor_colours(uncoated, coat=False), torch.cat(
         (torch.einsum("nsf,nsc->nfc", four[..., :2], diffuse_light),
@@ -84,8 +90,8 @@ def test_factors_from_cosines_equal_split_factors():
     weight = torch.rand(n, s, generator=generator, dtype=torch.float64)
     rows = params.with_sample_axis()
     for coat in (False, True):
-        expected = preview_surface.split_factors(rows, wo, wi, coat=coat, weight=weight * wi[..., 2])
-        rounded = preview_surface.split_factors(rows.to(dtype=torch.float32), wo.float(), wi.float(), coat,
+        expected = _factors(rows, wo, wi, coat=coat, weight=weight * wi[..., 2])
+        rounded = _factors(rows.to(dtype=torch.float32), wo.float(), wi.float(), coat,
                                                 (weight * wi[..., 2]).float())
         rounding = (rounded.double() - expected).abs().amax(dim=(1, 2)) / expected.abs().amax(dim=(1, 2))
         roughnesses = (rows.roughness, rows.clearcoat_roughness)[:1 + coat]
@@ -103,4 +109,4 @@ def test_factors_from_cosines_equal_split_factors():
         preview_surface.split_factors_cosines(
             (rows.roughness,), wo[..., 2], wi[..., 2], (wi * wo).sum(-1), weight,
             torch.empty((4, n, s), dtype=torch.float64), torch.empty((4, n, s), dtype=torch.float64)),
-        preview_surface.split_factors(rows, wo, wi, coat=False, weight=weight * wi[..., 2]), rtol=1e-10, atol=1e-12)
+        _factors(rows, wo, wi, coat=False, weight=weight * wi[..., 2]), rtol=1e-10, atol=1e-12)

@@ -166,8 +166,8 @@ def split(
 
 
 def split_factors(
-    params: PreviewSurfaceParams, wo_local: torch.Tensor, wi_local: torch.Tensor, coat: bool,
-    weight: torch.Tensor | None = None,
+    params: PreviewSurfaceParams, cos_e: torch.Tensor, cos_l: torch.Tensor, e_dot_l: torch.Tensor, coat: bool,
+    weight: torch.Tensor | None = None, view_sq: torch.Tensor | float = 1.0, light_sq: torch.Tensor | float = 1.0,
 ) -> torch.Tensor:
     """The scalars (F, ...) that `split` is linear in, for lights summed over many directions.
 
@@ -175,20 +175,26 @@ def split_factors(
     (0 below the horizon), F = 4 (6 with `coat`): [above, above s, g, g s (, g_c, g_c s)].
     Schlick's F = F0 + (F90 - F0) s is linear in s, so for lights Ld, Ls (..., 3) per direction,
     sum over directions of (diffuse Ld + specular Ls) = `combine_factors` of the sums of the
-    first two factors times Ld and of the others times Ls. Params broadcast as in `split`;
-    `weight` (...), if given, multiplies every factor (e.g. a cosine and a solid angle). The
-    factor axis comes first: stacking it last costs as much as the rest on the CPU.
+    first two factors times Ld and of the others times Ls. The factor axis comes first: stacking
+    it last costs as much as the rest on the CPU.
 
-    Evaluated by `split_factors_cosines` (without its cosine) from the directions' dot products.
+    The BRDF is isotropic: the factors need only the dot products of the shading normal N and the
+    directions to the viewer E and to the light L, so no frame (`split_factors_cosines`, without
+    its cosine).
+
+    Args:
+        params: materials, broadcasting as in `split`.
+        cos_e, cos_l, e_dot_l: N.E, N.L and E.L (broadcasting).
+        coat: whether the clearcoat's two factors are wanted.
+        weight: multiplies every factor (e.g. a cosine and a solid angle), or None.
+        view_sq, light_sq: |E|^2 and |L|^2 where the directions are not unit.
     """
-    check_pair(wo_local, wi_local)
     roughnesses = (params.roughness, params.clearcoat_roughness)[:1 + coat]
-    batch = torch.broadcast_shapes(wo_local.shape[:-1], wi_local.shape[:-1], *(r.shape for r in roughnesses),
+    batch = torch.broadcast_shapes(cos_e.shape, cos_l.shape, e_dot_l.shape, *(r.shape for r in roughnesses),
                                    () if weight is None else weight.shape)
-    out = wi_local.new_empty(2 + 2 * len(roughnesses), *batch)
-    return split_factors_cosines(roughnesses, wo_local[..., 2], wi_local[..., 2], dot(wo_local, wi_local),
-                                 1.0 if weight is None else weight, out, wi_local.new_empty(4, *batch),
-                                 dot(wo_local, wo_local), dot(wi_local, wi_local), cosine=False)
+    out = cos_l.new_empty(2 + 2 * len(roughnesses), *batch)
+    return split_factors_cosines(roughnesses, cos_e, cos_l, e_dot_l, 1.0 if weight is None else weight, out,
+                                 cos_l.new_empty(4, *batch), view_sq, light_sq, cosine=False)
 
 
 def split_factors_cosines(
