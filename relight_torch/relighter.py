@@ -656,7 +656,7 @@ class Relighter:
                                                      sample.distance.transpose(0, 1)[:, local].transpose(0, 1))
         distance = distance.transpose(0, 1)
         # The samples' unshadowed estimate of the cosine-weighted solid angle, for the ratio estimator.
-        reaching = torch.isfinite(sample.distance).transpose(0, 1)[:, local]
+        reaching = (sample.distance < math.inf).transpose(0, 1)[:, local]
         ratio = None if exact is None else ratio_of(exact[local], (scalar * reaching).sum(0))
         params, wo, shadow = g.params.index(rows), wo[rows], light.shadow
         scale = light_radiance_scale(light)
@@ -667,7 +667,7 @@ class Relighter:
             weight = unshadowed
             if shadow.enable:
                 weight = weight * (1.0 - (1.0 - shadow.color[0]) * shadow_strength(
-                    shadow, torch.isfinite(distance), distance))
+                    shadow, distance < math.inf, distance))
             factors = preview_surface.split_factors(params, cos_e[rows], cosine * inverse_norm[rows],
                                                     dot(direction, wo), self._coat)
             # With a filtered visibility the diffuse factors stay unshadowed (see _Transport).
@@ -687,7 +687,7 @@ class Relighter:
             return _Transport(points, direction, None, ratio, factors, colour, sums)
         weight = radiance * scalar.unsqueeze(-1)
         if shadow.enable:
-            weight = weight * shadow_factor(shadow, torch.isfinite(distance), distance)
+            weight = weight * shadow_factor(shadow, distance < math.inf, distance)
         frame = (g.tangent[rows], g.bitangent[rows], g.normal[rows])
         diffuse, specular = preview_surface.split(params, to_local(wo, *frame), to_local(direction, *frame))
         lobes = weight.new_empty(2, *weight.shape)

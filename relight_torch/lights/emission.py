@@ -67,7 +67,7 @@ from relight_torch.lights.image import image_tensors, lookup_bilinear
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.shaping import emission_factor
 from relight_torch.math.checks import check_last_dim
-from relight_torch.math.frame import dot, orthonormal_basis, to_world
+from relight_torch.math.frame import dot, length, orthonormal_basis, to_world
 from relight_torch.math.sampling import concentric_disk, uniform_cone, uniform_sphere
 
 _AREA_KINDS = (LightKind.SPHERE, LightKind.RECT, LightKind.DISK, LightKind.CYLINDER)
@@ -209,7 +209,7 @@ def _sample_directions(light: Light, frame: LightFrame, receivers: torch.Tensor,
     cylinder light, u (S, N, 2) (rect and disk samples: `planar_hits`)."""
     if light.kind is LightKind.SPHERE:
         to_centre = frame.origin - receivers
-        distance = to_centre.norm(dim=-1)
+        distance = length(to_centre)
         sin2_max = (world_radius(light) / distance).square()
         cos_max = torch.where(sin2_max < 1.0, torch.sqrt((1.0 - sin2_max).clamp_min(0.0)), -1.0)
         return _cone_directions(u, torch.nn.functional.normalize(to_centre, dim=-1), cos_max)
@@ -280,7 +280,7 @@ def _trace(light: Light, frame: LightFrame, points: torch.Tensor, directions: to
         has_texture = light.kind is LightKind.RECT and light.texture is not None
         texture = _rect_texture(light, hits.point_local) if has_texture else 1.0
         distance = torch.where(hits.cos_light > 0, distance, math.inf)
-    lit = torch.isfinite(distance).unsqueeze(-1)
+    lit = (distance < math.inf).unsqueeze(-1)  # distances are >= 0: finite
     factor = _shape(light, frame, -directions, points)
     if factor is None and not torch.is_tensor(texture):  # a constant: a multiply, not a 3-channel where
         return distance, lit * scale, pdf
@@ -351,7 +351,7 @@ def _sample_delta(light: Light, frame: LightFrame, receivers: torch.Tensor, u: t
         direction = _to_distant_light(frame) * ones.unsqueeze(-1)
         return LightSample(direction, ones * math.inf, scale * ones.unsqueeze(-1), ones, True)
     to_light = (frame.origin - receivers) * ones.unsqueeze(-1)
-    distance = to_light.norm(dim=-1)
+    distance = length(to_light)
     direction = to_light / distance.unsqueeze(-1)
     factor = _shape(light, frame, -direction, receivers)
     irradiance = (scale if factor is None else scale * factor) / distance.square().unsqueeze(-1)

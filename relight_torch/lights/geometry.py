@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from relight_torch.lights.light import Light, LightKind
+from relight_torch.math.frame import length
 
 _ORTHOGONALITY_TOLERANCE = 1e-4
 
@@ -211,7 +212,7 @@ def planar_hits(light: Light, frame: LightFrame, origins: torch.Tensor,
         (unit world directions (..., 3), SurfaceHits of the broadcast shape).
     """
     to_light = frame.point_to_world(point_local) - origins
-    distance = to_light.norm(dim=-1)
+    distance = length(to_light)
     directions = to_light / distance.clamp_min(torch.finfo(distance.dtype).tiny).unsqueeze(-1)
     emitting = frame.normal_to_world_unit(to_light.new_tensor([0.0, 0.0, -1.0]))
     cos_light = -(directions @ emitting)

@@ -66,7 +66,7 @@ class RayVisibility:
         # Leave the surface on the side the light sample is on.
         side = torch.sign(dot(directions, normals)).unsqueeze(-1)
         origins = points + normals * eps * side
-        t_far = torch.where(torch.isfinite(distances), distances - 2.0 * eps, torch.full_like(distances, np.inf))
+        t_far = torch.where(distances < np.inf, distances - 2.0 * eps, np.inf)  # distances >= 0
         o = _float32_rows(origins.reshape(-1, 3))
         d = _float32_rows(directions.reshape(-1, 3))
         t = _float32_rows(t_far.reshape(-1))
