@@ -29,6 +29,7 @@ from relight_torch.cuts.merge import refine
 from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
 from relight_torch.math.frame import to_local
 from relight_torch.metrics import psnr
+from relight_torch.parallel import torch_threads
 from relight_torch.relighter import RelightSettings, open_relighter
 from relight_torch.transfer.open import open_cache_relighter
 
@@ -194,6 +195,30 @@ def test_kept_factor_columns_follow_light_and_material_edits(dome, monkeypatch):
                                rtol=1e-4, atol=1e-5)
     rows = relighter.direct.gbuffer.material_id == index
     assert 0 < relighter.stats["evaluated"] < merged * float(rows.float().mean()) * 3
+
+
+def test_batches_on_two_threads_give_the_images_of_one(dome):
+    # A frame's visibility batches run on the kept worker threads (one batch each): the images
+    # and the merge's statistics are those of the batches in turn, for a first render, a turned
+    # dome (new nodes by node index) and a roughness edit (dirty rows).
+    scene, _, layer, _, _ = dome
+    index = next(i for i, material in enumerate(scene.materials) if material.path.endswith("RedPlastic"))
+    frames, stats = [], []
+    for threads in (1, 2):
+        with torch_threads(threads):
+            relighter = open_cache_relighter(layer)
+            relighter.set_settings(CutsRelightSettings(rows_per_batch=97))
+            (dome_light,) = relighter.lights
+            images = [relighter.render()]
+            relighter.set_light(rotated(dome_light, 3.0))
+            images.append(relighter.render())
+            relighter.edit_material(index, roughness=0.6)
+            images.append(relighter.render())
+        frames.append(images)
+        stats.append(dict(relighter.stats))
+    assert len(relighter.visibility_batches()) > 2 and stats[1] == stats[0]
+    for threaded, serial in zip(*reversed(frames)):
+        torch.testing.assert_close(threaded, serial, rtol=1e-5, atol=1e-6)
 
 
 def test_bfloat16_factors_stay_within_their_rounding(dome):

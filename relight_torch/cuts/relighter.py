@@ -43,6 +43,7 @@ from relight_torch.lights.dome import REC709_LUMINANCE
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import linked_points
 from relight_torch.math.frame import to_local
+from relight_torch.parallel import parallel_map, tile_threads
 from relight_torch.relighter import Relighter, light_group
 from relight_torch.transfer.gathers import GatherSamples, gather_radiance
 
@@ -456,9 +457,13 @@ class CutsRelighter:
             bool(new.all()) or bool(state.dirty.any())) else None
         new_table = every_table if bool(new.all()) else (
             _NodeTable.of(self.cuts.tree, nodes, new, self._node_size) if bool(new.any()) else None)
-        for index, batch in enumerate(self.visibility_batches()):
-            self.stats["inputs"] += batch.inputs
-            self.stats["dark"] += batch.dark
+        batches = self.visibility_batches()
+
+        def frame_batch(index: int) -> collections.Counter[str]:
+            """Batch `index`'s columns brought to this frame and its rows' sums; its `stats`."""
+            batch, stats = batches[index], collections.Counter()
+            stats["inputs"] += batch.inputs
+            stats["dark"] += batch.dark
             shape = (batch.rows.shape[0], num_factors, state.slot_node.shape[0])
             columns = state.columns[index] if keep else torch.zeros(shape, dtype=settings.factor_dtype,
                                                                    device=out.device)
@@ -472,21 +477,21 @@ class CutsRelighter:
                     values, new_counts = self._factor_columns(batch, new_table, num_factors, part)
                     columns[int(part[0]):int(part[-1]) + 1].copy_(values[:, :, :num_slots].transpose(0, 1))
                     counts += new_counts
-                self.stats["evaluated"] += int(counts.sum())
+                stats["evaluated"] += int(counts.sum())
             elif new_table is not None:
                 values, new_counts = self._factor_columns(batch, new_table, num_factors,
                                                           by_node=self._entries_by_node(index))
                 fresh = values[:, :, :new_counts.shape[0]].transpose(0, 1)
                 counts[slot[new]] = new_counts
-                self.stats["evaluated"] += int(new_counts.sum())
+                stats["evaluated"] += int(new_counts.sum())
             dirty = state.dirty.index_select(0, batch.rows)
             dirty_rows = torch.nonzero(dirty).squeeze(1)
             if dirty_rows.shape[0] and not bool(new.all()):   # the lobes' factors (2 on) of their rows
                 for part in dirty_rows.split(MERGE_ROWS):   # the column sums' scatter stays in cache
                     values, dirty_counts = self._factor_columns(batch, every_table, num_factors, part, first_factor=2)
-                    self.stats["evaluated"] += int(dirty_counts.sum())
+                    stats["evaluated"] += int(dirty_counts.sum())
                     columns[:, 2:].index_copy_(0, part, values[2:, :, :num_slots].transpose(0, 1).to(columns.dtype))
-            self.stats["merged"] += int(counts[slot].sum())
+            stats["merged"] += int(counts[slot].sum())
             if relit or bool(new.any()):
                 # Chunks of rows: the new slots written (scattered along the last axis: every
                 # cache line of the columns is read and written) just before the products read them.
@@ -498,6 +503,15 @@ class CutsRelighter:
             elif dirty_rows.shape[0]:
                 state.sums.index_copy_(0, batch.rows.index_select(0, dirty_rows),
                                        _light_sums(columns.index_select(0, dirty_rows), table, out.dtype))
+            return stats
+
+        if new_table is not None and not new_table.everything:
+            self._entries_by_node(0)   # the list of batch indexes made before the batches share it
+        # Batches on the kept worker threads (`relight_torch.parallel`): much of a batch's
+        # bookkeeping (nonzero, bincount, cumsum, scatters) runs on one thread under OpenMP.
+        threads = 1 if settings.compiled else tile_threads(out.device)
+        for stats in parallel_map(frame_batch, range(len(batches)), threads):
+            self.stats.update(stats)
         state.dirty.zero_()
         colours = preview_surface.factor_colours(self.params, state.sums.shape[1] > 4)
         diffuse, specular = preview_surface.combine_factors(colours, state.sums.movedim(1, 0))
