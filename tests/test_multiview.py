@@ -18,6 +18,7 @@ from pipeline.bake.multiview.bake import bake_multiview, coverage_summary
 from pipeline.bake.multiview.frames import FrameRenderer
 from pipeline.bake.multiview.placement import PlacementSettings
 from pipeline.bake.multiview.view import view_points
+from pipeline.benchmarks.bench.measure import moved
 from pipeline.cli import main
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
@@ -29,6 +30,7 @@ from relight_torch.light_samples import fixed_light_samples
 from relight_torch.multiview.incident import group_images, incident_table, view_directions
 from relight_torch.multiview.relighter import MultiviewRelighter
 from relight_torch.multiview.views import camera_column, gather_gbuffer
+from relight_torch.parallel import torch_threads
 from relight_torch.relighter import Relighter
 from relight_torch.transfer.open import open_cache_relighter
 
@@ -208,6 +210,22 @@ def test_cached_lighting_per_sample_equals_the_direct_relighter(baked):
         assert float(expected.abs().max()) > 0
         torch.testing.assert_close(images, expected, rtol=1e-4, atol=1e-5 * float(expected.abs().max()))
     assert shadowed > 0  # the unshadowed sums were compared where shadows matter
+
+
+def test_lights_shaded_on_two_threads_give_the_images_of_one(baked):
+    # A view's lights are shaded on the kept worker threads, one light each: the image and the
+    # counters (lit caching samples, edge points) are those of the lights in turn.
+    scene, camera, layer = baked
+    images, counters = [], []
+    for threads in (1, 2):
+        with torch_threads(threads):
+            relighter = open_cache_relighter(layer)
+            (light,) = relighter.lights
+            relighter.set_light(dataclasses.replace(moved(light, 0.05), path="/Test/Second"))
+            images.append(FrameRenderer(relighter).render(_moved(camera, scene)).image)
+        counters.append(dict(relighter.counters))
+    assert counters[1] == counters[0] and counters[0]["edge_samples"] > 0
+    np.testing.assert_allclose(images[1], images[0], rtol=1e-5, atol=1e-6)
 
 
 def test_camera_move_traces_no_shadow_rays(baked):

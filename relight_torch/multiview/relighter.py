@@ -32,6 +32,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import os
+import threading
 from pathlib import Path
 from typing import NamedTuple
 
@@ -53,6 +54,7 @@ from relight_torch.multiview.incident import (CHANNELS, group_images, incident_t
 from relight_torch.multiview.load import load_camera_table, load_view_gbuffers
 from relight_torch.multiview.resample import bilinear_samples
 from relight_torch.multiview.views import CachingViews, concat_gbuffers, gather_gbuffer, take_rows
+from relight_torch.parallel import parallel_map, tile_threads
 from relight_torch.relighter import Relighter, RelightSettings, embree_visibility, replace_rig, shot_lights
 from relight_torch.visibility.embree import EmbreeCaster
 
@@ -182,6 +184,7 @@ class MultiviewRelighter:
         self.description: CacheDescription | None = None
         self.report: HoleReport | None = None
         self.counters: collections.Counter[str] = collections.Counter()
+        self._counters_lock = threading.Lock()   # lights are shaded on worker threads (`_shaded`)
         self._lights: dict[str, Light] = {}
         self._relighter: Relighter | None = None
         self._view: ViewSamples | None = None
@@ -280,12 +283,22 @@ class MultiviewRelighter:
         return self._shaded().emission_image()
 
     def _shaded(self) -> Relighter:
-        """The view's Relighter with every light's unit images given (from the cached lighting)."""
+        """The view's Relighter with every light's unit images given (from the cached lighting).
+
+        The lights' images are made on the kept worker threads (`relight_torch.parallel`), a light
+        each: most of a light's work at a view is short passes over its edge points, which one
+        torch thread per light runs better than two threads per pass."""
         relighter = self.relighter
-        for light in self._lights.values():
-            if relighter.unit_images(light.path) is None:
-                relighter.set_unit_images(light.path, self._view_images(light))
+        missing = [light for light in self._lights.values() if relighter.unit_images(light.path) is None]
+        threads = tile_threads(self.views.device, self.visibility.thread_safe)
+        for light, images in zip(missing, parallel_map(self._view_images, missing, threads)):
+            relighter.set_unit_images(light.path, images)
         return relighter
+
+    def _count(self, name: str, value: int) -> None:
+        """Add `value` to counter `name` (from any thread)."""
+        with self._counters_lock:
+            self.counters[name] += value
 
     def _light_samples(self, light: Light) -> torch.Tensor:
         """(R, S, 2) the pool's fixed light samples for the light's sample count (found once per
@@ -342,7 +355,7 @@ class MultiviewRelighter:
             reaching = traced[..., :3].sum((1, 2)).div_(torch.where(unshadowed > 0, unshadowed, 1.0))
             total.index_copy_(1, missing, torch.stack([reaching, unshadowed]))
             done[missing] = True
-            self.counters["lit_samples"] += int(missing.numel())
+            self._count("lit_samples", int(missing.numel()))
         if ready is not None:
             self._ready.add(ready)
         return table, total
@@ -360,11 +373,11 @@ class MultiviewRelighter:
         # Traced at the view: the points on the light's edges in the caching images or in its near field,
         # and the samples baked on demand (not in the pool).
         traced = [self._refined_points(light, totals)] if refine else []
-        self.counters["edge_samples"] += int(traced[0].numel()) if refine else 0
+        self._count("edge_samples", int(traced[0].numel()) if refine else 0)
         if gbuffer.num_samples > cached:
             columns = torch.cat([columns, columns.new_zeros(columns.shape[0], gbuffer.num_samples - cached)], 1)
             traced.append(torch.arange(cached, gbuffer.num_samples, device=gbuffer.device))
-            self.counters["patch_samples"] += gbuffer.num_samples - cached
+            self._count("patch_samples", gbuffer.num_samples - cached)
         points = torch.cat(traced) if traced else None
         if points is not None and points.numel():
             def pick(values: torch.Tensor) -> torch.Tensor:
@@ -375,7 +388,7 @@ class MultiviewRelighter:
                                       pick(gbuffer.normal), u, self.visibility, self.sample_groups,
                                       self.settings.chunk_samples)
             columns.index_copy_(1, points, fresh.permute(2, 1, 0).reshape(columns.shape[0], -1))
-        self.counters["view_shading"] += 1
+        self._count("view_shading", 1)
         return group_images(gbuffer.params, self._directions, columns.reshape(CHANNELS, -1, gbuffer.num_samples),
                             self._colours)
 
