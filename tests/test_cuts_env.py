@@ -4,7 +4,6 @@ edits without re-baking, light edits, and the merge's cost counters."""
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 from pathlib import Path
 
@@ -17,7 +16,8 @@ from pipeline.bake.cuts.lights import sphere_directions
 from pipeline.bake.cuts.tree import build_leaf_order
 from pipeline.bake.cuts.vertices import build_lattice
 from pipeline.benchmarks.bench.measure import moved
-from pipeline.benchmarks.cuts_sweep import baked_cache, rotated
+from pipeline.benchmarks.cuts_sweep import rotated
+from pipeline.benchmarks.reuse import reusable_bake
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scene.types import MaterialInput
@@ -234,16 +234,19 @@ def test_bfloat16_factors_stay_within_their_rounding(dome):
     assert _psnr(rounded, exact) > 60.0
 
 
-def test_the_sweep_reuses_only_a_cache_baked_alike(dome):
-    # `cuts_sweep --reuse` relights a cache of the same size and bake parameters instead of baking.
+def test_the_sweeps_reuse_only_a_cache_baked_alike(dome):
+    # `cuts_sweep --reuse` (and `multiview_path --reuse-bake`) relight a cache of the same method,
+    # size, supersampling and bake parameters instead of baking.
     _, _, layer, _, directory = dome
     settings = CutsSettings(num_lights=LIGHTS, sigma=2.0, lattice_edge=0.03)
-    args = argparse.Namespace(width=WIDTH, height=HEIGHT, supersampling=2, texture_samples=2)
-    assert baked_cache(layer, settings, args) == layer
-    assert baked_cache(layer, dataclasses.replace(settings, sigma=3.0), args) is None
-    assert baked_cache(layer, settings, argparse.Namespace(**{**vars(args), "width": 2 * WIDTH})) is None
-    assert baked_cache(layer, settings, argparse.Namespace(**{**vars(args), "supersampling": 1})) is None
-    assert baked_cache(directory / "none" / "dome.relight.usda", settings, args) is None
+    parameters = {**settings.parameters(), "textureSamples": 2}
+    assert reusable_bake(layer, "cuts", (WIDTH, HEIGHT), 2, parameters) == layer
+    assert reusable_bake(layer, "cuts", (WIDTH, HEIGHT), 2,
+                         {**dataclasses.replace(settings, sigma=3.0).parameters(), "textureSamples": 2}) is None
+    assert reusable_bake(layer, "cuts", (2 * WIDTH, HEIGHT), 2, parameters) is None
+    assert reusable_bake(layer, "cuts", (WIDTH, HEIGHT), 1, parameters) is None
+    assert reusable_bake(layer, "multiview", (WIDTH, HEIGHT), 2, parameters) is None
+    assert reusable_bake(directory / "none" / "dome.relight.usda", "cuts", (WIDTH, HEIGHT), 2, parameters) is None
 
 
 def test_lattice_interpolates_the_hit_points():

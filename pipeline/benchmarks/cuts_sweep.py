@@ -49,6 +49,7 @@ import torch
 from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
 from pipeline.benchmarks.bench.measure import cache_bytes, device_name, moved, relight_ms
 from pipeline.benchmarks.bench.references import References
+from pipeline.benchmarks.reuse import reusable_bake
 from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, format_params, write_csv
 from pipeline.benchmarks.stopwatch import Stopwatch
 from pipeline.scene import find_camera, load_scene
@@ -182,19 +183,6 @@ def cost_rows(bakes: list[tuple[CutsRelighter, Path, dict[str, object], float]],
     return rows
 
 
-def baked_cache(layer: Path, settings: CutsSettings, args: argparse.Namespace) -> Path | None:
-    """`layer` if a cache baked there earlier has this sweep's size and bake parameters (`--reuse`:
-    the bake at 640 x 480 takes minutes), else None. Its code version is not compared: the bake's
-    code may have changed since."""
-    if not layer.is_file():
-        return None
-    description = read_cache_layer(layer)
-    wanted = {**settings.parameters(), "supersampling": args.supersampling, "textureSamples": args.texture_samples}
-    same = (tuple(description.resolution) == (args.width, args.height)
-            and all(description.parameters.get(key) == value for key, value in wanted.items()))
-    return layer if same else None
-
-
 def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[SweepRow]:
     """Every (lights, sigma) bake of one scene and its rows."""
     bundled = SCENES[name]
@@ -211,7 +199,9 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[Sw
         settings = CutsSettings(mode=args.mode, num_lights=num_lights, sigma=sigma, lattice_edge=args.lattice_edge,
                                 beta=beta)
         cache_dir = directory / f"cache-{num_lights}-{sigma}-{beta}"
-        layer = baked_cache(cache_dir / f"{name}.relight.usda", settings, args) if args.reuse else None
+        layer = reusable_bake(cache_dir / f"{name}.relight.usda", "cuts", (args.width, args.height),
+                              args.supersampling, {**settings.parameters(), "textureSamples": args.texture_samples}
+                              ) if args.reuse else None
         bake_s = NAN
         if layer is None:
             start = time.perf_counter()

@@ -49,6 +49,7 @@ from pipeline.bake.multiview.frames import FrameRenderer
 from pipeline.bake.multiview.placement import PlacementSettings
 from pipeline.bake.multiview.view import view_points
 from pipeline.benchmarks.bench.measure import cache_bytes, relight_ms
+from pipeline.benchmarks.reuse import reusable_bake
 from pipeline.benchmarks.rows import SweepRow, format_params, write_csv
 from pipeline.benchmarks.stopwatch import Stopwatch
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
@@ -57,7 +58,6 @@ from pipeline.scene.types import Camera, Scene
 from pipeline.scenes import SCENES
 from pipeline.tracing import Tracer
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.errors import RelightError
 from relight_torch.io.atomic import atomic_path, write_text_atomic
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.multiview.relighter import open_multiview_relighter
@@ -160,21 +160,6 @@ def cached_reference(tracer: PathTracer, camera: Camera, path: Path) -> np.ndarr
     return image
 
 
-def reused_bake(folder: Path, stem: str, args: argparse.Namespace, coverage: float) -> Path | None:
-    """The layer an earlier run baked into `folder` with these placement and sampling settings, or
-    None (absent, unreadable or other settings). Opening it checks it against the shot's inputs."""
-    layer = folder / f"{stem}.relight.usda"
-    try:
-        description = read_cache_layer(layer)
-    except (OSError, RelightError):
-        return None
-    p = description.parameters
-    same = (description.method == "multiview" and description.supersampling == args.supersampling
-            and description.resolution == (args.width, args.height)
-            and p.get("maxResolution") == args.caching_resolution and p.get("coverage") == coverage)
-    return layer if same else None
-
-
 def run_scene(name: str, args: argparse.Namespace, out: Path) -> tuple[list[SweepRow], list[dict]]:
     shot = SCENES[name].write(out / name)
     scene = load_scene(shot, width=args.width, height=args.height)
@@ -191,7 +176,9 @@ def run_scene(name: str, args: argparse.Namespace, out: Path) -> tuple[list[Swee
         settings = PlacementSettings(coverage=coverage, max_resolution=args.caching_resolution)
         start = time.perf_counter()
         folder = out / name / f"coverage{coverage:g}"
-        layer = reused_bake(folder, name, args, coverage) if args.reuse_bake else None
+        layer = reusable_bake(folder / f"{name}.relight.usda", "multiview", (args.width, args.height),
+                              args.supersampling, {"maxResolution": args.caching_resolution, "coverage": coverage}
+                              ) if args.reuse_bake else None
         bake_s = float("nan")
         if layer is None:
             layer = bake_multiview(scene, camera, folder, name, args.supersampling, settings=settings)
