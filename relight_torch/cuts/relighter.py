@@ -499,14 +499,13 @@ class CutsRelighter:
                     chunk = columns[part:part + PRODUCT_ROWS]
                     if fresh is not None:
                         chunk.index_copy_(2, slot[new], fresh[part:part + PRODUCT_ROWS].to(chunk.dtype))
-                    state.sums[batch.rows[part:part + PRODUCT_ROWS]] = _light_sums(chunk, table, out.dtype)
+                    state.sums.index_copy_(0, batch.rows[part:part + PRODUCT_ROWS],
+                                           _light_sums(chunk, table, out.dtype))
             elif dirty_rows.shape[0]:
                 state.sums.index_copy_(0, batch.rows.index_select(0, dirty_rows),
                                        _light_sums(columns.index_select(0, dirty_rows), table, out.dtype))
             return stats
 
-        if new_table is not None and not new_table.everything:
-            self._entries_by_node(0)   # the list of batch indexes made before the batches share it
         # Batches on the kept worker threads (`relight_torch.parallel`): much of a batch's
         # bookkeeping (nonzero, bincount, cumsum, scatters) runs on one thread under OpenMP.
         threads = 1 if settings.compiled else tile_threads(out.device)
@@ -657,11 +656,11 @@ class CutsRelighter:
         """Batch `index`'s entries by node: ((Q,) int32 the flat (P M) positions of its rows'
         clusters, padding left out, sorted by node, (2L + 2,) int32 offsets: node n's entries are
         [offsets[n], offsets[n + 1]), n < 2L - 1). Made on first use (a light edit that changes
-        part of the illumination cut) and kept."""
-        if self._by_node is None or len(self._by_node) != len(self.visibility_batches()):
-            self._by_node = [None] * len(self.visibility_batches())
+        part of the illumination cut) and kept; a frame's batches, on several threads, each fill
+        their own entry of the list `visibility_batches` makes."""
+        batch = self.visibility_batches()[index]
         if self._by_node[index] is None:
-            node = self.visibility_batches()[index].node.view(-1)
+            node = batch.node.view(-1)
             counts = torch.bincount(node, minlength=self.cuts.tree.num_nodes + 1)
             offsets = torch.cat((counts.new_zeros(1), torch.cumsum(counts, 0)))
             # The padding (node 2L - 1, sorted last) is never looked up: not kept.
@@ -699,7 +698,7 @@ class CutsRelighter:
                 batches.append(VisibilityBatch(rows, self._geometry[rows], node.int(), visibility,
                                                int(inputs[rows].sum()), dark))
             self._visibility_batches = (batch_rows, batches)
-            self._by_node = None
+            self._by_node = [None] * len(batches)
         return self._visibility_batches[1]
 
     def _visibility(self, merged: MergedCuts, weights: torch.Tensor) -> torch.Tensor:
