@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from relight_torch.lights.emission import sample_light
+from relight_torch.lights import polygon
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.polygon import analytic_ratio, has_closed_form, rect_cosine_integral
 from relight_torch.math.frame import dot
@@ -73,6 +74,17 @@ def test_random_receivers_match_monte_carlo_including_horizon_clipped_ones(light
     heights = ((corners.unsqueeze(1) - points) * normals).sum(-1)
     straddling = (heights.max(0).values > 0) & (heights.min(0).values < 0) & (local[:, 2] < 0)
     assert int(straddling.sum()) >= 5
+
+
+def test_blocks_of_receivers_give_the_values_of_one_and_no_receivers_none(monkeypatch):
+    light = Light("/R", LightKind.RECT, width=1.3, height=0.7, world_from_light=world_from_light((0.2, 0.1, 1.0)))
+    generator = torch.Generator().manual_seed(5)
+    points = (torch.rand(48, 3, generator=generator) - 0.5) * 2.0
+    normals = torch.nn.functional.normalize(torch.randn(48, 3, generator=generator), dim=-1)
+    whole = rect_cosine_integral(light, points, normals)
+    monkeypatch.setattr(polygon, "CHUNK_POINTS", 7)   # to rounding: vector loops and their scalar tails
+    torch.testing.assert_close(rect_cosine_integral(light, points, normals), whole, rtol=1e-6, atol=1e-7)
+    assert rect_cosine_integral(light, points[:0], normals[:0]).shape == (0,)
 
 
 def test_ratio_is_exact_for_any_unshadowed_samples_and_only_for_rect_lights_without_texture():

@@ -29,6 +29,7 @@ import torch
 
 from relight_torch.lights.geometry import LightFrame, surface_area
 from relight_torch.lights.light import Light, LightKind
+from relight_torch.math.extremes import extremes_of_four
 
 CHUNK_POINTS = 1 << 16
 """Receivers evaluated together by `rect_cosine_integral`."""
@@ -115,7 +116,7 @@ def rect_cosine_integral(light: Light, points: torch.Tensor, normals: torch.Tens
     facing = float(frame.light_from_world[2] @ plane_normal)
     blocks = [_rect_block(x, y, -position[2, i:i + CHUNK_POINTS], position[0, i:i + CHUNK_POINTS],
                           position[1, i:i + CHUNK_POINTS], normal[:, i:i + CHUNK_POINTS], facing)
-              for i in range(0, points.shape[0], CHUNK_POINTS)]
+              for i in range(0, max(points.shape[0], 1), CHUNK_POINTS)]   # one (empty) block for no receivers
     return blocks[0] if len(blocks) == 1 else torch.cat(blocks)
 
 
@@ -136,8 +137,7 @@ def _rect_block(x: list[float], y: list[float], z: torch.Tensor, px: torch.Tenso
     u = [x[i] - px for i in range(4)]
     v = [y[i] - py for i in range(4)]
     height = [(nx * u[i]).addcmul_(ny, v[i]).addcmul_(nz, z) for i in range(4)]  # above the tangent plane
-    lowest = torch.minimum(torch.minimum(height[0], height[1]), torch.minimum(height[2], height[3]))
-    highest = torch.maximum(torch.maximum(height[0], height[1]), torch.maximum(height[2], height[3]))
+    highest, lowest = extremes_of_four(height)
     slope_x, slope_y = z * ny, z * nx  # the in-plane part of n . (a x b) is Z (n_y e_x - n_x e_y)
     total = torch.zeros_like(px)
     for i in range(4):

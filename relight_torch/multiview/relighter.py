@@ -46,6 +46,7 @@ from relight_torch.gbuffer import GBuffer
 from relight_torch.light_samples import bounding_radius, fixed_light_samples
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import decode_paths
+from relight_torch.math.extremes import extremes_of_four
 from relight_torch.math.frame import orthonormal_basis
 from relight_torch.multiview.correspondence import ViewPoints, correspondence_map
 from relight_torch.multiview.holes import HoleReport, fill_small_holes
@@ -409,9 +410,9 @@ class MultiviewRelighter:
                 # counts; rows of taps, so that the extremes are three element-wise maxima and minima.
                 self._edge_taps = torch.where(view.weights > 0, view.taps, view.rows[:, None]).T.contiguous()
             reaching, unshadowed = take_rows(totals, self._edge_taps).unbind(0)             # (4, M) each
-            high, low = _extremes(reaching)
+            high, low = extremes_of_four(reaching)
             refined |= high - low > self.edge_contrast
-            high, low = _extremes(unshadowed)
+            high, low = extremes_of_four(unshadowed)
             refined |= high - low > self.edge_contrast * high
         if self.near_field is not None and light.kind not in (LightKind.DISTANT, LightKind.DOME):
             if self._offsets is None:
@@ -425,12 +426,6 @@ class MultiviewRelighter:
                 squared.add_((position[axis] - float(centre[axis])).square_())
             refined |= offsets > self.near_field * (squared.sqrt_() - bounding_radius(light))
         return torch.nonzero(refined).squeeze(-1)
-
-
-def _extremes(values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(M,) maximum and minimum over the four rows of (4, M) `values`: element-wise, no reduction kernel."""
-    return (torch.maximum(torch.maximum(values[0], values[1]), torch.maximum(values[2], values[3])),
-            torch.minimum(torch.minimum(values[0], values[1]), torch.minimum(values[2], values[3])))
 
 
 def open_multiview_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
