@@ -548,9 +548,8 @@ class Relighter:
         threads = tile_threads(self.gbuffer.device, self.visibility.thread_safe)
         for points, num_samples in self._sample_groups(light):
             chunks = self._chunks(num_samples, points, threads)
-            self._fixed_u(num_samples)  # made once, before the tiles share them
-            self._view_directions()
-            parts = parallel_map(lambda chunk: self._chunk_transport(light, chunk, num_samples), chunks, threads)
+            u, viewer = self._fixed_u(num_samples), self._view_directions()   # made here, shared by the tiles
+            parts = parallel_map(lambda chunk: self._chunk_transport(light, chunk, u, viewer), chunks, threads)
             state.transports.append(parts[0] if len(parts) == 1 else self._joined(parts, chunks))
         if state.transports[0].shadow_sums is not None:
             self._filter_visibility(state.transports)
@@ -619,9 +618,11 @@ class Relighter:
             transport.diffuse_ratio = transport.diffuse_ratio * (visibility if points is None else visibility[points])
             transport.shadow_sums = None
 
-    def _chunk_transport(self, light: Light, chunk: slice | torch.Tensor, num_samples: int) -> _Transport:
+    def _chunk_transport(self, light: Light, chunk: slice | torch.Tensor, u: torch.Tensor,
+                         viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor]) -> _Transport:
         """The transport of an unshaped unit light at the shading points of `chunk` (a slice of
-        all of them, or their indices).
+        all of them, or their indices), with the fixed light samples `u` (N, S, 2) of every point
+        and the `_view_directions` `viewer`.
 
         Points that no sample can light (facing away, inside the light, outside its cone of
         directions) cast no shadow rays and are dropped, unless they are fewer than half the
@@ -629,7 +630,8 @@ class Relighter:
         Everything runs samples first, (S, P, ...): per-point values broadcast over whole slabs.
         """
         g = self.gbuffer
-        sample = sample_light(light, g.position[chunk], self._fixed_u(num_samples)[chunk])
+        num_samples = u.shape[1]
+        sample = sample_light(light, g.position[chunk], u[chunk])
         direction = sample.direction.transpose(0, 1)  # (S, C, 3), contiguous: see sample_light
         cosine = dot(direction, g.normal[chunk])  # N.L at the shading normal as stored: the closed form's
         facing = dot(direction, g.geometric_normal[chunk]) > 0
@@ -641,7 +643,7 @@ class Relighter:
         filtered = exact is not None and self.filter_radius > 0
         if filtered:  # lit by the closed form even where no sample is (see `uncovered` below)
             lit |= exact > 0
-        wo, cos_e, inverse_norm = self._view_directions()
+        wo, cos_e, inverse_norm = viewer
         lit &= cos_e[chunk] > 0
         subset = not isinstance(chunk, slice)
         if 2 * int(lit.sum()) > lit.shape[0]:
