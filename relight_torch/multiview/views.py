@@ -42,6 +42,12 @@ def world_from_camera(table: np.ndarray) -> np.ndarray:
     return np.asarray(table[:, :16], np.float64).reshape(-1, 4, 4)
 
 
+def camera_forward(table: np.ndarray) -> np.ndarray:
+    """(K, 3) float64 unit world viewing direction (camera -Z) of each camera of a (K, C) table."""
+    forward = -world_from_camera(table)[:, :3, 2]
+    return forward / np.linalg.norm(forward, axis=-1, keepdims=True)
+
+
 def check_camera_table(table: np.ndarray, source: str) -> None:
     """Raise ValueError unless `table` is a finite (K, C) camera table with positive image sizes."""
     if table.ndim != 2 or table.shape[1] != len(CAMERA_COLUMNS):
@@ -146,8 +152,7 @@ def cube_faces(table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     as the baker places them). Its six frusta tile the sphere of directions, so a point lies in the
     face of the largest component of its direction from the centre. Anything else is single.
     """
-    world = world_from_camera(table)
-    forward = -world[:, :3, 2] / np.linalg.norm(world[:, :3, 2], axis=-1, keepdims=True)
+    world, forward = world_from_camera(table), camera_forward(table)
     axis = np.abs(forward).argmax(-1)
     face = 2 * axis + (forward[np.arange(len(table)), axis] < 0)
     focal = camera_column(table, "focalLength")
@@ -329,8 +334,7 @@ class CachingViews:
                                                                  "verticalApertureOffset")], -1)
         projection = np.concatenate([camera_from_world[:, :3, :].reshape(-1, 12), film,
                                      size_tensor.cpu().numpy()[:, ::-1]], -1)
-        forward = -world_from_camera(table)[:, :3, 2]
-        forward /= np.linalg.norm(forward, axis=-1, keepdims=True)
+        forward = camera_forward(table)
         corner = np.hypot(film[:, 1] / 2 + np.abs(film[:, 3]), film[:, 2] / 2 + np.abs(film[:, 4])) / film[:, 0]
         cone = 1.0 / np.sqrt(1.0 + (1.01 * corner) ** 2)
         cubes, singles = cube_faces(table)
