@@ -19,7 +19,7 @@ from pipeline.bake.multiview.frames import FrameRenderer
 from pipeline.bake.multiview.placement import PlacementSettings
 from pipeline.bake.multiview.view import view_points
 from pipeline.benchmarks.bench.measure import moved
-from pipeline.cli import main
+from pipeline.cli import build_parser, main
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
@@ -165,6 +165,12 @@ def test_render_cli_camera_from_lights_layer_over_time(baked, tmp_path):
     # Without --camera a multiview cache renders its own camera (the shot camera, NovelCam at time 1).
     assert main(["render", str(layer), "-o", str(tmp_path / "own.exr")]) == 0
     np.testing.assert_allclose(read_rgb_exr(tmp_path / "own.exr"), first, atol=1e-3)
+
+
+def test_render_cli_takes_a_camera_path_as_one_list_of_times():
+    parse = build_parser().parse_args
+    assert parse(["render", "c.relight.usda", "--time", "1", "2", "--time", "3.5", "-o", "f.exr"]).time == [1.0, 2.0, 3.5]
+    assert parse(["render", "c.relight.usda", "-o", "f.exr"]).time is None
 
 
 def test_bake_cli_refuses_an_empty_box(tmp_path):

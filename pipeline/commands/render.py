@@ -37,8 +37,9 @@ def add_parser(subparsers) -> None:
     view.add_argument("--camera", metavar="PRIM",
                       help="render from this camera prim, in the shot or in the --lights layer (default: the "
                            "cache's camera)")
-    view.add_argument("--time", type=float, action="append", metavar="T",
-                      help="time code to read the camera at; repeat for a camera path (OUT gets .<T> per frame)")
+    view.add_argument("--time", type=float, nargs="+", action="extend", metavar="T",
+                      help="time codes to read the camera at, one frame each: a camera path "
+                           "(--time 1 2 3, or --time repeated; OUT gets .<T> per frame)")
     view.add_argument("--width", type=int, metavar="W", help="image width (default: the cache's)")
     view.add_argument("--height", type=int, metavar="H", help="image height (default: the cache's)")
     view.add_argument("--fill-holes", action="store_true",
