@@ -197,6 +197,45 @@ def test_kept_factor_columns_follow_light_and_material_edits(dome, monkeypatch):
     assert 0 < relighter.stats["evaluated"] < merged * float(rows.float().mean()) * 3
 
 
+def test_a_repeated_roughness_edit_keeps_its_rows_grids(dome, monkeypatch):
+    # A roughness edit keeps its rows' grid weights (material-independent) for the next edit of
+    # the same rows, until the illumination cut changes; each frame must equal a plain per-cluster
+    # evaluation. Grids shaded on their live columns alone (here every grid with a dead column: a
+    # first render, a turned dome's new nodes, a roughness edit's rows) give the sums of whole grids.
+    monkeypatch.setattr(cuts_relighter, "MERGE_ROWS", 13)
+    scene, _, layer, _, _ = dome
+    index = next(i for i, material in enumerate(scene.materials) if material.path.endswith("RedPlastic"))
+    images = []
+    for share in (0.0, 1.0):   # never (unless no column is live), or whenever a column is dead
+        monkeypatch.setattr(cuts_relighter, "GRID_LIVE_SHARE", share)
+        relighter = open_cache_relighter(layer)
+        relighter.set_settings(CutsRelightSettings(rows_per_batch=97, factor_dtype=torch.float32))
+        frames = [relighter.cut_samples(relighter.lights, keep=True)]
+        torch.testing.assert_close(frames[0], _per_cluster(relighter), rtol=1e-4, atol=1e-5)
+        relighter.edit_material(index, roughness=0.6)
+        first = relighter.cut_samples(relighter.lights, keep=True)
+        torch.testing.assert_close(first, _per_cluster(relighter), rtol=1e-4, atol=1e-5)
+        evaluated, kept = relighter.stats["evaluated"], list(relighter._columns.grids)
+        assert any(grids is not None for grids in kept)
+        relighter.edit_material(index, roughness=0.3)
+        second = relighter.cut_samples(relighter.lights, keep=True)
+        torch.testing.assert_close(second, _per_cluster(relighter), rtol=1e-4, atol=1e-5)
+        assert relighter.stats["evaluated"] == evaluated
+        for new, old in zip(relighter._columns.grids, kept):
+            assert (new is None) == (old is None)
+            assert new is None or all(reused is grid for reused, grid in zip(new[1], old[1]))
+        if share == 1.0:
+            num_columns = relighter.illumination_cut(relighter.lights)[0].shape[0]
+            assert any(grid.columns.shape[0] < num_columns for grids in kept if grids is not None for grid in grids[1])
+        relighter.set_light(rotated(relighter.lights[0], 3.0))
+        frames += [first, second, relighter.cut_samples(relighter.lights, keep=True)]
+        torch.testing.assert_close(frames[-1], _per_cluster(relighter), rtol=1e-4, atol=1e-5)
+        assert all(grids is None for grids in relighter._columns.grids)
+        images.append(frames)
+    for whole, live in zip(*images):
+        torch.testing.assert_close(live, whole, rtol=1e-6, atol=1e-7)
+
+
 def test_batches_on_two_threads_give_the_images_of_one(dome):
     # A frame's visibility batches run on the kept worker threads (one batch each): the images
     # and the merge's statistics are those of the batches in turn, for a first render, a turned

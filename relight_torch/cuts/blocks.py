@@ -99,15 +99,26 @@ def dense_block(node_points: torch.Tensor, node: torch.Tensor, geometry: torch.T
     """The factors of P sub-samples' entries `node` (P, M) (weight (P, M) |C| <v>, as
     `grid_block`) added into `sums` (F S,) (flat (F, S) sums) at the cells `cells` (P M,) int64
     of each factor's S; factors before `first_factor` are not added. `work` (`work_blocks`, P x
-    M) overwritten. (The sums are one flat tensor, added to directly: compiled, an addition into
-    a view of it would copy all of it.)"""
+    M) overwritten. (The sums are one flat tensor, added to directly when compiled: an addition
+    into a view of it would copy all of it.)"""
     out, scratch, dots = work
     dense_dots(node_points, node, geometry, position, dots, scratch)
     preview_surface.split_factors_cosines(roughnesses, cos_e, dots[0], dots[1], weight, out, scratch, view_sq,
                                           dots[2])
-    stride = sums.shape[0] // len(out)
-    for factor in range(first_factor, len(out)):
-        sums.index_add_(0, cells + factor * stride, out[factor].view(-1))
+    add_factors(sums, cells, out, first_factor)
+
+
+def add_factors(sums: torch.Tensor, cells: torch.Tensor, factors: torch.Tensor | tuple[torch.Tensor, ...],
+                first_factor: int) -> None:
+    """Add `factors` (F, P, M) (or F (P, M) tensors) into `sums` (F S,) (flat (F, S) sums) at the
+    cells `cells` (P M,) int64 of each factor's S, from factor `first_factor` on."""
+    stride = sums.shape[0] // len(factors)
+    for factor in range(first_factor, len(factors)):
+        if torch.compiler.is_compiling():
+            sums.index_add_(0, cells + factor * stride, factors[factor].reshape(-1))
+        else:   # eager: into the factor's view, no shifted cells; scatter_add_ (the same sums bit
+            # for bit) is ~0.6 ns per entry on one core against ~1.1 for index_add_ (cells in cache)
+            sums[factor * stride:(factor + 1) * stride].scatter_add_(0, cells, factors[factor].reshape(-1))
 
 
 def _fresh_work(like: torch.Tensor, num_factors: int) -> tuple[tuple[torch.Tensor, ...], ...]:
