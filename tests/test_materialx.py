@@ -126,8 +126,8 @@ def test_missing_mtlx_document_is_a_warning_naming_the_material_and_the_fallback
 
 @pytest.mark.parametrize("content, expected", [
     ("<materialx version=\"1.39\"><standard_surface", "is not readable"),
-    ('<?xml version="1.0"?><materialx version="1.39"><surfacematerial name="Other" type="material"/>'
-     "</materialx>", "has no material 'Gold' (it has: Other)"),
+    ('<?xml version="1.0"?><materialx version="1.39"><surfacematerial name="Other" type="material"/></materialx>',
+     "has no material 'Gold' (it has: Other)"),
 ])
 def test_unreadable_mtlx_document_falls_back_to_grey(tmp_path, content, expected):
     (tmp_path / "broken.mtlx").write_text(content)
@@ -155,8 +155,8 @@ def test_cli_bakes_a_stage_whose_material_variant_references_mtlx(tmp_path, caps
 
 def test_material_prim_with_a_missing_usd_reference_is_a_warning(tmp_path):
     shot = _stage(tmp_path, "standard_surface_gold.mtlx")
-    text = shot.read_text().replace('def Material "Paint" (', 'def Material "Paint" (\n            references = @./looks.usda@')
-    shot.write_text(text)
+    reference = '\n            references = @./looks.usda@'
+    shot.write_text(shot.read_text().replace('def Material "Paint" (', 'def Material "Paint" (' + reference))
     shutil.copy(DATA / "standard_surface_gold.mtlx", tmp_path)
     scene = load_scene(shot)
     assert any("material /World/Looks/Paint" in message and "looks.usda" in message for message in scene.warnings)
@@ -223,6 +223,50 @@ def test_image_nodes_become_textures_with_their_coordinates(scene):
                                rtol=1e-6)
 
 
+USD_UV_TEXTURE = """
+    def Material "Tex"
+    {
+        token outputs:mtlx:surface.connect = </World/Tex/Surface.outputs:out>
+        def Shader "Surface"
+        {
+            uniform token info:id = "ND_standard_surface_surfaceshader"
+            color3f inputs:base_color.connect = </World/Tex/Image.outputs:rgb>
+            float inputs:specular_roughness.connect = </World/Tex/Image.outputs:g>
+            token outputs:out
+        }
+        def Shader "Image"
+        {
+            uniform token info:id = "UsdUVTexture"
+            asset inputs:file = @./albedo.exr@
+            float2 inputs:st.connect = </World/Tex/Coords.outputs:result>
+            float4 inputs:scale = (0.5, 0.5, 0.5, 1)
+            token inputs:wrapS = "clamp"
+            float3 outputs:rgb
+            float outputs:g
+        }
+        def Shader "Coords"
+        {
+            uniform token info:id = "UsdPrimvarReader_float2"
+            string inputs:varname = "st"
+            float2 outputs:result
+        }
+    }"""
+
+
+def test_materialx_surface_fed_by_usd_uv_texture(tmp_path):
+    pixels = np.array([[[0.2, 0.4, 0.6], [0.8, 0.6, 0.4]]], np.float32)
+    write_rgb_exr(tmp_path / "albedo.exr", pixels)
+    shot = _stage(tmp_path, "unused.mtlx", extra=USD_UV_TEXTURE)
+    shot.write_text(shot.read_text().replace("</World/Looks/Paint>", "</World/Tex>"))
+    scene = load_scene(shot)
+    (material,) = scene.materials
+    texture = material.diffuse_color.texture
+    assert (texture.wrap_s, texture.wrap_t, texture.st_primvar) == ("clamp", "black", "st")
+    values = evaluate_materials([material], np.zeros(2, int), np.array([[0.25, 0.5], [0.75, 0.5]], np.float32))
+    np.testing.assert_allclose(values["diffuse_color"], 0.5 * pixels[0], rtol=1e-6)
+    np.testing.assert_allclose(values["roughness"], 0.5 * pixels[0, :, 1], rtol=1e-6)
+
+
 def test_normalmap_node_gives_the_tangent_space_normal(tmp_path):
     pixels = np.array([[[0.5, 0.5, 1.0], [1.0, 0.5, 0.5]]], np.float32)
     write_rgb_exr(tmp_path / "normal.exr", pixels)
@@ -232,7 +276,9 @@ def test_normalmap_node_gives_the_tangent_space_normal(tmp_path):
   <normalmap name="bump" type="vector3">
     <input name="in" type="vector3" nodename="normal_image"/><input name="scale" type="float" value="0.5"/>
   </normalmap>
-  <standard_surface name="SR" type="surfaceshader"><input name="normal" type="vector3" nodename="bump"/></standard_surface>
+  <standard_surface name="SR" type="surfaceshader">
+    <input name="normal" type="vector3" nodename="bump"/>
+  </standard_surface>
   <surfacematerial name="Gold" type="material"><input name="surfaceshader" type="surfaceshader" nodename="SR"/>
   </surfacematerial>
 </materialx>""")

@@ -106,7 +106,8 @@ def check_composition(stage: Usd.Stage, path: str | Path) -> list[str]:
         more = f" (and {len(problems.fatal) - 1} more)" if len(problems.fatal) > 1 else ""
         raise RelightError(f"stage {path}: {problems.fatal[0]}{more}")
     return [
-        f"stage {path}: material {prim}: {message}; the material falls back to grey 0.18 diffuse"
+        f"stage {path}: material {prim}: {message}; rendering the material without it (grey 0.18 diffuse "
+        f"if no surface shader is left, docs/MATERIALS.md)"
         for prim, asset, message in problems.material
         if not asset.lower().endswith(".mtlx")
     ]

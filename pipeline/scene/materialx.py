@@ -44,7 +44,6 @@ from pipeline.scene.materialx_graph import (
     as_floats,
     channel_mean,
     fit_input,
-    scaled,
     standard_library,
 )
 from pipeline.scene.textures import ImageCache
@@ -224,8 +223,10 @@ def surface_material(path: str, node: Node, images: ImageCache, warn: Callable[[
         if node.category == "UsdPreviewSurface":
             fields = _preview_surface_fields(surface)
         else:
-            names, dropped = ((_STANDARD_SURFACE_NAMES, _STANDARD_SURFACE_DROPPED) if node.category == "standard_surface"
-                              else (_OPEN_PBR_NAMES, _OPEN_PBR_DROPPED))
+            if node.category == "standard_surface":
+                names, dropped = _STANDARD_SURFACE_NAMES, _STANDARD_SURFACE_DROPPED
+            else:
+                names, dropped = _OPEN_PBR_NAMES, _OPEN_PBR_DROPPED
             fields = _standard_surface_fields(surface, names)
             unused = _dropped(surface, names, dropped)
             if unused:
@@ -263,7 +264,7 @@ def _read_document(file: str) -> mx.Document:
     document = mx.createDocument()
     try:
         mx.readFromXmlFile(document, file, mx.FileSearchPath(os.path.dirname(file)))
-    except Exception as error:  # MaterialX raises its own ExceptionParseError / ExceptionFileMissing
+    except (mx.ExceptionParseError, mx.ExceptionFileMissing) as error:  # an XInclude may be missing too
         raise RelightError(f"MaterialX document {file} is not readable: {str(error).splitlines()[0]}") from None
     document.setDataLibrary(standard_library())
     return document

@@ -76,7 +76,7 @@ class Port:
     """
 
     value: object = None
-    node: "Node | None" = None
+    node: Node | None = None
     output: str = "out"
     color_space: str = ""
 
@@ -129,12 +129,15 @@ class UsdNode:
         self._shader = shader
         self._time = time
         shader_id = shader.GetShaderId() or ""
-        self._nodedef = _usd_nodedef(shader_id)
+        nodedef = _usd_nodedef(shader_id)
+        # USD's own nodes (UsdUVTexture, UsdPrimvarReader_float2) keep USD's defaults (wrapS
+        # 'useMetadata', not MaterialX's 'periodic'): the evaluator supplies those.
+        self._nodedef = nodedef if shader_id.startswith("ND_") else None
         if shader_id.startswith("UsdPrimvarReader"):
             self.category = "UsdPrimvarReader"
         else:
-            self.category = self._nodedef.getNodeString() if self._nodedef else shader_id
-        self.type = self._nodedef.getType() if self._nodedef else ""
+            self.category = nodedef.getNodeString() if nodedef else shader_id
+        self.type = nodedef.getType() if nodedef else ""
         self.name = str(shader.GetPath())
 
     def port(self, name: str) -> Port | None:
@@ -381,7 +384,7 @@ class GraphEvaluator:
             return MaterialInput(constant)
         if usd_texture:
             texture_output = output if output in _OUTPUT_INDICES else "rgb"
-            wrap = [_WRAP_MODES.get(str(self._constant(node, name, "useMetadata")), None) for name in ("wrapS", "wrapT")]
+            wrap = [_WRAP_MODES.get(str(self._constant(node, name, "useMetadata"))) for name in ("wrapS", "wrapT")]
             source_color_space = str(self._constant(node, "sourceColorSpace", "auto"))
             scale = as_floats(self._constant(node, "scale", np.ones(4)), 4)
             bias = as_floats(self._constant(node, "bias", np.zeros(4)), 4)
@@ -396,7 +399,7 @@ class GraphEvaluator:
             scale, bias = None, None
             primvar, st_from_uv = self._texcoord(node.port("texcoord"), label, depth)
             if node.category == "tiledimage":
-                st_from_uv = _tiling(node, self) @ st_from_uv
+                st_from_uv = self._tiling(node) @ st_from_uv
         if None in wrap:
             self.warn(f"image {node.name}: unknown address mode; using 'periodic'")
             wrap = [mode or "repeat" for mode in wrap]
@@ -420,6 +423,19 @@ class GraphEvaluator:
             self.warn(f"image {node.name}: colour space '{name}' is not supported; reading it as raw for {label}")
             return "raw"
         return _COLOR_SPACES[name]
+
+    def _tiling(self, node: Node) -> np.ndarray:
+        """(3, 3) st_from_uv of a tiledimage: st = (uv * uvtiling - uvoffset) / realworldimagesize
+        * realworldtilesize (MaterialX's NG_tiledimage)."""
+        tiling = as_floats(self._constant(node, "uvtiling", np.ones(2)), 2)
+        offset = as_floats(self._constant(node, "uvoffset", np.zeros(2)), 2)
+        image_size = as_floats(self._constant(node, "realworldimagesize", np.ones(2)), 2)
+        tile_size = as_floats(self._constant(node, "realworldtilesize", np.ones(2)), 2)
+        ratio = tile_size / image_size
+        transform = np.eye(3)
+        transform[[0, 1], [0, 1]] = tiling * ratio
+        transform[:2, 2] = -offset * ratio
+        return transform
 
     def _texcoord(self, port: Port | None, label: str, depth: int) -> tuple[str, np.ndarray]:
         """(primvar name, (3, 3) st_from_uv) of a texture-coordinate port."""
@@ -457,20 +473,6 @@ class GraphEvaluator:
         self.warn(f"texture coordinates for {label} come from unsupported node {node.name} ('{node.category}'); "
                   f"using primvar 'st'")
         return "st", np.eye(3)
-
-
-def _tiling(node: Node, evaluator: GraphEvaluator) -> np.ndarray:
-    """(3, 3) st_from_uv of a tiledimage: st = (uv * uvtiling - uvoffset) / realworldimagesize
-    * realworldtilesize (MaterialX's NG_tiledimage)."""
-    tiling = as_floats(evaluator._constant(node, "uvtiling", np.ones(2)), 2)
-    offset = as_floats(evaluator._constant(node, "uvoffset", np.zeros(2)), 2)
-    image_size = as_floats(evaluator._constant(node, "realworldimagesize", np.ones(2)), 2)
-    tile_size = as_floats(evaluator._constant(node, "realworldtilesize", np.ones(2)), 2)
-    ratio = tile_size / image_size
-    transform = np.eye(3)
-    transform[[0, 1], [0, 1]] = tiling * ratio
-    transform[:2, 2] = -offset * ratio
-    return transform
 
 
 def fit_input(value: MaterialInput, num_channels: int) -> MaterialInput:
