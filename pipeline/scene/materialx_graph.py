@@ -97,8 +97,6 @@ def _python_value(value):
     """A MaterialX or Gf value as a float, bool, int, str or (C,) float32 array."""
     if isinstance(value, (bool, int, float, str)):
         return value
-    if isinstance(value, Sdf.AssetPath):
-        return value
     if hasattr(value, "asTuple"):
         return np.asarray(value.asTuple(), np.float32)
     return np.atleast_1d(np.asarray(value, np.float32)).reshape(-1)
@@ -201,7 +199,10 @@ class MtlxNode:
 
 def as_floats(value, num_channels: int) -> np.ndarray:
     """A port value as a (num_channels,) float32 array (USD's connection conversions)."""
-    array = np.atleast_1d(np.asarray(value, np.float32)).reshape(-1)
+    try:
+        array = np.atleast_1d(np.asarray(value, np.float32)).reshape(-1)
+    except (TypeError, ValueError):
+        raise RelightError(f"{value!r} is not a number or a vector") from None
     if not np.all(np.isfinite(array)):
         raise RelightError(f"non-finite value {value}")
     return fit_channels(array, num_channels)
