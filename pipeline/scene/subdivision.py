@@ -11,6 +11,7 @@ bilinear cage). A 'loop' mesh with non-triangular faces is refined with Catmull-
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -136,13 +137,15 @@ class Refinement:
     The level for a set of placements is the coarser of two screen-space criteria (`dicing`):
     cage edges halved under `dicing.EDGE_PIXELS`, or, from level 1 on, every vertex within
     `dicing.FLAT_PIXELS` of its limit position along the normal (the facets then deviate from
-    the limit surface by less than that: planar cages stop at level 1); capped by the budget.
+    the limit surface by less than that; planar cages stop at level 1, with or without
+    cameras); capped by the budget.
     """
 
     def __init__(self, mesh: SubdivisionMesh):
         self.mesh = mesh
         self._cages = [mesh.cage]
         self._limits: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._deviations: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._surfaces: dict[int, Surface] = {}
 
     def _cage(self, level: int) -> Cage:
@@ -158,6 +161,11 @@ class Refinement:
     def _deviation(self, level: int) -> tuple[np.ndarray, np.ndarray]:
         """(V, 3) control points of `level` and their projections towards the limit along the
         vertex normal (segments whose length is the distance to the limit surface)."""
+        if level not in self._deviations:
+            self._deviations[level] = self._compute_deviation(level)
+        return self._deviations[level]
+
+    def _compute_deviation(self, level: int) -> tuple[np.ndarray, np.ndarray]:
         cage = self._cage(level)
         limit, normals = self._limit(level)
         vertex_normals = np.zeros_like(limit)
@@ -166,6 +174,17 @@ class Refinement:
         vertex_normals = np.divide(vertex_normals, length, out=np.zeros_like(vertex_normals), where=length > 0)
         along = np.sum((limit - cage.points) * vertex_normals, axis=-1, keepdims=True)
         return cage.points, cage.points + along * vertex_normals
+
+    def _flatness(self, level: int, world_from_local: np.ndarray, views: list[dicing.View]) -> float:
+        """How far the control points of `level` are from the limit, over the tolerance: the
+        projected distance / `dicing.FLAT_PIXELS`, or without cameras the distance / 1e-6 of the
+        cage's size (only a flat cage stops early)."""
+        starts, ends = self._deviation(level)
+        if views:
+            return dicing.max_projected_length(starts, ends, world_from_local, views) / dicing.FLAT_PIXELS
+        size = float(np.ptp(self.mesh.cage.points, axis=0).max(initial=0.0))
+        distance = float(np.linalg.norm(ends - starts, axis=-1).max(initial=0.0))
+        return distance / (1e-6 * size) if size > 0 else 0.0
 
     def choose_level(self, world_from_local: np.ndarray, views: list[dicing.View]) -> tuple[int, str | None]:
         """The level for placements (I, 4, 4) seen by `views` (empty: the fallback level), and a
@@ -181,12 +200,15 @@ class Refinement:
         level = wanted
         while level >= 1 and triangle_count(mesh.cage.counts, mesh.scheme, level) > dicing.TRIANGLE_BUDGET:
             level -= 1
-        if views:
-            for flat_level in range(1, level):
-                starts, ends = self._deviation(flat_level)
-                if dicing.max_projected_length(starts, ends, world_from_local, views) <= dicing.FLAT_PIXELS:
-                    return flat_level, None
-        if level == wanted:
+        # The distance to the limit shrinks about 4x a level (quadratic convergence): predict the
+        # flat level from level 1's, then confirm it on the level itself (its limit is needed anyway).
+        flat_level = 1
+        while flat_level < level:
+            excess = self._flatness(flat_level, world_from_local, views)
+            if excess <= 1.0:
+                return flat_level, None
+            flat_level = min(level, max(flat_level + 1, flat_level + math.ceil(math.log(excess, 4))))
+        if level == wanted or (level >= 1 and self._flatness(level, world_from_local, views) <= 1.0):
             return level, None
         reached = "" if pixels is None else f" (edges up to {pixels / 2 ** level:.1f} pixels)"
         return level, (f"mesh {mesh.path}: subdivision level {wanted} would make "
