@@ -6,21 +6,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pxr import Gf, Usd, UsdGeom
+from pxr import Usd, UsdGeom
 
+from pipeline.benchmarks.subdivision import CUBE_FACES, CUBE_POINTS, cube_cage_stage, silhouette_error
 from pipeline.scene import dicing
-from pipeline.scene.camera import project
 from pipeline.scene.geometry import read_geometry
 from pipeline.scene.load import read_scene
 from pipeline.scene.materials import MaterialLibrary
-from pipeline.scene.subdivide import (limit_surface, make_cage, refined_triangles, step,
-                                      triangle_count)
+from pipeline.scene.subdivide import limit_surface, make_cage, refined_triangles, step, triangle_count
 from pipeline.scene.types import Camera
 
 DEFAULT = Usd.TimeCode.Default()
-
-CUBE_POINTS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
-CUBE_FACES = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]])
 
 
 def _cube(**kwargs):
@@ -297,24 +293,6 @@ def test_nearest_placement_first_matches_every_placement():
 # USD stages
 
 
-def _stage_with_cube_mesh(scheme="catmullClark", left_handed=False, camera_distance=6.0):
-    stage = Usd.Stage.CreateInMemory()
-    mesh = UsdGeom.Mesh.Define(stage, "/Cube")
-    faces = CUBE_FACES[:, ::-1] if left_handed else CUBE_FACES
-    mesh.CreatePointsAttr([Gf.Vec3f(*p) for p in CUBE_POINTS])
-    mesh.CreateFaceVertexCountsAttr([4] * 6)
-    mesh.CreateFaceVertexIndicesAttr(faces.ravel().tolist())
-    mesh.CreateSubdivisionSchemeAttr(scheme)
-    if left_handed:
-        mesh.CreateOrientationAttr(UsdGeom.Tokens.leftHanded)
-    camera = UsdGeom.Camera.Define(stage, "/Cam")
-    camera.AddTranslateOp().Set(Gf.Vec3d(0, 0, camera_distance))
-    camera.CreateFocalLengthAttr(50.0)
-    camera.CreateHorizontalApertureAttr(36.0)
-    camera.CreateVerticalApertureAttr(27.0)
-    return stage, mesh
-
-
 def _read(stage, width=160, height=120):
     scene = read_scene(stage, "test", width=width, height=height)
     return scene.geometry, scene.warnings, scene.cameras["/Cam"]
@@ -322,7 +300,7 @@ def _read(stage, width=160, height=120):
 
 @pytest.mark.parametrize("left_handed", [False, True])
 def test_usd_subdivision_mesh_is_refined_outward(left_handed):
-    geometry, warnings, _ = _read(_stage_with_cube_mesh(left_handed=left_handed)[0])
+    geometry, warnings, _ = _read(cube_cage_stage(left_handed=left_handed)[0])
     assert not warnings
     p = geometry.positions.astype(np.float64)
     assert len(p) > 6 * 2 * 16
@@ -335,12 +313,12 @@ def test_usd_subdivision_mesh_is_refined_outward(left_handed):
 
 def test_usd_polygonal_and_bilinear_meshes_are_the_cage():
     for scheme in ("none", "bilinear"):
-        geometry, _, _ = _read(_stage_with_cube_mesh(scheme=scheme)[0])
+        geometry, _, _ = _read(cube_cage_stage(scheme=scheme)[0])
         assert geometry.num_triangles == 12
 
 
 def test_usd_creases_and_corners_are_read():
-    stage, mesh = _stage_with_cube_mesh()
+    stage, mesh = cube_cage_stage()
     edges = _cube_edges()
     mesh.CreateCreaseIndicesAttr(edges.ravel().tolist())
     mesh.CreateCreaseLengthsAttr([2] * 12)
@@ -349,13 +327,13 @@ def test_usd_creases_and_corners_are_read():
     assert not warnings
     np.testing.assert_allclose(np.abs(geometry.positions).max(axis=-1), 1.0, atol=1e-6)
 
-    stage, mesh = _stage_with_cube_mesh()
+    stage, mesh = cube_cage_stage()
     mesh.CreateCornerIndicesAttr([7])
     mesh.CreateCornerSharpnessesAttr([10.0])
     geometry, _, _ = _read(stage)
     assert np.linalg.norm(geometry.positions.reshape(-1, 3) - [1, 1, 1], axis=-1).min() < 1e-6
 
-    stage, mesh = _stage_with_cube_mesh()
+    stage, mesh = cube_cage_stage()
     mesh.CreateCreaseIndicesAttr([0, 1, 3])
     mesh.CreateCreaseLengthsAttr([2])
     mesh.CreateCreaseSharpnessesAttr([1.0])
@@ -365,7 +343,7 @@ def test_usd_creases_and_corners_are_read():
 
 def test_planar_cage_stops_at_level_one():
     """A flat quad with the default (catmullClark) scheme: the limit is the quad, refined once."""
-    stage, mesh = _stage_with_cube_mesh()
+    stage, _ = cube_cage_stage()
     flat = UsdGeom.Mesh.Define(stage, "/Flat")
     flat.CreatePointsAttr([(-1, -1, -2), (1, -1, -2), (1, 1, -2), (-1, 1, -2)])
     flat.CreateFaceVertexCountsAttr([4])
@@ -378,43 +356,26 @@ def test_planar_cage_stops_at_level_one():
 
 def test_triangle_budget_is_bounded_with_a_warning(monkeypatch):
     monkeypatch.setattr(dicing, "TRIANGLE_BUDGET", 200)
-    geometry, warnings, _ = _read(_stage_with_cube_mesh(camera_distance=3.0)[0])
+    geometry, warnings, _ = _read(cube_cage_stage(camera_distance=3.0)[0])
     assert geometry.num_triangles == triangle_count(np.full(6, 4), "catmullClark", 2) == 192
     assert len(warnings) == 1 and "over the budget of 200 per mesh; refined to level 2" in warnings[0]
 
 
 def test_no_camera_uses_the_fallback_level():
-    stage, _ = _stage_with_cube_mesh()
+    stage, _ = cube_cage_stage()
     stage.RemovePrim("/Cam")
     warnings: list[str] = []
     geometry, _ = read_geometry(stage, DEFAULT, MaterialLibrary(stage, warnings), warnings)
     assert geometry.num_triangles == triangle_count(np.full(6, 4), "catmullClark", dicing.FALLBACK_LEVEL)
 
 
-def _outline_distance(hull_a: np.ndarray, hull_b: np.ndarray) -> float:
-    """Largest distance from a vertex of convex polygon a to the boundary of convex polygon b."""
-    start, end = hull_b, np.roll(hull_b, -1, axis=0)
-    edge = end - start
-    t = np.clip(np.einsum("pec,ec->pe", hull_a[:, None] - start[None], edge) / np.sum(edge * edge, -1), 0, 1)
-    closest = start[None] + t[..., None] * edge[None]
-    return float(np.linalg.norm(hull_a[:, None] - closest, axis=-1).min(axis=1).max())
-
-
 def test_sphere_silhouette_within_half_a_pixel_of_the_limit():
     """A sphere from a cube cage seen by the bake camera: the outline of the refined triangles is
     within half a pixel of the limit surface's (the limit approximated two levels finer, with
     its vertices on the limit surface; the shape is convex, so outlines are convex hulls)."""
-    from scipy.spatial import ConvexHull
-
-    stage, _ = _stage_with_cube_mesh(camera_distance=3.0)
+    stage, _ = cube_cage_stage(camera_distance=3.0)
     geometry, _, camera = _read(stage, 160, 120)
-    level = int(round(np.log(geometry.num_triangles / 12) / np.log(4)))
+    level = round(np.log(geometry.num_triangles / 12) / np.log(4))
     assert level >= 3
     reference = refined_triangles(_cube(), "catmullClark", level + 2)["positions"]
-
-    def outline(points):
-        pixels, _ = project(camera, points.reshape(-1, 3).astype(np.float64))
-        return pixels[ConvexHull(pixels).vertices]
-
-    ours, limit = outline(geometry.positions), outline(reference)
-    assert max(_outline_distance(ours, limit), _outline_distance(limit, ours)) < 0.5
+    assert silhouette_error(camera, geometry.positions, reference) < 0.5

@@ -67,9 +67,11 @@ def _creases(mesh: UsdGeom.Mesh, time: Usd.TimeCode, warnings: list[str]):
         return empty
     starts = np.cumsum(lengths) - lengths
     crease_of_edge = np.repeat(np.arange(lengths.size), lengths - 1)
-    first = starts[crease_of_edge] + np.arange(num_edges) - (np.cumsum(lengths - 1) - (lengths - 1))[crease_of_edge]
+    first_edge = np.cumsum(lengths - 1) - (lengths - 1)
+    first = starts[crease_of_edge] + np.arange(num_edges) - first_edge[crease_of_edge]  # chain's k-th vertex
     edges = np.stack((indices[first], indices[first + 1]), axis=-1)
-    per_edge = sharpness if sharpness.size == num_edges and sharpness.size != lengths.size else sharpness[crease_of_edge]
+    # One sharpness per edge when the counts say so (per crease when both readings coincide).
+    per_edge = sharpness if sharpness.size == num_edges else sharpness[crease_of_edge]
     keep = per_edge > 0
     return edges[keep], per_edge[keep]
 
