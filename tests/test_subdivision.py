@@ -327,6 +327,21 @@ def test_usd_creases_and_corners_are_read():
     assert not warnings
     np.testing.assert_allclose(np.abs(geometry.positions).max(axis=-1), 1.0, atol=1e-6)
 
+    # One chain round the top face, its sharpness given per crease and per edge: the same
+    # surface as the four edges given to the refinement directly.
+    loop = [[4, 6], [6, 7], [7, 5], [5, 4]]
+    for sharpnesses in ([10.0], [10.0] * 4):
+        stage, mesh = cube_cage_stage()
+        mesh.CreateCreaseIndicesAttr([4, 6, 7, 5, 4])
+        mesh.CreateCreaseLengthsAttr([5])
+        mesh.CreateCreaseSharpnessesAttr(sharpnesses)
+        geometry, warnings, _ = _read(stage)
+        assert not warnings
+        level = round(np.log(geometry.num_triangles / 12) / np.log(4))
+        expected = refined_triangles(_cube(crease_edges=loop, crease_sharpness=np.full(4, 10.0)), "catmullClark",
+                                     level)
+        np.testing.assert_allclose(geometry.positions, expected["positions"], atol=1e-6)
+
     stage, mesh = cube_cage_stage()
     mesh.CreateCornerIndicesAttr([7])
     mesh.CreateCornerSharpnessesAttr([10.0])
