@@ -394,3 +394,22 @@ def test_sphere_silhouette_within_half_a_pixel_of_the_limit():
     assert level >= 3
     reference = refined_triangles(_cube(), "catmullClark", level + 2)["positions"]
     assert silhouette_error(camera, geometry.positions, reference) < 0.5
+
+
+@pytest.mark.parametrize("points, indices, message", [
+    ([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (np.nan, 0, 0)], [0, 1, 2, 3, 0, 1, 4],
+     "non-finite points cannot be subdivided"),
+    ([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)], [0, 1, 2, 3, 0, 0, 1], "repeated vertex cannot be subdivided"),
+])
+def test_degenerate_cages_render_as_the_cage(points, indices, message):
+    """A NaN point would spread over the refined surface and a repeated vertex makes a zero-length
+    edge: such meshes render as their cage (its bad triangle dropped), with a warning."""
+    stage, _ = cube_cage_stage()
+    stage.RemovePrim("/Cube")
+    mesh = UsdGeom.Mesh.Define(stage, "/Bad")
+    mesh.CreatePointsAttr(points)
+    mesh.CreateFaceVertexCountsAttr([4, 3])
+    mesh.CreateFaceVertexIndicesAttr(indices)
+    geometry, warnings, _ = _read(stage)
+    assert geometry.num_triangles == 2
+    assert any(message in w for w in warnings) and any("dropped 1 degenerate" in w for w in warnings)

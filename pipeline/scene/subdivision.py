@@ -91,7 +91,8 @@ def read_subdivision_mesh(mesh: UsdGeom.Mesh, time: Usd.TimeCode,
                           warnings: list[str]) -> SubdivisionMesh | None:
     """The cage of a subdivision mesh, or None when it cannot be subdivided (empty or invalid
     topology, left to the caller's `mesh_surface` to warn about; faces of fewer than 3 vertices,
-    warned): the caller then renders the cage."""
+    a vertex repeated along a face, or non-finite points, warned): the caller then renders the
+    cage, dropping its degenerate triangles."""
     topology_warnings: list[str] = []
     topology = mesh_topology(mesh, time, topology_warnings)
     if topology is None:
@@ -102,6 +103,14 @@ def read_subdivision_mesh(mesh: UsdGeom.Mesh, time: Usd.TimeCode,
     if (counts < 3).any():
         warn(f"mesh {path}: faces with fewer than 3 vertices cannot be subdivided; the cage is rendered",
              warnings)
+        return None
+    if not np.isfinite(points).all():
+        warn(f"mesh {path}: non-finite points cannot be subdivided; the cage is rendered", warnings)
+        return None
+    following = np.arange(indices.size) + 1
+    following[np.cumsum(counts) - 1] = np.cumsum(counts) - counts
+    if (indices == indices[following]).any():
+        warn(f"mesh {path}: faces with a repeated vertex cannot be subdivided; the cage is rendered", warnings)
         return None
     scheme = str(mesh.GetSubdivisionSchemeAttr().Get(time))
     if scheme == "loop" and (counts != 3).any():
@@ -125,8 +134,6 @@ def read_subdivision_mesh(mesh: UsdGeom.Mesh, time: Usd.TimeCode,
                      crease_edges=crease_edges, crease_sharpness=crease_sharpness,
                      corner_indices=corner_indices, corner_sharpness=corner_sharpness,
                      interpolate_boundary=str(mesh.GetInterpolateBoundaryAttr().Get(time)))
-    following = np.arange(indices.size) + 1
-    following[np.cumsum(counts) - 1] = np.cumsum(counts) - counts
     pairs = np.sort(np.stack((cage.indices, cage.indices[following]), axis=-1), axis=1)
     return SubdivisionMesh(path=path, scheme=scheme, cage=cage, edges=np.unique(pairs, axis=0),
                            num_faces=int(counts.size), has_uvs=has_uvs)
