@@ -28,9 +28,10 @@ def read_scene(stage: Usd.Stage, source: str, *, time: float | None = None,
     code = time_code(stage, time)
     warnings: list[str] = []
     library = MaterialLibrary(stage, warnings, code)
-    geometry, objects = read_geometry(stage, code, library, warnings)
-    lights = read_lights(stage, code, warnings)
     cameras = read_cameras(stage, code, width, height, warnings)
+    # Subdivision surfaces are refined for the cameras at this image size (pipeline.scene.dicing).
+    geometry, objects = read_geometry(stage, code, library, warnings, cameras)
+    lights = read_lights(stage, code, warnings)
     return Scene(
         source=source,
         geometry=geometry,
