@@ -47,7 +47,8 @@ def test_the_path_pattern_finds_what_it_is_for(tmp_path):
 
 @pytest.mark.slow
 def test_the_wheel_holds_every_tracked_file_of_the_packages(tmp_path):
-    # Built from a copy of the tracked files (as a clean clone), without build isolation (no index).
+    # Built from a copy of the tracked files (as a clean clone), without build isolation (no index):
+    # with the test extra's setuptools.
     source = tmp_path / "source"
     for name in _git("ls-files").splitlines():
         if (REPO / name).is_file():
