@@ -29,6 +29,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+import mitsuba_convert
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import Scene, find_camera, load_scene
 from pipeline.scene.types import Camera, MaterialInput
@@ -36,9 +37,6 @@ from pipeline.scenes import SCENES
 from relight_torch.io.exr import write_exr
 from relight_torch.lights.light import LightKind
 from relight_torch.metrics import psnr, rel_mse
-
-pytest.importorskip("mitsuba")
-import mitsuba_convert  # noqa: E402  (needs mitsuba)
 
 pytestmark = pytest.mark.slow
 
