@@ -136,10 +136,10 @@ def write_shot(directory: Path, spec: ShotSpec) -> Path:
     glossy_ball.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.catmullClark)
     block = authoring.define_mesh(stage, OBJECTS[3], meshes.box((0.9, 0.7, 0.9), (1.2, 0.35, -0.9)))
     looks = {
-        "Floor": dict(diffuseColor=(0.45, 0.42, 0.38), roughness=0.9),
-        "Diffuse": dict(diffuseColor=(0.8, 0.35, 0.2), roughness=1.0),
-        "Glossy": dict(diffuseColor=(0.1, 0.2, 0.6), roughness=spec.roughness),
-        "Metal": dict(diffuseColor=(0.9, 0.65, 0.3), metallic=1.0, roughness=spec.roughness),
+        "Floor": {"diffuseColor": (0.45, 0.42, 0.38), "roughness": 0.9},
+        "Diffuse": {"diffuseColor": (0.8, 0.35, 0.2), "roughness": 1.0},
+        "Glossy": {"diffuseColor": (0.1, 0.2, 0.6), "roughness": spec.roughness},
+        "Metal": {"diffuseColor": (0.9, 0.65, 0.3), "metallic": 1.0, "roughness": spec.roughness},
     }
     normal_file = "./textures/normals.png"
     if spec.normal_map:
@@ -150,7 +150,7 @@ def write_shot(directory: Path, spec: ShotSpec) -> Path:
             authoring.connect_texture(material, shader, "normal", normal_file, source_color_space="raw",
                                       scale=(2, 2, 2, 1), bias=(-1, -1, -1, 0))
         authoring.bind_material(prim.GetPrim(), material)
-    camera = authoring.define_camera(stage, CAMERA, (0.3, 2.3, 6.0), (0.1, 0.5, 0.0), focal_length_mm=35.0,
+    camera = authoring.define_camera(stage, CAMERA, (0.3, 1.7, 3.9), (0.15, 0.45, -0.1), focal_length_mm=35.0,
                                      aperture_mm=(36.0, 27.0), clipping_range=(0.1, 1000.0))
     authoring.define_render_settings(stage, camera, (spec.width, spec.height))
     _define_lights(stage, directory, spec.lighting)
