@@ -29,6 +29,7 @@ from pipeline.reference.stages import ShotSpec, write_shot
 from pipeline.scene import find_camera, load_scene
 from relight_torch.brdf import preview_surface
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
+from relight_torch.lights.dome import dome_samplers, latlong_direction
 from relight_torch.shading import reflected_radiance
 
 WEIGHT_LIMIT = 3.0
@@ -95,3 +96,28 @@ def test_no_pixel_exceeds_what_the_lights_deliver(lighting, tmp_path):
     # No slack from the pixels' own variance: a firefly inflates it as much as the mean.
     assert float(image.mean.max()) <= bound, (f"pixel {np.unravel_index(image.mean.argmax(), image.mean.shape)} "
                                               f"reads {image.mean.max():.3g} > bound {bound:.3g}")
+
+
+def test_dome_pdf_is_exact_near_the_poles():
+    """Regression (issue 29): the lat-long density's sin(theta) came from sqrt(1 - y^2), which
+    cancels in float32 near the poles (and theta from acos(y)): in the top and bottom rows the
+    float32 density was off by up to 100 % (a bias of the dome's share of every estimate). Against
+    the exact density of the same float32 directions (angles from the vectors in float64), it now
+    agrees to 1e-4."""
+    texture = np.full((16, 32, 3), 0.01, np.float32)
+    texture[0] = 1.0          # the poles' rows hold most of the light, so most samples land there
+    texture[-1] = 0.5
+    sampler = dome_samplers.get(texture, torch.device("cpu"), torch.float32)
+    u = torch.rand(200_000, 2, generator=torch.Generator().manual_seed(0))
+    directions = latlong_direction(*sampler.sample_uv(u))
+    pdf = sampler.pdf(directions).double()
+    exact = directions.double()
+    exact = exact / exact.norm(dim=-1, keepdim=True)
+    sin_theta = torch.hypot(exact[:, 0], exact[:, 2])
+    row = (torch.atan2(sin_theta, exact[:, 1]) / math.pi * 16).long().clamp(0, 15)
+    col = ((0.5 - torch.atan2(exact[:, 0], exact[:, 2]) / (2 * math.pi)) * 32).long().clamp(0, 31)
+    expected = sampler.pdf_uv.double()[row, col] / (2 * math.pi**2 * sin_theta)
+    valid = sin_theta > 0
+    assert float(valid.double().mean()) > 0.999
+    relative = ((pdf - expected).abs() / expected)[valid]
+    assert float(relative.max()) < 1e-4, float(relative.max())

@@ -22,7 +22,13 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import RelightError
-from pipeline.reference.agreement import CASES, ENERGY_LIMIT, Z_LIMIT, Agreement, run_case
+from pipeline.reference.agreement import (
+    CASES,
+    ENERGY_LIMIT,
+    Z_LIMIT,
+    Agreement,
+    run_case,
+)
 from relight_torch.io.atomic import write_text_atomic
 
 
