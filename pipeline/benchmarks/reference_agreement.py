@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pipeline.benchmarks.reference_agreement",
                                      description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", required=True, type=Path, help="output folder (agreement.md, agreement.csv)")
-    parser.add_argument("--spp-scale", type=int, default=8, help="samples per pixel = the case's x this")
+    parser.add_argument("--spp-scale", type=int, default=4, help="samples per pixel = the case's x this")
     parser.add_argument("--cases", nargs="*", default=None, help="case names (default: all)")
     args = parser.parse_args(argv)
     try:

@@ -99,10 +99,10 @@ class Case:
 
 
 CASES = (
-    Case("constant_direct", ShotSpec("constant"), 0, 96),
-    Case("constant_gi", ShotSpec("constant"), 3, 64),
-    Case("latlong_direct", ShotSpec("latlong"), 0, 96),
-    Case("latlong_gi", ShotSpec("latlong"), 3, 64),
+    Case("constant_direct", ShotSpec("constant"), 0, 192),
+    Case("constant_gi", ShotSpec("constant"), 3, 128),
+    Case("latlong_direct", ShotSpec("latlong"), 0, 192),
+    Case("latlong_gi", ShotSpec("latlong"), 3, 128),
 )
 
 
