@@ -15,7 +15,7 @@ import torch
 
 from relight_torch.lights.emission import is_delta_light
 from relight_torch.lights.light import Light, LightKind
-from relight_torch.relighter import Relighter, colour_scale, light_group
+from relight_torch.direct.relighter import Relighter, colour_scale, light_group
 
 
 def light_snapshot(value: object) -> object:

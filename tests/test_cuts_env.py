@@ -30,7 +30,7 @@ from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
 from relight_torch.math.frame import to_local
 from relight_torch.metrics import psnr
 from relight_torch.parallel import torch_threads
-from relight_torch.relighter import RelightSettings, open_relighter
+from relight_torch.direct.relighter import RelightSettings, open_relighter
 from relight_torch.transfer.open import open_cache_relighter
 
 WIDTH, HEIGHT, LIGHTS = 32, 24, 4096

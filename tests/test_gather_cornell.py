@@ -27,7 +27,7 @@ from pipeline.scenes.authoring import set_light, shape_spot
 from relight_torch.io.exr import read_exr
 from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr
-from relight_torch.relighter import shot_lights
+from relight_torch.direct.relighter import shot_lights
 from relight_torch.gather.relighter import GatherRelighter
 from relight_torch.transfer.open import open_cache_relighter
 

@@ -23,7 +23,7 @@ import pytest
 import torch
 from pxr import Sdf, Usd, UsdGeom, UsdLux
 
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
@@ -34,9 +34,9 @@ from relight_torch.lights.light import Light
 from relight_torch.lights.linking import decode_paths, encode_paths, linked_objects, read_link
 from relight_torch.lights.usd import read_light, write_light
 from relight_torch.metrics import psnr
-from relight_torch.relighter import RelightSettings, open_relighter, shot_lights
+from relight_torch.direct.relighter import RelightSettings, open_relighter, shot_lights
 from relight_torch.schema import register_schemas
-from relight_torch.transfer.gathers import gather_radiance
+from relight_torch.indirect_samples import gather_radiance
 from relight_torch.transfer.open import open_cache_relighter
 
 SIZE = 24

@@ -31,7 +31,7 @@ from relight_torch.multiview.incident import group_images, incident_table, view_
 from relight_torch.multiview.relighter import MultiviewRelighter
 from relight_torch.multiview.views import camera_column, gather_gbuffer
 from relight_torch.parallel import torch_threads
-from relight_torch.relighter import Relighter
+from relight_torch.direct.relighter import Relighter
 from relight_torch.transfer.open import open_cache_relighter
 
 WIDTH, HEIGHT = 64, 48

@@ -23,7 +23,7 @@ from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.exr import read_exr
 from relight_torch.lights.light import Light, LightKind, Shaping
 from relight_torch.metrics import psnr
-from relight_torch.relighter import Relighter
+from relight_torch.direct.relighter import Relighter
 from relight_torch.transfer.open import open_cache_relighter, open_transfer_relighter
 from relight_torch.transfer.relighter import TransferRelighter
 from relight_torch.transfer.sparse import column_norms

@@ -59,7 +59,7 @@ from relight_torch.cuts.open import open_cuts_relighter
 from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch.relighter import shot_lights
+from relight_torch.direct.relighter import shot_lights
 
 
 def rotated(light: Light, degrees: float) -> Light:

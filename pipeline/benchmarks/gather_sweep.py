@@ -49,7 +49,7 @@ from relight_torch.gather.open import open_gather_relighter
 from relight_torch.gather.relighter import DEFAULT_GATHER_SAMPLES, GatherRelighter
 from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch.relighter import RelightSettings, shot_lights
+from relight_torch.direct.relighter import RelightSettings, shot_lights
 
 
 def _median_ms(relighter: GatherRelighter, edits: list, repeats: int,

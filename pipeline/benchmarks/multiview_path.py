@@ -61,7 +61,7 @@ from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.atomic import atomic_path, write_text_atomic
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.multiview.relighter import open_multiview_relighter
-from relight_torch.relighter import Relighter, RelightSettings
+from relight_torch.direct.relighter import Relighter, RelightSettings
 
 TABLE_COLUMNS = ("scene", "coverage", "view", "psnr_db", "psnr_covered_db", "psnr_direct_db", "rel_mse",
                  "hole_fraction_before",

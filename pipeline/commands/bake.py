@@ -12,7 +12,7 @@ import numpy as np
 from pipeline.bake import scheduler
 from pipeline.bake.cuts.bake import MODES as CUTS_MODES
 from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.bake.inputs import record_request, request_digest, up_to_date
 from pipeline.bake.gather.bake import GatherSettings, bake_gather
 from pipeline.bake.quality import bake_for_quality

@@ -45,8 +45,8 @@ from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import linked_points
 from relight_torch.math.frame import to_local
 from relight_torch.parallel import parallel_map, tile_threads
-from relight_torch.relighter import Relighter, light_group
-from relight_torch.transfer.gathers import GatherSamples, gather_radiance
+from relight_torch.direct.relighter import Relighter, light_group
+from relight_torch.indirect_samples import GatherSamples, gather_radiance
 
 
 MERGE_ROWS = 2048
@@ -196,7 +196,7 @@ class CutsRelighter:
 
     Environment mode: dome lights by cuts, every other light by the direct relighter. Indirect
     mode: every light direct, plus its one-bounce indirect light by cuts (seed 004's second mode):
-    the leaves are surface points lit with `relight_torch.transfer.gathers.gather_radiance` (the
+    the leaves are surface points lit with `relight_torch.indirect_samples.gather_radiance` (the
     direct relighter's light kernels and visibility), re-emitting diffusely; their solid angle is
     folded into the visibility cuts (`pipeline.bake.cuts.visibility`) and a merged cluster is
     seen in the direction of its leaves' mean position.

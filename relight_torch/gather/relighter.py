@@ -31,7 +31,7 @@ from relight_torch.gather.reconstruction import interpolate
 from relight_torch.gather.remembered import RememberedVisibility
 from relight_torch.indirect import IndirectRelighter, gather_light_key
 from relight_torch.lights.light import Light
-from relight_torch.relighter import Relighter, unit_light
+from relight_torch.direct.relighter import Relighter, unit_light
 
 SET_NAMES = ("diffuse", "glossy")
 GREY_TOLERANCE = 1e-5

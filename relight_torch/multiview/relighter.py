@@ -56,7 +56,7 @@ from relight_torch.multiview.load import load_camera_table, load_view_gbuffers
 from relight_torch.multiview.resample import bilinear_samples
 from relight_torch.multiview.views import CachingViews, concat_gbuffers, gather_gbuffer, take_rows
 from relight_torch.parallel import parallel_map, tile_threads
-from relight_torch.relighter import Relighter, RelightSettings, embree_visibility, replace_rig, shot_lights
+from relight_torch.direct.relighter import Relighter, RelightSettings, embree_visibility, replace_rig, shot_lights
 from relight_torch.visibility.embree import EmbreeCaster
 
 

@@ -15,9 +15,9 @@ from relight_torch.cuts.open import open_cuts_relighter
 from relight_torch.errors import RelightError
 from relight_torch.gather.open import open_gather_relighter
 from relight_torch.multiview.relighter import MultiviewRelighter, open_multiview_relighter
-from relight_torch.relighter import Relighter, RelightSettings, open_relighter
+from relight_torch.direct.relighter import Relighter, RelightSettings, open_relighter
 from relight_torch.transfer.encoding import PARTS, EncodedRows, decode_rows
-from relight_torch.transfer.gathers import GatherSamples, gather_payload_name
+from relight_torch.indirect_samples import GatherSamples, gather_payload_name
 from relight_torch.transfer.relighter import TransferRelighter
 from relight_torch.transfer.sparse import SparseRows
 from relight_torch.transfer.upsample import edge_aware_upsampler

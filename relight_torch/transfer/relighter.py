@@ -19,8 +19,8 @@ import torch
 from relight_torch.diffuse_light import link_mask
 from relight_torch.indirect import IndirectRelighter, gather_light_key
 from relight_torch.lights.light import Light
-from relight_torch.relighter import Relighter, unit_light
-from relight_torch.transfer.gathers import GatherSamples, gather_radiance
+from relight_torch.direct.relighter import Relighter, unit_light
+from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.transfer.haar import haar2d
 from relight_torch.transfer.sparse import SparseRows, column_norms, cull_light
 from relight_torch.transfer.upsample import EdgeAwareUpsampler

@@ -22,7 +22,7 @@ from pipeline.tracing_bench import median_seconds
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.lights.light import Light
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch.relighter import shot_lights
+from relight_torch.direct.relighter import shot_lights
 
 
 def moved(light: Light, fraction: float) -> Light:

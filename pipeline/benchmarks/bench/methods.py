@@ -24,7 +24,7 @@ An adapter is a module of this package exposing `ADAPTER`, an object with
 edit (`measure.relit_rows`); the stability suite and the quality sizing call `bake` and
 `variants` directly on their own scenes and lights. Adapters never render references.
 
-Adding a method (cuts, multiview): write `pipeline/benchmarks/bench/<method>.py` with `ADAPTER`
+Adding a method (cuts, multiview): write `pipeline/bake/<method>/adapter.py` with `ADAPTER`
 and add its module name to METHOD_MODULES below. The bench, its chart and its tests pick it up.
 """
 
@@ -116,7 +116,7 @@ def adapters(names: list[str] | tuple[str, ...] | None = None) -> dict[str, Meth
     Raises:
         ValueError: a name is not registered.
     """
-    registered = {name: importlib.import_module(f"pipeline.benchmarks.bench.{name}").ADAPTER
+    registered = {name: importlib.import_module(f"pipeline.bake.{name}.adapter").ADAPTER
                   for name in METHOD_MODULES}
     unknown = sorted(set(names or ()) - set(registered))
     if unknown:
