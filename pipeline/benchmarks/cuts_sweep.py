@@ -47,7 +47,8 @@ import numpy as np
 import torch
 
 from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
-from pipeline.benchmarks.bench.measure import cache_bytes, device_name, moved, relight_ms
+from pipeline.bake.adapter import cache_bytes
+from pipeline.benchmarks.bench.measure import device_name, moved, relight_ms
 from pipeline.benchmarks.bench.references import References
 from pipeline.benchmarks.reuse import reusable_bake
 from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, format_params, write_csv

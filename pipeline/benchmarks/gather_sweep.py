@@ -40,7 +40,8 @@ from pathlib import Path
 
 from pipeline.bake.gather.bake import GatherSettings, bake_gather
 from pipeline.benchmarks.rows import COLUMNS, SweepRow, csv_line, format_params, write_csv
-from pipeline.benchmarks.bench.measure import cache_bytes, moved, relight_ms
+from pipeline.bake.adapter import cache_bytes
+from pipeline.benchmarks.bench.measure import moved, relight_ms
 from pipeline.benchmarks.bench.references import References
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers

@@ -48,7 +48,8 @@ from pipeline.bake.multiview.bake import bake_multiview
 from pipeline.bake.multiview.frames import FrameRenderer
 from pipeline.bake.multiview.placement import PlacementSettings
 from pipeline.bake.multiview.view import view_points
-from pipeline.benchmarks.bench.measure import cache_bytes, relight_ms
+from pipeline.bake.adapter import cache_bytes
+from pipeline.benchmarks.bench.measure import relight_ms
 from pipeline.benchmarks.reuse import reusable_bake
 from pipeline.benchmarks.rows import SweepRow, format_params, write_csv
 from pipeline.benchmarks.stopwatch import Stopwatch
