@@ -49,13 +49,19 @@ def test_a_view_capability_needs_a_view_renderer():
         dataclasses.replace(entry, relight=relight)
 
 
-def test_bake_choices_and_option_groups_come_from_the_registry():
+def test_bake_choices_and_option_groups_come_from_the_registry(capsys):
     from pipeline.cli import build_parser
-    bake = build_parser()._subparsers._group_actions[0].choices["bake"]
-    method = next(action for action in bake._actions if action.dest == "method")
-    assert tuple(method.choices) == METHOD_NAMES
-    titles = {group.title for group in bake._action_groups}
-    assert {f"{name} (--method {name})" for name in METHOD_NAMES if name != "direct"} <= titles
+    parser = build_parser()
+    for name in METHOD_NAMES:
+        args = parser.parse_args(["bake", "shot.usda", "--camera", "/World/Camera", "--out", "o", "--method", name])
+        assert args.method == name
+    with pytest.raises(SystemExit):
+        parser.parse_args(["bake", "shot.usda", "--camera", "/World/Camera", "--out", "o", "--method", "nope"])
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        parser.parse_args(["bake", "--help"])
+    text = capsys.readouterr().out
+    assert all(f"{name} (--method {name})" in text for name in METHOD_NAMES if name != "direct")
 
 
 _ISOLATION = textwrap.dedent("""
