@@ -24,7 +24,8 @@ def add_options(parser: argparse.ArgumentParser) -> None:
     transfer.add_argument("--bounces", type=int, default=defaults.num_bounces, metavar="B",
                           help="indirect bounces; 1 bakes the final gather only (default 1)")
     transfer.add_argument("--bounce-coefficients", type=int, default=defaults.num_bounce_coefficients, metavar="K",
-                          help=f"coefficients kept per gather-to-gather row (default {defaults.num_bounce_coefficients})")
+                          help="coefficients kept per gather-to-gather row "
+                               f"(default {defaults.num_bounce_coefficients})")
     transfer.add_argument("--quantize", action="store_true",
                           help="store coefficients as 8 bits with a per-row scale and offset (default float16)")
     transfer.add_argument("--indirect-scale", type=int, default=defaults.indirect_scale, metavar="S",
