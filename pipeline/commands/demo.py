@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.commands.common import add_device_option
 from pipeline.errors import RelightError
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
@@ -26,7 +26,7 @@ from relight_torch.io.atomic import atomic_path
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.io.preview import write_png
 from relight_torch.metrics import psnr
-from relight_torch.relighter import open_relighter, shot_lights
+from relight_torch.direct.relighter import open_relighter, shot_lights
 
 
 def add_parser(subparsers) -> None:

@@ -23,7 +23,7 @@ import torch
 from relight_torch.gbuffer import GBuffer
 from relight_torch.math.frame import to_local
 from relight_torch.shading import reflected_radiance
-from relight_torch.transfer.gathers import GatherSamples
+from relight_torch.indirect_samples import GatherSamples
 from relight_torch.visibility.rays import RayCaster
 
 
