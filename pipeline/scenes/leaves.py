@@ -13,8 +13,10 @@ Objects:
 Textures are written beside the layer under textures/ (8-bit PNG, alpha exactly 0 or 1).
 
 Lights (radiance L = intensity, normalize off):
-    Key     SphereLight r = 8 cm at (60, 260, 80), intensity 250: at the floor centre
-            (d ~ 270 cm) E = pi L (r / d)^2 ~ 0.69, so the floor (albedo 0.6) reflects ~0.13
+    Key     SphereLight r = 8 cm at (-120, 220, 120), intensity 250: at the floor centre
+            (d ~ 280 cm) E = pi L (r / d)^2 ~ 0.64, so the floor (albedo 0.6) reflects ~0.12; placed so
+            that the sun does not cast its sphere's shadow on the floor (Mitsuba's emitter shapes
+            occlude, ours do not)
     Sun     DistantLight, angle 1 degree, travelling along (-0.35, -0.9, -0.25): crisp leaf
             shadows; intensity SUN_IRRADIANCE / (pi sin^2(0.5 deg)) gives E = 2.2 cos ~ 2.0 on the
             floor, which reflects 0.6 E / pi ~ 0.38
@@ -51,6 +53,7 @@ LEAVES = (
     ((-60.0, 40.0, -45.0), (15.0, 150.0, -30.0)),
 )
 LEAF_SIZE = 40.0
+KEY_POSITION = (-120.0, 220.0, 120.0)
 SUN_IRRADIANCE = 2.2
 """Irradiance of the sun on a surface facing it."""
 
@@ -128,7 +131,7 @@ def write(directory: Path) -> Path:
     key = UsdLux.SphereLight.Define(stage, KEY)
     key.CreateRadiusAttr(8.0)
     authoring.set_light(key.LightAPI(), intensity=250.0, color=(1.0, 0.95, 0.85))
-    authoring.place(key, (60.0, 260.0, 80.0))
+    authoring.place(key, KEY_POSITION)
     sun = UsdLux.DistantLight.Define(stage, SUN)
     sun.CreateAngleAttr(1.0)
     authoring.set_light(sun.LightAPI(), intensity=SUN_IRRADIANCE / (np.pi * np.sin(np.radians(0.5)) ** 2),
