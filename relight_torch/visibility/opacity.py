@@ -59,7 +59,8 @@ class OpacityMap:
         texels: (H, W) float32 channel of the image the opacity input reads (row 0 the top), or None.
         wrap_s, wrap_t: the texture's wrap modes.
         scale, bias: opacity = sample * scale + bias.
-        st_from_uv: (2, 3) float64 affine map from the triangles' uvs to the texture's st.
+        st_from_uv: (2, 3) float64 affine map from the triangles' uvs to the texture's st, or
+            None for the identity.
     """
 
     constant: float
@@ -81,8 +82,10 @@ class OpacityMap:
         if self.texels is None:
             value = torch.full(uv.shape[:1], self.constant, dtype=torch.float32, device=uv.device)
         else:
-            st_from_uv = self.st_from_uv.to(uv.device, torch.float64)
-            st = uv.to(torch.float64) @ st_from_uv[:, :2].T + st_from_uv[:, 2]
+            st = uv.to(torch.float64)
+            if self.st_from_uv is not None:
+                st_from_uv = self.st_from_uv.to(uv.device, torch.float64)
+                st = st @ st_from_uv[:, :2].T + st_from_uv[:, 2]
             texels = self.texels.to(uv.device)
             value = sample_bilinear(texels[..., None], st, self.wrap_s, self.wrap_t)[:, 0] * self.scale + self.bias
         return cut_out(value.to(torch.float32), self.threshold)
