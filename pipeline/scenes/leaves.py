@@ -149,6 +149,9 @@ LIGHT_EDITS = (
     LightEdit("turn_sun", "turn the sun to come from the front right",
               (LightOverride(SUN, {"xformOp:rotateXYZ": ("float3", authoring.aim_rotation_xyz(
                   np.array([0.4, -0.8, -0.45])))}),)),
+    LightEdit("warm_key", "warm the key light and double it",
+              (LightOverride(KEY, {"inputs:color": ("color3f", Gf.Vec3f(1.0, 0.7, 0.45)),
+                                   "inputs:intensity": ("float", 500.0)}),)),
 )
 
 SCENE = BundledScene(
