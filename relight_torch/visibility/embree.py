@@ -126,7 +126,7 @@ class EmbreeCaster:
             found, clear_id, clear_distance, clear_barycentrics = self._first_present(
                 origins, directions, np.minimum(limit, distance))
             triangle_id[found], distance[found], barycentrics[found] = clear_id, clear_distance, clear_barycentrics
-        return RayHits(triangle_id >= 0, distance, triangle_id.astype(np.int32), barycentrics)
+        return RayHits(triangle_id >= 0, distance, triangle_id, barycentrics)
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray) -> np.ndarray:
         """Whether anything lies on each ray for t in [0, t_far] (Embree's any-hit query); holes of
@@ -158,11 +158,11 @@ class EmbreeCaster:
 
     def _closest(self, scene, origins: np.ndarray, directions: np.ndarray,
                  t_far: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(primID (N,) int64, -1 on a miss; distance (N,) float32, inf on a miss; barycentrics
+        """(primID (N,) int32, -1 on a miss; distance (N,) float32, inf on a miss; barycentrics
         (N, 2) float32) of the closest hits in one embreex scene."""
         num_rays = origins.shape[0]
         distance = np.empty(num_rays, np.float32)
-        triangle_id = np.empty(num_rays, np.int64)
+        triangle_id = np.empty(num_rays, np.int32)
         barycentrics = np.empty((num_rays, 2), np.float32)
 
         def trace(chunk: slice) -> None:
