@@ -19,7 +19,6 @@ from __future__ import annotations
 
 
 import numpy as np
-import torch
 
 from pipeline.errors import RelightError
 from pipeline.scene.types import Texture
@@ -158,6 +157,5 @@ def sample_texture(texture: Texture, uv: np.ndarray) -> np.ndarray:
     """
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     st = uv @ texture.st_from_uv[:2, :2].T + texture.st_from_uv[:2, 2]
-    sampled = sample_bilinear(torch.from_numpy(texture.pixels), torch.from_numpy(st), texture.wrap_s,
-                              texture.wrap_t).numpy()
+    sampled = sample_bilinear(texture.pixels, st, texture.wrap_s, texture.wrap_t)
     return expand_to_rgba(sampled) * texture.scale + texture.bias
