@@ -8,7 +8,11 @@ shaded separately by the relighter and box-filtered after shading.
 Opacity: camera rays pass through cut-out holes to the surface behind (the tracer's opacity
 lookup); a partially opaque surface is present in a fraction of the sub-samples equal to its
 opacity (stochastic presence, the same decision the reference makes per path), so a pixel's
-coverage of sub-samples composites it over what lies behind.
+coverage of sub-samples composites it over what lies behind. Chosen over a second composited
+layer for one code path and no new cache channels; its error falls with the sub-sample count: the
+leaves scene with its leaves and lattice at a constant opacity 0.5 relit against the reference
+(96 x 72) reads 33.9 dB at supersampling 2 and 38.9 dB at 4 (cut-outs: 38.6 dB at 2). A second
+layer (front surface, alpha, surface behind) would be exact at any supersampling: not built.
 """
 
 from __future__ import annotations
