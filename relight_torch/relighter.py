@@ -809,7 +809,8 @@ def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", 
     object_paths = decode_paths(load_npy(layer_path, description, "objectPaths")) if linking else None
     if shadows == "embree":
         occluder_objects = np.asarray(load_npy(layer_path, description, "occluderObjects")) if linking else None
-        _, visibility = embree_visibility(occluders, occluder_objects, object_paths, load_opacity(layer_path, description))
+        _, visibility = embree_visibility(occluders, occluder_objects, object_paths,
+                                          load_opacity(layer_path, description))
     elif shadows == "shadowmaps":
         # Always cube maps for spot lights: a cone edit does not re-run visibility, and a perspective
         # map sized for the old cone would leave the new one's receivers unshadowed.

@@ -74,7 +74,8 @@ def test_lookup_hand_values_and_orientation():
     centres 1 and 2 of a row is 0.5 half-way)."""
     _, uvs = quad(0.0)
     left = table(uvs, [0, 1], OpacityMap(1.0, texels=half_texture("left"), wrap_s="clamp", wrap_t="clamp"))
-    # Triangle 0 has uv = u1 * (1, 0) + u2 * (1, 1) + (1 - u1 - u2) * (0, 0): barycentrics (u1, u2) give uv (u1 + u2, u2).
+    # Triangle 0 has uv = u1 * (1, 0) + u2 * (1, 1) + (1 - u1 - u2) * (0, 0):
+    # barycentrics (u1, u2) give uv (u1 + u2, u2).
     barycentrics = torch.tensor([[0.125 - 0.1, 0.1], [0.875 - 0.1, 0.1], [0.5 - 0.1, 0.1]])
     np.testing.assert_allclose(left.opacity(torch.zeros(3, dtype=torch.long), barycentrics), [0.0, 1.0, 0.5])
     top = table(uvs, [0, 1], OpacityMap(1.0, texels=half_texture("top"), wrap_s="clamp", wrap_t="clamp",
@@ -91,7 +92,8 @@ def test_table_arrays_round_trip_and_subset():
     st = torch.tensor([[2.0, 0.0, 0.25], [0.0, 1.0, 0.0]], dtype=torch.float64)
     original = OpacityTable(torch.tensor([3, 8]), torch.tensor([1, 0]), torch.from_numpy(uvs),
                             (OpacityMap(0.4, mode="presence"),
-                             OpacityMap(1.0, 0.5, "transparent", half_texture("left"), "mirror", "black", 0.9, 0.05, st)))
+                             OpacityMap(1.0, 0.5, "transparent", half_texture("left"), "mirror", "black", 0.9, 0.05,
+                                        st)))
     restored = OpacityTable.from_arrays(original.to_arrays())
     triangles = torch.tensor([3, 3, 8, 8, 4])
     barycentrics = torch.rand(5, 2, generator=torch.Generator().manual_seed(1)) * 0.5

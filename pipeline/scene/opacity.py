@@ -32,7 +32,8 @@ def material_opacity(material: Material) -> OpacityMap:
         return OpacityMap(scale + bias, **common)
     plane = np.ascontiguousarray(_channel_plane(texture.pixels, channel), np.float32)
     return OpacityMap(constant, texels=torch.from_numpy(plane), wrap_s=texture.wrap_s, wrap_t=texture.wrap_t,
-                      scale=scale, bias=bias, st_from_uv=torch.from_numpy(np.asarray(texture.st_from_uv[:2], np.float64)),
+                      scale=scale, bias=bias,
+                      st_from_uv=torch.from_numpy(np.asarray(texture.st_from_uv[:2], np.float64)),
                       **common)
 
 

@@ -210,8 +210,8 @@ class OpacityTable:
                                    torch.from_numpy(row[10:16].reshape(2, 3).copy())))
         if pairs.size and (pairs[:, 1].min() < 0 or pairs[:, 1].max() >= len(maps) or pairs[:, 0].min() < 0):
             raise ValueError("opacityTriangles names a negative triangle or a missing map")
-        return OpacityTable(torch.from_numpy(pairs[:, 0].astype(np.int64)), torch.from_numpy(pairs[:, 1].astype(np.int64)),
-                            torch.from_numpy(uvs.copy()), tuple(maps))
+        return OpacityTable(torch.from_numpy(pairs[:, 0].astype(np.int64)),
+                            torch.from_numpy(pairs[:, 1].astype(np.int64)), torch.from_numpy(uvs.copy()), tuple(maps))
 
 
 def presence_random(keys: torch.Tensor) -> torch.Tensor:
