@@ -13,7 +13,9 @@ Conventions:
     * The geometric normal is normalize((p1 - p0) x (p2 - p0)): it follows the winding and is NOT
       flipped toward the ray. Shading normals are interpolated from `Geometry.normals`.
     * Ray offsets scale with the scene (`Tracer.epsilon`); there is no fixed world epsilon.
-    * The Embree queries themselves live in `relight_torch.visibility.embree.EmbreeCaster`.
+    * The Embree queries themselves live in `relight_torch.visibility.embree.EmbreeCaster`; with an
+      opacity table, hits in holes of cut-out (and, stochastically, partially opaque) surfaces are
+      passed through by every query.
 """
 
 from __future__ import annotations
@@ -23,8 +25,10 @@ from functools import cached_property
 
 import numpy as np
 
-from pipeline.scene.types import Geometry
+from pipeline.scene.opacity import scene_opacity
+from pipeline.scene.types import Geometry, Scene
 from relight_torch.visibility.embree import CHUNK_RAYS, EmbreeCaster
+from relight_torch.visibility.opacity import OpacityTable
 
 @dataclass(frozen=True)
 class SurfaceTables:
@@ -142,12 +146,19 @@ class Tracer(EmbreeCaster):
         geometry: the world-space triangle soup; kept by reference (not copied).
         num_threads: threads tracing chunks of a batch in parallel; default: the CPUs this
             process may use.
+        opacity: the soup's non-opaque triangles (`pipeline.scene.opacity.scene_opacity`), whose
+            holes every query passes through; None: every triangle is opaque. `for_scene` builds it.
     """
 
-    def __init__(self, geometry: Geometry, num_threads: int | None = None):
+    def __init__(self, geometry: Geometry, num_threads: int | None = None, opacity: OpacityTable | None = None):
         _check_geometry(geometry)
-        super().__init__(np.ascontiguousarray(geometry.positions, np.float32), num_threads)
+        super().__init__(np.ascontiguousarray(geometry.positions, np.float32), num_threads, opacity=opacity)
         self._surface = SurfaceTables(geometry, _unit_face_normals(self.corners))
+
+    @classmethod
+    def for_scene(cls, scene: Scene, num_threads: int | None = None) -> Tracer:
+        """The tracer of a scene's soup, with its materials' cut-outs and partial opacity."""
+        return cls(scene.geometry, num_threads, scene_opacity(scene))
 
     @property
     def geometry(self) -> Geometry:

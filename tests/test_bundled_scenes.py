@@ -28,6 +28,7 @@ EXPECTED = {
     "glossy": (0.01, (640, 480), {"SphereLight": 2}, 7),
     "dome": (0.01, (640, 480), {"DomeLight": 1}, 7),
     "set": (0.01, (640, 480), {"DistantLight": 1, "RectLight": 1, "SphereLight": 2, "DiskLight": 1}, 5),
+    "leaves": (0.01, (640, 480), {"SphereLight": 1, "DistantLight": 1}, 3),
 }
 
 

@@ -4,6 +4,15 @@ Per sub-sample of every pixel: world position, shading frame (normal map applied
 normal, the UsdPreviewSurface parameters with textures evaluated, material and object ids, depth
 and coverage. With supersampling s, each pixel holds s x s sub-samples on a regular grid; they are
 shaded separately by the relighter and box-filtered after shading.
+
+Opacity: camera rays pass through cut-out holes to the surface behind (the tracer's opacity
+lookup); a partially opaque surface is present in a fraction of the sub-samples equal to its
+opacity (stochastic presence, the same decision the reference makes per path), so a pixel's
+coverage of sub-samples composites it over what lies behind. Chosen over a second composited
+layer for one code path and no new cache channels; its error falls with the sub-sample count: the
+leaves scene with its leaves and lattice at a constant opacity 0.5 relit against the reference
+(96 x 72) reads 33.9 dB at supersampling 2 and 38.9 dB at 4 (cut-outs: 38.6 dB at 2). A second
+layer (front surface, alpha, surface behind) would be exact at any supersampling: not built.
 """
 
 from __future__ import annotations
@@ -77,7 +86,7 @@ def bake_deep_framebuffer(scene: Scene, camera: Camera, supersampling: int = 1, 
     """
     if supersampling < 1 or texture_samples < 1:
         raise ValueError(f"supersampling and texture_samples must be >= 1, got {supersampling}, {texture_samples}")
-    tracer = tracer or Tracer(scene.geometry)
+    tracer = tracer or Tracer.for_scene(scene)
     first, last = rows or (0, camera.height)
     if not 0 <= first < last <= camera.height:
         raise ValueError(f"rows must lie in [0, {camera.height}), got [{first}, {last})")

@@ -17,7 +17,8 @@ ValueError naming it):
   D is the exact GGX, the project's documented departure from Storm's (a^2 + 0.001) numerator.
   Sampled as cosine-weighted diffuse and GGX visible normals half and half (GGX only for
   metals), a different strategy from ours.
-* Lights: RectLight as an area emitter on a 'rectangle', SphereLight as one on a 'sphere', with the
+* Lights: RectLight as an area emitter on a 'rectangle', SphereLight as one on a 'sphere', a
+  zero-angle DistantLight as 'directional', with the
   UsdLux radiance intensity * 2^exposure * color (/ area if normalize), emitting along local -Z
   (rect, one-sided) or outward (sphere). DomeLight (poleAxis Y) as a 'constant' emitter, or with a
   lat-long texture as an 'envmap' with the dome's rotation as to_world: Mitsuba's envmap looks up
@@ -32,6 +33,8 @@ ValueError naming it):
   the lights' silhouettes (`light_footprint_mask`).
 * Camera: 'perspective' pinhole with our horizontal field of view and transform, box pixel
   filter (a sample counts in the pixel it falls in, as in ours).
+* Opacity: Mitsuba's 'mask' around the surface, for a constant opacity or a binary alpha
+  cut-out (`_opacity`); scenes with masks use 'volpath', whose shadow rays pass masks.
 * Integrator: 'path' with max_depth = max_bounces + 2 (Mitsuba counts the camera segment and the
   segment to the light: max_depth 2 is direct light) and hide_emitters (our lights are not seen
   by camera rays).
@@ -172,9 +175,10 @@ _use_variant()
 
 
 def _material_bsdf(material: Material) -> dict:
-    """Two-sided Storm BSDF dict of an untextured material."""
+    """Two-sided Storm BSDF dict of an untextured material (a textured opacity allowed), inside
+    Mitsuba's 'mask' where it is not opaque (`_opacity`)."""
     textured = [name for name in ("diffuse_color", "specular_color", "metallic", "roughness", "clearcoat",
-                                  "clearcoat_roughness", "ior", "opacity", "normal", "emissive_color")
+                                  "clearcoat_roughness", "ior", "normal", "emissive_color")
                 if getattr(material, name).texture is not None]
     if textured:
         raise ValueError(f"{material.path}: textured inputs {textured} are not converted")
@@ -182,11 +186,40 @@ def _material_bsdf(material: Material) -> dict:
         raise ValueError(f"{material.path}: emissive materials are not converted")
     scalar = {name: float(getattr(material, name).value[0])
               for name in ("metallic", "roughness", "clearcoat", "clearcoat_roughness", "ior")}
-    return {"type": "twosided", "material": {
+    surface = {"type": "twosided", "material": {
         "type": "storm_preview_surface",
         "diffuse_color": [float(v) for v in material.diffuse_color.value],
         "specular_color": [float(v) for v in material.specular_color.value],
         "use_specular_workflow": bool(material.use_specular_workflow), **scalar}}
+    opacity = _opacity(material)
+    return surface if opacity is None else {"type": "mask", "opacity": opacity, "material": surface}
+
+
+def _opacity(material: Material) -> float | dict | None:
+    """Mitsuba's mask opacity of a material: None when opaque, a float for a constant, or a
+    'bitmap' of the opacity channel (Mitsuba's bitmap puts uv (0, 0) at the image's lower-left
+    texel corner like UsdUVTexture). A cut-out (opacityThreshold > 0) is converted as the
+    thresholded texels with nearest filtering, which equals bilinear filtering then the threshold
+    for an image whose alpha is 0 or 1 only (the boundary falls half-way between texel centres
+    either way); other images raise."""
+    opacity_input = material.opacity
+    threshold = material.opacity_threshold
+    if opacity_input.texture is None:
+        value = float(np.clip(opacity_input.value[0], 0.0, 1.0))
+        value = float(value >= threshold) if threshold > 0 else value
+        return None if value >= 1.0 else value
+    texture = opacity_input.texture
+    if texture.output != "a" or texture.pixels.shape[2] != 4 or not np.array_equal(texture.st_from_uv, np.eye(3)):
+        raise ValueError(f"{material.path}: only the alpha of an RGBA image read through 'st' is converted")
+    alpha = texture.pixels[..., 3] * texture.scale[3] + texture.bias[3]
+    if threshold <= 0 or not np.all((alpha == 0) | (alpha == 1)):
+        raise ValueError(f"{material.path}: only binary alpha cut-outs are converted")
+    wrap = {"repeat": "repeat", "clamp": "clamp", "mirror": "mirror"}
+    if texture.wrap_s != texture.wrap_t or texture.wrap_s not in wrap:
+        raise ValueError(f"{material.path}: wrap modes {texture.wrap_s}, {texture.wrap_t} are not converted")
+    data = np.ascontiguousarray((alpha >= threshold).astype(np.float32)[..., None])
+    return {"type": "bitmap", "bitmap": mi.Bitmap(data), "raw": True, "filter_type": "nearest",
+            "wrap_mode": wrap[texture.wrap_s]}
 
 
 def _meshes(scene: Scene) -> dict:
@@ -196,10 +229,14 @@ def _meshes(scene: Scene) -> dict:
     for material_id in np.unique(geometry.material_ids):
         rows = geometry.material_ids == material_id
         num_triangles = int(rows.sum())
-        mesh = mi.Mesh(f"material_{material_id}", 3 * num_triangles, num_triangles, has_vertex_normals=True)
+        textured = scene.materials[material_id].opacity.texture is not None
+        mesh = mi.Mesh(f"material_{material_id}", 3 * num_triangles, num_triangles, has_vertex_normals=True,
+                       has_vertex_texcoords=textured)
         params = mi.traverse(mesh)
         buffers = {"vertex_positions": geometry.positions[rows], "vertex_normals": geometry.normals[rows],
                    "faces": np.arange(3 * num_triangles, dtype=np.uint32)}
+        if textured:
+            buffers["vertex_texcoords"] = geometry.uvs[rows]
         for name, values in buffers.items():
             params[name] = type(params[name])(np.ascontiguousarray(values).reshape(-1))
         params.update()
@@ -263,6 +300,11 @@ def _emitter(light: Light) -> dict:
         to_world = light.world_from_light @ np.diag([light.radius, light.radius, light.radius, 1.0])
         return {"type": "sphere", "to_world": mi.ScalarTransform4f(to_world.tolist()), "emitter": emitter,
                 "bsdf": black}
+    if light.kind is LightKind.DISTANT and light.angle == 0.0:
+        # A zero-angle DistantLight is a delta light whose irradiance is its radiance (UsdLux).
+        direction = -light.world_from_light[:3, 2] / np.linalg.norm(light.world_from_light[:3, 2])
+        return {"type": "directional", "direction": direction.tolist(),
+                "irradiance": {"type": "rgb", "value": light_radiance(light).tolist()}}
     raise ValueError(f"{light.path}: {light.kind.value} is not converted")
 
 
@@ -294,8 +336,11 @@ def scene_dict(scene: Scene, camera: Camera, max_bounces: int, spp: int, seed: i
     """
     if camera.exposure_scale != 1.0:
         raise ValueError(f"{camera.path}: camera exposure is not converted")
+    # 'volpath' carries shadow rays through masks (null BSDFs); 'path' stops them at any surface.
+    masked = any(_opacity(scene.materials[index]) is not None for index in np.unique(scene.geometry.material_ids))
     result = {"type": "scene",
-              "integrator": {"type": "path", "max_depth": max_bounces + 2, "hide_emitters": True},
+              "integrator": {"type": "volpath" if masked else "path", "max_depth": max_bounces + 2,
+                             "hide_emitters": True},
               "sensor": _sensor(camera, spp, seed)}
     result.update(_meshes(scene))
     for index, light in enumerate(scene.lights):

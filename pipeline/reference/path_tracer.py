@@ -12,7 +12,9 @@ Lights are not seen by camera rays (Karma's default `renderlightgeo = 0`): they 
 reflection only, as in the relighter, whose deep framebuffer holds surfaces only.
 Lights are not occluders either: a ray passes through a light's surface to whatever lies behind
 it (so an area light mounted just below a ceiling lets that ceiling patch show through it).
-Surfaces are shaded on both sides; opacity is ignored (opaque), with a warning.
+Surfaces are shaded on both sides. Opacity (`relight_torch.visibility.opacity`, in the tracer):
+camera, path and shadow rays pass through cut-out holes; a partially opaque surface is met with
+probability equal to its opacity (stochastic presence: transmission without refraction).
 UsdLux linking: a light reaches only the objects of its light link (next-event estimation and
 BSDF-sampled hits of the light are both dropped at vertices on other objects), and only the
 objects of its shadow link block it (its shadow rays, and the surfaces a BSDF-sampled ray must
@@ -35,7 +37,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from pipeline.errors import warn
 from pipeline.scene.camera import camera_rays
 from pipeline.scene.surface import triangle_tangents
 from pipeline.scene.types import Camera, Scene
@@ -134,7 +135,7 @@ class PathTracer:
         self.settings = settings
         self.num_workers = settings.num_workers or len(os.sched_getaffinity(0))
         # Parallelism comes from the workers; one Embree thread each.
-        self.tracer = Tracer(scene.geometry, num_threads=1 if self.num_workers > 1 else None)
+        self.tracer = Tracer.for_scene(scene, num_threads=1 if self.num_workers > 1 else None)
         self.tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs)
         self.area_lights = [light for light in scene.lights if not is_delta_light(light)]
         object_paths = [obj.path for obj in scene.objects]
@@ -142,9 +143,8 @@ class PathTracer:
         self.light_link_masks = {light.path: torch.from_numpy(linked_objects(object_paths, light.light_link)).float()
                                  for light in scene.lights if light.light_link is not None}
         self.shadow_link_casters = ShadowLinkCasters(self.tracer.corners, scene.geometry.object_ids, object_paths,
-                                                     self.tracer.epsilon, self.tracer.num_threads)
-        if any(m.opacity.texture is not None or float(m.opacity.value[0]) < 1.0 for m in scene.materials):
-            warn("reference: opacity is ignored; every surface is rendered opaque", scene.warnings)
+                                                     self.tracer.epsilon, self.tracer.num_threads,
+                                                     self.tracer.opacity)
 
     def render(self, camera: Camera, progress=None) -> ReferenceImage:
         """Render `camera`'s image. `progress(done_paths, total_paths)` is called after each batch."""

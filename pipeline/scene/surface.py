@@ -16,6 +16,7 @@ import numpy as np
 
 from pipeline.scene.textures import fit_channels, sample_texture, select_output
 from pipeline.scene.types import Material, MaterialInput
+from relight_torch.visibility.opacity import cut_out
 
 # Output key -> (Material field, channels). 'normal_tangent' is the tangent-space normal map value.
 _TEXTURED_FIELDS = {
@@ -81,10 +82,7 @@ def evaluate_materials(materials: list[Material], material_ids: np.ndarray, uvs:
         material_uvs = uvs[rows]
         for key, (field_name, num_channels) in _TEXTURED_FIELDS.items():
             result[key][rows] = _evaluate_input(getattr(material, field_name), material_uvs, num_channels)
-        opacity = np.clip(result["opacity"][rows], 0.0, 1.0)
-        if material.opacity_threshold > 0.0:
-            opacity = (opacity >= material.opacity_threshold).astype(np.float32)
-        result["opacity"][rows] = opacity
+        result["opacity"][rows] = cut_out(result["opacity"][rows], material.opacity_threshold)
         use_specular_workflow[rows] = material.use_specular_workflow
     evaluated = {key: (values if values.shape[1] == 3 else values[:, 0]) for key, values in result.items()}
     evaluated["use_specular_workflow"] = use_specular_workflow

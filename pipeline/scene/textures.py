@@ -8,7 +8,8 @@ follows the UsdPreviewSurface spec (2.5) and Storm:
   i, row j counted from the bottom) has its centre at st = ((i + 0.5) / W, (j + 0.5) / H).
 * Bilinear filtering of the four nearest texel centres; the wrap mode is applied to each of the four
   integer texel indices (the OpenGL rule), so 'repeat' blends the last and first columns at s = 0,
-  'clamp' and 'mirror' repeat the edge texel there, and 'black' blends towards zero.
+  'clamp' and 'mirror' repeat the edge texel there, and 'black' blends towards zero
+  (`relight_torch.math.texture.sample_bilinear`, shared with the opacity lookups of rays).
 * Channels are expanded as UsdUVTexture outputs them: one channel -> (v, v, v, 1); two (grey and
   alpha) -> (v, v, v, a); three -> (r, g, b, 1).
 * output = expanded sample * scale + bias.
@@ -29,6 +30,7 @@ from pxr import Ar
 from pipeline.errors import RelightError
 from pipeline.scene.types import Texture
 from relight_torch.io.images import DecodedImage, read_image
+from relight_torch.math.texture import sample_bilinear
 
 WRAP_MODES = ("black", "clamp", "repeat", "mirror")
 OUTPUTS = ("rgb", "r", "g", "b", "a")
@@ -173,18 +175,6 @@ def fit_channels(values: np.ndarray, num_channels: int) -> np.ndarray:
     return np.concatenate([values, padding], axis=-1)
 
 
-def _wrap_indices(index: np.ndarray, size: int, mode: str) -> tuple[np.ndarray, np.ndarray]:
-    """Wrap integer texel indices into [0, size); returns (index, inside) where inside is False
-    only for 'black' taps that fall outside the image."""
-    if mode == "repeat":
-        return np.mod(index, size), np.ones(index.shape, bool)
-    if mode == "mirror":
-        period = np.mod(index, 2 * size)
-        return np.where(period < size, period, 2 * size - 1 - period), np.ones(index.shape, bool)
-    inside = (index >= 0) & (index < size)
-    return np.clip(index, 0, size - 1), (inside if mode == "black" else np.ones(index.shape, bool))
-
-
 def sample_texture(texture: Texture, uv: np.ndarray) -> np.ndarray:
     """Bilinearly sample a texture at primvar coordinates.
 
@@ -197,21 +187,5 @@ def sample_texture(texture: Texture, uv: np.ndarray) -> np.ndarray:
     """
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     st = uv @ texture.st_from_uv[:2, :2].T + texture.st_from_uv[:2, 2]
-    height, width = texture.pixels.shape[:2]
-    # Continuous texel coordinates with texel centres at integers; y counts rows from the bottom.
-    x = st[:, 0] * width - 0.5
-    y = st[:, 1] * height - 0.5
-    x0 = np.floor(x)
-    y0 = np.floor(y)
-    fx = (x - x0).astype(np.float32)[:, None]
-    fy = (y - y0).astype(np.float32)[:, None]
-    x0 = x0.astype(np.int64)
-    y0 = y0.astype(np.int64)
-    sampled = np.zeros((uv.shape[0], texture.pixels.shape[2]), np.float32)
-    for dx, weight_x in ((0, 1.0 - fx), (1, fx)):
-        column, column_inside = _wrap_indices(x0 + dx, width, texture.wrap_s)
-        for dy, weight_y in ((0, 1.0 - fy), (1, fy)):
-            row_from_bottom, row_inside = _wrap_indices(y0 + dy, height, texture.wrap_t)
-            texels = texture.pixels[height - 1 - row_from_bottom, column]
-            sampled += weight_x * weight_y * texels * (column_inside & row_inside)[:, None]
+    sampled = sample_bilinear(texture.pixels, st, texture.wrap_s, texture.wrap_t)
     return expand_to_rgba(sampled) * texture.scale + texture.bias

@@ -35,6 +35,7 @@ _PREVIEW_INPUT_TYPES = {
     "clearcoat": Sdf.ValueTypeNames.Float,
     "clearcoatRoughness": Sdf.ValueTypeNames.Float,
     "opacity": Sdf.ValueTypeNames.Float,
+    "opacityThreshold": Sdf.ValueTypeNames.Float,
     "ior": Sdf.ValueTypeNames.Float,
     "normal": Sdf.ValueTypeNames.Normal3f,
 }
@@ -134,7 +135,7 @@ def define_preview_material(stage: Usd.Stage, name: str, **inputs) -> tuple[UsdS
 
 
 def connect_texture(material: UsdShade.Material, shader: UsdShade.Shader, input_name: str, file: str, *,
-                    source_color_space: str, scale=None, bias=None) -> UsdShade.Shader:
+                    source_color_space: str, scale=None, bias=None, output: str = "rgb") -> UsdShade.Shader:
     """Feed a UsdPreviewSurface input from an image through UsdUVTexture, reading primvar 'st'.
 
     Args:
@@ -142,6 +143,7 @@ def connect_texture(material: UsdShade.Material, shader: UsdShade.Shader, input_
         file: asset path relative to the layer, e.g. './textures/glossy_brick_albedo.png'.
         source_color_space: 'sRGB' for colour images, 'raw' for data (normal maps).
         scale, bias: (4,) float4 applied as out = texel * scale + bias, or None for the fallbacks.
+        output: the texture output connected: 'rgb' (float3) or one channel 'r', 'g', 'b', 'a' (float).
     """
     stage = material.GetPrim().GetStage()
     material_path = material.GetPath()
@@ -163,9 +165,9 @@ def connect_texture(material: UsdShade.Material, shader: UsdShade.Shader, input_
         texture.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*map(float, scale)))
     if bias is not None:
         texture.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*map(float, bias)))
-    texture.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    texture.CreateOutput(output, Sdf.ValueTypeNames.Float3 if output == "rgb" else Sdf.ValueTypeNames.Float)
     input_type = _PREVIEW_INPUT_TYPES[input_name]
-    shader.CreateInput(input_name, input_type).ConnectToSource(texture.ConnectableAPI(), "rgb")
+    shader.CreateInput(input_name, input_type).ConnectToSource(texture.ConnectableAPI(), output)
     return texture
 
 

@@ -66,6 +66,7 @@ from relight_torch.protocol import refuse_material_edit
 from relight_torch.stage import open_stage, time_code
 from relight_torch.visibility import Visibility
 from relight_torch.visibility.embree import EmbreeCaster, ShadowLinkCasters
+from relight_torch.visibility.opacity import OPACITY_PAYLOADS, OpacityTable
 from relight_torch.visibility.rays import RayVisibility
 from relight_torch.visibility.shadow_maps import ShadowMapVisibility
 from relight_torch.visibility.surface_filter import SurfaceFilter
@@ -770,13 +771,27 @@ class Relighter:
 
 
 def embree_visibility(occluders: np.ndarray, occluder_objects: np.ndarray | None,
-                      object_paths: list[str] | None) -> tuple[EmbreeCaster, RayVisibility]:
+                      object_paths: list[str] | None,
+                      opacity: OpacityTable | None = None) -> tuple[EmbreeCaster, RayVisibility]:
     """Embree over a cache's (T, 3, 3) occluders and the shadow-ray visibility using it, with a
-    caster per shadow-link set when the (T,) occluder objects and their paths are given."""
-    caster = EmbreeCaster(occluders)
+    caster per shadow-link set when the (T,) occluder objects and their paths are given; shadow
+    rays pass through the holes of the occluders' `opacity` table (`load_opacity`)."""
+    caster = EmbreeCaster(occluders, opacity=opacity)
     links = None if occluder_objects is None else ShadowLinkCasters(occluders, occluder_objects, object_paths,
-                                                                    caster.epsilon)
+                                                                    caster.epsilon, opacity=opacity)
     return caster, RayVisibility(caster, links)
+
+
+def load_opacity(layer_path: Path, description: CacheDescription) -> OpacityTable | None:
+    """The occluders' opacity table of a cache (`OpacityTable.to_arrays` payloads), None when the
+    bake found every occluder opaque (and wrote none)."""
+    names = {payload.name for payload in description.payloads}
+    if OPACITY_PAYLOADS[0] not in names:
+        return None
+    try:
+        return OpacityTable.from_arrays({name: load_npy(layer_path, description, name) for name in OPACITY_PAYLOADS})
+    except (KeyError, ValueError) as error:
+        raise RelightError(f"{layer_path}: occluder opacity payloads: {error}") from error
 
 
 def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
@@ -804,13 +819,15 @@ def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", 
     object_paths = decode_paths(load_npy(layer_path, description, "objectPaths")) if linking else None
     if shadows == "embree":
         occluder_objects = np.asarray(load_npy(layer_path, description, "occluderObjects")) if linking else None
-        _, visibility = embree_visibility(occluders, occluder_objects, object_paths)
+        _, visibility = embree_visibility(occluders, occluder_objects, object_paths,
+                                          load_opacity(layer_path, description))
     elif shadows == "shadowmaps":
         # Always cube maps for spot lights: a cone edit does not re-run visibility, and a perspective
         # map sized for the old cone would leave the new one's receivers unshadowed.
         visibility = ShadowMapVisibility(torch.from_numpy(occluders).to(device), settings.shadow_map_resolution,
                                          settings.shadow_map_march_steps, receivers=gbuffer.position,
-                                         max_spot_half_angle=0.0, lookup=settings.shadow_map_lookup)
+                                         max_spot_half_angle=0.0, lookup=settings.shadow_map_lookup,
+                                         opacity=load_opacity(layer_path, description))
     else:
         raise RelightError(f"shadows must be 'embree' or 'shadowmaps', got {shadows!r}")
     relighter = Relighter(gbuffer, visibility, description.supersampling, description.exposure_scale, settings,

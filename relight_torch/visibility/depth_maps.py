@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import torch
 
+from relight_torch.visibility.opacity import OpacityTable
 from relight_torch.visibility.raster import rasterise_depth
 
 # Near clip of pinhole faces, relative to each triangle's largest face-local coordinate:
@@ -95,9 +96,10 @@ class DepthMap:
     depth: torch.Tensor
     slope: torch.Tensor
 
-    def build(self, corners: torch.Tensor) -> None:
-        """Rasterise (T, 3, 3) world triangles into `depth` and derive `slope`."""
-        self.depth = rasterise_depth(self, corners)
+    def build(self, corners: torch.Tensor, opacity: OpacityTable | None = None) -> None:
+        """Rasterise (T, 3, 3) world triangles (with the holes of their `opacity` table) into
+        `depth` and derive `slope`."""
+        self.depth = rasterise_depth(self, corners, opacity)
         self.slope = _axis_slope(self.depth, -1) + _axis_slope(self.depth, -2)
 
     def project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:

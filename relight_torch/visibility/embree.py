@@ -12,6 +12,9 @@ Embreex facts this module relies on (embreex 4.4.0.post1, checked by the tests):
     * `run` releases the GIL while tracing, so chunks traced on a thread pool run in parallel.
     * The only build option exposed is the robust flag (`robust=True`: watertight traversal,
       no cracks between triangles sharing an edge); build quality is not exposed.
+    * There are no intersection filter callbacks: cut-outs and partial opacity
+      (`relight_torch.visibility.opacity`) are traced as a second scene of the non-opaque
+      triangles, whose hits are looked up and passed through in a bounded loop.
 """
 
 from __future__ import annotations
@@ -21,10 +24,12 @@ import threading
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 from embreex import mesh_construction, rtcore_scene
 
 from relight_torch.lights.linking import linked_objects
 from relight_torch.parallel import parallel_map
+from relight_torch.visibility.opacity import OpacityTable, presence_random, ray_keys
 
 # Rays per embreex call: bounds the temporary arrays of one chunk (~100 bytes per ray).
 CHUNK_RAYS = 1 << 20
@@ -35,6 +40,9 @@ EPSILON_DIAGONAL_FRACTION = 1e-4
 # Ray offset in float32 ulps of the largest absolute coordinate, so that it survives rounding (and
 # Embree's own intersection error) when the scene sits far from the origin.
 EPSILON_ULPS = 32
+# Non-opaque surfaces one ray may pass through before it is stopped at the next (bounds the loop
+# that continues rays through holes; a ray through a dense canopy crosses a few dozen leaves).
+MAX_TRANSPARENT_LAYERS = 64
 
 
 
@@ -74,21 +82,32 @@ class EmbreeCaster:
             float32 ulps of the largest coordinate. Use it through `offset_origins`.
     """
 
-    def __init__(self, corners: np.ndarray, num_threads: int | None = None, epsilon: float | None = None):
+    def __init__(self, corners: np.ndarray, num_threads: int | None = None, epsilon: float | None = None,
+                 opacity: OpacityTable | None = None):
         if corners.dtype != np.float32 or corners.ndim != 3 or corners.shape[1:] != (3, 3):
             raise ValueError(f"corners must be float32 (T, 3, 3), got {corners.dtype} {corners.shape}")
         self.num_threads = num_threads or len(os.sched_getaffinity(0))
         self.corners = np.ascontiguousarray(corners)
-        self._scene = rtcore_scene.EmbreeScene(robust=True)
-        if corners.shape[0]:
-            mesh_construction.TriangleMesh(self._scene, self.corners)
-        # An empty query commits (builds) the scene now rather than on the first real batch.
-        self._scene.run(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
+        self.opacity = opacity if opacity is not None and opacity.num_triangles else None
+        # With cut-outs, two scenes: the opaque triangles (traced as before) and the others, whose
+        # hits are tested with the opacity lookup and passed through in a bounded loop (embreex has
+        # no filter callbacks). Each scene's primID indexes its own list of triangle ids.
+        self._opaque_ids = self._clear_ids = self._clear_scene = None
+        opaque_corners = self.corners
+        if self.opacity is not None:
+            clear = self.opacity.transparent_mask(corners.shape[0])
+            self._opaque_ids, self._clear_ids = np.flatnonzero(~clear), np.flatnonzero(clear)
+            opaque_corners = np.ascontiguousarray(self.corners[~clear])
+            self._clear_corners = np.ascontiguousarray(self.corners[clear])
+            self._clear_scene = _build_scene(self._clear_corners)
+        self._opaque_corners = opaque_corners
+        self._scene = _build_scene(opaque_corners)
         self.epsilon = _scene_epsilon(self.corners) if epsilon is None else epsilon
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray,
                   t_far: np.ndarray | None = None) -> RayHits:
-        """Closest hit of each ray: distance, triangle and barycentrics.
+        """Closest hit of each ray: distance, triangle and barycentrics. Holes of cut-out and
+        partially opaque triangles (`opacity`) are passed through.
 
         Args:
             origins: (N, 3) float32 world-space ray origins.
@@ -99,25 +118,19 @@ class EmbreeCaster:
             `RayHits` of N rays.
         """
         num_rays = _check_rays(origins, directions, t_far)
-        distance = np.empty(num_rays, np.float32)
-        triangle_id = np.empty(num_rays, np.int32)
-        barycentrics = np.empty((num_rays, 2), np.float32)
-
-        def trace(chunk: slice) -> None:
-            dists = (np.full(chunk.stop - chunk.start, np.inf, np.float32) if t_far is None
-                     else np.array(t_far[chunk], np.float32))
-            raw = self._scene.run(origins[chunk], directions[chunk], dists=dists, output=1)
-            hit = raw["primID"] >= 0
-            triangle_id[chunk] = raw["primID"]
-            distance[chunk] = np.where(hit, raw["tfar"], np.inf)
-            barycentrics[chunk, 0] = np.where(hit, raw["u"], 0)
-            barycentrics[chunk, 1] = np.where(hit, raw["v"], 0)
-
-        self._map_chunks(trace, num_rays)
+        limit = np.full(num_rays, np.inf, np.float32) if t_far is None else t_far
+        triangle_id, distance, barycentrics = self._closest(self._scene, origins, directions, limit)
+        if self.opacity is not None:
+            hit = triangle_id >= 0
+            triangle_id[hit] = self._opaque_ids[triangle_id[hit]]
+            found, clear_id, clear_distance, clear_barycentrics = self._first_present(
+                origins, directions, np.minimum(limit, distance))
+            triangle_id[found], distance[found], barycentrics[found] = clear_id, clear_distance, clear_barycentrics
         return RayHits(triangle_id >= 0, distance, triangle_id, barycentrics)
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray) -> np.ndarray:
-        """Whether anything lies on each ray for t in [0, t_far] (Embree's any-hit query).
+        """Whether anything lies on each ray for t in [0, t_far] (Embree's any-hit query); holes of
+        cut-out and partially opaque triangles (`opacity`) let the ray through.
 
         Args:
             origins: (N, 3) float32 world-space ray origins (offset them with `offset_origins`).
@@ -136,8 +149,70 @@ class EmbreeCaster:
                                            dists=np.array(t_far[chunk], np.float32), query="OCCLUDED")
             blocked[chunk] = geometry_ids != -1
 
-        self._map_chunks(trace, num_rays)
+        if self._opaque_corners.shape[0]:
+            self._map_chunks(trace, num_rays)
+        if self.opacity is not None:
+            open_rays = np.flatnonzero(~blocked)
+            blocked[open_rays] = self._first_present(origins[open_rays], directions[open_rays], t_far[open_rays])[0]
         return blocked
+
+    def _closest(self, scene, origins: np.ndarray, directions: np.ndarray,
+                 t_far: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(primID (N,) int32, -1 on a miss; distance (N,) float32, inf on a miss; barycentrics
+        (N, 2) float32) of the closest hits in one embreex scene."""
+        num_rays = origins.shape[0]
+        distance = np.empty(num_rays, np.float32)
+        triangle_id = np.empty(num_rays, np.int32)
+        barycentrics = np.empty((num_rays, 2), np.float32)
+
+        def trace(chunk: slice) -> None:
+            raw = scene.run(origins[chunk], directions[chunk], dists=np.array(t_far[chunk], np.float32), output=1)
+            hit = raw["primID"] >= 0
+            triangle_id[chunk] = raw["primID"]
+            distance[chunk] = np.where(hit, raw["tfar"], np.inf)
+            barycentrics[chunk, 0] = np.where(hit, raw["u"], 0)
+            barycentrics[chunk, 1] = np.where(hit, raw["v"], 0)
+
+        self._map_chunks(trace, num_rays)
+        return triangle_id, distance, barycentrics
+
+    def _first_present(self, origins: np.ndarray, directions: np.ndarray,
+                       limit: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The first hit among the non-opaque triangles that stops each ray before `limit` (N,).
+
+        The rays restart just past each hit that lets them through (an `epsilon` further), at most
+        MAX_TRANSPARENT_LAYERS times; a ray still going after that stops at its last hit.
+
+        Returns:
+            (found (N,) bool, and for the found rays: triangle ids (F,) int64, distances (F,)
+            float32, barycentrics (F, 2) float32).
+        """
+        num_rays = origins.shape[0]
+        found = np.zeros(num_rays, bool)
+        triangle_id = np.full(num_rays, -1, np.int64)
+        distance = np.full(num_rays, np.inf, np.float32)
+        barycentrics = np.zeros((num_rays, 2), np.float32)
+        step = (self.epsilon / np.maximum(np.linalg.norm(directions, axis=-1), 1e-30)).astype(np.float32)
+        start = np.zeros(num_rays, np.float32)
+        live = np.arange(num_rays)
+        for layer in range(MAX_TRANSPARENT_LAYERS):
+            if live.size == 0:
+                break
+            moved = (origins[live] + directions[live] * start[live, None]).astype(np.float32)
+            remaining = (limit[live] - start[live]).astype(np.float32)
+            prim, t, uv = self._closest(self._clear_scene, moved, directions[live], remaining)
+            hit = prim >= 0
+            rays, ids = live[hit], self._clear_ids[prim[hit]]
+            uv, t = uv[hit], start[rays] + t[hit]
+            stops = self.opacity.present(torch.from_numpy(ids), torch.from_numpy(uv),
+                                         presence_random(ray_keys(origins[rays], directions[rays], ids))).numpy()
+            if layer == MAX_TRANSPARENT_LAYERS - 1:
+                stops[:] = True
+            found[rays[stops]] = True
+            triangle_id[rays[stops]], distance[rays[stops]], barycentrics[rays[stops]] = ids[stops], t[stops], uv[stops]
+            live = rays[~stops]
+            start[live] = t[~stops] + step[live]
+        return found, triangle_id[found], distance[found], barycentrics[found]
 
     def offset_origins(self, points: np.ndarray, normals: np.ndarray,
                        directions: np.ndarray) -> np.ndarray:
@@ -175,14 +250,15 @@ class ShadowLinkCasters:
         object_paths: the objects' prim paths, by object id.
         epsilon: the whole scene's ray offset (`EmbreeCaster.epsilon`).
         num_threads: as `EmbreeCaster`.
+        opacity: the non-opaque triangles among `corners`, or None.
     """
 
     def __init__(self, corners: np.ndarray, object_ids: np.ndarray, object_paths: list[str], epsilon: float,
-                 num_threads: int | None = None):
+                 num_threads: int | None = None, opacity: OpacityTable | None = None):
         if object_ids.shape != corners.shape[:1]:
             raise ValueError(f"object_ids must be ({corners.shape[0]},), got {object_ids.shape}")
         self.corners, self.object_ids, self.object_paths = corners, np.asarray(object_ids), object_paths
-        self.epsilon, self.num_threads = epsilon, num_threads
+        self.epsilon, self.num_threads, self.opacity = epsilon, num_threads, opacity
         self._casters: dict[tuple[str, ...], EmbreeCaster] = {}
         self._lock = threading.Lock()  # tiles of points ask from several threads: build each once
 
@@ -191,9 +267,20 @@ class ShadowLinkCasters:
         with self._lock:
             if link not in self._casters:
                 keep = linked_objects(self.object_paths, link)[self.object_ids]
+                opacity = None if self.opacity is None else self.opacity.subset(keep)
                 self._casters[link] = EmbreeCaster(np.ascontiguousarray(self.corners[keep]), self.num_threads,
-                                                   self.epsilon)
+                                                   self.epsilon, opacity)
             return self._casters[link]
+
+
+def _build_scene(corners: np.ndarray):
+    """A committed embreex scene over (T, 3, 3) float32 corners (kept by reference by the caller)."""
+    scene = rtcore_scene.EmbreeScene(robust=True)
+    if corners.shape[0]:
+        mesh_construction.TriangleMesh(scene, corners)
+    # An empty query commits (builds) the scene now rather than on the first real batch.
+    scene.run(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
+    return scene
 
 
 def _scene_epsilon(corners: np.ndarray) -> float:

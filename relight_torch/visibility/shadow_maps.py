@@ -71,6 +71,7 @@ from relight_torch.errors import RelightError
 from relight_torch.lights.geometry import LightFrame, transform_rows
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.math.frame import orthonormal_basis
+from relight_torch.visibility.opacity import OpacityTable
 from relight_torch.visibility.depth_maps import CubeMap, DepthMap, MapSample, OrthoMap, PinholeMaps
 
 # Bias floor for "behind the stored surface", in texel footprints at the stored depth.
@@ -113,6 +114,7 @@ class ShadowMapVisibility:
             later query grows the window.
         max_spot_half_angle: largest cone half-angle (degrees) given a perspective map.
         lookup: 'pcss' (one PCF tap per sample, the default) or 'march' (see the module doc).
+        opacity: the occluders' non-opaque triangles (holes rasterised as no depth), or None.
 
     Attributes:
         num_builds: maps built so far (tests check that a light is mapped once).
@@ -122,7 +124,7 @@ class ShadowMapVisibility:
 
     def __init__(self, occluders: torch.Tensor, resolution: int = 1024, march_steps: int = 16,
                  receivers: torch.Tensor | None = None, max_spot_half_angle: float = 60.0,
-                 lookup: str = "pcss"):
+                 lookup: str = "pcss", opacity: OpacityTable | None = None):
         if not isinstance(occluders, torch.Tensor) or occluders.dim() != 3 or occluders.shape[1:] != (3, 3):
             raise ValueError(f"occluders must be a (T, 3, 3) tensor of triangle corners, got "
                              f"{getattr(occluders, 'shape', type(occluders).__name__)}")
@@ -133,6 +135,7 @@ class ShadowMapVisibility:
         if resolution < 2 or march_steps < 1:
             raise ValueError(f"resolution must be >= 2 and march_steps >= 1, got {resolution} and {march_steps}")
         self.occluders = occluders
+        self.opacity = opacity
         self.resolution = resolution
         self.march_steps = march_steps
         self.lookup = lookup
@@ -199,7 +202,7 @@ class ShadowMapVisibility:
         else:
             depth_map = self._pinhole_map(light)
         start = time.process_time()
-        depth_map.build(self.occluders)
+        depth_map.build(self.occluders, self.opacity)
         self.seconds["build"] += time.process_time() - start
         self.num_builds += 1
         self._maps[light.path] = (key, depth_map)

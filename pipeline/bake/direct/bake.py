@@ -7,6 +7,9 @@ Writes into OUT:
     <stem>.occluderObjects.npy  (T,) int32 object id of each occluder triangle
     <stem>.objectPaths.npy  uint8 UTF-8 object prim paths by object id, newline-separated: light
                             and shadow links are resolved against them at relight time
+    <stem>.opacity*.npy     only when some occluder is cut out or partially opaque: its opacity
+                            table (`relight_torch.visibility.opacity.OpacityTable.to_arrays`), so
+                            that shadow rays and shadow maps pass through the holes
 The deep framebuffer is traced in bands of ROWS_PER_CHUNK pixel rows, chunks of
 `pipeline.bake.scheduler` kept in `.<stem>.direct-<hash>/` until the layer is written, so a killed
 bake resumes from its finished bands. Each file is written atomically; the layer last, so a cache
@@ -26,6 +29,7 @@ from pipeline.errors import warn
 from pipeline.bake.inputs import code_version, identify_bake
 from pipeline.bake.scheduler import (ChunkSpec, ShotSpec, chunk_folder, chunk_ranges, chunk_threads, load_chunk,
                                      load_shot, per_process, run_chunks)
+from pipeline.scene.opacity import scene_opacity
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
@@ -59,7 +63,7 @@ def write_npy(path: Path, array: np.ndarray, name: str = "") -> Payload:
 def shot_tracer(shot: ShotSpec) -> Tracer:
     """The shot's BVH, built once per process."""
     scene, _ = load_shot(shot)
-    return Tracer(scene.geometry, num_threads=chunk_threads())
+    return Tracer.for_scene(scene, num_threads=chunk_threads())
 
 
 def _direct_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
@@ -116,12 +120,15 @@ def direct_payloads(scene: Scene, camera: Camera, out_dir: Path, stem: str, supe
                                  scene.geometry.object_ids.astype(np.int32), "occluderObjects")
     object_paths = write_npy(out_dir / f"{stem}.objectPaths.npy",
                              encode_paths([obj.path for obj in scene.objects]), "objectPaths")
+    opacity = scene_opacity(scene)
+    opacity_payloads = () if opacity is None else tuple(
+        write_npy(out_dir / f"{stem}.{name}.npy", array, name) for name, array in opacity.to_arrays().items())
     description = CacheDescription(
         method="direct", source=scene.source, camera_path=camera.path,
         resolution=(camera.width, camera.height), supersampling=supersampling,
         world_from_camera=camera.world_from_camera, exposure_scale=camera.exposure_scale,
         content_hash=digest, inputs=inputs, parameters=parameters,
-        payloads=(deep, occluders, occluder_objects, object_paths), code_version=code_version(),
+        payloads=(deep, occluders, occluder_objects, object_paths) + opacity_payloads, code_version=code_version(),
     )
     return description, chunk_dir
 
