@@ -52,7 +52,7 @@ class CutsSetup:
 def tracer_for(shot: ShotSpec) -> Tracer:
     """The shot's Embree tracer, built once per process."""
     scene, _ = load_shot(shot)
-    return Tracer(scene.geometry, num_threads=chunk_threads())
+    return Tracer.for_scene(scene, num_threads=chunk_threads())
 
 
 @per_process

@@ -101,7 +101,7 @@ def bake_multiview(scene: Scene, camera: Camera, out_dir: str | Path, stem: str,
         box: (lo, hi) workspace; default the scene's bounds.
     """
     out_dir, layer_path = prepare_output(out_dir, stem, supersampling, texture_samples)
-    placement = place_cameras(scene, settings, box, Tracer(scene.geometry))
+    placement = place_cameras(scene, settings, box, Tracer.for_scene(scene))
     if not placement.cameras:
         raise RelightError(f"{scene.source}: no caching camera sees the surfaces inside the box")
     rows = [camera_row(placed.camera, placed.kind, placed.group) for placed in placement.cameras]

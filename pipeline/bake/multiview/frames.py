@@ -78,7 +78,7 @@ class FrameRenderer:
                 description = relighter.description
                 scene = load_scene(description.source, time=description.parameters.get("time"),
                                    lights_layer=self.lights_layer)
-                self._shot = (scene, Tracer(scene.geometry),
+                self._shot = (scene, Tracer.for_scene(scene),
                               triangle_tangents(scene.geometry.positions, scene.geometry.uvs))
             scene, tracer, tangents = self._shot
             patch = hole_patch(scene, camera, relighter.supersampling, report.large_pixel_index.cpu().numpy(),

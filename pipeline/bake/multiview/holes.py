@@ -26,7 +26,7 @@ def hole_patch(scene: Scene, camera: Camera, supersampling: int, pixel_index: np
     Sub-samples whose rays hit nothing are left out. `tracer` and `tangents` (T, 3, 3) (the scene's
     BVH and `triangle_tangents`) are built here when not given; a caller patching many frames keeps them.
     """
-    tracer = tracer or Tracer(scene.geometry)
+    tracer = tracer or Tracer.for_scene(scene)
     tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs) if tangents is None else tangents
     origins, directions = grid_rays(camera, supersampling)
     pixel_index = np.asarray(pixel_index, np.int64)

@@ -204,7 +204,7 @@ def place_cameras(scene: Scene, settings: PlacementSettings = PlacementSettings(
                   box: tuple[np.ndarray, np.ndarray] | None = None, tracer: Tracer | None = None) -> Placement:
     """Place the caching cameras of `scene` within `box` (default: the scene's bounds)."""
     settings.check()
-    tracer = tracer or Tracer(scene.geometry)
+    tracer = tracer or Tracer.for_scene(scene)
     rng = np.random.default_rng(settings.seed)
     lo, hi = (np.asarray(b, np.float64) for b in (box or scene.bounds))
     samples = sample_surfaces(scene, settings.num_samples, rng, object_importance(scene), (lo, hi))
