@@ -16,6 +16,7 @@ from pipeline.bake.direct import bake_direct
 from pipeline.bake.inputs import record_request, request_digest, up_to_date
 from pipeline.bake.gather.bake import GatherSettings, bake_gather
 from pipeline.bake.quality import bake_for_quality
+from pipeline.bake.shot import DEFAULT_TARGET_DB, bake_shot
 from pipeline.bake.multiview.bake import bake_multiview, coverage_summary
 from pipeline.bake.multiview.placement import PlacementSettings
 from pipeline.bake.transfer.bake import TransferSettings, bake_transfer, reduced_view
@@ -39,8 +40,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("scene", metavar="SCENE", help="USD stage (.usda, .usdc, .usdz)")
     add_camera_options(parser)
     parser.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
-    parser.add_argument("--method", default="direct", choices=METHODS,
-                        help="relighting method to bake for (default: direct)")
+    parser.add_argument("--method", choices=METHODS,
+                        help="bake one relighting method alone (default: the shot cache, whose components, "
+                             "bounces and sizes pilot bakes choose to match the full frame to --quality)")
     parser.add_argument("--supersampling", type=int, metavar="S",
                         help="S x S sub-samples per pixel, shaded separately and box-filtered (default 2; 1 for "
                              "transfer and gather, whose every edit costs S^2 and whose error is mostly indirect light)")
@@ -48,9 +50,10 @@ def add_parser(subparsers) -> None:
                         help="T x T material samples per sub-sample, averaged: texture filtering (default 2)")
     parser.add_argument("--stem", help="file name stem (default: the scene file's stem)")
     parser.add_argument("--quality", type=float, metavar="PSNR",
-                        help="size the method (supersampling; gathers and coefficients; clusters and representatives) "
-                             "for this PSNR in dB against the path tracer, from pilot bakes at a small size; the "
-                             "choice and the predicted and measured PSNR go into the cache (overrides those options)")
+                        help="PSNR in dB against the path tracer that pilot bakes at a small size size the cache "
+                             f"for (the shot cache: default {DEFAULT_TARGET_DB:g} against the full frame; with "
+                             "--method: that method's sizes against its own slice, overriding their options); the "
+                             "choice and the predicted and measured PSNR go into the cache")
     parser.add_argument("--scheduler", metavar="ADDRESS",
                         help="run the bake's chunks on a Dask cluster: tcp://HOST:PORT, or 'dask' for the address "
                              "in Dask's configuration (default: this machine; see docs/DISTRIBUTED.md)")
@@ -111,6 +114,8 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.method is None and args.quality is None:
+        args.quality = DEFAULT_TARGET_DB
     if args.supersampling is None:
         args.supersampling = DEFAULT_SUPERSAMPLING.get(args.method, 2)
     if args.supersampling < 1 or args.texture_samples < 1:
@@ -158,6 +163,12 @@ def _bake_method(args: argparse.Namespace, stem: str) -> Path:
     start = time.perf_counter()
     scene = load_scene(args.scene, time=args.time, width=args.width, height=args.height)
     camera = find_camera(scene, args.camera)
+    if args.method is None:
+        choice, result = bake_shot(scene, camera, args.out, stem, args.quality, args.texture_samples, args.time)
+        print(f"{result.layer}: shot cache ({choice.components}, {choice.bounces} bounces, {result.point}) for "
+              f"{args.quality:g} dB against the full frame: pilot {result.predicted_db:.1f} dB, measured "
+              f"{result.measured_db:.1f} dB, in {time.perf_counter() - start:.1f} s")
+        return result.layer
     if args.quality is not None:
         result = bake_for_quality(scene, camera, args.out, stem, args.method, args.quality, args.supersampling,
                                   args.texture_samples, args.time,

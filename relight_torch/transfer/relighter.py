@@ -108,6 +108,12 @@ class TransferRelighter(IndirectRelighter):
             return self.final_gather.matmul(light)
         return self.final_gather.matmul(cull_light(light, self._column_norms, self.cull_tolerance))
 
+    def invalidate_indirect(self) -> None:
+        """Drop every cached indirect image (after `num_bounces` changes); the gather light is kept."""
+        self._emission_indirect = None
+        for state in self._per_light.values():
+            state.unit_indirect = None
+
     def _rows_to_image(self, rows: torch.Tensor) -> torch.Tensor:
         """(R, 3) values at the F rows' view samples -> (H, W, 3) image, camera exposure applied."""
         if self.upsampler is None:
