@@ -1,23 +1,31 @@
 # The two commands a newcomer needs: `make demo` (bake a bundled scene, relight, write images)
 # and `make test`. Everything installs itself into .venv on first use.
 PYTHON ?= python3.11
+# Where pip gets torch 2.13.0. Empty: pip's configured index (on Linux, PyPI serves the CUDA build).
+# Set it to PyTorch's CPU-only wheel index for the CPU build (README, Install).
+TORCH_INDEX_URL ?=
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install test demo bake clean
+.PHONY: install test lint demo bake clean
 
 install: $(STAMP)
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet torch==2.13.0
-	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/pip install --quiet $(if $(TORCH_INDEX_URL),--index-url "$(TORCH_INDEX_URL)") torch==2.13.0
+	$(BIN)/pip install --quiet -e '.[test,lint]'
 	touch $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/pytest -n auto
+
+# ruff (lint rules and formatting) on the whole tree, mypy on relight_torch/ (settings in pyproject.toml).
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/mypy
 
 clean:
 	rm -rf $(VENV) build *.egg-info

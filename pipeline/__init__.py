@@ -1,3 +1,5 @@
 """The batch baker: USD shot -> relighting caches (see docs/ARCHITECTURE.md)."""
 
-__version__ = "0.1.0"
+from relight_torch import __version__
+
+__all__ = ["__version__"]

@@ -11,6 +11,7 @@ import importlib
 import logging
 import sys
 
+from pipeline import __version__
 from pipeline.errors import RelightError
 
 # Subcommand modules, in the order `relight --help` lists them.
@@ -23,6 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Bake a USD shot once, then relight it in milliseconds.",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    parser.add_argument("--version", action="version", version=f"relight {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMANDS:
         module = importlib.import_module(f"pipeline.commands.{name}")

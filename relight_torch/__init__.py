@@ -2,8 +2,18 @@
 
 Importing the package registers the project's codeless USD schemas, so that no stage can be
 opened before they are known (USD reads plugin metadata once; see `relight_torch.schema`).
+`__version__` is the installed distribution's version: pyproject.toml is where it is written.
 """
 
+from importlib import metadata
+
 from relight_torch.schema import register_schemas
+
+try:
+    __version__ = metadata.version("relight")
+except metadata.PackageNotFoundError:
+    # A source tree put on sys.path without being pip-installed has no metadata to read; PEP 440's
+    # local label says so instead of inventing a number (bakes also hash the sources themselves).
+    __version__ = "0+unknown"
 
 register_schemas()

@@ -8,9 +8,11 @@ anonymous root copies the shot's (up axis, units, time codes, default prim, rend
 
 from __future__ import annotations
 
+import re
+from dataclasses import dataclass
 from pathlib import Path
 
-from pxr import Sdf, Tf, Usd
+from pxr import Sdf, Tf, Usd, UsdShade
 
 from relight_torch.errors import RelightError
 from relight_torch.schema import register_schemas
@@ -99,3 +101,64 @@ def time_code(stage: Usd.Stage, time: float | None) -> Usd.TimeCode:
     if stage.HasAuthoredTimeCodeRange():
         return Usd.TimeCode(stage.GetStartTimeCode())
     return Usd.TimeCode.EarliestTime()
+
+
+MISSING_FILE_ERRORS = ("ErrorInvalidSublayerPath", "ErrorInvalidAssetPath", "ErrorInvalidExternalTargetPath")
+"""Composition errors that mean a file the shot names is missing or unreadable."""
+
+_ASSET_IN_MESSAGE = re.compile(r"@([^@]+)@")
+
+
+@dataclass(frozen=True)
+class CompositionProblems:
+    """The missing-file composition errors of a stage, sorted by what they can cost.
+
+    Attributes:
+        fatal: one line per error that may lose geometry, lights or cameras (a sublayer, or a
+            reference or payload on any prim that is not part of a material): USD composes the
+            stage without the file, so the bake would silently miss what it holds.
+        material: (prim path, asset, one-line message) per error on a UsdShade Material, Shader or
+            NodeGraph prim or below a Material, or naming a MaterialX document (.mtlx, which
+            usd-core's wheel cannot read): only that material's look is lost, and the material
+            reader falls back as docs/MATERIALS.md documents.
+    """
+
+    fatal: tuple[str, ...]
+    material: tuple[tuple[str, str, str], ...]
+
+
+def _first_line(error) -> str:
+    return str(error).strip().splitlines()[0].removesuffix("; skipping.")
+
+
+def _is_material_site(stage: Usd.Stage, path: Sdf.Path) -> bool:
+    """Whether the prim at `path` is a shading prim or inside a Material."""
+    prim = stage.GetPrimAtPath(path)
+    while prim and not prim.IsPseudoRoot():
+        if prim.IsA(UsdShade.Material) or prim.IsA(UsdShade.Shader) or prim.IsA(UsdShade.NodeGraph):
+            return True
+        prim = prim.GetParent()
+    return False
+
+
+def composition_problems(stage: Usd.Stage) -> CompositionProblems:
+    """Sort a stage's missing-file composition errors into fatal ones and material ones.
+
+    A reference is a material asset when its prim is a shading prim or lies inside a Material, or
+    when the asset is a `.mtlx` document (whatever the prim's type: a MaterialX reference is how
+    a look is brought in). Everything else, a sublayer above all, stays fatal.
+    """
+    fatal, material = [], []
+    for error in stage.GetCompositionErrors():
+        if type(error).__name__ not in MISSING_FILE_ERRORS:
+            continue
+        message = _first_line(error)
+        asset_match = _ASSET_IN_MESSAGE.search(message)
+        asset = asset_match.group(1) if asset_match else ""
+        site = getattr(error, "rootSite", None)
+        path = site.path if site is not None and type(error).__name__ != "ErrorInvalidSublayerPath" else None
+        if path is not None and (asset.lower().endswith(".mtlx") or _is_material_site(stage, path)):
+            material.append((str(path), asset, message))
+        else:
+            fatal.append(message)
+    return CompositionProblems(tuple(fatal), tuple(material))

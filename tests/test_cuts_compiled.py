@@ -28,7 +28,7 @@ def _block(generator: torch.Generator, rows: int, width: int, num_nodes: int) ->
             "cos_e": wo[:, 2:], "view_sq": (wo * wo).sum(-1, keepdim=True), "weight": uniform(rows, width)}
 
 
-def test_compiled_blocks_equal_the_eager_functions():
+def test_compiled_blocks_equal_the_eager_functions(cxx_compiler):
     # One small grid block (every cluster in every row, written into a strided view as the
     # relighter's) and one dense block (entries summed into cells), compiled vs eager, float32.
     # Roughness >= 0.2: sharper lobes amplify float32 rounding (N.h near 1) and any reordering of

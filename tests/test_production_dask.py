@@ -5,12 +5,10 @@ from __future__ import annotations
 
 import filecmp
 
-import pytest
+import distributed
 
 import production_support
 from pipeline.cli import main
-
-distributed = pytest.importorskip("distributed", reason="the 'distributed' extra is not installed")
 
 
 def test_dask_bake_equals_the_local_bake(tmp_path, monkeypatch):
@@ -23,8 +21,8 @@ def test_dask_bake_equals_the_local_bake(tmp_path, monkeypatch):
         assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
         with distributed.Client(cluster) as client:
             with distributed.get_task_stream(client) as tasks:  # collected when the block ends
-                assert main(production_support.bake_arguments(shot, remote)
-                            + ["--scheduler", cluster.scheduler_address]) == 0
+                arguments = [*production_support.bake_arguments(shot, remote), "--scheduler", cluster.scheduler_address]
+                assert main(arguments) == 0
             chunk_tasks = [task for task in tasks.data if str(task["key"]).startswith("run_chunk")]
             cluster_workers = set(client.scheduler_info()["workers"])
     # The three chunks (deep framebuffer, final gather, bounce) ran on the cluster's workers.

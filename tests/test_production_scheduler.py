@@ -74,7 +74,6 @@ def test_chunk_folders_of_other_inputs_are_removed(tmp_path):
 
 
 def test_dask_address_without_a_cluster_is_one_clear_error(tmp_path):
-    pytest.importorskip("distributed")
     with scheduler.using(scheduler.Scheduler(address="dask")), pytest.raises(Exception, match="scheduler-address"):
         run_chunks(squares, _specs(), tmp_path, progress=False)
 

@@ -24,10 +24,13 @@ def _read(stage: Usd.Stage):
 
 
 def _mesh(stage: Usd.Stage, path: str, points, counts, indices) -> UsdGeom.Mesh:
+    """A polygonal mesh (subdivisionScheme 'none': subdivision surfaces are refined, see
+    tests/test_subdivision.py)."""
     mesh = UsdGeom.Mesh.Define(stage, path)
     mesh.CreatePointsAttr(points)
     mesh.CreateFaceVertexCountsAttr(counts)
     mesh.CreateFaceVertexIndicesAttr(indices)
+    mesh.CreateSubdivisionSchemeAttr("none")
     return mesh
 
 
@@ -85,13 +88,13 @@ def test_left_handed_meshes_face_the_other_way(orientation, expected_z):
 
 
 def test_smooth_normals_unless_subdivision_scheme_is_none():
+    """A 'bilinear' cage keeps smooth normals (Catmull-Clark and Loop are refined instead)."""
     stage = Usd.Stage.CreateInMemory()
     cube_points = [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
     # Six outward quads of the cube [-1, 1]^3 (point index = 4x + 2y + z over {0, 1}).
     faces = [0, 1, 3, 2, 4, 6, 7, 5, 0, 4, 5, 1, 2, 3, 7, 6, 0, 2, 6, 4, 1, 5, 7, 3]
-    _mesh(stage, "/Smooth", cube_points, [4] * 6, faces)
-    flat = _mesh(stage, "/Flat", cube_points, [4] * 6, faces)
-    flat.CreateSubdivisionSchemeAttr("none")
+    _mesh(stage, "/Smooth", cube_points, [4] * 6, faces).CreateSubdivisionSchemeAttr("bilinear")
+    _mesh(stage, "/Flat", cube_points, [4] * 6, faces)
     geometry, _, _, _ = _read(stage)
     positions, normals = geometry.positions, geometry.normals
     first = geometry.object_ids == 0

@@ -25,6 +25,7 @@ def _write_shot(directory: Path, *, with_mesh: bool = True, with_light: bool = T
         mesh.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
         mesh.CreateFaceVertexCountsAttr([4])
         mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+        mesh.CreateSubdivisionSchemeAttr("none")
     UsdGeom.Camera.Define(stage, "/World/CamA")
     UsdGeom.Camera.Define(stage, "/World/CamB")
     if with_light:

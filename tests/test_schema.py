@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 from pxr import Plug, Sdf, Usd, UsdLux
 
-from relight_torch.schema import PLUGIN_NAME, SCHEMA_DIR, register_schemas
+from relight_torch.schema import PLUGIN_NAME, register_schemas, schema_dir
+from relight_torch.schemas import generate
 
 BARZEL_FALLBACKS = {
     "relight:barzel:window:enable": False,
@@ -33,7 +33,7 @@ def test_register_is_idempotent():
     register_schemas()
     plugins = [p for p in Plug.Registry().GetAllPlugins() if p.name == PLUGIN_NAME]
     assert len(plugins) == 1
-    assert Path(plugins[0].path).resolve() == SCHEMA_DIR.resolve()
+    assert Path(plugins[0].path).resolve() == schema_dir().resolve()
 
 
 def test_schema_registry_knows_barzel_api_and_fallbacks():
@@ -62,7 +62,7 @@ def test_applied_api_brings_fallbacks_to_a_light():
 
 
 def test_every_attribute_is_documented_in_the_source():
-    layer = Sdf.Layer.FindOrOpen(str(SCHEMA_DIR / "schema.usda"))
+    layer = Sdf.Layer.FindOrOpen(str(schema_dir() / "schema.usda"))
     spec = layer.GetPrimAtPath(Sdf.Path("/RelightBarzelLightAPI"))
     assert spec.documentation
     for attribute in spec.attributes:
@@ -70,11 +70,8 @@ def test_every_attribute_is_documented_in_the_source():
 
 
 def test_generated_files_match_schema_source(tmp_path):
-    spec = importlib.util.spec_from_file_location("schema_generate", SCHEMA_DIR / "generate.py")
-    generate = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(generate)
     generate.generate(tmp_path)
     for name in ("generatedSchema.usda", "plugInfo.json"):
-        stale = f"{name} is stale: run schemas/generate.py"
-        assert (tmp_path / name).read_text() == (SCHEMA_DIR / name).read_text(), stale
+        stale = f"{name} is stale: run python -m relight_torch.schemas.generate"
+        assert (tmp_path / name).read_text() == (schema_dir() / name).read_text(), stale
     assert "@PLUG_INFO" not in (tmp_path / "plugInfo.json").read_text()

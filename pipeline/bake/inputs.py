@@ -41,6 +41,7 @@ def input_files(scene: Scene) -> list[str]:
     stage = open_stage(scene.source)
     files = {file_on_disk(layer.realPath) for layer in stage.GetUsedLayers() if layer.realPath}
     for material in scene.materials:
+        files.update(document for document in material.documents if Path(document).is_file())
         for value in vars(material).values():
             texture = getattr(value, "texture", None)
             if texture is not None and Path(file_on_disk(texture.file)).is_file():

@@ -7,6 +7,9 @@ placed by `ComputeInstanceTransformsAtTime`, which honours masks and the prototy
 transform; instancers nest). Inside a prototype, visibility is read from the prototype root down
 only: a hidden "Prototypes" scope above the roots does not hide the instances.
 
+Subdivision meshes (see `subdivision`) are refined to the level their placements need at the
+stage's cameras; the refined surface is shared by every placement at that level.
+
 Each placed gprim is one `SceneObject`. Materials come per face from the gprim's bound material
 and its `materialBind` GeomSubsets, through `MaterialLibrary.id_for`. World positions use the
 column-vector matrix; normals its inverse transpose; a mirroring transform (negative determinant)
@@ -22,9 +25,11 @@ import numpy as np
 from pxr import Usd, UsdGeom, UsdShade
 
 from pipeline.errors import warn
+from pipeline.scene import dicing
 from pipeline.scene.primvars import read_primvar
+from pipeline.scene.subdivision import Refinement, is_subdivision, read_subdivision_mesh
 from pipeline.scene.tessellate import Surface, implicit_surface, is_implicit, mesh_surface
-from pipeline.scene.types import Geometry, SceneObject
+from pipeline.scene.types import Camera, Geometry, SceneObject
 
 # A triangle is degenerate when |cross| <= this times its longest squared edge (a relative
 # zero: repeated or collinear float32 points, not thin slivers).
@@ -233,8 +238,38 @@ def _soup_part(surface: Surface, material_ids: np.ndarray, world_from_local: np.
     return int((~keep).sum()), part
 
 
-def read_geometry(stage: Usd.Stage, time: Usd.TimeCode, library,
-                  warnings: list[str]) -> tuple[Geometry, list[SceneObject]]:
+class _Surfaces:
+    """Each gprim's surface, built once per source prim (and per subdivision level)."""
+
+    def __init__(self, time: Usd.TimeCode, views: list[dicing.View], warnings: list[str]):
+        self.time, self.views, self.warnings = time, views, warnings
+        self._surfaces: dict[tuple[str, int], Surface | None] = {}
+        self._subdivision: dict[str, Refinement | None] = {}
+        self._budget_warned: set[str] = set()
+
+    def get(self, prim: Usd.Prim, key: str, world_from_local: np.ndarray) -> Surface | None:
+        """The surface of `prim` (source path `key`) for placements (I, 4, 4)."""
+        level = 0
+        if prim.IsA(UsdGeom.Mesh) and is_subdivision(UsdGeom.Mesh(prim), self.time):
+            if key not in self._subdivision:
+                mesh = read_subdivision_mesh(UsdGeom.Mesh(prim), self.time, self.warnings)
+                self._subdivision[key] = None if mesh is None else Refinement(mesh)
+            refinement = self._subdivision[key]
+            if refinement is not None:
+                level, budget_warning = refinement.choose_level(world_from_local, self.views)
+                if budget_warning and key not in self._budget_warned:
+                    self._budget_warned.add(key)
+                    warn(budget_warning, self.warnings)
+                if level > 0:
+                    return refinement.surface(level)
+        if (key, level) not in self._surfaces:
+            self._surfaces[key, level] = (mesh_surface(UsdGeom.Mesh(prim), self.time, self.warnings)
+                                          if prim.IsA(UsdGeom.Mesh) else implicit_surface(prim, self.time))
+        return self._surfaces[key, level]
+
+
+def read_geometry(stage: Usd.Stage, time: Usd.TimeCode, library, warnings: list[str],
+                  cameras: dict[str, Camera] | None = None) -> tuple[Geometry, list[SceneObject]]:
     """The stage's rendered gprims as one world-space triangle soup.
 
     Args:
@@ -243,12 +278,14 @@ def read_geometry(stage: Usd.Stage, time: Usd.TimeCode, library,
         library: a `pipeline.scene.materials.MaterialLibrary` (anything with `id_for(material,
             display_color, prim_path) -> int`).
         warnings: sink for one-line warnings.
+        cameras: the cameras subdivision surfaces are refined for (`dicing`); None or empty
+            for the fallback level.
 
     Returns:
         (geometry, objects): `geometry.object_ids` index `objects`; the geometry may be empty.
     """
     walker = _Walker(time, warnings)
-    surfaces: dict[str, Surface | None] = {}
+    surfaces = _Surfaces(time, dicing.views_from_cameras(cameras or {}), warnings)
     dropped: dict[str, list] = {}  # surface key -> [first prim path, triangles dropped]
     averaged_keys: set[str] = set()
     parts: list[tuple[np.ndarray, ...]] = []
@@ -257,10 +294,7 @@ def read_geometry(stage: Usd.Stage, time: Usd.TimeCode, library,
         prim = placement.prim
         source = prim.GetPrimInPrototype() if prim.IsInstanceProxy() else prim
         key = str(source.GetPath())
-        if key not in surfaces:
-            surfaces[key] = (mesh_surface(UsdGeom.Mesh(prim), time, warnings)
-                             if prim.IsA(UsdGeom.Mesh) else implicit_surface(prim, time))
-        surface = surfaces[key]
+        surface = surfaces.get(prim, key, placement.world_from_local)
         if surface is None or surface.num_triangles == 0:
             continue
         display_color, averaged = _display_color(prim, time)

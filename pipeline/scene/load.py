@@ -11,7 +11,7 @@ from pipeline.scene.camera import read_cameras
 from pipeline.scene.geometry import read_geometry
 from pipeline.scene.lights import read_lights
 from pipeline.scene.materials import MaterialLibrary
-from relight_torch.stage import open_stage, time_code
+from relight_torch.stage import composition_problems, open_stage, time_code
 from pipeline.scene.types import Camera, Scene
 
 
@@ -28,9 +28,10 @@ def read_scene(stage: Usd.Stage, source: str, *, time: float | None = None,
     code = time_code(stage, time)
     warnings: list[str] = []
     library = MaterialLibrary(stage, warnings, code)
-    geometry, objects = read_geometry(stage, code, library, warnings)
-    lights = read_lights(stage, code, warnings)
     cameras = read_cameras(stage, code, width, height, warnings)
+    # Subdivision surfaces are refined for the cameras at this image size (pipeline.scene.dicing).
+    geometry, objects = read_geometry(stage, code, library, warnings, cameras)
+    lights = read_lights(stage, code, warnings)
     return Scene(
         source=source,
         geometry=geometry,
@@ -60,13 +61,15 @@ def load_scene(path: str | Path, *, time: float | None = None, lights_layer: str
     """
     source = str(Path(path).resolve())
     stage = open_stage(path, lights_layer)
-    check_composition(stage, path)
+    material_warnings = check_composition(stage, path)
     try:
         scene = read_scene(stage, source, time=time, width=width, height=height)
     except RelightError as error:
         if Path(path).name in str(error):
             raise
         raise RelightError(f"{_defining_layer(stage, str(error), path)}: {error}") from None
+    for message in material_warnings:
+        warn(message, scene.warnings)
     if scene.geometry.num_triangles == 0:
         skipped = f" ({len(scene.warnings)} warnings; first: {scene.warnings[0]})" if scene.warnings else ""
         raise RelightError(f"stage {path} has no renderable meshes or gprims{skipped}")
@@ -84,22 +87,31 @@ def _defining_layer(stage: Usd.Stage, message: str, shot: str | Path) -> str:
     return next((spec.layer.realPath for spec in stack if spec.layer.realPath), str(shot))
 
 
-_MISSING_FILE_ERRORS = ("ErrorInvalidSublayerPath", "ErrorInvalidAssetPath", "ErrorInvalidExternalTargetPath")
-"""Composition errors that mean a file the shot names is missing or unreadable: fatal, since USD
-would compose the stage without it and the bake would silently lose what it holds."""
+def check_composition(stage: Usd.Stage, path: str | Path) -> list[str]:
+    """Refuse a stage that names a missing or unreadable file, unless only a material's look is lost.
 
+    A sublayer, or a reference or payload of geometry, lights or cameras, is fatal (USD would compose
+    the stage without it). One that concerns only a material (`relight_torch.stage.composition_problems`)
+    is a warning: the material reader reads `.mtlx` documents itself and falls back as documented
+    in docs/MATERIALS.md.
 
-def check_composition(stage: Usd.Stage, path: str | Path) -> None:
-    """Refuse a stage that names a missing or unreadable file (a sublayer, reference or payload).
+    Returns:
+        One warning per material problem that the material reader does not handle itself (a
+        `.mtlx` reference is reported there, once it is known whether the document reads).
 
     Raises:
         RelightError: one line naming the shot, the layer and the file, and how many more there are.
     """
-    errors = [e for e in stage.GetCompositionErrors() if type(e).__name__ in _MISSING_FILE_ERRORS]
-    if errors:
-        first = str(errors[0]).strip().splitlines()[0].removesuffix("; skipping.")
-        more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
-        raise RelightError(f"stage {path}: {first}{more}")
+    problems = composition_problems(stage)
+    if problems.fatal:
+        more = f" (and {len(problems.fatal) - 1} more)" if len(problems.fatal) > 1 else ""
+        raise RelightError(f"stage {path}: {problems.fatal[0]}{more}")
+    return [
+        f"stage {path}: material {prim}: {message}; rendering the material without it (grey 0.18 diffuse "
+        f"if no surface shader is left, docs/MATERIALS.md)"
+        for prim, asset, message in problems.material
+        if not asset.lower().endswith(".mtlx")
+    ]
 
 
 def find_camera(scene: Scene, path: str) -> Camera:

@@ -12,6 +12,11 @@ NodeGraph outputs and Material / NodeGraph interface inputs. Supported nodes fee
 
 Anything else (another shader id, a reader of another primvar) is warned about once per material and
 replaced by the input's constant. Values are read at `time` (default: the default time code).
+
+MaterialX surfaces (`pipeline.scene.materialx`) are read too: a surface shader with a MaterialX id
+(universal render context first, then 'mtlx'), and a material prim that references a `.mtlx`
+document (which usd-core cannot compose: the document is read with the `materialx` package).
+A material that cannot be read this way warns and renders as the grey fallback.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import numpy as np
 from pxr import Sdf, Usd, UsdShade
 
 from pipeline.errors import RelightError, warn
+from pipeline.scene import materialx
 from pipeline.scene.textures import ImageCache, fit_channels, load_texture, select_output
 from pipeline.scene.types import Material, MaterialInput
 
@@ -148,13 +154,29 @@ class MaterialLibrary:
     def _warn(self, message: str) -> None:
         warn(message, self._warnings)
 
+    def _surface_shader(self, material: UsdShade.Material) -> UsdShade.Shader | None:
+        """The universal surface shader if it is one we read, else the MaterialX ('mtlx') one."""
+        universal = material.ComputeSurfaceSource()[0]
+        if universal and (universal.GetShaderId() == "UsdPreviewSurface"
+                          or universal.GetShaderId() in materialx.SURFACE_IDS):
+            return universal
+        mtlx = material.ComputeSurfaceSource("mtlx")[0]
+        return mtlx if mtlx else (universal or None)
+
     def _parse(self, material: UsdShade.Material) -> _ParsedMaterial:
         path = str(material.GetPath())
-        shader = material.ComputeSurfaceSource()[0]
+        shader = self._surface_shader(material)
         if not shader:
+            documents = materialx.mtlx_references(material.GetPrim())
+            if documents:
+                return _ParsedMaterial(self._document_material(material, *documents[0]), ())
             self._warn(f"material {path} has no universal surface shader; using grey 0.18 diffuse")
             return _ParsedMaterial(Material(path), ())
         shader_id = shader.GetShaderId()
+        if shader_id in materialx.SURFACE_IDS:
+            return _ParsedMaterial(
+                materialx.usd_surface_material(path, shader, self._time, self._images, self._warn), ()
+            )
         if shader_id != "UsdPreviewSurface":
             self._warn(
                 f"material {path}: surface shader '{shader_id}' is not UsdPreviewSurface; using grey 0.18 diffuse"
@@ -183,6 +205,16 @@ class MaterialLibrary:
             **fields,
         )
         return _ParsedMaterial(material_record, tuple(display_color_fields))
+
+    def _document_material(self, material: UsdShade.Material, file: str, target: str) -> Material:
+        """The material a `.mtlx` reference brings in; grey 0.18 diffuse (warned) if it cannot be read."""
+        path = str(material.GetPath())
+        try:
+            return materialx.document_material(path, material.GetPrim().GetName(), file, target, self._images,
+                                               self._warn)
+        except RelightError as error:
+            self._warn(f"material {path}: {error}; using grey 0.18 diffuse")
+            return Material(path, documents=(file,))
 
     def _parameter(self, material_path: str, shader: UsdShade.Shader, name: str):
         """A node input that must be a constant (authored, or from an interface input); None if

@@ -102,7 +102,7 @@ def _computed_normals(positions: np.ndarray, triangulation: Triangulation, count
     return _normalized(normals).astype(np.float32)
 
 
-def _corner_values(prim: Usd.Prim, name: str, values_and_interpolation, triangulation: Triangulation,
+def corner_values(prim: Usd.Prim, name: str, values_and_interpolation, triangulation: Triangulation,
                    face_vertex_indices: np.ndarray, warnings: list[str]) -> np.ndarray | None:
     """Expand a read primvar per corner, warning when its size does not fit its interpolation."""
     if values_and_interpolation is None:
@@ -126,7 +126,7 @@ def _authored_normals(mesh: UsdGeom.Mesh, time: Usd.TimeCode):
     return np.asarray(normals, np.float32).reshape(-1, 3), mesh.GetNormalsInterpolation()
 
 
-def _uv_primvar(prim: Usd.Prim, time: Usd.TimeCode):
+def uv_primvar(prim: Usd.Prim, time: Usd.TimeCode):
     """(values (K, 2), interpolation) of `st`, else of the first texCoord2f primvar, else None."""
     uv = read_primvar(prim, "st", time)
     if uv is not None:
@@ -137,19 +137,9 @@ def _uv_primvar(prim: Usd.Prim, time: Usd.TimeCode):
     return None
 
 
-def mesh_surface(mesh: UsdGeom.Mesh, time: Usd.TimeCode, warnings: list[str]) -> Surface | None:
-    """Fan-triangulate a UsdGeom.Mesh with its normals and `st`.
-
-    Normals: `primvars:normals` if authored, else the `normals` attribute, else area-weighted
-    smooth normals (flat per face when `subdivisionScheme` is 'none'). `holeIndices` are ignored
-    (with a warning): hole faces are rendered.
-
-    Args:
-        mesh: the mesh. time: time code to read. warnings: sink for one-line warnings.
-
-    Returns:
-        The surface, or None (after a warning) when the mesh is empty or its topology invalid.
-    """
+def mesh_topology(mesh: UsdGeom.Mesh, time: Usd.TimeCode, warnings: list[str]):
+    """(points (V, 3) float32, counts (F,), indices (I,)) of a mesh, or None (after a warning when
+    the topology is invalid) for an empty or invalid mesh."""
     path = mesh.GetPath()
     points = np.asarray(mesh.GetPointsAttr().Get(time) or [], np.float32).reshape(-1, 3)
     counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(time) or [], np.int64)
@@ -163,6 +153,28 @@ def mesh_surface(mesh: UsdGeom.Mesh, time: Usd.TimeCode, warnings: list[str]) ->
         return None
     if len(mesh.GetHoleIndicesAttr().Get(time) or []):
         warn(f"mesh {path}: holeIndices are not supported; hole faces are rendered", warnings)
+    return points, counts, indices
+
+
+def mesh_surface(mesh: UsdGeom.Mesh, time: Usd.TimeCode, warnings: list[str]) -> Surface | None:
+    """Fan-triangulate a UsdGeom.Mesh (its control cage, for a subdivision surface) with its
+    normals and `st`.
+
+    Normals: `primvars:normals` if authored, else the `normals` attribute, else area-weighted
+    smooth normals (flat per face when `subdivisionScheme` is 'none'). `holeIndices` are ignored
+    (with a warning): hole faces are rendered. Subdivision surfaces are refined by
+    `subdivided_surface`; this is their cage, used when the triangle budget allows no level.
+
+    Args:
+        mesh: the mesh. time: time code to read. warnings: sink for one-line warnings.
+
+    Returns:
+        The surface, or None (after a warning) when the mesh is empty or its topology invalid.
+    """
+    topology = mesh_topology(mesh, time, warnings)
+    if topology is None:
+        return None
+    points, counts, indices = topology
     triangulation = triangulate(counts)
     if mesh.GetOrientationAttr().Get(time) == UsdGeom.Tokens.leftHanded:
         triangulation = Triangulation(triangulation.corners[:, [0, 2, 1]], triangulation.face_ids)
@@ -170,12 +182,12 @@ def mesh_surface(mesh: UsdGeom.Mesh, time: Usd.TimeCode, warnings: list[str]) ->
     positions = points[point_ids]
 
     prim = mesh.GetPrim()
-    normals = _corner_values(prim, "normals", _authored_normals(mesh, time), triangulation,
+    normals = corner_values(prim, "normals", _authored_normals(mesh, time), triangulation,
                              indices, warnings)
     if normals is None:
         smooth = mesh.GetSubdivisionSchemeAttr().Get(time) != UsdGeom.Tokens.none
         normals = _computed_normals(positions, triangulation, counts, indices, len(points), smooth)
-    uvs = _corner_values(prim, "st", _uv_primvar(prim, time), triangulation, indices, warnings)
+    uvs = corner_values(prim, "st", uv_primvar(prim, time), triangulation, indices, warnings)
     if uvs is None or uvs.shape[-1] != 2:
         uvs = np.zeros(positions.shape[:2] + (2,), np.float32)
     return Surface(positions=positions, normals=_normalized(normals).astype(np.float32),

@@ -12,13 +12,19 @@ follows the UsdPreviewSurface spec (2.5) and Storm:
 * Channels are expanded as UsdUVTexture outputs them: one channel -> (v, v, v, 1); two (grey and
   alpha) -> (v, v, v, a); three -> (r, g, b, 1).
 * output = expanded sample * scale + bias.
+
+Images packed inside a USDZ (or any Ar package) resolve to package-relative paths such as
+`shot.usdz[textures/a.png]`; their bytes are read through Ar and decoded from a temporary file
+(OpenImageIO's Python binding has no memory reader), and messages name the package path.
 """
 
 from __future__ import annotations
 
+import tempfile
+from pathlib import Path
 
 import numpy as np
-
+from pxr import Ar
 
 from pipeline.errors import RelightError
 from pipeline.scene.types import Texture
@@ -37,11 +43,34 @@ class ImageCache:
         self._images: dict[tuple[str, str], DecodedImage] = {}
 
     def read(self, path: str, source_color_space: str) -> DecodedImage:
-        """`read_image`, cached. Failures are not cached (they raise every time)."""
+        """`read_image` (or `read_packaged_image`), cached. Failures are not cached (they raise
+        every time)."""
         key = (path, source_color_space)
         if key not in self._images:
-            self._images[key] = read_image(path, source_color_space)
+            read = read_packaged_image if Ar.IsPackageRelativePath(path) else read_image
+            self._images[key] = read(path, source_color_space)
         return self._images[key]
+
+
+def read_packaged_image(path: str, source_color_space: str = "auto") -> DecodedImage:
+    """`read_image` for an image inside a package, e.g. `/shots/a.usdz[textures/b.png]`.
+
+    Raises:
+        RelightError: the package or the image in it cannot be read (the message names `path`).
+    """
+    asset = Ar.GetResolver().OpenAsset(Ar.ResolvedPath(path))
+    if asset is None:
+        raise RelightError(f"cannot read image {path}: not found in its package")
+    data = asset.GetBuffer()
+    # Keep the packaged file's extension: OpenImageIO picks its reader by it.
+    suffix = Path(Ar.SplitPackageRelativePathInner(path)[1]).suffix
+    with tempfile.TemporaryDirectory(prefix="relight-package-") as directory:
+        unpacked = Path(directory) / f"image{suffix}"
+        unpacked.write_bytes(data)
+        try:
+            return read_image(str(unpacked), source_color_space)
+        except RelightError as error:
+            raise RelightError(str(error).replace(str(unpacked), path)) from None
 
 
 def load_texture(

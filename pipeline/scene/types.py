@@ -76,7 +76,8 @@ class Material:
     """A UsdPreviewSurface material (spec 2.5 + the 26.11 Sdr node), inputs unevaluated.
 
     Fallbacks are the 26.11 registered defaults. `path` is the material prim's path, or
-    '<displayColor>' / '<fallback>' for materials the walker synthesised.
+    '<displayColor>' / '<fallback>' for materials the walker synthesised. `documents` are the
+    files outside USD the material was read from (MaterialX `.mtlx` documents): bake inputs.
     """
 
     path: str
@@ -93,6 +94,7 @@ class Material:
     opacity_mode: str = "transparent"
     ior: MaterialInput = field(default_factory=lambda: _const(1.5))
     normal: MaterialInput = field(default_factory=lambda: _const(0.0, 0.0, 1.0))
+    documents: tuple[str, ...] = ()
 
     def replace(self, **changes) -> "Material":
         return dataclasses.replace(self, **changes)

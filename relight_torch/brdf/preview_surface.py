@@ -39,11 +39,11 @@ import torch
 
 from relight_torch.brdf.common import above_horizon, check_pair, check_sample_args, where_above
 from relight_torch.brdf.params import BrdfParams, colour, flag, scalar
-from relight_torch.math.frame import dot
 from relight_torch.math.microfacet import (
     STORM_EPSILON,
     ggx_d,
     ggx_reflection_pdf,
+    half_cosines,
     sample_ggx_reflection,
     schlick_fresnel,
     storm_schlick_ggx_g,
@@ -126,13 +126,11 @@ def _half_angles(wo_local: torch.Tensor, wi_local: torch.Tensor) -> tuple[torch.
     """(N.E, N.L, N.h clamped to >= 0; E.h, 0 below the horizon; above (bool)), each (...)."""
     cos_e = wo_local[..., 2].clamp_min(0.0)
     cos_l = wi_local[..., 2].clamp_min(0.0)
-    # The half vector h = (wo + wi) / max(|wo + wi|, 1e-12) (`half_vector`) enters only through
-    # N.h and E.h: computed as scalars, since on the CPU (..., 3) vector ops cost several times
-    # as much. Likewise the horizon rule multiplies scalars before they meet the colours.
-    h = wo_local + wi_local
-    length = dot(h, h).sqrt().clamp_min(1e-12)
-    cos_h = (h[..., 2] / length).clamp_min(0.0)
-    e_dot_h = dot(wo_local, h) / length
+    # The half vector enters only through N.h and E.h, computed as scalars (on the CPU (..., 3)
+    # vector ops cost several times as much) by the same function as the GGX density's N.h
+    # (`half_cosines`). Likewise the horizon rule multiplies scalars before they meet the colours.
+    cos_h, e_dot_h = half_cosines(wo_local, wi_local)
+    cos_h = cos_h.clamp_min(0.0)
     above = above_horizon(wo_local, wi_local)
     e_dot_h = torch.where(above, e_dot_h, 0.0)  # what is masked below may be anything, even NaN
     return cos_e, cos_l, cos_h, e_dot_h, above
@@ -314,8 +312,15 @@ def lobe_probabilities(params: PreviewSurfaceParams, wo_local: torch.Tensor) -> 
     """Probabilities (..., 3) of sampling the diffuse, specular and clearcoat lobes at wo.
 
     Proportional to the mean over RGB of each lobe's albedo estimate: Schlick F at N.E for the
-    specular lobes, diffuse albedo (1 - F) for the diffuse one. A black material samples the
+    specular lobes, diffuse albedo (1 - F0) for the diffuse one. A black material samples the
     diffuse lobe.
+
+    The diffuse estimate takes F at normal incidence, not at N.E: the diffuse lobe's value is
+    scaled by 1 - F(E.h), which stays near 1 - F0 for most light directions however grazing the
+    view. With 1 - F(N.E), which vanishes as N.E -> 0, a grazing view (a silhouette, a normal-mapped
+    point) sampled the diffuse lobe with probability ~5 N.E while the glossy lobe's density did not
+    cover it, so a diffuse sample weighed ~1 / (5 N.E): 1600 at N.E = 1e-4 (issue 29's fireflies).
+    Now a diffuse sample's weight f cos / pdf is at most the sum of the three estimates (< 3).
     """
     cos_o = wo_local[..., 2]
     f0, f90 = _specular_colors(params)
@@ -323,7 +328,7 @@ def lobe_probabilities(params: PreviewSurfaceParams, wo_local: torch.Tensor) -> 
     coat_fresnel = schlick_fresnel(_dielectric_f0(params), 1.0, cos_o)
     weights = torch.stack(
         (
-            (diffuse_albedo(params) * (1.0 - specular_fresnel)).mean(-1),
+            (diffuse_albedo(params) * (1.0 - f0)).mean(-1).expand_as(cos_o),
             specular_fresnel.mean(-1),
             params.clearcoat * coat_fresnel,
         ),

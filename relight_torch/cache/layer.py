@@ -1,4 +1,4 @@
-"""The cache layer: `<stem>.relight.usda`, authored with our codeless schema (`schemas/`).
+"""The cache layer: `<stem>.relight.usda`, authored with our codeless schema (`relight_torch/schemas/`).
 
     def RelightCache "Cache"            method, version, source stage, camera, resolution,
         matrix4d relight:worldFromCamera    supersampling, content hash, the inputs and their hashes,

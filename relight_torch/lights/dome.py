@@ -38,10 +38,14 @@ def local_from_lookup(directions_lookup: torch.Tensor, pole_axis: str) -> torch.
 
 
 def latlong_coordinates(directions_lookup: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(u, v_from_top), each (...) in [0, 1], of unit directions (..., 3) in the lookup frame."""
+    """(u, v_from_top), each (...) in [0, 1], of unit directions (..., 3) in the lookup frame.
+
+    theta = atan2(|(x, z)|, y), not acos(y): near the poles y rounds to 1 in float32 (acos(y) is
+    resolved only to 3.5e-4 rad there), while x and z keep their relative precision.
+    """
     x, y, z = directions_lookup.unbind(-1)
     u = 0.5 - torch.atan2(x, z) / (2.0 * math.pi)
-    return u, torch.acos(y.clamp(-1.0, 1.0)) / math.pi
+    return u, torch.atan2(torch.hypot(x, z), y) / math.pi
 
 
 def latlong_direction(u: torch.Tensor, v_from_top: torch.Tensor) -> torch.Tensor:
@@ -122,7 +126,9 @@ class DomeSampler:
         height, width = self.pdf_uv.shape
         col = (u * width).long().clamp(0, width - 1)
         row = (v_from_top * height).long().clamp(0, height - 1)
-        sin_theta = torch.sqrt((1.0 - directions_lookup[..., 1].square()).clamp_min(0.0))
+        # |(x, z)|, not sqrt(1 - y^2), which cancels near the poles in float32 (issue 29: the
+        # sin(theta) Jacobian off by up to 2x in the top and bottom rows).
+        sin_theta = torch.hypot(directions_lookup[..., 0], directions_lookup[..., 2])
         density = self.pdf_uv[row, col] / (2.0 * math.pi**2 * sin_theta.clamp_min(torch.finfo(sin_theta.dtype).tiny))
         return torch.where(sin_theta > 0, density, torch.zeros_like(density))
 

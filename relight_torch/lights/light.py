@@ -53,7 +53,7 @@ class Shadow:
 
 @dataclass(frozen=True)
 class BarzelShaping:
-    """Our RelightBarzelLightAPI (schemas/schema.usda documents each attribute), present only when
+    """Our RelightBarzelLightAPI (relight_torch/schemas/schema.usda documents each attribute), present only when
     the API is applied. The fallbacks change nothing.
 
     Attributes:

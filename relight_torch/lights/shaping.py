@@ -2,7 +2,7 @@
 
 Both act on the emission direction in the light's frame: e (..., 3), unit, from the emitting point
 towards the receiver, where the light's axis is -Z. Formulas: USD_EXR_NOTES 1.3 (the 26.11 schema
-text, as hdEmbree implements it) and schemas/schema.usda (RelightBarzelLightAPI).
+text, as hdEmbree implements it) and relight_torch/schemas/schema.usda (RelightBarzelLightAPI).
 """
 
 from __future__ import annotations

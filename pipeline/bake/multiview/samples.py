@@ -1,7 +1,7 @@
 """Importance-weighted surface samples (Kim et al. 2009, eq. 2) and their visibility from a point.
 
 Triangle i is chosen with probability w_i A_i / sum_k w_k A_k, then sampled uniformly. The weight
-w_i in [0, 1] is the `relight:importance` attribute (`RelightImportanceAPI` in schemas/schema.usda)
+w_i in [0, 1] is the `relight:importance` attribute (`RelightImportanceAPI` in relight_torch/schemas/schema.usda)
 of the triangle's gprim or its nearest ancestor that authors one, 1 where none does. Samples are
 one-sided: a sample is seen from the side its triangle's winding faces (outwards for closed
 meshes, as USD's right-handed default winding makes it).

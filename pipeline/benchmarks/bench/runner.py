@@ -6,7 +6,8 @@ Per scene it writes the stage and its example light edits under `out/scenes/<sce
 reference once (`References`, cached under `out/references`, so a re-run into the same directory
 re-uses them) and runs each method's grid (`methods.adapters`), caches under `out/caches`. Then
 the path-tracer comparison rows (`comparison.py`), then `out/bench.csv`, `out/bench.json`,
-`out/summary.txt` (each method's best speed-up) and the charts (`chart.py`). Everything but the *_ms / bake_s timings is deterministic.
+`out/summary.txt` (each method's best speed-up) and the charts (`chart.py`). Everything but the
+*_ms / bake_s timings is deterministic.
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ class BenchConfig:
     device: str = "cpu"
 
     @classmethod
-    def quick_run(cls, out: Path, **overrides) -> "BenchConfig":
+    def quick_run(cls, out: Path, **overrides) -> BenchConfig:
         """The `--quick` configuration: the Cornell box at 24x24, small grids and references."""
         settings = dict(out=out, quick=True, scenes=("cornell_box",), width=24, height=24, spp=32,
                         curve_spp=(1, 4), repeats=3)
@@ -86,8 +87,10 @@ def prepare_scene(name: str, config: BenchConfig) -> BenchScene:
 
 
 def context(config: BenchConfig) -> dict[str, object]:
-    """What the rows were measured on (the JSON's context)."""
-    return {**{key: str(value) if isinstance(value, Path) else value for key, value in asdict(config).items()},
+    """What the rows were measured on (the JSON's context). The output folder is left out: the JSON
+    lies in it, and its absolute path would only name the machine the bench ran on."""
+    settings = {key: value for key, value in asdict(config).items() if key != "out"}
+    return {**{key: str(value) if isinstance(value, Path) else value for key, value in settings.items()},
             "torch_threads": torch.get_num_threads(), "machine": platform.machine(),
             "processor": platform.processor() or platform.machine()}
 
@@ -116,5 +119,5 @@ def run_bench(config: BenchConfig, log=print) -> BenchResult:
                                         "spp_curves": {f"{s}/b{b}": asdict(c) for (s, b), c in result.curves.items()}})
     summary_path = config.out / "summary.txt"
     write_text_atomic(summary_path, summary(result.rows) + "\n")
-    result.files = [csv_path, json_path, summary_path] + write_charts(result.rows, config.out)
+    result.files = [csv_path, json_path, summary_path, *write_charts(result.rows, config.out)]
     return result

@@ -1,5 +1,8 @@
 """Our `Scene` as a Mitsuba 3 scene dict: the independent renderer the reference is checked against.
 
+Needs Mitsuba 3 (the `test` extra); used by `tests/test_reference_mitsuba.py` and
+`pipeline.benchmarks.reference_agreement`.
+
 Only what the reference comparison needs, and nothing that maps loosely (anything else raises
 ValueError naming it):
 
@@ -16,8 +19,15 @@ ValueError naming it):
   metals), a different strategy from ours.
 * Lights: RectLight as an area emitter on a 'rectangle', SphereLight as one on a 'sphere', with the
   UsdLux radiance intensity * 2^exposure * color (/ area if normalize), emitting along local -Z
-  (rect, one-sided) or outward (sphere). No texture, shaping, colour temperature, Barzel, or
-  per-lobe multipliers. The emitters' shapes are black (they absorb what reaches them), whereas
+  (rect, one-sided) or outward (sphere). DomeLight (poleAxis Y) as a 'constant' emitter, or with a
+  lat-long texture as an 'envmap' with the dome's rotation as to_world: Mitsuba's envmap looks up
+  u = atan2(x, -z) / 2 pi mod 1, v = acos(y) / pi, which is the UsdLux convention
+  u = 0.5 - atan2(x, z) / 2 pi (the two differ by a half turn of atan2's branch, i.e. nothing;
+  `tests/test_reference_mitsuba.py` probes it texel by texel). Mitsuba filters the envmap
+  bilinearly and we look up the nearest texel, so the image is handed over upsampled
+  `ENVMAP_UPSAMPLING` times by replication: bilinear filtering then differs from nearest only
+  within half a fine texel of the texels' edges. No rect texture, shaping, colour temperature,
+  Barzel, or per-lobe multipliers. The emitters' shapes are black (they absorb what reaches them), whereas
   our lights are invisible to every ray that is not looking for them: compare pixels away from
   the lights' silhouettes (`light_footprint_mask`).
 * Camera: 'perspective' pinhole with our horizontal field of view and transform, box pixel
@@ -198,15 +208,20 @@ def _meshes(scene: Scene) -> dict:
     return meshes
 
 
+ENVMAP_UPSAMPLING = 32
+
+
 def light_radiance(light: Light) -> np.ndarray:
-    """(3,) UsdLux radiance, written from the schema doc: intensity 2^exposure color [/ area]."""
-    unsupported = {"texture": light.texture is not None, "shaping": light.shaping is not None,
+    """(3,) UsdLux radiance, written from the schema doc: intensity 2^exposure color [/ area]
+    (times the texture, for a dome)."""
+    unsupported = {"texture": light.texture is not None and light.kind is not LightKind.DOME,
+                   "shaping": light.shaping is not None,
                    "colorTemperature": light.enable_color_temperature, "barzel": light.barzel is not None,
                    "diffuse/specular": light.diffuse != 1.0 or light.specular != 1.0}
     if any(unsupported.values()):
         raise ValueError(f"{light.path}: {[k for k, v in unsupported.items() if v]} not converted")
     radiance = light.intensity * 2.0**light.exposure * np.asarray(light.color, np.float64)
-    if light.normalize:
+    if light.normalize and light.kind is not LightKind.DOME:    # the dome's sizeFactor is 1
         linear = light.world_from_light[:3, :3]
         if light.kind is LightKind.RECT:
             area = light.width * light.height * np.linalg.norm(np.cross(linear[:, 0], linear[:, 1]))
@@ -216,8 +231,26 @@ def light_radiance(light: Light) -> np.ndarray:
     return radiance
 
 
+def _dome_emitter(light: Light) -> dict:
+    """A 'constant' or 'envmap' emitter of the dome (see the module doc)."""
+    if light.pole_axis != "Y":
+        raise ValueError(f"{light.path}: poleAxis {light.pole_axis} is not converted")
+    radiance = light_radiance(light)
+    if light.texture is None:
+        return {"type": "constant", "radiance": {"type": "rgb", "value": radiance.tolist()}}
+    linear = light.world_from_light[:3, :3]
+    rotation = np.eye(4)
+    rotation[:3, :3] = linear / np.linalg.norm(linear, axis=0)      # directions ignore the scale
+    pixels = np.repeat(np.repeat(light.texture * radiance.astype(np.float32), ENVMAP_UPSAMPLING, axis=0),
+                       ENVMAP_UPSAMPLING, axis=1)
+    return {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(pixels, np.float32)),
+            "to_world": mi.ScalarTransform4f(rotation.tolist())}
+
+
 def _emitter(light: Light) -> dict:
-    """A black shape with an area emitter of the light's radiance."""
+    """A black shape with an area emitter of the light's radiance, or the dome's emitter."""
+    if light.kind is LightKind.DOME:
+        return _dome_emitter(light)
     emitter = {"type": "area", "radiance": {"type": "rgb", "value": light_radiance(light).tolist()}}
     black = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}}
     if light.kind is LightKind.RECT:

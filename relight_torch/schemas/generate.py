@@ -1,8 +1,8 @@
 """Regenerate the codeless schema plugin from schema.usda.
 
-Run after editing schemas/schema.usda:
+Run after editing relight_torch/schemas/schema.usda:
 
-    .venv/bin/python schemas/generate.py
+    .venv/bin/python -m relight_torch.schemas.generate
 
 It runs `python -m pxr.Usd.usdGenSchema schema.usda <this folder>` (needs jinja2), which writes
 generatedSchema.usda and plugInfo.json (no C++: the GLOBAL prim sets skipCodeGeneration), then
