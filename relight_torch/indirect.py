@@ -15,7 +15,8 @@ import torch
 
 from relight_torch.lights.emission import is_delta_light
 from relight_torch.lights.light import Light, LightKind
-from relight_torch.relighter import Relighter, colour_scale, light_group
+from relight_torch.protocol import refuse_material_edit
+from relight_torch.direct.relighter import Relighter, colour_scale, light_group
 
 
 def light_snapshot(value: object) -> object:
@@ -46,6 +47,7 @@ class IndirectRelighter:
     """
 
     view_pixels: torch.Tensor
+    material_edits = False   # the transport was baked with the materials (`CacheRelighter`)
 
     def __init__(self, direct: Relighter):
         self.direct = direct
@@ -68,6 +70,17 @@ class IndirectRelighter:
     def remove_light(self, path: str) -> None:
         self.direct.remove_light(path)
         self._per_light.pop(path, None)
+
+    def edit_material(self, material_id: int, **values: object) -> None:
+        refuse_material_edit(self)
+
+    def held_bytes(self) -> int:
+        """`CacheRelighter.held_bytes`: the direct relighter's and the per-light indirect light (`_indirect_bytes`)."""
+        return self.direct.held_bytes() + self._indirect_bytes()
+
+    def _indirect_bytes(self) -> int:
+        """Bytes of the per-light indirect work kept between renders (`_per_light`)."""
+        raise NotImplementedError
 
     def render(self) -> torch.Tensor:
         """(H, W, 3) linear image: direct (supersampled) + indirect (per pixel), exposure applied."""

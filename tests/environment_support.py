@@ -20,8 +20,6 @@ from packaging.requirements import Requirement
 
 PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
 TEST_EXTRA = "test"
-# Distributions whose import name is not their project name (lower-case project name -> module).
-IMPORT_NAMES = {"usd-core": "pxr", "openexr": "OpenEXR", "pytest-xdist": "xdist"}
 
 
 def declared_test_requirements(pyproject: Path = PYPROJECT) -> list[Requirement]:
@@ -42,6 +40,23 @@ def declared_test_requirements(pyproject: Path = PYPROJECT) -> list[Requirement]
     return requirements
 
 
+def import_name(distribution: str) -> str:
+    """The top-level module an installed distribution provides (usd-core -> pxr, openexr -> OpenEXR),
+    read from its installed files: the one named like the distribution, else the first; the project
+    name with '_' for '-' when it lists none."""
+    files = importlib.metadata.distribution(distribution).files or []
+    tops = {path.parts[0] for path in files if len(path.parts) > 1 or path.suffix in (".py", ".so", ".pyd")}
+    modules = sorted({top.split(".")[0] for top in tops
+                      if not top.endswith((".dist-info", ".libs", ".data"))}, key=str.lower)
+    modules = [module for module in modules if module.isidentifier() and not module.startswith("_")]
+    named = [module for module in modules if _normalized(module) == _normalized(distribution)]
+    return (named or modules or [distribution.replace("-", "_")])[0]
+
+
+def _normalized(name: str) -> str:
+    return name.lower().replace("_", "-").replace(".", "-")
+
+
 def requirement_problem(requirement: Requirement) -> str | None:
     """Why `requirement` is unusable here (not installed, another version, fails to import), or None."""
     try:
@@ -50,7 +65,7 @@ def requirement_problem(requirement: Requirement) -> str | None:
         return f"{requirement} is declared in pyproject.toml but not installed"
     if not requirement.specifier.contains(installed, prereleases=True):
         return f"{requirement} is declared in pyproject.toml but {installed} is installed"
-    module = IMPORT_NAMES.get(requirement.name.lower(), requirement.name.replace("-", "_"))
+    module = import_name(requirement.name)
     try:
         importlib.import_module(module)
     except Exception as error:  # any failure to import is the broken install this check is for

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.bake.quality import corrected_psnr, pilot_size
 from pipeline.cli import main
 from pipeline.reference.path_tracer import PathTracer, ReferenceImage, ReferenceSettings
@@ -15,7 +15,7 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.metrics import psnr
-from relight_torch.relighter import open_relighter
+from relight_torch.direct.relighter import open_relighter
 
 TARGET_DB = 30.0
 

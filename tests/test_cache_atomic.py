@@ -18,7 +18,7 @@ import cache_support
 from cache_support import bake_bundled
 from pipeline.errors import RelightError
 from relight_torch.cache.layer import SUFFIX, is_cache_layer, read_cache_layer
-from relight_torch.relighter import open_relighter
+from relight_torch.direct.relighter import open_relighter
 
 
 class _PartialWriteFailure(Exception):

@@ -22,7 +22,7 @@ from pipeline.errors import RelightError
 from pipeline.scene import load_scene
 from relight_torch.cache.layer import CACHE_VERSION, file_sha256
 from relight_torch.io.exr import read_exr, write_exr
-from relight_torch.relighter import open_relighter
+from relight_torch.direct.relighter import open_relighter
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ import OpenEXR
 import OpenImageIO as oiio
 import pytest
 
-import pipeline.bake.direct
+import pipeline.bake.direct.bake
 from cache_support import SIZE, bake_bundled
 from relight_torch.cache.gbuffer_exr import gbuffer_from_channels, gbuffer_to_channels
 from relight_torch.cache.layer import read_cache_layer
@@ -28,7 +28,7 @@ def _bake_and_capture(name: str, directory, monkeypatch) -> tuple:
         written.update({n: a.copy() for n, a in channels.items()})
         write_exr(path, channels, attributes)
 
-    monkeypatch.setattr(pipeline.bake.direct, "write_exr", spy)
+    monkeypatch.setattr(pipeline.bake.direct.bake, "write_exr", spy)
     layer = bake_bundled(name, directory)
     return layer, written
 

@@ -30,8 +30,8 @@ from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
 from relight_torch.math.frame import to_local
 from relight_torch.metrics import psnr
 from relight_torch.parallel import torch_threads
-from relight_torch.relighter import RelightSettings, open_relighter
-from relight_torch.transfer.open import open_cache_relighter
+from relight_torch.direct.relighter import RelightSettings, open_relighter
+from relight_torch import open_cache
 
 WIDTH, HEIGHT, LIGHTS = 32, 24, 4096
 REFERENCE = ReferenceSettings(spp=256, max_bounces=0, num_workers=1)
@@ -65,7 +65,7 @@ def test_cache_payloads_are_compact(dome):
 
 def test_env_relight_matches_the_path_tracer(dome):
     _, _, layer, reference, _ = dome
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     assert isinstance(relighter, CutsRelighter)
     image = relighter.render()
     # Measured 28.6 dB against the 256-spp path tracer (the direct relighter with 256 dome samples
@@ -83,7 +83,7 @@ def test_dome_edits_relight_without_rebaking(dome):
     _, _, layer, _, directory = dome
     edits = {path.name.split(".")[-2]: path for path in write_light_edits("dome", directory)}
     for name in ("rotate", "warm"):
-        cuts = open_cache_relighter(layer, lights_layer=edits[name]).render()
+        cuts = open_cache(layer, lights_layer=edits[name]).render()
         direct = open_relighter(layer, lights_layer=edits[name], settings=RelightSettings(dome_samples=256)).render()
         assert _psnr(cuts, direct) > 31.0, name       # measured 32.7 (rotate), 32.3 (warm)
 
@@ -92,7 +92,7 @@ def test_material_edit_matches_a_fresh_reference_of_the_edited_scene(dome):
     scene, camera, layer, _, _ = dome
     index = next(i for i, material in enumerate(scene.materials) if material.path.endswith("RedPlastic"))
     green, roughness = (0.1, 0.5, 0.15), 0.6
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     before = relighter.render()
     relighter.edit_material(index, diffuse_color=green, roughness=roughness)
     after = relighter.render()
@@ -110,7 +110,7 @@ def test_material_edit_matches_a_fresh_reference_of_the_edited_scene(dome):
 
 def test_merge_cost_follows_the_merged_cut_size(dome):
     _, _, layer, _, _ = dome
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     relighter.cut_samples(relighter.lights)
     cuts = relighter.cuts
     vertex_sizes = cuts.visibility.sizes()[cuts.sample_vertices].sum(dim=1)
@@ -145,14 +145,14 @@ def test_cached_dense_batches_match_a_per_cluster_evaluation(dome):
     # multiplies them with the light; a plain per-cluster evaluation must agree, before and after
     # a material edit (which keeps the cached visibility and illumination cuts).
     scene, _, layer, _, _ = dome
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     relighter.set_settings(CutsRelightSettings(rows_per_batch=97, factor_dtype=torch.float32))
     torch.testing.assert_close(relighter.cut_samples(relighter.lights), _per_cluster(relighter), rtol=1e-4, atol=1e-5)
     index = next(i for i, material in enumerate(scene.materials) if material.path.endswith("RedPlastic"))
     relighter.edit_material(index, diffuse_color=(0.1, 0.5, 0.15), roughness=0.6)
     batched = relighter.cut_samples(relighter.lights)
     torch.testing.assert_close(batched, _per_cluster(relighter), rtol=1e-4, atol=1e-5)
-    fresh = open_cache_relighter(layer)
+    fresh = open_cache(layer)
     fresh.set_settings(CutsRelightSettings(factor_dtype=torch.float32))
     fresh.edit_material(index, diffuse_color=(0.1, 0.5, 0.15), roughness=0.6)
     torch.testing.assert_close(batched, fresh.cut_samples(fresh.lights), rtol=1e-4, atol=1e-5)
@@ -167,7 +167,7 @@ def test_kept_factor_columns_follow_light_and_material_edits(dome, monkeypatch):
     monkeypatch.setattr(cuts_relighter, "MERGE_ROWS", 13)
     monkeypatch.setattr(cuts_relighter, "PRODUCT_ROWS", 11)
     scene, _, layer, _, _ = dome
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     relighter.set_settings(CutsRelightSettings(rows_per_batch=97, factor_dtype=torch.float32))
     (dome_light,) = relighter.lights
     relighter.render()
@@ -208,7 +208,7 @@ def test_a_repeated_roughness_edit_keeps_its_rows_grids(dome, monkeypatch):
     images = []
     for share in (0.0, 1.0):   # never (unless no column is live), or whenever a column is dead
         monkeypatch.setattr(cuts_relighter, "GRID_LIVE_SHARE", share)
-        relighter = open_cache_relighter(layer)
+        relighter = open_cache(layer)
         relighter.set_settings(CutsRelightSettings(rows_per_batch=97, factor_dtype=torch.float32))
         frames = [relighter.cut_samples(relighter.lights, keep=True)]
         torch.testing.assert_close(frames[0], _per_cluster(relighter), rtol=1e-4, atol=1e-5)
@@ -245,7 +245,7 @@ def test_batches_on_two_threads_give_the_images_of_one(dome):
     frames, stats = [], []
     for threads in (1, 2):
         with torch_threads(threads):
-            relighter = open_cache_relighter(layer)
+            relighter = open_cache(layer)
             relighter.set_settings(CutsRelightSettings(rows_per_batch=97))
             (dome_light,) = relighter.lights
             images = [relighter.render()]
@@ -264,7 +264,7 @@ def test_bfloat16_factors_stay_within_their_rounding(dome):
     # The default keeps the factor columns and multiplies them with the light in bfloat16
     # (8-bit mantissa): measured 0.13 % of the peak at most against float32 factors, 67.8 dB.
     _, _, layer, _, _ = dome
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     assert relighter.settings.factor_dtype == torch.bfloat16
     rounded = relighter.cut_samples(relighter.lights)
     relighter.set_settings(CutsRelightSettings(factor_dtype=torch.float32))
@@ -330,12 +330,12 @@ def test_data_driven_tree_shortens_the_visibility_cuts(dome):
                        settings=CutsSettings(num_lights=LIGHTS, sigma=2.0, lattice_edge=0.03, beta=0.5))
     gain = 1.0 - _mean_cut_size(driven) / _mean_cut_size(layer)
     assert gain > 0.15                # measured 23 % (54.3 -> 42.0 nodes per vertex); the paper: 16-30 %
-    assert _psnr(open_cache_relighter(driven).render(), reference) > 27.5     # measured 28.5 dB
+    assert _psnr(open_cache(driven).render(), reference) > 27.5     # measured 28.5 dB
 
 
 def test_a_dome_light_link_masks_the_unlinked_objects(dome):
     scene, _, layer, _, _ = dome
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     (light,) = relighter.lights
     floor = next(obj.path for obj in scene.objects if obj.path.endswith("Floor"))
     unlinked = relighter.cut_samples([light])

@@ -12,7 +12,7 @@ from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.metrics import psnr
-from relight_torch.transfer.open import open_cache_relighter
+from relight_torch import open_cache
 
 
 def test_indirect_mode_matches_the_one_bounce_reference(tmp_path):
@@ -21,7 +21,7 @@ def test_indirect_mode_matches_the_one_bounce_reference(tmp_path):
     camera = find_camera(scene, SCENES["cornell_box"].camera)
     layer = bake_cuts(scene, camera, tmp_path / "cache", "cornell_box", supersampling=2, texture_samples=2,
                       settings=CutsSettings(mode="indirect", num_lights=1024, sigma=2.0, lattice_edge=0.06))
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     assert relighter.mode == "indirect"
     image, indirect = relighter.render(), relighter.indirect_image()
     full, direct = (torch.from_numpy(PathTracer(scene, ReferenceSettings(spp=256, max_bounces=bounces,

@@ -27,9 +27,9 @@ from pipeline.scenes.authoring import set_light, shape_spot
 from relight_torch.io.exr import read_exr
 from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr
-from relight_torch.relighter import shot_lights
+from relight_torch.direct.relighter import shot_lights
 from relight_torch.gather.relighter import GatherRelighter
-from relight_torch.transfer.open import open_cache_relighter
+from relight_torch import open_cache
 
 SIZE = 24
 
@@ -50,7 +50,7 @@ def cornell(tmp_path_factory):
 
 def test_matches_the_one_bounce_path_tracer(cornell):
     layer, references = cornell
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     assert isinstance(relighter, GatherRelighter)
     # 40,000 representatives at 400 x 400 scale to a quarter of the pixels, split by energy.
     assert sum(s.num_representatives for s in relighter.sets.values()) == pytest.approx(SIZE * SIZE / 4, rel=0.1)
@@ -65,7 +65,7 @@ def test_matches_the_one_bounce_path_tracer(cornell):
 
 def test_light_edits_recompute_only_what_they_touch(cornell):
     layer, _ = cornell
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     before = relighter.indirect_image()
     assert relighter.counters["gather_light"] == 1
     light = relighter.lights[0]
@@ -81,7 +81,7 @@ def test_light_edits_recompute_only_what_they_touch(cornell):
     traced = relighter.visibility.counters["queries"]
     reshaped = relighter.indirect_image()
     assert relighter.counters["gather_light"] == 2 and relighter.visibility.counters["queries"] == traced
-    fresh = open_cache_relighter(layer)
+    fresh = open_cache(layer)
     fresh.set_light(shaped)
     np.testing.assert_allclose(reshaped.numpy(), fresh.indirect_image().numpy(), rtol=1e-5, atol=1e-7)
     assert float(reshaped.sum()) < float(before.sum())  # the cone and focus narrow the lamp's emission
@@ -96,7 +96,7 @@ def test_light_edits_recompute_only_what_they_touch(cornell):
 
 def test_light_and_shadow_links_reach_the_gathers(cornell):
     layer, _ = cornell
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     light = relighter.lights[0]
     points, paths = relighter.points, relighter.direct.object_paths
     unlinked = relighter.surface_radiance(light)
@@ -138,7 +138,7 @@ def test_small_strong_secondary_sources_are_the_methods_failure_mode(cornell, tm
     scene = load_scene(layer.parent.parent / "cornell_box.usda", lights_layer=lights_layer, width=SIZE, height=SIZE)
     camera = find_camera(scene, cornell_box.CAMERA)
     full, direct = (PathTracer(scene, ReferenceSettings(spp=128, max_bounces=b)).render(camera).mean for b in (1, 0))
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     relighter.set_lights(shot_lights(relighter.direct.description, lights_layer))
     image, indirect = relighter.render().numpy(), relighter.indirect_image().numpy()
     assert np.isfinite(image).all() and np.isfinite(indirect).all()
@@ -189,5 +189,5 @@ def test_a_killed_bake_resumes_from_its_finished_chunks(tmp_path, monkeypatch):
     calls.clear()
     layer = bake_gather(scene, camera, tmp_path / "cache", "cornell", supersampling=1, texture_samples=1,
                         settings=settings, progress=False)
-    num_representatives = sum(s.num_representatives for s in open_cache_relighter(layer).sets.values())
+    num_representatives = sum(s.num_representatives for s in open_cache(layer).sets.values())
     assert sum(calls) == num_representatives - 8  # the two finished chunks of four were not re-gathered

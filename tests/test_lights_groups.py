@@ -17,13 +17,13 @@ import OpenImageIO as oiio
 import pytest
 
 from pipeline import cli
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.io.exr import exr_layer_names
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.usd import write_lights_layer
-from relight_torch.relighter import RelightSettings, light_group, open_relighter, shot_lights
+from relight_torch.direct.relighter import RelightSettings, light_group, open_relighter, shot_lights
 
 SIZE = 16
 SETTINGS = RelightSettings(area_samples=4)

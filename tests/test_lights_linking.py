@@ -23,7 +23,7 @@ import pytest
 import torch
 from pxr import Sdf, Usd, UsdGeom, UsdLux
 
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
@@ -34,10 +34,10 @@ from relight_torch.lights.light import Light
 from relight_torch.lights.linking import decode_paths, encode_paths, linked_objects, read_link
 from relight_torch.lights.usd import read_light, write_light
 from relight_torch.metrics import psnr
-from relight_torch.relighter import RelightSettings, open_relighter, shot_lights
+from relight_torch.direct.relighter import RelightSettings, open_relighter, shot_lights
 from relight_torch.schema import register_schemas
-from relight_torch.transfer.gathers import gather_radiance
-from relight_torch.transfer.open import open_cache_relighter
+from relight_torch.indirect_samples import gather_radiance
+from relight_torch import open_cache
 
 SIZE = 24
 SUPERSAMPLING = 4
@@ -222,7 +222,7 @@ def transfer(cornell, tmp_path_factory):
 @pytest.mark.parametrize("name, linked_db, ignored_db", [("light_link", 42.0, 31.0), ("shadow_link", 38.0, 38.0)])
 def test_links_govern_the_light_reaching_the_gathers(transfer, name, linked_db, ignored_db):
     cache, layers, reference = transfer
-    relighter = open_cache_relighter(cache, lights_layer=layers[name])
+    relighter = open_cache(cache, lights_layer=layers[name])
     assert relighter.gathers.object_id is not None
     indirect = relighter.indirect_image().numpy()
     assert psnr(indirect, reference[name]) >= linked_db
@@ -238,7 +238,7 @@ def test_links_govern_the_light_reaching_the_gathers(transfer, name, linked_db, 
 
 def test_light_link_edit_remasks_the_gathers_without_tracing(cornell, transfer):
     cache, _, _ = transfer
-    relighter = open_cache_relighter(cache)
+    relighter = open_cache(cache)
     # Each gather carries the object it was placed on: the tall block's lie on its triangles' box.
     geometry = load_scene(cornell[0], width=SIZE, height=SIZE).geometry
     tall = relighter.direct.object_paths.index(TALL)

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.bake.inputs import input_files
 from pipeline.cli import main
 from pipeline.errors import RelightError
@@ -26,7 +26,7 @@ from pipeline.scene.textures import sample_texture, select_output
 from pipeline.scene.types import MaterialInput, Texture
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.metrics import psnr
-from relight_torch.relighter import Relighter
+from relight_torch.direct.relighter import Relighter
 
 DATA = Path(__file__).parent / "data" / "materialx"
 SHOT = DATA / "shot.usda"

@@ -31,8 +31,8 @@ from relight_torch.multiview.incident import group_images, incident_table, view_
 from relight_torch.multiview.relighter import MultiviewRelighter
 from relight_torch.multiview.views import camera_column, gather_gbuffer
 from relight_torch.parallel import torch_threads
-from relight_torch.relighter import Relighter
-from relight_torch.transfer.open import open_cache_relighter
+from relight_torch.direct.relighter import Relighter
+from relight_torch import open_cache
 
 WIDTH, HEIGHT = 64, 48
 SETTINGS = PlacementSettings(coverage=0.05, num_samples=4000, patience=10, max_resolution=128, min_resolution=32,
@@ -101,7 +101,7 @@ def test_bake_records_caching_cameras_and_coverage(baked):
 
 def test_novel_view_matches_reference(baked, tmp_path):
     scene, camera, layer = baked
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     assert isinstance(relighter, MultiviewRelighter)
     moved = _moved(camera, scene)
     reference = _reference(scene, moved)
@@ -123,7 +123,7 @@ def test_novel_view_matches_reference(baked, tmp_path):
 def test_view_points_match_the_bake_of_the_same_camera(baked):
     """The shot camera's own view: every point finds a caching camera sample on its own object."""
     _, camera, layer = baked
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     view = view_points(relighter.caster, relighter.occluder_objects, camera, relighter.supersampling)
     relighter.set_view(view)
     gbuffer = relighter.relighter.gbuffer
@@ -157,7 +157,7 @@ def test_render_cli_camera_from_lights_layer_over_time(baked, tmp_path):
     first, second = (read_rgb_exr(tmp_path / f"frame.{t:04d}.exr") for t in (1, 2))
     assert first.shape == second.shape == (HEIGHT, WIDTH, 3)
     # At time 1 NovelCam is the shot camera: the same image as the Python API renders for it.
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     expected = FrameRenderer(relighter).render(camera).image
     np.testing.assert_allclose(first, expected, atol=1e-3)
     assert np.abs(first - second).mean() > 1e-3
@@ -193,7 +193,7 @@ def _caching_view_gbuffer(views, k):
 def test_cached_lighting_per_sample_equals_the_direct_relighter(baked):
     """One group per light sample: the cached lighting of a caching view, shaded at that view, is the
     direct Relighter's (shadow rays, rect-light ratio estimator, BRDF) on its deep framebuffer."""
-    relighter = open_cache_relighter(baked[2])
+    relighter = open_cache(baked[2])
     gbuffer = _caching_view_gbuffer(relighter.views, 0)
     direct = Relighter(gbuffer, relighter.visibility, 1, 1.0, relighter.settings, relighter.object_paths)
     direct.set_lights(relighter.lights)
@@ -225,7 +225,7 @@ def test_lights_shaded_on_two_threads_give_the_images_of_one(baked):
     images, counters = [], []
     for threads in (1, 2):
         with torch_threads(threads):
-            relighter = open_cache_relighter(layer)
+            relighter = open_cache(layer)
             (light,) = relighter.lights
             relighter.set_light(dataclasses.replace(moved(light, 0.05), path="/Test/Second"))
             images.append(FrameRenderer(relighter).render(_moved(camera, scene)).image)
@@ -239,7 +239,7 @@ def test_camera_move_traces_no_shadow_rays(baked):
     matches re-tracing the new view; with it, only the points on a light's edges are traced; a light
     move re-traces only that light, at the caching samples the view uses."""
     scene, camera, layer = baked
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     relighter.edge_contrast = relighter.near_field = None
     relighter.prepare_lighting()
     rays, lit = relighter.visibility.num_rays, relighter.counters["lit_samples"]

@@ -113,9 +113,15 @@ def test_a_missing_wrong_or_unimportable_dependency_is_a_problem(monkeypatch):
     assert problem(Requirement("pytest==" + importlib.metadata.version("pytest"))) is None
     assert "not installed" in problem(Requirement("no-such-distribution-relight==1.0"))
     assert "but " + importlib.metadata.version("pytest") + " is installed" in problem(Requirement("pytest==0.1"))
-    monkeypatch.setitem(environment_support.IMPORT_NAMES, "pytest", "no_such_module_relight")
+    monkeypatch.setattr(environment_support, "import_name", lambda distribution: "no_such_module_relight")
     message = problem(Requirement("pytest"))
     assert "import no_such_module_relight failed: ModuleNotFoundError" in message and "\n" not in message
+
+
+def test_import_names_come_from_the_installed_files():
+    names = {d: environment_support.import_name(d) for d in ("usd-core", "openexr", "pytest-xdist", "materialx", "torch")}
+    assert names == {"usd-core": "pxr", "openexr": "OpenEXR", "pytest-xdist": "xdist", "materialx": "MaterialX",
+                     "torch": "torch"}
 
 
 def test_a_broken_declared_dependency_stops_the_run(tmp_path):

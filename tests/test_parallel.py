@@ -11,7 +11,7 @@ import torch
 from cache_support import bake_bundled
 
 from relight_torch.parallel import in_worker, parallel_map, tile_threads, torch_threads
-from relight_torch.relighter import RelightSettings, open_relighter
+from relight_torch.direct.relighter import RelightSettings, open_relighter
 
 
 def test_parallel_map_keeps_order_on_workers_and_restores_torch_threads():

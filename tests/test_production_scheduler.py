@@ -10,7 +10,7 @@ import pytest
 
 import production_support
 from pipeline.bake import scheduler
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.bake.scheduler import ChunkSpec, ShotSpec, chunk_folder, chunk_ranges, load_chunk, run_chunks
 from pipeline.bake.transfer import bake as transfer
 from pipeline.cli import main

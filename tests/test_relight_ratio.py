@@ -14,13 +14,13 @@ import dataclasses
 import pytest
 import torch
 
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.lights import polygon
 from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr
-from relight_torch.relighter import Relighter, RelightSettings, auto_filter_radius, open_relighter
+from relight_torch.direct.relighter import Relighter, RelightSettings, auto_filter_radius, open_relighter
 from relight_torch.visibility.surface_filter import SurfaceFilter
 
 SIZE = 96

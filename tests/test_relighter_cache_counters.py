@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.benchmarks.direct import checker_cookie, look_at
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
@@ -31,7 +31,7 @@ from relight_torch.lights.polygon import analytic_ratio
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.light_samples import fixed_light_samples
 from relight_torch.math.frame import to_local
-from relight_torch.relighter import Relighter, RelightSettings, colour_scale, open_relighter, unit_light
+from relight_torch.direct.relighter import Relighter, RelightSettings, colour_scale, open_relighter, unit_light
 from relight_torch.shading import reflected_radiance
 
 SIZE = 32

@@ -11,7 +11,7 @@ import torch
 
 from relight_torch.light_samples import adaptive_sample_count, angular_radius
 from relight_torch.lights.light import Light, LightKind
-from relight_torch.relighter import box_filter
+from relight_torch.direct.relighter import box_filter
 
 
 def placed(kind: LightKind, scale: float = 1.0, **fields) -> Light:

@@ -340,11 +340,11 @@ def test_rejects_bad_occluders_and_lookups():
 def test_open_relighter_builds_maps_at_the_settings_resolution(tmp_path):
     # A cache opened with shadow maps of 256 texels per face: the maps are that size, and the relit
     # Cornell box agrees with Embree's shadows (a coarser map only moves shadow edges by a texel).
-    from pipeline.bake.direct import bake_direct
+    from pipeline.bake.direct.bake import bake_direct
     from pipeline.scene import find_camera, load_scene
     from pipeline.scenes import SCENES
     from relight_torch.metrics import psnr
-    from relight_torch.relighter import RelightSettings, open_relighter
+    from relight_torch.direct.relighter import RelightSettings, open_relighter
 
     shot = SCENES["cornell_box"].write(tmp_path / "scene")
     scene = load_scene(shot, width=16, height=16)

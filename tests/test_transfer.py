@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.bake.transfer.gather_cloud import flatten_order, refine_triangles, split_budget, triangle_areas
+from pipeline.bake.gather_cloud import flatten_order, refine_triangles, split_budget, triangle_areas
 from pipeline.bake.transfer.rows import gather_transport
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.transfer.encoding import EncodedRows, decode, decode_rows, encode, encode_rows
-from relight_torch.transfer.gathers import GatherSamples, gather_radiance
+from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.transfer.haar import haar2d, inverse_haar2d, support_area
 from relight_torch.transfer.sparse import SparseRows, concatenate, cull, factor_colour, keep_top_k
 from relight_torch.visibility.embree import EmbreeCaster

@@ -23,8 +23,9 @@ from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.exr import read_exr
 from relight_torch.lights.light import Light, LightKind, Shaping
 from relight_torch.metrics import psnr
-from relight_torch.relighter import Relighter
-from relight_torch.transfer.open import open_cache_relighter, open_transfer_relighter
+from relight_torch.direct.relighter import Relighter
+from relight_torch import open_cache
+from relight_torch.transfer.open import open_transfer_relighter
 from relight_torch.transfer.relighter import TransferRelighter
 from relight_torch.transfer.sparse import column_norms
 from relight_torch.transfer.upsample import edge_aware_upsampler
@@ -53,7 +54,7 @@ def _one_bounce(relighter: TransferRelighter) -> TransferRelighter:
 @pytest.mark.parametrize("bounces, full_db, indirect_db", [(1, 30.5, 35.0), (2, 29.5, 33.5)])
 def test_matches_the_path_tracer_with_the_same_bounces(cornell, bounces, full_db, indirect_db):
     layer, references, _, _ = cornell
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     assert isinstance(relighter, TransferRelighter) and relighter.num_bounces == 2
     if bounces == 1:
         relighter = _one_bounce(relighter)
@@ -70,7 +71,7 @@ def test_matches_the_path_tracer_with_the_same_bounces(cornell, bounces, full_db
 
 def test_light_edits_recompute_only_what_they_touch(cornell):
     layer, _, _, _ = cornell
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     before = relighter.indirect_image()
     assert relighter.counters["gather_light"] == 1
     light = relighter.lights[0]
@@ -91,7 +92,7 @@ def test_direct_caches_still_open_as_direct(tmp_path):
     out = tmp_path / "direct"
     assert main(["bake", str(path), "--camera", cornell_box.CAMERA, "--out", str(out), "--width", "8",
                  "--height", "8"]) == 0
-    relighter = open_cache_relighter(out / "cornell_box.relight.usda")
+    relighter = open_cache(out / "cornell_box.relight.usda")
     assert isinstance(relighter, Relighter)
     assert relighter.supersampling == 2  # the direct method's default (transfer's is 1: below)
 
@@ -150,7 +151,7 @@ FAILURES = {
 def test_failure_cases_stay_finite_with_a_measured_error(cornell, case):
     layer, _, scene, camera = cornell
     placement, full_db, indirect_db, (low_ratio, high_ratio) = FAILURES[case]
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     light = _light_at(relighter.lights[0], **placement)
     relighter.set_lights([light])
     image, indirect = relighter.render().numpy(), relighter.indirect_image().numpy()
@@ -164,7 +165,7 @@ def test_failure_cases_stay_finite_with_a_measured_error(cornell, case):
 
 def test_one_gather_sample_adds_noise_that_the_final_gather_averages(cornell):
     layer, _, _, _ = cornell
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     default = relighter.indirect_image().numpy()
     sparse = TransferRelighter(relighter.direct, relighter.gathers, relighter.view_pixels, relighter.final_gather,
                                relighter.bounce, relighter.num_bounces, gather_samples=1).indirect_image().numpy()
@@ -177,7 +178,7 @@ def test_one_gather_sample_adds_noise_that_the_final_gather_averages(cornell):
 
 def test_culling_weak_wavelet_lights_stays_within_its_bound(cornell):
     layer, references, _, _ = cornell
-    exact = open_cache_relighter(layer)
+    exact = open_cache(layer)
     culled = open_transfer_relighter(layer, cull_tolerance=0.05)
     light = exact.lights[0]
     exact._unit_indirect(light)

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
-from pipeline.bake.direct import direct_payloads, prepare_output, shot_tracer, write_npy
+from pipeline.bake.direct.bake import direct_payloads, prepare_output, shot_tracer, write_npy
 from pipeline.bake.scheduler import ShotSpec, chunk_folder, load_shot, per_process
 from pipeline.scene.types import Camera, Scene
 from relight_torch.gbuffer import GBuffer

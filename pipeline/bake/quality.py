@@ -3,9 +3,9 @@
 1. Pilot: the shot at a reduced size (long side `pilot_side`, aspect kept) and its path-tracer
    reference at the method's bounce count, with enough spp that the reference's own noise is
    NOISE_HEADROOM_DB below the target (`reference_for`).
-2. The method's LADDERS steps, cheapest first, are baked at the pilot size through the bench
-   adapters (`pipeline.benchmarks.bench`) and relit under the shot's lights; a step may give
-   several variants from one bake (transfer's kept coefficients). The first step with a variant
+2. The method's ladder steps (`BakeMethod.ladder`, `pipeline.bake.methods`), cheapest first, are
+   baked at the pilot size through its adapter (`BakeMethod.adapter`) and relit under the shot's
+   lights; a step may give several variants from one bake (transfer's kept coefficients). The first step with a variant
    whose pilot PSNR reaches target + margin stops the search, and its smallest such variant (cache
    bytes) is chosen. Steps grow every size that costs cache bytes, so a later step cannot be
    smaller at equal accuracy; transfer's 4x more gathers per step is the exception taken as a
@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.benchmarks.bench.methods import MethodAdapter, adapters
-from pipeline.benchmarks.rows import format_params
+from pipeline.bake.adapter import MethodAdapter, format_params
+from pipeline.bake.methods import bake_method
 from pipeline.errors import RelightError
 from pipeline.reference.path_tracer import PathTracer, ReferenceImage, ReferenceSettings
 from pipeline.scene.types import Camera, Scene
@@ -48,22 +48,6 @@ NOISE_HEADROOM_DB = 10.0
 """How far below the target the reference's own noise must be (its MSE then adds ~0.4 dB)."""
 MAX_REFERENCE_SPP = 4096
 START_SPP = 32
-
-LADDERS: dict[str, list[dict[str, object]]] = {
-    "direct": [{"supersampling": s} for s in (1, 2, 3, 4)],
-    "transfer": [{"gathers": g, "coefficients": (10, 25, 50, 100, 200)} for g in (1024, 4096, 16384)],
-    "gather": [{"clusters": c, "representativeScale": f} for c, f in
-               ((8, "0.25"), (16, "0.25"), (16, "0.5"), (32, "0.5"), (32, "1"), (64, "1"), (120, "1"))],
-    # A smaller sigma refines the visibility cuts (bytes); the illumination cut sizes cost relight
-    # time only and come from one bake, so the cheapest passing one is kept.
-    "cuts": [{"lights": n, "sigma": s, "cut": (128, 256, 512)} for n, s in
-             ((1024, 3.0), (1024, 2.0), (4096, 2.0), (4096, 1.5), (16384, 1.5), (65536, 1.5))],
-    # More caching cameras (a lower uncovered fraction), then larger caching images.
-    "multiview": [{"coverage": c, "maxResolution": r} for c, r in
-                  (("0.1", 256), ("0.05", 256), ("0.05", 512), ("0.02", 512), ("0.02", 1024))],
-}
-"""Per method, the bake points tried, cheapest first (tuples: variants of one bake)."""
-
 
 @dataclass(frozen=True)
 class Candidate:
@@ -175,21 +159,22 @@ def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: st
         margin_db: added to the target for the pilot (its size differs from the full one).
         reference_bounces: the references' indirect bounces (default: the method's own, its slice of
             the light transport; the shot cache measures against the full frame).
-        ladder: the bake points to try, cheapest first (default: the method's LADDERS entry).
+        ladder: the bake points to try, cheapest first (default: the method's registered ladder).
         measure_headroom_db: the full-size reference's noise floor above the target (its noise is
             subtracted from the measured error, so a lower floor costs precision, not bias).
 
     Raises:
         RelightError: the method has no ladder, or no step reaches the target.
     """
-    if ladder is None and method not in LADDERS:
-        raise RelightError(f"bake --quality: no sizing ladder for method {method!r} (have {', '.join(LADDERS)})")
-    adapter = adapters((method,))[method]
+    entry = bake_method(method)
+    if ladder is None and not entry.ladder:
+        raise RelightError(f"bake --quality: method {method!r} declares no sizing ladder")
+    adapter = entry.adapter
     out_dir = Path(out_dir)
     pilot_dir = out_dir / f".{stem}.quality-pilot"
     width, height = pilot_size(camera.width, camera.height, pilot_side)
     pilot_scene, pilot_camera = resized(scene, camera, width, height)
-    ladder = [{**step, **(fixed or {})} for step in (LADDERS[method] if ladder is None else ladder)]
+    ladder = [{**step, **(fixed or {})} for step in (entry.ladder if ladder is None else ladder)]
     bounces = adapter.bounces(ladder[0]) if reference_bounces is None else reference_bounces
     pilot_reference = reference_for(pilot_scene, pilot_camera, bounces, target_db + margin_db)
     candidates: list[Candidate] = []

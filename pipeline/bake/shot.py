@@ -30,13 +30,12 @@ import numpy as np
 
 from pipeline.bake.quality import (QualityResult, add_parameters, bake_for_quality, corrected_psnr, pilot_size,
                                    reference_for, resized)
-from pipeline.bake.direct import bake_direct
-from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
+from pipeline.bake.methods import bake_method
+from pipeline.bake.transfer.bake import TransferSettings
 from pipeline.reference.path_tracer import FULL_FRAME_BOUNCES
 from pipeline.scene.types import Camera, Scene
 from relight_torch.metrics import psnr_from_mse
-from relight_torch.relighter import open_relighter
-from relight_torch.transfer.open import open_transfer_relighter
+from relight_torch import open_cache
 
 log = logging.getLogger(__name__)
 
@@ -112,16 +111,16 @@ def choose_components(scene: Scene, camera: Camera, work: Path, stem: str, targe
     width, height = pilot_size(camera.width, camera.height, pilot_side)
     pilot_scene, pilot_camera = resized(scene, camera, width, height)
     reference = reference_for(pilot_scene, pilot_camera, FULL_FRAME_BOUNCES, target_db + PILOT_MARGIN_DB)
-    direct_layer = bake_direct(pilot_scene, pilot_camera, work / "direct", stem, 2, texture_samples,
-                               time_code=time_code)
-    direct_db, _ = corrected_psnr(open_relighter(direct_layer).render().numpy(), reference)
+    direct_layer = bake_method("direct").bake(pilot_scene, pilot_camera, work / "direct", stem, 2, texture_samples,
+                                              time_code, None)
+    direct_db, _ = corrected_psnr(open_cache(direct_layer).render().numpy(), reference)
     log.info("shot pilot %dx%d: direct alone %.2f dB against the full frame", width, height, direct_db)
     if direct_db >= target_db + PILOT_MARGIN_DB:
         return ShotChoice("direct", 0, direct_db, float("inf"), ())
     settings = TransferSettings(num_bounces=MAX_BOUNCES, num_coefficients=200, num_bounce_coefficients=1024)
-    layer = bake_transfer(pilot_scene, pilot_camera, work / "transfer", stem, 1, texture_samples,
-                          time_code=time_code, settings=settings, progress=False)
-    relighter = open_transfer_relighter(layer)
+    layer = bake_method("transfer").bake(pilot_scene, pilot_camera, work / "transfer", stem, 1, texture_samples,
+                                         time_code, settings)
+    relighter = open_cache(layer)
     images = []
     for bounces in range(1, MAX_BOUNCES + 1):
         relighter.num_bounces = bounces

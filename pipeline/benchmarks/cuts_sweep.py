@@ -47,7 +47,8 @@ import numpy as np
 import torch
 
 from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
-from pipeline.benchmarks.bench.measure import cache_bytes, device_name, moved, relight_ms
+from pipeline.bake.adapter import cache_bytes
+from pipeline.benchmarks.bench.measure import device_name, moved, relight_ms
 from pipeline.benchmarks.bench.references import References
 from pipeline.benchmarks.reuse import reusable_bake
 from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, format_params, write_csv
@@ -59,7 +60,7 @@ from relight_torch.cuts.open import open_cuts_relighter
 from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch.relighter import shot_lights
+from relight_torch.direct.relighter import shot_lights
 
 
 def rotated(light: Light, degrees: float) -> Light:

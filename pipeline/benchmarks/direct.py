@@ -1,7 +1,7 @@
 """Speed of direct relighting on a deep framebuffer: what each kind of light edit costs.
 
 It bakes a bundled scene, opens the cache with Embree shadows, and times renders after edits
-that invalidate different stages of `relight_torch.relighter.Relighter`:
+that invalidate different stages of `relight_torch.direct.relighter.Relighter`:
 
     re-shade, L lights     every light's images dropped, transport (samples, shadow rays,
                            BRDF) kept: what re-running every light shader costs
@@ -41,14 +41,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.benchmarks.stopwatch import Stopwatch
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.io.atomic import write_text_atomic
 from relight_torch.lights.light import BarzelShaping, Light, LightKind, Shaping
 from relight_torch.metrics import psnr
-from relight_torch.relighter import Relighter, RelightSettings, open_relighter
+from relight_torch.direct.relighter import Relighter, RelightSettings, open_relighter
 
 RIG_SIZES = (1, 4, 16)
 # The rig the single-light edits are timed on.

@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch.relighter import open_relighter, shot_lights
+from relight_torch.direct.relighter import open_relighter, shot_lights
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -40,7 +40,8 @@ from pathlib import Path
 
 from pipeline.bake.gather.bake import GatherSettings, bake_gather
 from pipeline.benchmarks.rows import COLUMNS, SweepRow, csv_line, format_params, write_csv
-from pipeline.benchmarks.bench.measure import cache_bytes, moved, relight_ms
+from pipeline.bake.adapter import cache_bytes
+from pipeline.benchmarks.bench.measure import moved, relight_ms
 from pipeline.benchmarks.bench.references import References
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
@@ -49,7 +50,7 @@ from relight_torch.gather.open import open_gather_relighter
 from relight_torch.gather.relighter import DEFAULT_GATHER_SAMPLES, GatherRelighter
 from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch.relighter import RelightSettings, shot_lights
+from relight_torch.direct.relighter import RelightSettings, shot_lights
 
 
 def _median_ms(relighter: GatherRelighter, edits: list, repeats: int,

@@ -48,7 +48,8 @@ from pipeline.bake.multiview.bake import bake_multiview
 from pipeline.bake.multiview.frames import FrameRenderer
 from pipeline.bake.multiview.placement import PlacementSettings
 from pipeline.bake.multiview.view import view_points
-from pipeline.benchmarks.bench.measure import cache_bytes, relight_ms
+from pipeline.bake.adapter import cache_bytes
+from pipeline.benchmarks.bench.measure import relight_ms
 from pipeline.benchmarks.reuse import reusable_bake
 from pipeline.benchmarks.rows import SweepRow, format_params, write_csv
 from pipeline.benchmarks.stopwatch import Stopwatch
@@ -61,7 +62,7 @@ from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.atomic import atomic_path, write_text_atomic
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.multiview.relighter import open_multiview_relighter
-from relight_torch.relighter import Relighter, RelightSettings
+from relight_torch.direct.relighter import Relighter, RelightSettings
 
 TABLE_COLUMNS = ("scene", "coverage", "view", "psnr_db", "psnr_covered_db", "psnr_direct_db", "rel_mse",
                  "hole_fraction_before",

@@ -19,6 +19,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from pipeline.bake.adapter import format_params, parse_params
 from relight_torch.io.atomic import write_text_atomic
 
 NAN = float("nan")
@@ -65,19 +66,6 @@ class SweepRow:
 
 COLUMNS = tuple(field.name for field in dataclasses.fields(SweepRow))
 _NUMBER_COLUMNS = ("psnr_db", "psnr_indirect_db", "rel_mse", "cache_bytes", "bake_s", "relight_ms")
-
-
-def format_params(parameters: Mapping[str, object]) -> str:
-    """'key=value key=value' in the mapping's order (values must not contain spaces or '=')."""
-    for key, value in parameters.items():
-        if any(c in f"{key}{value}" for c in " =,"):
-            raise ValueError(f"parameter {key}={value!r} must not contain spaces, '=' or ','")
-    return " ".join(f"{key}={value}" for key, value in parameters.items())
-
-
-def parse_params(text: str) -> dict[str, str]:
-    """The inverse of `format_params`."""
-    return dict(item.split("=", 1) for item in text.split())
 
 
 def _cell(value: object) -> str:

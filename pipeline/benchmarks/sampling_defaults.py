@@ -19,11 +19,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.metrics import psnr
-from relight_torch.relighter import RelightSettings, open_relighter
+from relight_torch.direct.relighter import RelightSettings, open_relighter
 
 SETTINGS = {
     "defaults": RelightSettings(),

@@ -24,8 +24,9 @@ import numpy as np
 import torch
 
 from pipeline.bake.shot import DEFAULT_TARGET_DB, bake_shot
-from pipeline.benchmarks.bench.measure import cache_bytes, moved
-from pipeline.benchmarks.bench.methods import adapters
+from pipeline.bake.adapter import cache_bytes
+from pipeline.bake.methods import bake_method
+from pipeline.benchmarks.bench.measure import moved
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
@@ -35,8 +36,8 @@ from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.atomic import write_text_atomic
 from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch.relighter import shot_lights
-from relight_torch.transfer.open import open_cache_relighter
+from relight_torch import open_cache
+from relight_torch.direct.relighter import shot_lights
 
 REFERENCE_BOUNCES = 8
 
@@ -70,7 +71,7 @@ def accuracy_rows(name: str, layer: Path, scene_path: Path, edits: dict[str, Pat
     """One EditRow per edit of the shot cache `layer` (see the module doc)."""
     camera = SCENES[name].camera
     description = read_cache_layer(layer)
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     rows = []
     for edit, lights_layer in edits.items():
         relighter.set_lights(shot_lights(description, lights_layer))
@@ -89,7 +90,7 @@ def accuracy_rows(name: str, layer: Path, scene_path: Path, edits: dict[str, Pat
 def edit_timings(layer: Path, edits: dict[str, Path | None], repeats: int) -> dict[str, float]:
     """Median ms of each edit kind and the re-render on a warm relighter of `layer`."""
     description = read_cache_layer(layer)
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     lights = shot_lights(description, None)
     relighter.set_lights(lights)
     relighter.render()
@@ -145,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
             big = load_scene(scene_path, width=args.timing_size[0], height=args.timing_size[1])
             big_camera = find_camera(big, SCENES[name].camera)
             method = "direct" if choice.components == "direct" else "transfer"
-            big_layer = adapters((method,))[method].bake(big, big_camera, work / f"{name}-timing", name,
+            big_layer = bake_method(method).adapter.bake(big, big_camera, work / f"{name}-timing", name,
                                                         result.point, 1, 2)
             timings = edit_timings(big_layer, edits, args.repeats)
         choices.append((name, choice, result, bake_s, cache_bytes(result.layer), timings))

@@ -35,18 +35,18 @@ from pathlib import Path
 
 import torch
 
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
-from pipeline.bake.transfer.gather_cloud import create_gathers
+from pipeline.bake.gather_cloud import create_gathers
 from pipeline.benchmarks.bench.measure import relight_ms
 from pipeline.benchmarks.bench.references import References
-from pipeline.benchmarks.bench.transfer import culled_variants
+from pipeline.bake.transfer.adapter import culled_variants
 from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, format_params
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import CacheDescription
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch.relighter import open_relighter, shot_lights
+from relight_torch.direct.relighter import open_relighter, shot_lights
 from relight_torch.transfer.open import open_transfer_relighter
 from relight_torch.transfer.relighter import GATHER_SAMPLES, TransferRelighter
 from relight_torch.transfer.sparse import SparseRows

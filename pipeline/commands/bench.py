@@ -8,7 +8,7 @@ from pathlib import Path
 
 import torch
 
-from pipeline.benchmarks.bench.methods import METHOD_MODULES
+from pipeline.bake.methods import bake_methods
 from pipeline.benchmarks.bench.runner import BenchConfig, run_bench
 from pipeline.commands.common import add_device_option
 from pipeline.errors import RelightError
@@ -28,8 +28,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="small grids on the Cornell box at 24x24 (seconds; what the tests run)")
     parser.add_argument("--scenes", nargs="+", choices=sorted(SCENES), metavar="SCENE",
                         help="bundled scenes (default: all; --quick: cornell_box)")
-    parser.add_argument("--methods", nargs="+", choices=METHOD_MODULES, metavar="METHOD",
-                        help=f"methods to run (default: all of {', '.join(METHOD_MODULES)})")
+    methods = list(bake_methods())
+    parser.add_argument("--methods", nargs="+", choices=methods, metavar="METHOD",
+                        help=f"methods to run (default: all of {', '.join(methods)})")
     parser.add_argument("--edits", nargs="+", metavar="EDIT",
                         help="example light edits to relight under besides the shot's lights (default: all)")
     parser.add_argument("--width", type=int, metavar="W", help="image width (default 160; --quick 24)")

@@ -28,8 +28,8 @@ from relight_torch.io.atomic import atomic_path
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.io.preview import write_png
 from relight_torch.metrics import psnr
-from relight_torch.relighter import shot_lights
-from relight_torch.transfer.open import open_cache_relighter
+from relight_torch import open_cache
+from relight_torch.direct.relighter import shot_lights
 
 
 def add_parser(subparsers) -> None:
@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     bake_seconds = time.perf_counter() - start
     print(f"baked the shot cache {result.layer} ({choice.components}, {choice.bounces} bounces, {result.point}) "
           f"in {bake_seconds:.1f} s: {result.measured_db:.1f} dB against the full frame")
-    relighter = open_cache_relighter(result.layer, device=args.device)
+    relighter = open_cache(result.layer, device=args.device)
     rows = []
     for name, layer in edits:
         lights = shot_lights(relighter.description, layer)

@@ -7,13 +7,13 @@ import time
 
 import numpy as np
 
+from pipeline.bake.methods import bake_method, bake_methods
 from pipeline.commands.common import add_device_option, add_lights_option
 from pipeline.errors import RelightError
-from pipeline.bake.multiview.frames import render_frames
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.exr import exr_layer_names, write_rgb_exr
 from relight_torch.io.preview import write_png
-from relight_torch.transfer.open import open_cache_relighter
+from relight_torch import open_cache
 
 
 def add_parser(subparsers) -> None:
@@ -33,7 +33,8 @@ def add_parser(subparsers) -> None:
                         help="exact Embree shadow rays (CPU) or torch shadow maps (default: embree)")
     parser.add_argument("--aov", action="append", default=[], choices=("lightgroups",),
                         help="extra EXR layers: 'lightgroups' (one per light group)")
-    view = parser.add_argument_group("moving camera (multiview caches)")
+    moving = ", ".join(name for name, method in bake_methods().items() if method.render_views is not None)
+    view = parser.add_argument_group(f"moving camera ({moving} caches)")
     view.add_argument("--camera", metavar="PRIM",
                       help="render from this camera prim, in the shot or in the --lights layer (default: the "
                            "cache's camera)")
@@ -49,13 +50,14 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
-    method = read_cache_layer(args.cache).method
-    if method == "multiview":
-        return run_views(args, start)
+    method = bake_method(read_cache_layer(args.cache).method)
+    if method.render_views is not None:
+        return run_views(args, start, method.render_views)
     if args.camera:
-        raise RelightError(f"--camera: {args.cache} is a {method!r} cache, baked for its camera only; bake it "
-                           f"with --method multiview to move the camera")
-    relighter = open_cache_relighter(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
+        moving = " or ".join(f"--method {name}" for name, other in bake_methods().items() if other.render_views)
+        raise RelightError(f"--camera: {args.cache} is a {method.name!r} cache, baked for its camera only; bake it "
+                           f"with {moving} to move the camera")
+    relighter = open_cache(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
     image = relighter.render().cpu().numpy()
     write_rgb_exr(args.out, image, light_group_layers(relighter) if "lightgroups" in args.aov else None)
     if args.png:
@@ -65,25 +67,18 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_views(args: argparse.Namespace, start: float) -> int:
-    """`relight render` of a multiview cache: one frame per --time from --camera (or the cache's camera)."""
-    relighter = open_cache_relighter(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
-    width, height = relighter.description.resolution
-    render_frames(relighter, args.camera or relighter.description.camera_path, args.time or [None], args.out,
-                  args.width or width, args.height or height, args.lights, args.png, args.fill_holes,
-                  light_group_layers if "lightgroups" in args.aov else None)
+def run_views(args: argparse.Namespace, start: float, render_views) -> int:
+    """`relight render` of a cache whose relighter needs a view: its method's `render_views` writes
+    one frame per --time from --camera (or the cache's camera)."""
+    relighter = open_cache(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
+    render_views(relighter, args, light_group_layers if "lightgroups" in args.aov else None)
     print(f"{time.perf_counter() - start:.2f} s including load")
     return 0
 
 
 def light_group_layers(relighter) -> dict[str, np.ndarray]:
-    """EXR layer -> (H, W, 3) image of each light group, plus 'emission' where surfaces emit.
-
-    Raises:
-        RelightError: the cache's method does not split its image by light.
-    """
-    if not hasattr(relighter, "light_group_images"):
-        raise RelightError(f"--aov lightgroups: {type(relighter).__name__} does not split its image by light")
+    """EXR layer -> (H, W, 3) image of each light group (`CacheRelighter.light_group_images`), plus
+    'emission' where surfaces emit."""
     images = {name: image.cpu().numpy() for name, image in relighter.light_group_images().items()}
     emission = relighter.emission_image().cpu().numpy()
     if emission.any():

@@ -31,6 +31,7 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
 from relight_torch.errors import RelightError
+from relight_torch.methods import METHOD_NAMES
 from relight_torch.io.atomic import atomic_path
 from relight_torch.schema import register_schemas
 
@@ -39,7 +40,6 @@ CACHE_VERSION = 2
 """Cache format version: 2 added object ids to the indirect methods' gathers (light linking) and the
 gather method's shared surface points; caches of another version are refused with 're-bake it'."""
 SUFFIX = ".relight.usda"
-METHODS = ("direct", "transfer", "gather", "cuts", "multiview")
 FORMATS = ("exr", "npy")
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 
@@ -310,7 +310,7 @@ def read_cache_layer(path: str | os.PathLike) -> CacheDescription:
         raise RelightError(f"{path}: cache version {version} is not supported (this relight reads version "
                            f"{CACHE_VERSION}); re-bake it")
     method = _get(cache, "relight:method", path)
-    _require(method in METHODS, path, cache, f"relight:method {method!r} is not one of {METHODS}")
+    _require(method in METHOD_NAMES, path, cache, f"relight:method {method!r} is not one of {METHOD_NAMES}")
     directory = path.parent.resolve()
     source = _get(cache, "relight:source", path).path
     _require(bool(source), path, cache, "relight:source is empty")

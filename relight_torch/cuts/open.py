@@ -13,8 +13,8 @@ from relight_torch.cuts.cuts import MEAN_LEVELS, Cuts, indirect_scale
 from relight_torch.cuts.relighter import CutsCache, CutsRelighter, CutsRelightSettings
 from relight_torch.cuts.tree import LightTree
 from relight_torch.errors import RelightError
-from relight_torch.relighter import RelightSettings, open_relighter
-from relight_torch.transfer.gathers import GatherSamples
+from relight_torch.direct.relighter import RelightSettings, open_relighter
+from relight_torch.indirect_samples import GatherSamples
 
 _POINT_FIELDS = {"position": "Position", "normal": "Normal", "albedo": "Albedo", "emission": "Emission",
                  "area": "Area"}

@@ -45,8 +45,9 @@ from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import linked_points
 from relight_torch.math.frame import to_local
 from relight_torch.parallel import parallel_map, tile_threads
-from relight_torch.relighter import Relighter, light_group
-from relight_torch.transfer.gathers import GatherSamples, gather_radiance
+from relight_torch.protocol import tensor_bytes
+from relight_torch.direct.relighter import Relighter, light_group
+from relight_torch.indirect_samples import GatherSamples, gather_radiance
 
 
 MERGE_ROWS = 2048
@@ -196,7 +197,7 @@ class CutsRelighter:
 
     Environment mode: dome lights by cuts, every other light by the direct relighter. Indirect
     mode: every light direct, plus its one-bounce indirect light by cuts (seed 004's second mode):
-    the leaves are surface points lit with `relight_torch.transfer.gathers.gather_radiance` (the
+    the leaves are surface points lit with `relight_torch.indirect_samples.gather_radiance` (the
     direct relighter's light kernels and visibility), re-emitting diffusely; their solid angle is
     folded into the visibility cuts (`pipeline.bake.cuts.visibility`) and a merged cluster is
     seen in the direction of its leaves' mean position.
@@ -216,6 +217,8 @@ class CutsRelighter:
             (merged entries whose BRDF factors this render computed; the rest were kept,
             `FactorColumns`) and 'illumination_cut' (its size).
     """
+
+    material_edits = True   # the cuts' light follows `params` (`CacheRelighter`)
 
     def __init__(self, direct: Relighter, cuts: CutsCache, settings: CutsRelightSettings = CutsRelightSettings()):
         if cuts.sample_vertices.shape[0] != direct.gbuffer.num_samples:
@@ -665,6 +668,11 @@ class CutsRelighter:
             if not in_place:
                 lines = torch.arange(part.start, part.stop, device=sums.device) * (num_columns + 2)
                 add_factors(sums.view(-1), (grid.columns + lines.unsqueeze(1)).view(-1), out, first_factor)
+
+    def held_bytes(self) -> int:
+        """`CacheRelighter.held_bytes`: the direct relighter's, the leaves' light per light and `kept_bytes`."""
+        return (self.direct.held_bytes() + tensor_bytes(*(radiance for _, radiance in self._leaf_radiance.values()))
+                + self.kept_bytes())
 
     def kept_bytes(self) -> int:
         """Bytes kept between frames: the merged visibility batches (and their entries by node),

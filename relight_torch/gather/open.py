@@ -11,7 +11,7 @@ import torch
 from relight_torch.cache.load import load_npy
 from relight_torch.errors import RelightError
 from relight_torch.gather.relighter import DEFAULT_GATHER_SAMPLES, SET_NAMES, GatherRelighter, GatherSet, SurfacePoints
-from relight_torch.relighter import RelightSettings, open_relighter
+from relight_torch.direct.relighter import RelightSettings, open_relighter
 
 
 def open_gather_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",

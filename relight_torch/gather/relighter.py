@@ -31,7 +31,8 @@ from relight_torch.gather.reconstruction import interpolate
 from relight_torch.gather.remembered import RememberedVisibility
 from relight_torch.indirect import IndirectRelighter, gather_light_key
 from relight_torch.lights.light import Light
-from relight_torch.relighter import Relighter, unit_light
+from relight_torch.protocol import tensor_bytes
+from relight_torch.direct.relighter import Relighter, unit_light
 
 SET_NAMES = ("diffuse", "glossy")
 GREY_TOLERANCE = 1e-5
@@ -246,6 +247,9 @@ class GatherRelighter(IndirectRelighter):
         return diffuse_radiance(light, p.position, p.normal, p.albedo, self.visibility,
                                 self._gather_samples(light, self.gather_samples), self.direct.settings.seed,
                                 object_id=p.object_id, object_paths=self.direct.object_paths)
+
+    def _indirect_bytes(self) -> int:
+        return tensor_bytes(*(image for _, image in self._per_light.values()))
 
     def _unit_indirect(self, light: Light) -> torch.Tensor:
         unit = unit_light(light)

@@ -47,7 +47,7 @@ from relight_torch.lights.polygon import analytic_ratio
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.lights.shaping import emission_factor
 from relight_torch.math.frame import dot
-from relight_torch.relighter import unit_light
+from relight_torch.direct.relighter import unit_light
 
 CHANNELS = 7
 """Columns per group in a table: W (RGB), D (xyz), then the light's ratio-estimator factor on the

@@ -56,7 +56,8 @@ from relight_torch.multiview.load import load_camera_table, load_view_gbuffers
 from relight_torch.multiview.resample import bilinear_samples
 from relight_torch.multiview.views import CachingViews, concat_gbuffers, gather_gbuffer, take_rows
 from relight_torch.parallel import parallel_map, tile_threads
-from relight_torch.relighter import Relighter, RelightSettings, embree_visibility, replace_rig, shot_lights
+from relight_torch.protocol import refuse_material_edit
+from relight_torch.direct.relighter import Relighter, RelightSettings, embree_visibility, replace_rig, shot_lights
 from relight_torch.visibility.embree import EmbreeCaster
 
 
@@ -161,6 +162,8 @@ class MultiviewRelighter:
             and 'patch_samples' likewise for view points on edges and samples baked on demand,
             'view_shading' (light, view) BRDF passes.
     """
+
+    material_edits = False   # the caching views' materials are shaded as baked (`CacheRelighter`)
 
     def __init__(self, views: CachingViews, visibility, supersampling: int = 1, exposure_scale: float = 1.0,
                  settings: RelightSettings = RelightSettings(), object_paths: list[str] | None = None,
@@ -269,6 +272,13 @@ class MultiviewRelighter:
         """Bytes of the cached per-light lighting of the caching samples."""
         return sum(table.numel() * table.element_size() + done.numel() + total.numel() * total.element_size()
                    for table, done, total in self._tables.values())
+
+    def held_bytes(self) -> int:
+        """`CacheRelighter.held_bytes`: the caching samples' lighting and the current view's relighter."""
+        return self.lighting_bytes() + (0 if self._relighter is None else self._relighter.held_bytes())
+
+    def edit_material(self, material_id: int, **values: object) -> None:
+        refuse_material_edit(self)
 
     def render(self) -> torch.Tensor:
         """(H, W, 3) linear image of the current view."""

@@ -1,4 +1,4 @@
-"""Opening a cache for relighting, whatever its method: the one entry point `relight render` uses."""
+"""Opening a 'transfer' cache (payloads: `pipeline.bake.transfer.bake`) as a `TransferRelighter`."""
 
 from __future__ import annotations
 
@@ -9,15 +9,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from relight_torch.cache.layer import CacheDescription, read_cache_layer
+from relight_torch.cache.layer import CacheDescription
 from relight_torch.cache.load import load_npy
-from relight_torch.cuts.open import open_cuts_relighter
 from relight_torch.errors import RelightError
-from relight_torch.gather.open import open_gather_relighter
-from relight_torch.multiview.relighter import MultiviewRelighter, open_multiview_relighter
-from relight_torch.relighter import Relighter, RelightSettings, open_relighter
+from relight_torch.direct.relighter import RelightSettings, open_relighter
 from relight_torch.transfer.encoding import PARTS, EncodedRows, decode_rows
-from relight_torch.transfer.gathers import GatherSamples, gather_payload_name
+from relight_torch.indirect_samples import GatherSamples, gather_payload_name
 from relight_torch.transfer.relighter import TransferRelighter
 from relight_torch.transfer.sparse import SparseRows
 from relight_torch.transfer.upsample import edge_aware_upsampler
@@ -74,25 +71,3 @@ def open_transfer_relighter(path: str | os.PathLike, device: str | torch.device 
                                  upsampler=upsampler, cull_tolerance=cull_tolerance)
     except ValueError as error:
         raise RelightError(f"{layer_path}: {error}") from None
-
-
-def open_cache_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
-                         lights_layer: str | os.PathLike | None = None,
-                         settings: RelightSettings = RelightSettings()
-                         ) -> Relighter | TransferRelighter | MultiviewRelighter:
-    """The relighter of a cache layer's method; arguments as `open_relighter`. A 'multiview'
-    relighter has no view until `set_view` (`pipeline.bake.multiview.view.view_points`).
-
-    Raises:
-        RelightError: the layer is unreadable, of another method, stale or corrupt.
-    """
-    method = read_cache_layer(path).method
-    if method not in _OPENERS:
-        raise RelightError(f"{path}: cannot relight a {method!r} cache "
-                           f"(this build relights {', '.join(repr(name) for name in _OPENERS)})")
-    return _OPENERS[method](path, device, shadows, lights_layer, settings)
-
-
-_OPENERS = {"direct": open_relighter, "transfer": open_transfer_relighter, "gather": open_gather_relighter,
-            "multiview": open_multiview_relighter, "cuts": open_cuts_relighter}
-"""The opener of each cache method; each takes (path, device, shadows, lights_layer, settings)."""

@@ -19,8 +19,9 @@ import torch
 from relight_torch.diffuse_light import link_mask
 from relight_torch.indirect import IndirectRelighter, gather_light_key
 from relight_torch.lights.light import Light
-from relight_torch.relighter import Relighter, unit_light
-from relight_torch.transfer.gathers import GatherSamples, gather_radiance
+from relight_torch.protocol import tensor_bytes
+from relight_torch.direct.relighter import Relighter, unit_light
+from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.transfer.haar import haar2d
 from relight_torch.transfer.sparse import SparseRows, column_norms, cull_light
 from relight_torch.transfer.upsample import EdgeAwareUpsampler
@@ -127,6 +128,10 @@ class TransferRelighter(IndirectRelighter):
         return haar2d(radiance.reshape(side, side, 3)).reshape(-1, 3)
 
     # -- cached stages --------------------------------------------------------------------------
+
+    def _indirect_bytes(self) -> int:
+        return tensor_bytes(self._emission_indirect, *(t for state in self._per_light.values()
+                                                       for t in (state.radiance, state.unit_indirect)))
 
     def _emission_rows(self) -> torch.Tensor:
         if self._emission_indirect is None:

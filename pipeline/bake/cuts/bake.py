@@ -1,6 +1,6 @@
 """`relight bake --method cuts`: the direct cache plus seed 004's light tree and visibility cuts.
 
-Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct`), the leaf lights
+Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct.bake`), the leaf lights
 in tree order (post-order leaves left to right):
     env:      <stem>.cutsLeafDirections.npy (L, 3) float32 unit world directions,
               <stem>.cutsLeafWeights.npy (L,) float32 their solid angles (sr)

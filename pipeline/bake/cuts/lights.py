@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from pipeline.bake.transfer.gather_cloud import create_gathers
+from pipeline.bake.gather_cloud import create_gathers
 from pipeline.scene.types import Scene
 
 

@@ -1,6 +1,6 @@
 """`relight bake --method gather`: the direct cache plus clustered gathers (seed paper, eq. 2-3).
 
-Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct`):
+Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct.bake`):
     <stem>.viewPixels.npy             (P,) int64 pixel (row * W + col) of each view sample (one
                                       per covered pixel centre; the direct part keeps the cache's
                                       supersampling)
@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.bake.direct import shot_tracer
+from pipeline.bake.direct.bake import shot_tracer
 from pipeline.bake.indirect import IndirectBake, start_indirect_bake, view_samples
 from pipeline.bake.gather.hemisphere import ClusteredGathers, cluster_gathers, gather
 from pipeline.bake.gather.representatives import choose_representatives, glossy_share, reconstruction_weights

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
-from pipeline.bake.direct import prepare_output, shot_tracer, write_npy
+from pipeline.bake.direct.bake import prepare_output, shot_tracer, write_npy
 from pipeline.bake.inputs import code_version, identify_bake
 from pipeline.bake.multiview.cameras import camera_from_row, camera_row
 from pipeline.bake.scheduler import ChunkSpec, ShotSpec, chunk_folder, load_chunk, load_shot, run_chunks

@@ -1,6 +1,6 @@
 """`relight bake --method transfer`: the direct cache plus gathers and wavelet transfer rows.
 
-Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct`):
+Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct.bake`):
     <stem>.viewPixels.npy          (R,) int64 pixel (row * W + col) of each F row: one view
                                    sample per pixel centre (indirect light is smooth; the direct
                                    part keeps the cache's supersampling, as in the chapter), of
@@ -32,8 +32,8 @@ import numpy as np
 import torch
 
 from pipeline.bake.indirect import start_indirect_bake, view_samples
-from pipeline.bake.direct import shot_tracer, write_npy
-from pipeline.bake.transfer.gather_cloud import create_gathers
+from pipeline.bake.direct.bake import shot_tracer, write_npy
+from pipeline.bake.gather_cloud import create_gathers
 from pipeline.bake.transfer.rows import bounce_rows, final_gather_rows
 from pipeline.bake.scheduler import (ChunkSpec, ShotSpec, chunk_ranges, chunk_threads, load_chunk, load_shot,
                                      per_process, run_chunks)
@@ -42,7 +42,7 @@ from pipeline.tracing import Tracer
 from relight_torch.cache.layer import Payload
 from relight_torch.gbuffer import GBuffer
 from relight_torch.transfer.encoding import ENCODINGS, EncodedRows, EncodedValues, encode_rows
-from relight_torch.transfer.gathers import GatherSamples, gather_payload_name
+from relight_torch.indirect_samples import GatherSamples, gather_payload_name
 from relight_torch.transfer.haar import haar2d
 from relight_torch.transfer.sparse import SparseRows, concatenate, factor_colour, keep_top_k
 

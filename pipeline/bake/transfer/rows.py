@@ -30,7 +30,7 @@ from relight_torch.gbuffer import GBuffer
 from relight_torch.math.frame import orthonormal_basis, to_local
 from relight_torch.math.sampling import concentric_disk
 from relight_torch.shading import reflected_radiance
-from relight_torch.transfer.gathers import GatherSamples
+from relight_torch.indirect_samples import GatherSamples
 from relight_torch.visibility.rays import RayCaster
 
 

@@ -7,5 +7,5 @@
     chart.py        speed_accuracy.png and params_<method>.png
     runner.py       `run_bench`: scenes x methods -> bench.csv, bench.json, summary.txt, charts
     stability.py    the stability suite (cases where each method fails) and docs/STABILITY.md
-    direct.py, transfer.py, gather.py, cuts.py, multiview.py   the methods' adapters
+    the methods' adapters live beside their bakes: pipeline/bake/<method>/adapter.py
 """

@@ -16,13 +16,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.benchmarks.bench.methods import BenchScene, MethodAdapter
+from pipeline.bake.adapter import MethodAdapter
+from pipeline.benchmarks.bench.methods import BenchScene
 from pipeline.benchmarks.rows import NAN, SweepRow, format_params
 from pipeline.tracing_bench import median_seconds
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.lights.light import Light
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch.relighter import shot_lights
+from relight_torch.direct.relighter import shot_lights
 
 
 def moved(light: Light, fraction: float) -> Light:
@@ -59,11 +60,6 @@ def device_name(device: str) -> str:
     if device.startswith("cuda"):
         return f"{device} {torch.cuda.get_device_name(torch.device(device))}"
     return "cpu"
-
-
-def cache_bytes(layer: Path) -> int:
-    """Bytes of a cache layer's payloads."""
-    return sum(payload.num_bytes for payload in read_cache_layer(layer).payloads)
 
 
 def relit_rows(relighter, layer: Path, scene: BenchScene, method: str, parameters: dict[str, object],

@@ -4,17 +4,17 @@
 
 Each `StabilityCase` sets up one hard situation on a bundled scene (lights placed in Python, the
 stage's geometry optionally changed in memory), and for each method it names (the keys of `why`)
-bakes that method's small stability point (`POINTS`, overridden per case), relights under the
+bakes that method's small stability point (`BakeMethod.stability_point`, overridden per case), relights under the
 case's lights and compares with the path tracer at the method's bounce count (same lights, same
 geometry). `tests/test_stability.py` asserts every image is finite and its PSNR at least the
 case's `min_psnr` (the measured value less a margin: an honest bound, not a target);
 `write_doc` writes docs/STABILITY.md with the measured table and one sentence per case and
 method on why the method fails there.
 
-Adding a method: add its sentence to the `why` of the cases that apply to it, its stability point
-to POINTS and its bound to `min_psnr`; a case that only makes sense for one method is a new
-`StabilityCase` in CASES (cuts: 'dome_short_cuts'). A case judged from another camera than the
-baked one (multiview: 'far_camera') sets `view` (baked camera -> the camera to judge from); the
+Adding a method: add its sentence to the `why` of the cases that apply to it and its bound to
+`min_psnr` (its stability point is its registry entry's, `pipeline.bake.methods`); a case that only
+makes sense for one method is a new `StabilityCase` in CASES (cuts: 'dome_short_cuts'). A case
+judged from another camera than the baked one (multiview: 'far_camera') sets `view` (baked camera -> the camera to judge from); the
 runner then renders with `adapter.relight_view(variant, camera)`, which only the adapters that
 support novel views define. Cases run in CASES order and share bakes, so a `view` case comes after
 the cases judged from the baked camera.
@@ -32,9 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.benchmarks.bench.methods import MethodAdapter, Variant, adapters
+from pipeline.bake.adapter import MethodAdapter, Variant, format_params
+from pipeline.bake.methods import bake_method
+from pipeline.benchmarks.bench.methods import adapters
 from pipeline.benchmarks.direct import look_at
-from pipeline.benchmarks.rows import format_params
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scene.types import Camera, Scene
@@ -42,15 +43,6 @@ from pipeline.scenes import SCENES
 from relight_torch.io.atomic import write_text_atomic
 from relight_torch.lights.light import Light, LightKind, Shaping
 from relight_torch.metrics import psnr, rel_mse
-
-POINTS: dict[str, dict[str, object]] = {
-    "direct": {"supersampling": 1, "shadows": "embree"},
-    "transfer": {"gathers": 1024, "coefficients": 50, "bounces": 1},
-    "gather": {"directions": 256, "clusters": 16, "representativeScale": "0.25"},
-    "cuts": {"lights": 1024, "sigma": 2.0, "cut": 256},
-    "multiview": {"coverage": "0.1", "maxResolution": 128, "samples": 4000},
-}
-"""Each method's bake point in the suite (small: the suite runs in the tests)."""
 
 UP = np.array([0.0, 1.0, 0.0])
 
@@ -67,7 +59,7 @@ class StabilityCase:
         why: method -> one sentence on why the method fails (or holds) there; the methods run.
         min_psnr: method -> the PSNR bound the tests assert (dB).
         geometry: the loaded scene -> the scene to bake and render (None: unchanged).
-        points: method -> bake-point overrides of POINTS.
+        points: method -> bake-point overrides of its `stability_point`.
         view: the baked camera -> the camera the image is judged from (None: the baked one).
     """
 
@@ -82,7 +74,7 @@ class StabilityCase:
     view: Callable[[Camera], Camera] | None = None
 
     def point(self, method: str) -> dict[str, object]:
-        return {**POINTS[method], **self.points.get(method, {})}
+        return {**bake_method(method).stability_point, **self.points.get(method, {})}
 
 
 @dataclass(frozen=True)
@@ -348,10 +340,10 @@ def write_doc(results: list[CaseResult], path: Path, command: str, cases: list[S
         lines += [f"- **{method}**: {sentence}" for method, sentence in case.why.items()]
         lines.append("")
     lines += ["## Adding a method or a case", "",
-              "A method joins a case by adding its sentence to the case's `why`, its bound to `min_psnr` and its",
-              "small bake point to `POINTS`. A case for one method is a new `StabilityCase` (cuts:",
-              "`dome_short_cuts`); one judged from another camera than the baked one (multiview:",
-              "`far_camera`) sets `view`, and the method's adapter then provides",
+              "A method joins a case by adding its sentence to the case's `why` and its bound to `min_psnr` (its",
+              "small bake point is its registry entry's `stability_point`). A case for one method is a new",
+              "`StabilityCase` (cuts: `dome_short_cuts`); one judged from another camera than the baked one",
+              "(multiview: `far_camera`) sets `view`, and the method's adapter then provides",
               "`relight_view(variant, camera)`.", ""]
     write_text_atomic(path, "\n".join(lines))
 

@@ -62,6 +62,7 @@ from relight_torch.lights.shaping import emission_factor
 from relight_torch.lights.usd import read_stage_lights
 from relight_torch.math.frame import dot, to_local
 from relight_torch.parallel import parallel_map, tile_threads
+from relight_torch.protocol import refuse_material_edit
 from relight_torch.stage import open_stage, time_code
 from relight_torch.visibility import Visibility
 from relight_torch.visibility.embree import EmbreeCaster, ShadowLinkCasters
@@ -304,6 +305,8 @@ class Relighter:
         counters: 'visibility', 'shading' and 'masks' passes run so far (one per light and stage).
     """
 
+    material_edits = False   # the baked materials are shaded as they are (`CacheRelighter`)
+
     def __init__(self, gbuffer: GBuffer, visibility: Visibility, supersampling: int = 1,
                  exposure_scale: float = 1.0, settings: RelightSettings = RelightSettings(),
                  object_paths: list[str] | None = None):
@@ -394,6 +397,13 @@ class Relighter:
             total += sum(transport.num_bytes for transport in state.transports or ())
             total += state.images.numel() * state.images.element_size() if state.images is not None else 0
         return total
+
+    def held_bytes(self) -> int:
+        """`CacheRelighter.held_bytes`: the per-light caches (`cache_bytes`)."""
+        return self.cache_bytes()
+
+    def edit_material(self, material_id: int, **values: object) -> None:
+        refuse_material_edit(self)
 
     def unit_images(self, path: str) -> torch.Tensor | None:
         """Light `path`'s cached diffuse and specular unit images (2, N, 3); None before it is shaded

@@ -9,8 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
-from pipeline.benchmarks.bench.measure import cache_bytes
-from pipeline.benchmarks.bench.methods import Variant
+from pipeline.bake.adapter import Variant, cache_bytes
 from pipeline.scene.types import Camera, Scene
 from relight_torch.cuts.open import open_cuts_relighter
 from relight_torch.cuts.relighter import CutsRelightSettings

@@ -5,8 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from pipeline.bake.gather.bake import GatherSettings, bake_gather
-from pipeline.benchmarks.bench.measure import cache_bytes
-from pipeline.benchmarks.bench.methods import Variant
+from pipeline.bake.adapter import Variant, cache_bytes
 from pipeline.scene.types import Camera, Scene
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.gather.open import open_gather_relighter

@@ -15,8 +15,7 @@ import torch
 from pipeline.bake.multiview.bake import bake_multiview
 from pipeline.bake.multiview.frames import FrameRenderer, read_view_camera
 from pipeline.bake.multiview.placement import PlacementSettings
-from pipeline.benchmarks.bench.measure import cache_bytes
-from pipeline.benchmarks.bench.methods import Variant
+from pipeline.bake.adapter import Variant, cache_bytes
 from pipeline.scene.types import Camera, Scene
 from relight_torch.multiview.relighter import open_multiview_relighter
 

@@ -27,7 +27,7 @@ import torch
 from pipeline.scene.surface import evaluate_materials
 from pipeline.scene.types import Scene
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams, diffuse_albedo
-from relight_torch.transfer.gathers import GatherSamples
+from relight_torch.indirect_samples import GatherSamples
 
 # Bounds on the level-by-level loops (each level at least halves something).
 MAX_REFINE_LEVELS = 48

@@ -12,7 +12,7 @@ import dataclasses
 from pathlib import Path
 
 from pipeline.bake.transfer.bake import F_PREFIX, TransferSettings, bake_transfer, matrix_payloads
-from pipeline.benchmarks.bench.methods import Variant
+from pipeline.bake.adapter import Variant
 from pipeline.scene.types import Camera, Scene
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.transfer.encoding import decode_rows, encode_rows

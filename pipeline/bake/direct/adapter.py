@@ -10,11 +10,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pipeline.bake.direct import bake_direct
-from pipeline.benchmarks.bench.measure import cache_bytes
-from pipeline.benchmarks.bench.methods import Variant
+from pipeline.bake.direct.bake import bake_direct
+from pipeline.bake.adapter import Variant, cache_bytes
 from pipeline.scene.types import Camera, Scene
-from relight_torch.relighter import RelightSettings, open_relighter
+from relight_torch.direct.relighter import RelightSettings, open_relighter
 
 
 def setting_values(point: dict[str, object], key: str, default: int) -> list[int]:

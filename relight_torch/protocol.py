@@ -1,0 +1,75 @@
+"""What every relighter offers, whatever its method: the `CacheRelighter` protocol.
+
+`relight_torch.open_cache` returns one; `relight render`, the bench and the quality sizing use
+nothing else. Each method's relighter class satisfies it structurally (no base class):
+`tests/test_methods_registry.py` checks each with `isinstance` and calls every member.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import torch
+
+from relight_torch.errors import RelightError
+from relight_torch.lights.light import Light
+
+
+@runtime_checkable
+class CacheRelighter(Protocol):
+    """A relighter of one baked cache.
+
+    Attributes:
+        material_edits: whether `edit_material` changes the image without a re-bake (a
+            capability: callers test it, never the method's name).
+    """
+
+    material_edits: bool
+
+    @property
+    def lights(self) -> list[Light]:
+        """The current rig, in the order lights were added."""
+
+    def set_lights(self, lights: list[Light]) -> None:
+        """Replace the whole rig; unchanged lights keep their cached work."""
+
+    def set_light(self, light: Light) -> None:
+        """Add a light or edit one (matched by `light.path`); only what the edit touches is recomputed."""
+
+    def remove_light(self, path: str) -> None:
+        """Remove the light with prim path `path`."""
+
+    def render(self) -> torch.Tensor:
+        """(H, W, 3) linear radiance image, camera exposure applied."""
+
+    def light_group_images(self) -> dict[str, torch.Tensor]:
+        """Light group name -> (H, W, 3) image of its lights; with `emission_image()` they sum to `render()`."""
+
+    def emission_image(self) -> torch.Tensor:
+        """(H, W, 3) the surfaces' own emission, no light's."""
+
+    def edit_material(self, material_id: int, **values: object) -> None:
+        """Set UsdPreviewSurface inputs (`PreviewSurfaceParams` field names, constants) of one material.
+
+        Raises:
+            RelightError: `material_edits` is False.
+        """
+
+    def held_bytes(self) -> int:
+        """Bytes of the work kept between renders (per-light transports, images, indirect light,
+        kept grids), not counting the baked payloads loaded at open."""
+
+
+def refuse_material_edit(relighter: object) -> None:
+    """The `edit_material` of a relighter whose `material_edits` is False.
+
+    Raises:
+        RelightError: always, naming the relighter's class.
+    """
+    raise RelightError(f"{type(relighter).__name__}: this cache's method bakes the materials into its light "
+                       f"transport; re-bake after a material edit (material_edits is False)")
+
+
+def tensor_bytes(*tensors: torch.Tensor | None) -> int:
+    """Bytes of the given tensors (None counts 0)."""
+    return sum(t.numel() * t.element_size() for t in tensors if t is not None)
