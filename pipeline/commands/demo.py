@@ -29,6 +29,7 @@ from relight_torch.io.exr import write_rgb_exr
 from relight_torch.io.preview import write_png
 from relight_torch.metrics import psnr
 from relight_torch import open_cache
+from relight_torch.cache.layer import read_cache_layer
 from relight_torch.direct.relighter import shot_lights
 
 
@@ -63,9 +64,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"baked the shot cache {result.layer} ({choice.components}, {choice.bounces} bounces, {result.point}) "
           f"in {bake_seconds:.1f} s: {result.measured_db:.1f} dB against the full frame")
     relighter = open_cache(result.layer, device=args.device)
+    description = read_cache_layer(result.layer)
     rows = []
     for name, layer in edits:
-        lights = shot_lights(relighter.description, layer)
+        lights = shot_lights(description, layer)
         start = time.perf_counter()
         relighter.set_lights(lights)
         image = relighter.render()

@@ -69,7 +69,8 @@ def _disc_transport(points: torch.Tensor, normals: torch.Tensor, gathers: Gather
     Returns:
         (wi_world (N, 3) unit, the weighted mean direction to the lit part of the disc (the centre's
         where none is), weight (N,) = sum over the disc points of cos(theta_j) (A_g / P) /
-        (r_j^2 + A_g / (P pi)) V_j).
+        (r_j^2 + A_g / (P pi)) V_j cos(theta_x,j) / cos(theta_x), the receiver cosines of each point
+        and of the mean direction, so that weight * cos(theta_x) integrates the receiver's cosine too).
     """
     pattern = _disc_pattern(DISC_POINTS, points.dtype)
     normal = gathers.normal[cols]
@@ -91,10 +92,14 @@ def _disc_transport(points: torch.Tensor, normals: torch.Tensor, gathers: Gather
         blocked = _shadowed(caster, points[rows[pair]], normals[rows[pair]], wi_points[pair, point],
                             distance[pair, point])
         weight[pair[blocked], point[blocked]] = 0.0
-    centre = gathers.position[cols] - points[rows]
+    tiny = torch.finfo(points.dtype).tiny
+    cos_receiver = (wi_points * normals[rows].unsqueeze(1)).sum(-1)
     mean = (weight.unsqueeze(-1) * wi_points).sum(1)
-    mean = torch.where((weight.sum(1) > 0).unsqueeze(-1), mean, centre)
-    return mean / mean.norm(dim=-1, keepdim=True).clamp(min=torch.finfo(points.dtype).tiny), weight.sum(1)
+    mean = torch.where((weight.sum(1) > 0).unsqueeze(-1), mean, gathers.position[cols] - points[rows])
+    mean = mean / mean.norm(dim=-1, keepdim=True).clamp(min=tiny)
+    # The caller multiplies by the receiver cosine of `mean`: carry each point's own cosine instead.
+    cos_mean = (mean * normals[rows]).sum(-1).clamp(min=tiny)
+    return mean, (weight * cos_receiver).sum(1) / cos_mean
 
 
 def gather_transport(points: torch.Tensor, normals: torch.Tensor, gathers: GatherSamples,
