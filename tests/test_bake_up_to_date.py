@@ -19,7 +19,7 @@ def shot(tmp_path):
 
 def _bake(shot, out, capsys, *options) -> str:
     assert cli.main(["bake", str(shot), "--camera", SCENES["cornell_box"].camera, "--out", str(out), *SIZE,
-                     *options]) == 0
+                     "--method", "direct", *options]) == 0
     return capsys.readouterr().out
 
 

@@ -24,7 +24,7 @@ def test_direct_sized_for_a_target_meets_it_with_a_smaller_cache_than_the_defaul
     bundled = SCENES["cornell_box"]
     shot = bundled.write(tmp_path / "scene")
     assert main(["bake", str(shot), "--camera", bundled.camera, "--width", "32", "--height", "32",
-                 "--out", str(tmp_path / "sized"), "--quality", str(TARGET_DB)]) == 0
+                 "--out", str(tmp_path / "sized"), "--quality", str(TARGET_DB), "--method", "direct"]) == 0
     layer = tmp_path / "sized" / "cornell_box.relight.usda"
     description = read_cache_layer(layer)
     parameters = description.parameters

@@ -87,7 +87,7 @@ def bake(capsys, caplog):
     def run(shot: Path, out: Path) -> tuple[int, str]:
         caplog.clear()
         status = main(["bake", str(shot), "--camera", "/World/Camera", "--out", str(out), "--width", "8",
-                       "--height", "8", "--supersampling", "1", "--texture-samples", "1"])
+                       "--height", "8", "--supersampling", "1", "--texture-samples", "1", "--method", "direct"])
         warnings = [f"relight: WARNING: {r.getMessage()}" for r in caplog.records if r.levelname == "WARNING"]
         return status, "\n".join(warnings + [capsys.readouterr().err])
 

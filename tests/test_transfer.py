@@ -244,19 +244,59 @@ def _gathers(position, normal, area) -> GatherSamples:
 
 
 def test_transport_term_is_the_clamped_disc_form_factor():
-    # A receiver at the origin facing +z; gathers above it facing down, one behind a blocker.
-    gathers = _gathers([[0.0, 0, 2], [3.0, 0, 2], [0, 0, -1], [0.0, 0, 0.01]],
-                       [[0.0, 0, -1], [0, 0, -1], [0, 0, 1], [0, 0, -1]], [0.5, 0.5, 0.5, 0.5])
+    # A receiver at the origin facing +z; gathers above it facing down, one behind a blocker. Area 0.5:
+    # disc radius 0.40, so gathers beyond NEAR_RADII radii (2.4) take the clamped point term.
+    gathers = _gathers([[0.0, 0, 4], [3.0, 0, 2], [0, 0, -4], [0, 0, 8]],
+                       [[0.0, 0, -1], [0, 0, -1], [0, 0, 1], [0, 0, 1]], [0.5, 0.5, 0.5, 0.5])
     blocker = np.array([[[1.0, -1, 1], [2.0, -1, 1], [1.5, 1, 1]]], np.float32)  # crosses the ray to (3, 0, 2)
     caster = EmbreeCaster(blocker)
     wi, weight = gather_transport(torch.zeros(1, 3), torch.tensor([[0.0, 0, 1]]), gathers, caster)
     torch.testing.assert_close(wi[0, 0], torch.tensor([0.0, 0, 1]))
-    assert weight[0, 0].item() == pytest.approx(0.5 / (4 + 0.5 / math.pi), rel=1e-6)
+    assert weight[0, 0].item() == pytest.approx(0.5 / (16 + 0.5 / math.pi), rel=1e-6)
     assert weight[0, 1].item() == 0.0  # blocked
     assert weight[0, 2].item() == 0.0  # behind the receiver
-    # Close up the clamp keeps the term below the disc's form-factor bound of 1.
-    assert weight[0, 3].item() == pytest.approx(0.5 / (1e-4 + 0.5 / math.pi), rel=1e-5)
-    assert weight[0, 3].item() < math.pi
+    assert weight[0, 3].item() == 0.0  # facing away
+
+
+@pytest.mark.parametrize("height_in_radii", [0.5, 1.0, 3.0, 5.0])
+def test_near_gathers_integrate_their_disc(height_in_radii):
+    # A coaxial disc of radius R at height h over a receiver facing it: the integral of
+    # cos cos / r^2 over the disc is pi R^2 / (h^2 + R^2) (the form factor times pi). Closer than
+    # half a radius the disc's points, each with its own clamp, read low (0.54 for pi at 0.05 R):
+    # there the light concentrates within h of the axis, finer than the points.
+    area = 0.5
+    radius_squared = area / math.pi
+    height = height_in_radii * math.sqrt(radius_squared)
+    gathers = _gathers([[0.0, 0, height], [0, 0, -9], [0, 0, -9], [0, 0, -9]], [[0.0, 0, -1]] * 4, [area] * 4)
+    _, weight = gather_transport(torch.zeros(1, 3), torch.tensor([[0.0, 0, 1]]), gathers,
+                                 EmbreeCaster(np.zeros((0, 3, 3), np.float32)))
+    exact = math.pi * radius_squared / (height ** 2 + radius_squared)
+    assert weight[0, 0].item() == pytest.approx(exact, rel=0.05)
+
+
+def test_near_gathers_at_a_corner_reach_the_receiver():
+    # A receiver on a floor next to a wall, a gather on the wall just above the corner: the point
+    # term sees it edge-on at a grazing angle; integrated over its disc it carries the light the
+    # corner's form factor holds (a numerical integral over the same disc, 400 x 400 points).
+    area = 0.04
+    gathers = _gathers([[0.0, 0.15, 0.0]] + [[0.0, -9, 0]] * 3, [[1.0, 0, 0]] * 4, [area] * 4)  # wall x = 0
+    receiver = torch.tensor([[0.05, 0.0, 0.0]])
+    _, weight = gather_transport(receiver, torch.tensor([[0.0, 1.0, 0]]), gathers,
+                                 EmbreeCaster(np.zeros((0, 3, 3), np.float32)))
+    radius = math.sqrt(area / math.pi)
+    side = torch.linspace(-radius, radius, 400, dtype=torch.float64)
+    y, z = torch.meshgrid(side, side, indexing="ij")
+    inside = y ** 2 + z ** 2 <= radius ** 2
+    points = torch.stack((torch.zeros_like(y), 0.15 + y, z), -1)[inside & (0.15 + y > 0)]
+    offset = points - receiver.double()
+    distance_squared = (offset ** 2).sum(-1)
+    cos_gather = -offset[:, 0] / distance_squared.sqrt()
+    cos_receiver = offset[:, 1] / distance_squared.sqrt()
+    cell = (2 * radius / 399) ** 2
+    exact = float((cos_gather * cos_receiver / distance_squared).sum() * cell)
+    wi, _ = gather_transport(receiver, torch.tensor([[0.0, 1.0, 0]]), gathers,
+                             EmbreeCaster(np.zeros((0, 3, 3), np.float32)))
+    assert weight[0, 0].item() * wi[0, 0, 1].item() == pytest.approx(exact, rel=0.1)
 
 
 def test_gather_radiance_under_a_point_light():

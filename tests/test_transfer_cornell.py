@@ -91,7 +91,7 @@ def test_direct_caches_still_open_as_direct(tmp_path):
     path = cornell_box.write(tmp_path)
     out = tmp_path / "direct"
     assert main(["bake", str(path), "--camera", cornell_box.CAMERA, "--out", str(out), "--width", "8",
-                 "--height", "8"]) == 0
+                 "--height", "8", "--method", "direct"]) == 0
     relighter = open_cache(out / "cornell_box.relight.usda")
     assert isinstance(relighter, Relighter)
     assert relighter.supersampling == 2  # the direct method's default (transfer's is 1: below)

@@ -88,7 +88,7 @@ def pilot_size(width: int, height: int, pilot_side: int) -> tuple[int, int]:
     return max(1, round(width * scale)), max(1, round(height * scale))
 
 
-def _resized(scene: Scene, camera: Camera, width: int, height: int) -> tuple[Scene, Camera]:
+def resized(scene: Scene, camera: Camera, width: int, height: int) -> tuple[Scene, Camera]:
     """The scene and camera at another image size (cameras are looked up by path)."""
     resized = dataclasses.replace(camera, width=width, height=height)
     return dataclasses.replace(scene, cameras={**scene.cameras, camera.path: resized}), resized
@@ -110,14 +110,15 @@ def corrected_psnr(image: np.ndarray, reference: ReferenceImage) -> tuple[float,
     return psnr_from_mse(max(raw - noise, 0.1 * noise, 1e-12)), psnr_from_mse(raw)
 
 
-def reference_for(scene: Scene, camera: Camera, bounces: int, target_db: float) -> ReferenceImage:
+def reference_for(scene: Scene, camera: Camera, bounces: int, target_db: float,
+                  headroom_db: float = NOISE_HEADROOM_DB) -> ReferenceImage:
     """The path tracer's image at START_SPP, re-rendered once with more spp if its noise floor is
-    less than NOISE_HEADROOM_DB above `target_db` (at most MAX_REFERENCE_SPP)."""
+    less than `headroom_db` above `target_db` (at most MAX_REFERENCE_SPP)."""
     spp = START_SPP
     while True:
         reference = PathTracer(scene, ReferenceSettings(spp=spp, max_bounces=bounces)).render(camera)
         floor_db = psnr_from_mse(noise_mse(reference))
-        wanted = target_db + NOISE_HEADROOM_DB
+        wanted = target_db + headroom_db
         if floor_db >= wanted or spp >= MAX_REFERENCE_SPP:
             return reference
         spp = min(MAX_REFERENCE_SPP, math.ceil(spp * 10 ** ((wanted - floor_db) / 10) * 1.1))
@@ -145,7 +146,9 @@ def _variant_point(ladder_point: dict[str, object], parameters: dict[str, object
 def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, method: str, target_db: float,
                      supersampling: int = 2, texture_samples: int = 2, time_code: float | None = None,
                      fixed: dict[str, object] | None = None, pilot_side: int = 64,
-                     margin_db: float = 0.5) -> QualityResult:
+                     margin_db: float = 0.5, reference_bounces: int | None = None,
+                     ladder: list[dict[str, object]] | None = None,
+                     measure_headroom_db: float = NOISE_HEADROOM_DB) -> QualityResult:
     """Bake `method` sized to reach `target_db` PSNR on the shot (see the module doc).
 
     Args:
@@ -154,20 +157,25 @@ def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: st
         fixed: bake-point entries kept as given on every step (e.g. transfer's {'bounces': 2}).
         pilot_side: the pilot's long side in pixels.
         margin_db: added to the target for the pilot (its size differs from the full one).
+        reference_bounces: the references' indirect bounces (default: the method's own, its slice of
+            the light transport; the shot cache measures against the full frame).
+        ladder: the bake points to try, cheapest first (default: the method's registered ladder).
+        measure_headroom_db: the full-size reference's noise floor above the target (its noise is
+            subtracted from the measured error, so a lower floor costs precision, not bias).
 
     Raises:
         RelightError: the method has no ladder, or no step reaches the target.
     """
     entry = bake_method(method)
-    if not entry.ladder:
+    if ladder is None and not entry.ladder:
         raise RelightError(f"bake --quality: method {method!r} declares no sizing ladder")
     adapter = entry.adapter
     out_dir = Path(out_dir)
     pilot_dir = out_dir / f".{stem}.quality-pilot"
     width, height = pilot_size(camera.width, camera.height, pilot_side)
-    pilot_scene, pilot_camera = _resized(scene, camera, width, height)
-    ladder = [{**step, **(fixed or {})} for step in entry.ladder]
-    bounces = adapter.bounces(ladder[0])
+    pilot_scene, pilot_camera = resized(scene, camera, width, height)
+    ladder = [{**step, **(fixed or {})} for step in (entry.ladder if ladder is None else ladder)]
+    bounces = adapter.bounces(ladder[0]) if reference_bounces is None else reference_bounces
     pilot_reference = reference_for(pilot_scene, pilot_camera, bounces, target_db + margin_db)
     candidates: list[Candidate] = []
     steps = iter(enumerate(ladder))
@@ -193,7 +201,7 @@ def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: st
 
     try:
         chosen = cheapest_passing(target_db + margin_db)
-        full_reference = reference_for(scene, camera, bounces, target_db)
+        full_reference = reference_for(scene, camera, bounces, target_db, measure_headroom_db)
         for attempt in range(2):
             point = chosen.point
             ((_, measured_db, raw_db, _, layer),) = _measure(adapter, scene, camera, out_dir, stem, point,
@@ -216,12 +224,17 @@ def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: st
 
 def _record(layer: Path, point: dict[str, object], target_db: float, predicted_db: float, measured_db: float,
             raw_db: float, reference_spp: int, pilot: tuple[int, int]) -> None:
-    """Add the quality parameters to the cache layer (and re-hash them into its content hash)."""
+    """Add the quality parameters to the cache layer."""
+    add_parameters(layer, {"qualityChoice": format_params(point), "qualityTarget": float(target_db),
+                           "qualityPredicted": float(predicted_db), "qualityMeasured": float(measured_db),
+                           "qualityRawPsnr": float(raw_db), "qualityReferenceSpp": int(reference_spp),
+                           "qualityPilot": f"{pilot[0]}x{pilot[1]}"})
+
+
+def add_parameters(layer: Path, added: dict[str, object]) -> None:
+    """Add entries to a cache layer's parameters and re-hash them into its content hash."""
     description = read_cache_layer(layer)
-    parameters = {**description.parameters, "qualityChoice": format_params(point),
-                  "qualityTarget": float(target_db), "qualityPredicted": float(predicted_db),
-                  "qualityMeasured": float(measured_db), "qualityRawPsnr": float(raw_db),
-                  "qualityReferenceSpp": int(reference_spp), "qualityPilot": f"{pilot[0]}x{pilot[1]}"}
+    parameters = {**description.parameters, **added}
     write_cache_layer(layer, dataclasses.replace(
         description, parameters=parameters,
         content_hash=content_hash(description.inputs, parameters, description.code_version)))

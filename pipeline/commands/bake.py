@@ -10,6 +10,7 @@ from pipeline.bake import scheduler
 from pipeline.bake.inputs import record_request, request_digest, up_to_date
 from pipeline.bake.methods import bake_method, bake_methods
 from pipeline.bake.quality import bake_for_quality
+from pipeline.bake.shot import DEFAULT_TARGET_DB, bake_shot
 from pipeline.commands.common import add_camera_options
 from pipeline.errors import RelightError
 from pipeline.scene import find_camera, load_scene
@@ -25,8 +26,9 @@ def add_parser(subparsers) -> None:
     add_camera_options(parser)
     parser.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
     methods = bake_methods()
-    parser.add_argument("--method", default="direct", choices=list(methods),
-                        help="relighting method to bake for (default: direct)")
+    parser.add_argument("--method", choices=list(methods),
+                        help="bake one relighting method alone (default: the shot cache, whose components, "
+                             "bounces and sizes pilot bakes choose to match the full frame to --quality)")
     single = [name for name, method in methods.items() if method.default_supersampling == 1]
     parser.add_argument("--supersampling", type=int, metavar="S",
                         help=f"S x S sub-samples per pixel, shaded separately and box-filtered (default 2; 1 for "
@@ -36,9 +38,10 @@ def add_parser(subparsers) -> None:
                         help="T x T material samples per sub-sample, averaged: texture filtering (default 2)")
     parser.add_argument("--stem", help="file name stem (default: the scene file's stem)")
     parser.add_argument("--quality", type=float, metavar="PSNR",
-                        help="size the method (supersampling; gathers and coefficients; clusters and representatives) "
-                             "for this PSNR in dB against the path tracer, from pilot bakes at a small size; the "
-                             "choice and the predicted and measured PSNR go into the cache (overrides those options)")
+                        help="PSNR in dB against the path tracer that pilot bakes at a small size size the cache "
+                             f"for (the shot cache: default {DEFAULT_TARGET_DB:g} against the full frame; with "
+                             "--method: that method's sizes against its own slice, overriding their options); the "
+                             "choice and the predicted and measured PSNR go into the cache")
     parser.add_argument("--scheduler", metavar="ADDRESS",
                         help="run the bake's chunks on a Dask cluster: tcp://HOST:PORT, or 'dask' for the address "
                              "in Dask's configuration (default: this machine; see docs/DISTRIBUTED.md)")
@@ -50,8 +53,10 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.method is None and args.quality is None:
+        args.quality = DEFAULT_TARGET_DB
     if args.supersampling is None:
-        args.supersampling = bake_method(args.method).default_supersampling
+        args.supersampling = 2 if args.method is None else bake_method(args.method).default_supersampling
     if args.supersampling < 1 or args.texture_samples < 1:
         raise RelightError(f"--supersampling and --texture-samples must be >= 1, "
                            f"got {args.supersampling} and {args.texture_samples}")
@@ -81,9 +86,15 @@ def _bake(args: argparse.Namespace) -> int:
 def _bake_method(args: argparse.Namespace, stem: str) -> Path:
     """Run the bake `args` asks for; the cache layer's path."""
     start = time.perf_counter()
-    method = bake_method(args.method)
     scene = load_scene(args.scene, time=args.time, width=args.width, height=args.height)
     camera = find_camera(scene, args.camera)
+    if args.method is None:
+        choice, result = bake_shot(scene, camera, args.out, stem, args.quality, args.texture_samples, args.time)
+        print(f"{result.layer}: shot cache ({choice.components}, {choice.bounces} bounces, {result.point}) for "
+              f"{args.quality:g} dB against the full frame: pilot {result.predicted_db:.1f} dB, measured "
+              f"{result.measured_db:.1f} dB, in {time.perf_counter() - start:.1f} s")
+        return result.layer
+    method = bake_method(args.method)
     if args.quality is not None:
         result = bake_for_quality(scene, camera, args.out, stem, args.method, args.quality, args.supersampling,
                                   args.texture_samples, args.time,

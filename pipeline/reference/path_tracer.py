@@ -54,13 +54,17 @@ from relight_torch.visibility.embree import ShadowLinkCasters
 _INFINITE_KINDS = (LightKind.DOME, LightKind.DISTANT)
 
 
+FULL_FRAME_BOUNCES = 64
+"""The bounce cap of the full frame: Russian roulette (from `roulette_depth`) ends paths long before it."""
+
+
 @dataclass(frozen=True)
 class ReferenceSettings:
     """How the reference is rendered.
 
     Attributes:
         spp: samples (paths) per pixel.
-        max_bounces: indirect bounces; 0 = direct light only.
+        max_bounces: indirect bounces; 0 = direct light only; the default is the full frame.
         seed: the image is a deterministic function of the scene, camera, settings and seed
             (not of `num_workers` or the machine's thread count).
         roulette_depth: vertex index from which Russian roulette may end paths.
@@ -69,7 +73,7 @@ class ReferenceSettings:
     """
 
     spp: int = 64
-    max_bounces: int = 4
+    max_bounces: int = FULL_FRAME_BOUNCES
     seed: int = 0
     roulette_depth: int = 3
     paths_per_batch: int = 1 << 16

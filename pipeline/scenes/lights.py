@@ -9,13 +9,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pxr import Sdf, Usd
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
 from pipeline.errors import RelightError
 from pipeline.scenes.bundled import LightEdit
 from pipeline.scenes.registry import SCENES
 from relight_torch.io.atomic import write_text_atomic
 from relight_torch.schema import register_schemas
+
+
+NEW_LIGHT_PATH = "/RelightEdits/AddedSphere"
+"""The prim of the light `new_sphere_layer` adds."""
 
 
 def edit_layer_text(scene_name: str, edit: LightEdit) -> str:
@@ -58,3 +63,28 @@ def light_edit_layers(name: str, directory: str | Path) -> dict[str, Path | None
     """'shot' -> None (the shot's own lights), then each example edit's name -> its layer written
     by `write_light_edits`: the light edits every benchmark relights under."""
     return {"shot": None} | {path.name.split(".")[-2]: path for path in write_light_edits(name, directory)}
+
+
+def new_sphere_layer(scene_path: Path, camera_path: str, out: Path) -> Path:
+    """A lights layer adding a small sphere light between the camera and the scene's centre.
+
+    It sits 30 % of the way from the camera to the centre of the scene's bounds, with a radius of 2 %
+    of their diagonal and a radiance giving an irradiance of about 0.5 at the centre.
+    """
+    stage = Usd.Stage.Open(str(scene_path))
+    bounds = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"]).ComputeWorldBound(
+        stage.GetPseudoRoot()).ComputeAlignedRange()
+    centre, diagonal = np.array(bounds.GetMidpoint()), float(bounds.GetSize().GetLength())
+    camera = UsdGeom.Camera(stage.GetPrimAtPath(camera_path)).GetCamera(Usd.TimeCode.Default())
+    eye = np.array(camera.frustum.GetPosition())
+    position = eye + 0.3 * (centre - eye)
+    radius = 0.02 * diagonal
+    distance = max(float(np.linalg.norm(centre - position)), radius * 2.0)
+    layer_stage = Usd.Stage.CreateInMemory()
+    light = UsdLux.SphereLight.Define(layer_stage, NEW_LIGHT_PATH)
+    light.CreateRadiusAttr(radius)
+    light.CreateIntensityAttr(float(0.5 / (np.pi * (radius / distance) ** 2)))
+    light.CreateColorAttr(Gf.Vec3f(1.0, 0.85, 0.7))
+    UsdGeom.Xformable(light).AddTranslateOp().Set(Gf.Vec3d(*position.tolist()))
+    write_text_atomic(out, layer_stage.GetRootLayer().ExportToString())
+    return out

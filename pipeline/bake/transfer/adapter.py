@@ -28,11 +28,14 @@ def kept_counts(point: dict[str, object]) -> list[int]:
 
 
 def settings(point: dict[str, object]) -> TransferSettings:
-    """The bake settings of a point (keys gathers, coefficients, bounces), keeping the most coefficients."""
+    """The bake settings of a point (keys gathers, coefficients, bounces, bounceCoefficients), keeping the
+    most coefficients."""
     defaults = TransferSettings()
     return TransferSettings(num_gathers=int(point.get("gathers", defaults.num_gathers)),
                             num_coefficients=kept_counts(point)[-1],
-                            num_bounces=int(point.get("bounces", defaults.num_bounces)))
+                            num_bounces=int(point.get("bounces", defaults.num_bounces)),
+                            num_bounce_coefficients=int(point.get("bounceCoefficients",
+                                                                  defaults.num_bounce_coefficients)))
 
 
 class TransferAdapter:
@@ -52,6 +55,7 @@ class TransferAdapter:
 
     def bake(self, scene: Scene, camera: Camera, directory: Path, stem: str, point: dict[str, object],
              supersampling: int, texture_samples: int, time_code: float | None = None) -> Path:
+        supersampling = int(point.get("supersampling", supersampling))
         return bake_transfer(scene, camera, directory, stem, supersampling, texture_samples, time_code=time_code,
                              settings=settings(point), progress=False)
 

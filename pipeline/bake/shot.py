@@ -1,0 +1,170 @@
+"""The shot cache: the default bake, sized by measurement to relight the final frame.
+
+`relight bake SHOT --camera CAM --out DIR` without `--method` bakes what the shot needs to match the
+full-GI path tracer (every bounce) to a quality target, deciding by measurement at a pilot size:
+
+1. Components. The pilot's direct light alone (a direct bake) is compared with the pilot's full-GI
+   reference; if it already reaches the target (+ margin), the shot needs no indirect component.
+   Otherwise the indirect light comes from the transfer method (Hasan et al. 2006): the direct
+   light on diffuse gathers carried to the pixels by F (I + M + ... + M^(B-1)).
+2. Bounces. One pilot transfer bake keeps M; the series is evaluated term by term (B = 1 ... MAX_BOUNCES)
+   and stops where the bounces not yet added, estimated from the geometric decay of the last two
+   terms, would change the image by less than `BOUNCE_TAIL_FRACTION` of the target's error (MSE)
+   and its mean by less than `ENERGY_FRACTION`.
+3. Sizes. `bake_for_quality` sizes the chosen method along its ladder against the full-GI reference
+   (pilot), bakes it at full size and measures it there.
+
+The layer is that method's cache (opened by its relighter), with the shot's choice recorded in its
+parameters: shotComponents, shotBounces, shotBounceTailDb (the PSNR of the estimated rest, against
+a peak of 1) and the quality figures of `bake_for_quality`.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.bake.quality import (QualityResult, add_parameters, bake_for_quality, corrected_psnr, pilot_size,
+                                   reference_for, resized)
+from pipeline.bake.methods import bake_method
+from pipeline.bake.transfer.bake import TransferSettings
+from pipeline.reference.path_tracer import FULL_FRAME_BOUNCES
+from pipeline.scene.types import Camera, Scene
+from relight_torch.metrics import psnr_from_mse
+from relight_torch import open_cache
+
+log = logging.getLogger(__name__)
+
+MAX_BOUNCES = 24
+"""The most indirect bounces the transfer series is evaluated to."""
+BOUNCE_TAIL_FRACTION = 0.25
+"""The bounces left out may add at most this fraction of the target's MSE."""
+TRANSFER_LADDER: list[dict[str, object]] = [
+    {"supersampling": 2, "gathers": gathers, "coefficients": (50, 100, 200, 400), "bounceCoefficients": 1024}
+    for gathers in (1024, 4096, 16384)]
+"""The transfer sizes the shot tries, cheapest first. Supersampling 2: the pilot's edges alias at 1 (its pixels
+are several of the full frame's); M keeps 1,024 coefficients per row, as its few rows (one per gather) cost
+little and the chapter's 40 lose light at every bounce."""
+DEFAULT_TARGET_DB = 35.0
+MEASURE_HEADROOM_DB = 3.0
+"""The full-size check's reference noise floor above the target: full-GI references are the bake's dearest
+part, and the measured PSNR subtracts their noise (`quality.corrected_psnr`)."""
+ENERGY_FRACTION = 0.005
+"""The bounces left out may hold at most this fraction of the image's mean (the energy ratio's budget)."""
+PILOT_MARGIN_DB = 0.5
+
+
+@dataclass(frozen=True)
+class ShotChoice:
+    """What the pilot decided.
+
+    Attributes:
+        components: 'direct' or 'direct+transfer'.
+        bounces: indirect bounces kept (0 for direct alone).
+        direct_db: the pilot's direct light alone against the full-GI reference (noise-corrected).
+        tail_db: PSNR (peak 1) of the estimated change the bounces left out would make; inf when none.
+        bounce_change_db: per added bounce b = 2 ... the PSNR of the change it made.
+    """
+
+    components: str
+    bounces: int
+    direct_db: float
+    tail_db: float
+    bounce_change_db: tuple[float, ...]
+
+
+def choose_bounces(images: list[np.ndarray], target_db: float) -> tuple[int, float, tuple[float, ...]]:
+    """The fewest bounces whose left-out rest is negligible against the target.
+
+    The rest after n bounces is the difference to the last image plus, beyond it, the geometric
+    continuation of the last two terms' decay; it must stay under `BOUNCE_TAIL_FRACTION` of the
+    target's MSE and hold at most `ENERGY_FRACTION` of the image's mean.
+
+    Args:
+        images: (H, W, 3) renders with 1, 2, ..., N bounces (N >= 2).
+        target_db: the quality target (PSNR, peak 1).
+
+    Returns:
+        (bounces, PSNR (peak 1) of the estimated rest, PSNR of the change each bounce 2 ... N made).
+    """
+    budget = BOUNCE_TAIL_FRACTION * 10.0 ** (-target_db / 10.0)
+    changes = [after - before for before, after in zip(images, images[1:])]
+    rms = [float(np.sqrt(np.mean(change ** 2))) for change in changes]
+    ratio = min(rms[-1] / rms[-2], 0.99) if len(rms) > 1 and rms[-2] > 0 else 0.0
+    beyond = changes[-1] * (ratio / (1.0 - ratio))
+    change_db = tuple(psnr_from_mse(max(r * r, 1e-20)) for r in rms)
+    rests = [images[-1] - image + beyond for image in images]
+    rest_mse = [float(np.mean(rest ** 2)) for rest in rests]
+    energy = ENERGY_FRACTION * float(np.mean(images[-1] + beyond))
+    bounces = next((n for n, (mse, rest) in enumerate(zip(rest_mse, rests), start=1)
+                    if mse <= budget and float(np.mean(rest)) <= energy), len(images))
+    return bounces, psnr_from_mse(max(rest_mse[bounces - 1], 1e-20)), change_db
+
+
+def choose_components(scene: Scene, camera: Camera, work: Path, stem: str, target_db: float,
+                      texture_samples: int, time_code: float | None, pilot_side: int) -> ShotChoice:
+    """Measure the pilot: direct alone, then the transfer series bounce by bounce."""
+    width, height = pilot_size(camera.width, camera.height, pilot_side)
+    pilot_scene, pilot_camera = resized(scene, camera, width, height)
+    reference = reference_for(pilot_scene, pilot_camera, FULL_FRAME_BOUNCES, target_db + PILOT_MARGIN_DB)
+    direct_layer = bake_method("direct").bake(pilot_scene, pilot_camera, work / "direct", stem, 2, texture_samples,
+                                              time_code, None)
+    direct_db, _ = corrected_psnr(open_cache(direct_layer).render().numpy(), reference)
+    log.info("shot pilot %dx%d: direct alone %.2f dB against the full frame", width, height, direct_db)
+    if direct_db >= target_db + PILOT_MARGIN_DB:
+        return ShotChoice("direct", 0, direct_db, float("inf"), ())
+    settings = TransferSettings(num_bounces=MAX_BOUNCES, num_coefficients=200, num_bounce_coefficients=1024)
+    layer = bake_method("transfer").bake(pilot_scene, pilot_camera, work / "transfer", stem, 1, texture_samples,
+                                         time_code, settings)
+    relighter = open_cache(layer)
+    images = []
+    for bounces in range(1, MAX_BOUNCES + 1):
+        relighter.num_bounces = bounces
+        relighter.invalidate_indirect()
+        images.append(relighter.render().numpy())
+    bounces, tail_db, change_db = choose_bounces(images, target_db)
+    if bounces == MAX_BOUNCES:
+        log.warning("shot: %d bounces leave light out (the rest estimated at %.1f dB against a %g dB target)",
+                    bounces, tail_db, target_db)
+    log.info("shot pilot: %d bounces (rest estimated at %.1f dB; changes %s)", bounces, tail_db,
+             ", ".join(f"{db:.1f}" for db in change_db))
+    return ShotChoice("direct+transfer", bounces, direct_db, tail_db, change_db)
+
+
+def bake_shot(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, target_db: float = DEFAULT_TARGET_DB,
+              texture_samples: int = 2, time_code: float | None = None,
+              pilot_side: int = 64) -> tuple[ShotChoice, QualityResult]:
+    """Bake the shot cache of `scene` seen by `camera` for `target_db` against the full frame.
+
+    Returns:
+        (the pilot's choice, the sizing result of `bake_for_quality`, whose layer is the cache).
+
+    Raises:
+        RelightError: no size of the chosen method reaches the target on the pilot.
+    """
+    out_dir = Path(out_dir)
+    work = out_dir / f".{stem}.shot-pilot"
+    try:
+        choice = choose_components(scene, camera, work, stem, target_db, texture_samples, time_code, pilot_side)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    if choice.components == "direct":
+        method, fixed, ladder = "direct", None, None
+    else:
+        method, fixed, ladder = "transfer", {"bounces": choice.bounces}, TRANSFER_LADDER
+    result = bake_for_quality(scene, camera, out_dir, stem, method, target_db, 1, texture_samples, time_code,
+                              fixed=fixed, pilot_side=pilot_side, reference_bounces=FULL_FRAME_BOUNCES,
+                              ladder=ladder, measure_headroom_db=MEASURE_HEADROOM_DB)
+    _record(result.layer, choice)
+    return choice, result
+
+
+def _record(layer: Path, choice: ShotChoice) -> None:
+    """Add the shot's choice to the cache layer's parameters."""
+    add_parameters(layer, {"shotComponents": choice.components, "shotBounces": choice.bounces,
+                           "shotDirectDb": round(choice.direct_db, 2), "shotBounceTailDb": round(choice.tail_db, 2),
+                           "shotBounceChangesDb": ", ".join(f"{db:.1f}" for db in choice.bounce_change_db)})
