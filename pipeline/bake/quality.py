@@ -16,6 +16,7 @@
 4. The cache layer's parameters record the choice (the method's own parameters hold the bake
    sizes; qualityChoice all of them, relight-time ones such as the illumination cut size included)
    and: qualityTarget, qualityPredicted (pilot PSNR), qualityMeasured (full size), qualityRawPsnr,
+   qualityEnergyRatio (mean(image) / mean(reference) at full size),
    qualityReferenceSpp and qualityPilot ('WxH').
 
 PSNRs here are noise-corrected: the reference's variance (`ReferenceImage.variance`, over pixels
@@ -67,6 +68,7 @@ class QualityResult:
         point: the chosen sizes (the adapter's bake point).
         predicted_db: the pilot's PSNR of that point.
         measured_db: the full-size PSNR (noise-corrected); raw_db: without the correction.
+        energy_ratio: mean(image) / mean(reference) at full size.
         reference_spp: spp of the full-size reference.
         pilot: (width, height) of the pilot.
         candidates: every pilot measurement, in the order made.
@@ -77,6 +79,7 @@ class QualityResult:
     predicted_db: float
     measured_db: float
     raw_db: float
+    energy_ratio: float
     reference_spp: int
     pilot: tuple[int, int]
     candidates: tuple[Candidate, ...]
@@ -126,15 +129,17 @@ def reference_for(scene: Scene, camera: Camera, bounces: int, target_db: float,
 
 def _measure(adapter: MethodAdapter, scene: Scene, camera: Camera, directory: Path, stem: str,
              point: dict[str, object], reference: ReferenceImage, supersampling: int, texture_samples: int,
-             time_code: float | None) -> list[tuple[dict[str, object], float, float, float, Path]]:
-    """Bake `point` into `directory`; per variant (parameters, corrected PSNR, raw PSNR, cache bytes, layer)."""
+             time_code: float | None) -> list[tuple[dict[str, object], float, float, float, float, Path]]:
+    """Bake `point` into `directory`; per variant (parameters, corrected PSNR, raw PSNR, energy ratio
+    mean(image) / mean(reference), cache bytes, layer)."""
     directory.mkdir(parents=True, exist_ok=True)
     layer = adapter.bake(scene, camera, directory, stem, point, supersampling, texture_samples, time_code)
     out = []
     for variant in adapter.variants(layer, point, "cpu"):
         image = variant.relighter.render().cpu().numpy()
         corrected, raw = corrected_psnr(image, reference)
-        out.append((variant.parameters, corrected, raw, variant.cache_bytes, layer))
+        energy = float(image.mean() / max(float(reference.mean.mean()), 1e-12))
+        out.append((variant.parameters, corrected, raw, energy, variant.cache_bytes, layer))
     return out
 
 
@@ -192,7 +197,7 @@ def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: st
             measured = _measure(adapter, pilot_scene, pilot_camera, pilot_dir / f"step-{index}", stem,
                                 step, pilot_reference, supersampling, texture_samples, time_code)
             new = [Candidate(_variant_point(step, parameters), corrected, num_bytes)
-                   for parameters, corrected, _, num_bytes, _ in measured]
+                   for parameters, corrected, _, _, num_bytes, _ in measured]
             for candidate in new:
                 log.info("quality pilot %s: %.2f dB, %d bytes", candidate.point, candidate.psnr_db, candidate.cache_bytes)
             candidates.extend(new)
@@ -204,7 +209,7 @@ def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: st
         full_reference = reference_for(scene, camera, bounces, target_db, measure_headroom_db)
         for attempt in range(2):
             point = chosen.point
-            ((_, measured_db, raw_db, _, layer),) = _measure(adapter, scene, camera, out_dir, stem, point,
+            ((_, measured_db, raw_db, energy_ratio, _, layer),) = _measure(adapter, scene, camera, out_dir, stem, point,
                                                               full_reference, supersampling, texture_samples, time_code)
             log.info("quality: %s measured %.2f dB at full size (pilot %.2f dB)", point, measured_db, chosen.psnr_db)
             if measured_db >= target_db or attempt == 1:
@@ -217,17 +222,19 @@ def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: st
     if measured_db < target_db:
         log.warning("bake --quality %g: %s measured %.2f dB at full size after a retry", target_db, point, measured_db)
     reference_spp = round(full_reference.num_paths / (camera.width * camera.height))
-    _record(layer, point, target_db, chosen.psnr_db, measured_db, raw_db, reference_spp, (width, height))
-    return QualityResult(layer, point, chosen.psnr_db, measured_db, raw_db, reference_spp, (width, height),
-                         tuple(candidates))
+    _record(layer, point, target_db, chosen.psnr_db, measured_db, raw_db, energy_ratio, reference_spp,
+            (width, height))
+    return QualityResult(layer, point, chosen.psnr_db, measured_db, raw_db, energy_ratio, reference_spp,
+                         (width, height), tuple(candidates))
 
 
 def _record(layer: Path, point: dict[str, object], target_db: float, predicted_db: float, measured_db: float,
-            raw_db: float, reference_spp: int, pilot: tuple[int, int]) -> None:
+            raw_db: float, energy_ratio: float, reference_spp: int, pilot: tuple[int, int]) -> None:
     """Add the quality parameters to the cache layer."""
     add_parameters(layer, {"qualityChoice": format_params(point), "qualityTarget": float(target_db),
                            "qualityPredicted": float(predicted_db), "qualityMeasured": float(measured_db),
-                           "qualityRawPsnr": float(raw_db), "qualityReferenceSpp": int(reference_spp),
+                           "qualityRawPsnr": float(raw_db), "qualityEnergyRatio": round(energy_ratio, 4),
+                           "qualityReferenceSpp": int(reference_spp),
                            "qualityPilot": f"{pilot[0]}x{pilot[1]}"})
 
 

@@ -173,13 +173,13 @@ def _write(args: argparse.Namespace, rows: list[EditRow], choices: list) -> None
              "|---|---|---|---|---|---|---|"]
     lines += [f"| {r.scene} | {r.edit} | {r.psnr_db:.2f} | {r.rel_mse:.4f} | {r.energy_ratio:.3f} | "
               f"{r.indirect_rel_mse:.4f} | {r.indirect_energy_ratio:.3f} |" for r in rows]
-    lines += ["", "| scene | components | bounces | sizes | pilot dB | measured dB | bake s | cache MB |"
+    lines += ["", "| scene | components | bounces | sizes | pilot dB | measured dB | energy ratio | bake s | cache MB |"
               + (" ms per edit at {}x{} ({}) |".format(*args.timing_size, ", ".join(choices[0][5])) if args.timing_size
                  else ""),
-              "|---|---|---|---|---|---|---|---|" + ("---|" if args.timing_size else "")]
+              "|---|---|---|---|---|---|---|---|---|" + ("---|" if args.timing_size else "")]
     for name, choice, result, bake_s, num_bytes, timings in choices:
         lines.append(f"| {name} | {choice.components} | {choice.bounces} | {result.point} | {result.predicted_db:.1f} | "
-                     f"{result.measured_db:.1f} | {bake_s:.0f} | {num_bytes / 1e6:.1f} |"
+                     f"{result.measured_db:.1f} | {result.energy_ratio:.3f} | {bake_s:.0f} | {num_bytes / 1e6:.1f} |"
                      + (" " + " / ".join(f"{ms:.0f}" for ms in timings.values()) + " |" if timings else ""))
     lines += ["", f"Machine: {torch.get_num_threads()} torch threads, CPU."]
     write_text_atomic(args.out / "summary.md", "\n".join(lines) + "\n")
