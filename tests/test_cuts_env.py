@@ -1,4 +1,4 @@
-"""The cuts method in environment mode (seed 004) on the bundled dome scene, end to end: bake,
+"""The cuts method in environment mode (Cheslack-Postava et al. 2008) on the bundled dome scene, end to end: bake,
 relight from the DomeLight texture, accuracy against the path tracer (max_bounces 0), material
 edits without re-baking, light edits, and the merge's cost counters."""
 

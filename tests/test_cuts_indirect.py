@@ -1,4 +1,4 @@
-"""The cuts method's indirect mode (seed 004, one diffuse bounce from surface point lights) on the
+"""The cuts method's indirect mode (Cheslack-Postava et al. 2008, one diffuse bounce from surface point lights) on the
 Cornell box, against the path tracer's one-bounce light (max_bounces 1 minus 0)."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The light tree's post-order arithmetic, cut selection and the batched cut merge (seed 004, 3.2),
+"""The light tree's post-order arithmetic, cut selection and the batched cut merge (Cheslack-Postava et al. 2008, 3.2),
 checked against a plain Python transcription of the paper's single-traversal merge loop."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Moving-camera relighting (seed 002) end to end on the Cornell box: bake, novel views, CLI.
+"""Moving-camera relighting (Kim, Kyung & Lee 2009) end to end on the Cornell box: bake, novel views, CLI.
 
 One small multiview bake (4,000 surface samples, caching images up to 128 px) is shared by the
 module. Novel views are compared with `PathTracer(max_bounces=0)`; failing image tests write

@@ -50,7 +50,7 @@ def _params(num: int, roughness: float, metallic: float) -> PreviewSurfaceParams
 @pytest.mark.parametrize("roughness", [0.0, 0.01, 0.2])
 @pytest.mark.parametrize("cos_view", [1e-5, 1e-3, 0.1, 0.9])
 def test_bsdf_sample_weights_are_bounded(roughness, metallic, cos_view):
-    """Regression (issue 29): before the fix, weights reached 3.9e4 (plastic, roughness 0, grazing:
+    """Regression: before the fix, weights reached 3.9e4 (plastic, roughness 0, grazing:
     the starved diffuse lobe) and 870 (roughness 0.01: N.h from two formulas)."""
     num = 100_000
     generator = torch.Generator().manual_seed(int(1e6 * cos_view) + int(100 * roughness))
@@ -99,7 +99,7 @@ def test_no_pixel_exceeds_what_the_lights_deliver(lighting, tmp_path):
 
 
 def test_dome_pdf_is_exact_near_the_poles():
-    """Regression (issue 29): the lat-long density's sin(theta) came from sqrt(1 - y^2), which
+    """Regression : the lat-long density's sin(theta) came from sqrt(1 - y^2), which
     cancels in float32 near the poles (and theta from acos(y)): in the top and bottom rows the
     float32 density was off by up to 100 % (a bias of the dome's share of every estimate). Against
     the exact density of the same float32 directions (angles from the vectors in float64), it now

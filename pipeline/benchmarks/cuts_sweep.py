@@ -1,4 +1,4 @@
-"""Sweep of the cuts method (seed 004, environment mode): lights x sigma x illumination cut size.
+"""Sweep of the cuts method (Cheslack-Postava et al. 2008, environment mode): lights x sigma x illumination cut size.
 
     python -m pipeline.benchmarks.cuts_sweep [SCENE...] --width W --height H [--lights 1024 4096 ...]
         [--sigmas 1.5 2 3] [--cut-sizes 128 256 512] [--betas 1 0.5] [--mode env|indirect]
@@ -25,7 +25,7 @@ moved, turned, a material's colour, its roughness, a small object's roughness; p
 edit run first, which compiles the variants the edits use). With `--cost` (implies --timing) the bakes are timed
 round-robin instead, `--repeats` rounds of the cuts' light fully evaluated per bake, so that a
 shared machine's load changes affect every bake alike: for reading relight_ms against `merged` as the
-number of point lights grows (seed 004: the cost follows the merged cut size, not the lights).
+number of point lights grows (Cheslack-Postava et al. 2008: the cost follows the merged cut size, not the lights).
 
 With `--reuse` the caches already baked in `--out` with the same size and bake parameters are
 relit instead of baked again (bake_s NaN): for timing relighter changes at 640 x 480.

@@ -148,7 +148,7 @@ def bench_rig(shot_lights: list[Light], num_lights: int, centre: np.ndarray, dia
 
 
 PASSES = ("visibility", "shading", "masks")
-# The edit kinds of the lighting-artist table (issue 11): kind -> the row that times it.
+# The edit kinds of the lighting-artist table: kind -> the row that times it.
 EDIT_KINDS = {
     "colour": "colour edit",
     "shaping": "shaping edit (cone, focus)",

@@ -1,4 +1,4 @@
-"""The glossy scene under a textured DomeLight: environment lighting for the cuts method (seed 004).
+"""The glossy scene under a textured DomeLight: environment lighting for the cuts method (Cheslack-Postava et al. 2008).
 
 DIR/dome.usda sublayers DIR/glossy.usda (written beside it, `pipeline.scenes.glossy`), deactivates
 its Key and Spot lights and adds /World/Lights/Dome, a DomeLight with a generated lat-long HDR

@@ -319,7 +319,7 @@ def lobe_probabilities(params: PreviewSurfaceParams, wo_local: torch.Tensor) -> 
     scaled by 1 - F(E.h), which stays near 1 - F0 for most light directions however grazing the
     view. With 1 - F(N.E), which vanishes as N.E -> 0, a grazing view (a silhouette, a normal-mapped
     point) sampled the diffuse lobe with probability ~5 N.E while the glossy lobe's density did not
-    cover it, so a diffuse sample weighed ~1 / (5 N.E): 1600 at N.E = 1e-4 (issue 29's fireflies).
+    cover it, so a diffuse sample weighed ~1 / (5 N.E): 1600 at N.E = 1e-4 (the reference's fireflies).
     Now a diffuse sample's weight f cos / pdf is at most the sum of the three estimates (< 3).
     """
     cos_o = wo_local[..., 2]

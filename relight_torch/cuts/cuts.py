@@ -1,4 +1,4 @@
-"""Cuts through the light tree as sorted sparse vectors, and how seed 004 selects them.
+"""Cuts through the light tree as sorted sparse vectors, and how Cheslack-Postava et al. 2008 select them.
 
 A cut is a set of tree nodes partitioning the leaves; it stores each node's post-order index
 (ascending: left to right) and the mean of a function over the node's leaves. `Cuts` holds B cuts
@@ -72,7 +72,7 @@ def variance_cut_mask(tree: LightTree, variances: torch.Tensor, sigma: float) ->
 
     Args:
         variances: (B, 2L - 1) per-node variance of the function over the node's leaves.
-        sigma: the error threshold (seed 004: 1.5 to 3).
+        sigma: the error threshold (Cheslack-Postava et al. 2008: 1.5 to 3).
 
     Returns:
         (B, 2L - 1) bool: True on the cut's nodes.
@@ -101,7 +101,7 @@ def intensity_cut(tree: LightTree, intensity: torch.Tensor, max_size: int) -> to
 
     Args:
         intensity: (2L - 1,) non-negative intensity of each node (e.g. the summed luminance).
-        max_size: the largest cut (seed 004: 128 to 512); capped by the number of leaves.
+        max_size: the largest cut (Cheslack-Postava et al. 2008: 128 to 512); capped by the number of leaves.
 
     Returns:
         (K,) int64 node indices, ascending, K <= max_size.

@@ -1,4 +1,4 @@
-"""Relighting with seed 004's nonlinear cut approximation: precomputed visibility cuts merged per
+"""Relighting with Cheslack-Postava et al. 2008's nonlinear cut approximation: precomputed visibility cuts merged per
 pixel with a per-frame illumination cut, the BRDF evaluated per merged cluster so materials stay
 editable.
 
@@ -76,7 +76,7 @@ class CutsRelightSettings:
     """Per-frame settings.
 
     Attributes:
-        max_cut: illumination cut size (seed 004: 128, 256 or 512).
+        max_cut: illumination cut size (Cheslack-Postava et al. 2008: 128, 256 or 512).
         rows_per_batch: sub-samples shaded together, their merged visibility cuts kept padded to
             the batch's longest row (bounds the temporaries' memory; larger batches make fewer,
             larger torch calls per frame: a 640 x 480 dome turn ~20 % faster at 16,384 than at
@@ -196,7 +196,7 @@ class CutsRelighter:
     """Light by cuts plus the direct relighter, on one deep framebuffer.
 
     Environment mode: dome lights by cuts, every other light by the direct relighter. Indirect
-    mode: every light direct, plus its one-bounce indirect light by cuts (seed 004's second mode):
+    mode: every light direct, plus its one-bounce indirect light by cuts (Cheslack-Postava et al. 2008's second mode):
     the leaves are surface points lit with `relight_torch.indirect_samples.gather_radiance` (the
     direct relighter's light kernels and visibility), re-emitting diffusely; their solid angle is
     folded into the visibility cuts (`pipeline.bake.cuts.visibility`) and a merged cluster is

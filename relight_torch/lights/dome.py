@@ -126,7 +126,7 @@ class DomeSampler:
         height, width = self.pdf_uv.shape
         col = (u * width).long().clamp(0, width - 1)
         row = (v_from_top * height).long().clamp(0, height - 1)
-        # |(x, z)|, not sqrt(1 - y^2), which cancels near the poles in float32 (issue 29: the
+        # |(x, z)|, not sqrt(1 - y^2), which cancels near the poles in float32 (the
         # sin(theta) Jacobian off by up to 2x in the top and bottom rows).
         sin_theta = torch.hypot(directions_lookup[..., 0], directions_lookup[..., 2])
         density = self.pdf_uv[row, col] / (2.0 * math.pi**2 * sin_theta.clamp_min(torch.finfo(sin_theta.dtype).tiny))

@@ -190,7 +190,7 @@ def half_cosines(wo_local: torch.Tensor, wi_local: torch.Tensor) -> tuple[torch.
     ~0.03 (a^2 < 1e-6) D changes by orders of magnitude between neighbouring float32 values of N.h
     near 1 (1 - N.h is resolved to 6e-8, sin^2 to 1.2e-7), so a value and its pdf computed by two
     formulas for h (a division by the norm and F.normalize differ by an ulp) gave weights f cos / pdf
-    of several hundred at roughness 0.01 (issue 29); from one formula their D cancel exactly.
+    of several hundred at roughness 0.01; from one formula their D cancel exactly.
 
     Args:
         wo_local, wi_local: (..., 3) unit directions.

@@ -1,4 +1,4 @@
-"""Relighting with a moving camera (Kim, Kyung & Lee 2009, seed 002).
+"""Relighting with a moving camera (Kim, Kyung & Lee 2009).
 
 A 'multiview' cache holds the deep framebuffers of several caching cameras. For a new view the
 visible points (found by the caller, e.g. Embree primary rays in `pipeline.bake.multiview.view`)

@@ -1,4 +1,4 @@
-"""Direct-to-indirect transfer (Hasan, Pellacini & Bala 2006; GPU Gems 3 ch. 9, seed 001).
+"""Direct-to-indirect transfer (Hasan, Pellacini & Bala 2006; GPU Gems 3 ch. 9).
 
     v = v_d + F (I + M + M^2 + ... + M^(B-1)) g_d
 

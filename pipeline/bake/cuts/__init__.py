@@ -1,1 +1,1 @@
-"""`relight bake --method cuts`: light points, light tree and per-vertex visibility cuts (seed 004)."""
+"""`relight bake --method cuts`: light points, light tree and per-vertex visibility cuts (Cheslack-Postava et al. 2008)."""

@@ -1,4 +1,4 @@
-"""Bench adapter of the cuts method (seed 004, environment mode): lights x sigma, cut sizes per bake.
+"""Bench adapter of the cuts method (Cheslack-Postava et al. 2008, environment mode): lights x sigma, cut sizes per bake.
 
 Dome lights are relit by cuts, every other light by the direct relighter: on a scene without a
 dome the rows measure the direct part alone (the `dome` bundled scene is the one this method is for).
@@ -15,7 +15,7 @@ from relight_torch.cuts.open import open_cuts_relighter
 from relight_torch.cuts.relighter import CutsRelightSettings
 
 CUT_SIZES = (128, 256, 512)
-"""Illumination cut sizes relit from every bake (seed 004's three)."""
+"""Illumination cut sizes relit from every bake (Cheslack-Postava et al. 2008's three)."""
 
 
 def settings(point: dict[str, object]) -> CutsSettings:

@@ -1,4 +1,4 @@
-"""`relight bake --method cuts`: the direct cache plus seed 004's light tree and visibility cuts.
+"""`relight bake --method cuts`: the direct cache plus Cheslack-Postava et al. 2008's light tree and visibility cuts.
 
 Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct.bake`), the leaf lights
 in tree order (post-order leaves left to right):
@@ -48,8 +48,8 @@ class CutsSettings:
         lattice_edge: longest lattice edge wanted, as a fraction of the scene's bounding-box diagonal.
         lattice_max: most subdivisions per triangle side.
         vertices_per_chunk: lattice vertices per scheduler chunk (memory ~ 100 B x L per vertex).
-        tree_k: K of the geometric tree metric (seed 004, eq. 10; indirect mode).
-        beta: the data-driven tree's blend of geometric and pilot-visibility distances (seed 004,
+        tree_k: K of the geometric tree metric (Cheslack-Postava et al. 2008, eq. 10; indirect mode).
+        beta: the data-driven tree's blend of geometric and pilot-visibility distances (Cheslack-Postava et al. 2008,
             eq. 12: 0.4 to 0.5); 1 builds the purely geometric tree.
         pilot_vertices: M, vertices whose visibility of every light drives the data-driven tree.
     """

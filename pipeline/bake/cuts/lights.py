@@ -1,4 +1,4 @@
-"""The point lights of seed 004: directions on the sphere (environment mode) or surface points
+"""The point lights of Cheslack-Postava et al. 2008: directions on the sphere (environment mode) or surface points
 (indirect mode).
 
 The paper places random points and relaxes them by repulsion; the spherical Fibonacci lattice is

@@ -1,4 +1,4 @@
-"""Top-down construction of seed 004's light tree (section 3.4), as a leaf order.
+"""Top-down construction of Cheslack-Postava et al. 2008's light tree (section 3.4), as a leaf order.
 
 Every node's lights are split in two equal halves: two cluster centres are chosen, the lights
 sorted by d(s, c1) - d(s, c2) and cut in the middle; recursively, to single lights. The distance

@@ -1,4 +1,4 @@
-"""Visibility cuts per lattice vertex (seed 004, section 3.2), computed in scheduler chunks.
+"""Visibility cuts per lattice vertex (Cheslack-Postava et al. 2008, section 3.2), computed in scheduler chunks.
 
 Per vertex: one shadow ray (Embree) towards every leaf light above the vertex's geometric
 horizon (below it the visibility is 0: the surface itself hides those lights; an indirect-mode
@@ -7,7 +7,7 @@ and variances, and cut from the root down to the nodes with |C| var <= sigma^2
 (`relight_torch.cuts.cuts.variance_cut_mask`). A chunk stores each vertex's cut size, its nodes
 (ascending) and their means.
 
-Env: the function is the binary visibility, means quantised to 8 bits. Indirect: as in seed 004
+Env: the function is the binary visibility, means quantised to 8 bits. Indirect: as in Cheslack-Postava et al. 2008
 the geometry term is folded in: the function is V G, G = A cos_leaf / max(d^2, A / 2 pi) the solid
 angle of the leaf's patch seen from the vertex (the bound: at most a hemisphere), scaled by
 L / (2 pi) (`relight_torch.cuts.cuts.INDIRECT_SCALE`) so that sigma keeps its meaning (a vertex
@@ -88,7 +88,7 @@ def cuts_setup(shot: ShotSpec, parameters: tuple[tuple[str, object], ...]) -> Cu
 
 
 def pilot_visibility(tracer: Tracer, lattice: Lattice, leaves: dict[str, np.ndarray], num_pilots: int) -> np.ndarray:
-    """(L, M) the light visibility vectors of seed 004's data-driven tree: each light's visibility
+    """(L, M) the light visibility vectors of Cheslack-Postava et al. 2008's data-driven tree: each light's visibility
     from M pilot vertices, evenly spaced through the lattice (the paper averages M vertex clusters;
     a spaced subset is the simplest subsample of the full vector)."""
     pilots = np.unique(np.linspace(0, lattice.num_vertices - 1, min(num_pilots, lattice.num_vertices)).astype(np.int64))
@@ -96,7 +96,7 @@ def pilot_visibility(tracer: Tracer, lattice: Lattice, leaves: dict[str, np.ndar
 
 
 def data_driven_features(geometric: np.ndarray, visibility: np.ndarray, beta: float) -> np.ndarray:
-    """Features whose squared distance is seed 004's blend (1 - beta) d_v + beta d_g (eq. 12).
+    """Features whose squared distance is Cheslack-Postava et al. 2008's blend (1 - beta) d_v + beta d_g (eq. 12).
 
     The paper scales d_v by (K^2 + 1) A^2 / M to bring it near d_g; here both parts are scaled
     to unit total variance over the lights instead, which does that normalisation exactly.

@@ -1,4 +1,4 @@
-"""Bench adapter of the multiview method (seed 002): coverage threshold x caching resolution.
+"""Bench adapter of the multiview method (Kim, Kyung & Lee 2009): coverage threshold x caching resolution.
 
 The bench renders at the shot camera, so the relighter measured is the multiview cache seen from
 the camera it was baked with: the correspondence map against the caching cameras, not the shot
