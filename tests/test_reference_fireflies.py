@@ -99,7 +99,7 @@ def test_no_pixel_exceeds_what_the_lights_deliver(lighting, tmp_path):
 
 
 def test_dome_pdf_is_exact_near_the_poles():
-    """Regression : the lat-long density's sin(theta) came from sqrt(1 - y^2), which
+    """Regression: the lat-long density's sin(theta) came from sqrt(1 - y^2), which
     cancels in float32 near the poles (and theta from acos(y)): in the top and bottom rows the
     float32 density was off by up to 100 % (a bias of the dome's share of every estimate). Against
     the exact density of the same float32 directions (angles from the vectors in float64), it now
