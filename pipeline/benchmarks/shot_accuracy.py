@@ -1,7 +1,7 @@
 """The shot cache against the full frame: accuracy per light edit, and edit timings.
 
     python -m pipeline.benchmarks.shot_accuracy SCENE [SCENE ...] --width 320 --height 240 --spp 1024 \
-        [--quality 35] [--timing-size 640 480] [--repeats 7] --out docs/bench/shot
+        [--quality 35] [--timing-size 640 480] [--repeats 7] --out docs/bench/shot [--work DIR]
 
 Per bundled scene: the default bake (`pipeline.bake.shot.bake_shot`) at the given size, then per light
 edit (the shot, the scene's example edits and a new sphere light) the relit frame against
@@ -17,16 +17,17 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import datetime
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from pipeline.bake.shot import DEFAULT_TARGET_DB, bake_shot
 from pipeline.bake.adapter import cache_bytes
 from pipeline.bake.methods import bake_method
-from pipeline.benchmarks.bench.measure import moved
+from pipeline.benchmarks.bench.measure import machine_description, moved
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
@@ -127,8 +128,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timing-size", type=int, nargs=2, metavar=("W", "H"))
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--work", type=Path, help="where bakes and references go, kept between runs "
+                                                 "(default: a temporary directory, removed)")
     args = parser.parse_args(argv)
-    work = args.out / "work"
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.work is None:
+        with tempfile.TemporaryDirectory() as work:
+            return _run(args, Path(work))
+    return _run(args, args.work)
+
+
+def _run(args: argparse.Namespace, work: Path) -> int:
+    """Measure every scene of `args` with its bakes and references in `work`; write the tables."""
     work.mkdir(parents=True, exist_ok=True)
     rows, choices = [], []
     for name in args.scenes:
@@ -181,7 +192,7 @@ def _write(args: argparse.Namespace, rows: list[EditRow], choices: list) -> None
         lines.append(f"| {name} | {choice.components} | {choice.bounces} | {result.point} | {result.predicted_db:.1f} | "
                      f"{result.measured_db:.1f} | {result.energy_ratio:.3f} | {bake_s:.0f} | {num_bytes / 1e6:.1f} |"
                      + (" " + " / ".join(f"{ms:.0f}" for ms in timings.values()) + " |" if timings else ""))
-    lines += ["", f"Machine: {torch.get_num_threads()} torch threads, CPU."]
+    lines += ["", f"Machine: {machine_description()}; {datetime.date.today().isoformat()}."]
     write_text_atomic(args.out / "summary.md", "\n".join(lines) + "\n")
 
 

@@ -10,6 +10,8 @@ lights; the other edits' rows carry the same time (one relighter, one rig size).
 from __future__ import annotations
 
 import dataclasses
+import os
+import platform
 import time
 from pathlib import Path
 
@@ -53,6 +55,18 @@ def relight_ms(relighter, repeats: int = 5, device: str = "cpu", part: str = "re
     seconds = median_seconds(edit_and_render, repeats)
     relighter.set_lights(lights)
     return 1e3 * seconds
+
+
+def machine_description() -> str:
+    """'<CPU model>, N CPUs, T torch threads' (plus the CUDA device when there is one): what a table was measured on."""
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as handle:
+            model = next((line.split(":", 1)[1].strip() for line in handle if line.startswith("model name")), model)
+    except OSError:
+        pass
+    cuda = f", {device_name('cuda:0')}" if torch.cuda.is_available() else ""
+    return f"{model}, {os.cpu_count()} CPUs, {torch.get_num_threads()} torch threads{cuda}"
 
 
 def device_name(device: str) -> str:
