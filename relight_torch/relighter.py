@@ -499,8 +499,9 @@ class Relighter:
         n = self.gbuffer.num_samples if points is None else points.shape[0]
         step = max(1, min(self.settings.chunk_samples // num_samples, -(-n // pieces)))
         if points is not None:
-            return [points[i:i + step] for i in range(0, n, step)]
-        return [slice(i, min(i + step, n)) for i in range(0, n, step)]
+            return [points[i:i + step] for i in range(0, n, step)] or [points]
+        # No covered point (a camera that sees only sky) is one empty chunk: an empty transport.
+        return [slice(i, min(i + step, n)) for i in range(0, n, step)] or [slice(0, 0)]
 
     def _sample_groups(self, light: Light) -> list[tuple[torch.Tensor | None, int]]:
         """(points or None for all, samples per point) of each group the light's transport is
