@@ -13,6 +13,7 @@ from pipeline.bake.multiview.frames import render_frames
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.exr import exr_layer_names, write_rgb_exr
 from relight_torch.io.preview import write_png
+from relight_torch.relighter import MEMORY_BUDGET_FRACTION, RelightSettings
 from relight_torch.transfer.open import open_cache_relighter
 
 
@@ -31,6 +32,10 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--png", metavar="OUT.png", help="also write an 8-bit sRGB preview")
     parser.add_argument("--shadows", default="embree", choices=("embree", "shadowmaps"),
                         help="exact Embree shadow rays (CPU) or torch shadow maps (default: embree)")
+    parser.add_argument("--memory-budget", type=float, metavar="GB",
+                        help="memory the relighter's per-light caches may keep, in GB (default: "
+                             f"{MEMORY_BUDGET_FRACTION:.3g} of this machine's memory); less keeps fewer lights' "
+                             "transports and unit images in half precision")
     parser.add_argument("--aov", action="append", default=[], choices=("lightgroups",),
                         help="extra EXR layers: 'lightgroups' (one per light group)")
     view = parser.add_argument_group("moving camera (multiview caches)")
@@ -55,7 +60,8 @@ def run(args: argparse.Namespace) -> int:
     if args.camera:
         raise RelightError(f"--camera: {args.cache} is a {method!r} cache, baked for its camera only; bake it "
                            f"with --method multiview to move the camera")
-    relighter = open_cache_relighter(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
+    relighter = open_cache_relighter(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights,
+                                     settings=relight_settings(args))
     image = relighter.render().cpu().numpy()
     write_rgb_exr(args.out, image, light_group_layers(relighter) if "lightgroups" in args.aov else None)
     if args.png:
@@ -67,13 +73,27 @@ def run(args: argparse.Namespace) -> int:
 
 def run_views(args: argparse.Namespace, start: float) -> int:
     """`relight render` of a multiview cache: one frame per --time from --camera (or the cache's camera)."""
-    relighter = open_cache_relighter(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
+    relighter = open_cache_relighter(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights,
+                                     settings=relight_settings(args))
     width, height = relighter.description.resolution
     render_frames(relighter, args.camera or relighter.description.camera_path, args.time or [None], args.out,
                   args.width or width, args.height or height, args.lights, args.png, args.fill_holes,
                   light_group_layers if "lightgroups" in args.aov else None)
     print(f"{time.perf_counter() - start:.2f} s including load")
     return 0
+
+
+def relight_settings(args: argparse.Namespace) -> RelightSettings:
+    """The relighter's settings from --memory-budget (GB).
+
+    Raises:
+        RelightError: a negative budget.
+    """
+    if args.memory_budget is None:
+        return RelightSettings()
+    if args.memory_budget < 0:
+        raise RelightError(f"--memory-budget must be >= 0 GB, got {args.memory_budget}")
+    return RelightSettings(memory_budget=int(args.memory_budget * 1e9))
 
 
 def light_group_layers(relighter) -> dict[str, np.ndarray]:
