@@ -567,9 +567,7 @@ class Relighter:
         one transport per sample group (`_sample_groups`)."""
         if state.transports is not None:
             return state.transports
-        light = dataclasses.replace(unit_light(state.light), shaping=None, barzel=None)
-        if light.shadow_link is not None and not isinstance(self.visibility, RayVisibility):
-            raise ValueError(f"{light.path}: shadow linking needs Embree shadow rays (shadows='embree')")
+        light = self._transport_light(state)
         state.transports = []
         # Tiles of points on threads of their own on the CPU (`relight_torch.parallel`).
         threads = tile_threads(self.gbuffer.device, self.visibility.thread_safe)
@@ -583,6 +581,13 @@ class Relighter:
         state.images = None
         self.counters["visibility"] += 1
         return state.transports
+
+    def _transport_light(self, state: _LightState) -> Light:
+        """The unshaped unit light whose transport is cached (shaping and colour apply later)."""
+        light = dataclasses.replace(unit_light(state.light), shaping=None, barzel=None)
+        if light.shadow_link is not None and not isinstance(self.visibility, RayVisibility):
+            raise ValueError(f"{light.path}: shadow linking needs Embree shadow rays (shadows='embree')")
+        return light
 
     def _view_directions(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(N, 3) unit world directions E to the viewer, (N,) N.E and (N,) 1 / |N| of the shading
@@ -792,9 +797,7 @@ class Relighter:
         """The light's unit images (2, N, 3) made tile by tile, each tile's transport dropped once
         shaded: what a light costs when its transport does not fit the budget (a later shaping
         edit traces it again). The same numbers as `_transports` then `_images`."""
-        light = dataclasses.replace(unit_light(state.light), shaping=None, barzel=None)
-        if light.shadow_link is not None and not isinstance(self.visibility, RayVisibility):
-            raise ValueError(f"{light.path}: shadow linking needs Embree shadow rays (shadows='embree')")
+        light = self._transport_light(state)
         g = self.gbuffer
         images = g.position.new_zeros(2, g.num_samples, 3)
         sums = None

@@ -10,6 +10,7 @@ Shares the Cornell-box bake and lights of tests/test_relighter_cache_counters.py
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import pytest
 import torch
@@ -19,7 +20,7 @@ from pipeline.bake.direct import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.io.exr import read_exr
-from relight_torch.relighter import Relighter, RelightSettings
+from relight_torch.relighter import MEMORY_BUDGET_FRACTION, Relighter, RelightSettings, default_memory_budget
 from tests.test_relighter_cache_counters import SETTINGS, assert_same_image, baked, low_rect, moved, spot  # noqa: F401
 
 FILTERED = dataclasses.replace(SETTINGS, shadow_filter_radius=1)  # the rect light's visibility filtered
@@ -113,3 +114,10 @@ def test_render_memory_budget_option(tmp_path, capsys):
     assert abs(a - b).max() <= 2e-3 * abs(a).max()
     assert cli.main(["render", str(layer), "-o", str(small), "--memory-budget", "-1"]) == 2
     assert "--memory-budget" in capsys.readouterr().err
+
+
+def test_default_budget_is_a_share_of_the_machine(baked):
+    physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    assert _relighter(baked, None).memory_budget == default_memory_budget() == int(MEMORY_BUDGET_FRACTION * physical)
+    with pytest.raises(ValueError, match="memory_budget"):
+        _relighter(baked, -1)
