@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -169,7 +170,8 @@ def _filter_materials(scene: Scene, tracer: Tracer, tangents: np.ndarray, camera
     counts = np.maximum(counts, 1.0)
 
     def average(fine_values: np.ndarray, centre_values: np.ndarray) -> np.ndarray:
-        flat = fine_values[same].reshape(owner.size, -1).astype(np.float64)
+        # Channels from the centre's shape: with no fine hit (a chunk of sky) -1 has nothing to divide.
+        flat = fine_values[same].reshape(owner.size, math.prod(centre_values.shape[1:])).astype(np.float64)
         sums = np.stack([np.bincount(owner, flat[:, c], pixel_index.size) for c in range(flat.shape[1])], -1)
         mean = (sums / counts[:, None]).reshape(centre_values.shape).astype(np.float32)
         has = np.bincount(owner, minlength=pixel_index.size) > 0

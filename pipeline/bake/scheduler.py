@@ -194,10 +194,12 @@ def chunk_threads() -> int:
 
 
 def chunk_ranges(total: int, size: int) -> list[tuple[int, int]]:
-    """[(start, stop)] cutting range(total) into pieces of `size` (the last may be shorter)."""
+    """[(start, stop)] cutting range(total) into pieces of `size` (the last may be shorter); one
+    empty chunk when `total` is 0 (a camera that sees only sky), so that the joined result of the
+    chunks has its usual arrays, empty, rather than none."""
     if size < 1:
         raise ValueError(f"chunk size must be >= 1, got {size}")
-    return [(start, min(start + size, total)) for start in range(0, total, size)]
+    return [(start, min(start + size, total)) for start in range(0, total, size)] or [(0, 0)]
 
 
 def per_process(function: Callable) -> Callable:

@@ -14,6 +14,7 @@ from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.exr import exr_layer_names, write_rgb_exr
 from relight_torch.io.preview import write_png
 from relight_torch import open_cache
+from relight_torch.direct.relighter import MEMORY_BUDGET_FRACTION, RelightSettings
 
 
 def add_parser(subparsers) -> None:
@@ -31,6 +32,10 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--png", metavar="OUT.png", help="also write an 8-bit sRGB preview")
     parser.add_argument("--shadows", default="embree", choices=("embree", "shadowmaps"),
                         help="exact Embree shadow rays (CPU) or torch shadow maps (default: embree)")
+    parser.add_argument("--memory-budget", type=float, metavar="GB",
+                        help="memory the relighter's per-light caches may keep, in GB (default: "
+                             f"{MEMORY_BUDGET_FRACTION:.3g} of this machine's memory); less keeps fewer lights' "
+                             "transports and unit images in half precision")
     parser.add_argument("--aov", action="append", default=[], choices=("lightgroups",),
                         help="extra EXR layers: 'lightgroups' (one per light group)")
     moving = ", ".join(name for name, method in bake_methods().items() if method.render_views is not None)
@@ -57,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
         moving = " or ".join(f"--method {name}" for name, other in bake_methods().items() if other.render_views)
         raise RelightError(f"--camera: {args.cache} is a {method.name!r} cache, baked for its camera only; bake it "
                            f"with {moving} to move the camera")
-    relighter = open_cache(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
+    relighter = open_cache(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights,
+                         settings=relight_settings(args))
     image = relighter.render().cpu().numpy()
     write_rgb_exr(args.out, image, light_group_layers(relighter) if "lightgroups" in args.aov else None)
     if args.png:
@@ -70,10 +76,24 @@ def run(args: argparse.Namespace) -> int:
 def run_views(args: argparse.Namespace, start: float, render_views) -> int:
     """`relight render` of a cache whose relighter needs a view: its method's `render_views` writes
     one frame per --time from --camera (or the cache's camera)."""
-    relighter = open_cache(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights)
+    relighter = open_cache(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights,
+                           settings=relight_settings(args))
     render_views(relighter, args, light_group_layers if "lightgroups" in args.aov else None)
     print(f"{time.perf_counter() - start:.2f} s including load")
     return 0
+
+
+def relight_settings(args: argparse.Namespace) -> RelightSettings:
+    """The relighter's settings from --memory-budget (GB).
+
+    Raises:
+        RelightError: a negative budget.
+    """
+    if args.memory_budget is None:
+        return RelightSettings()
+    if args.memory_budget < 0:
+        raise RelightError(f"--memory-budget must be >= 0 GB, got {args.memory_budget}")
+    return RelightSettings(memory_budget=int(args.memory_budget * 1e9))
 
 
 def light_group_layers(relighter) -> dict[str, np.ndarray]:

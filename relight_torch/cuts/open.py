@@ -56,7 +56,7 @@ def open_cuts_relighter(path: str | os.PathLike, device: str | torch.device = "c
         visibility.check(tree)
         cuts = CutsCache(tree, visibility, load("cutsSampleVertices", torch.int64), load("cutsSampleWeights", dtype),
                          **leaves)
-        if int(cuts.sample_vertices.max()) >= visibility.num_cuts:
+        if cuts.sample_vertices.numel() and int(cuts.sample_vertices.max()) >= visibility.num_cuts:
             raise ValueError("a sub-sample names a lattice vertex without a cut")
         return CutsRelighter(direct, cuts, cuts_settings)
     except ValueError as error:

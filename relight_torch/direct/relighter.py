@@ -113,6 +113,13 @@ class RelightSettings:
             (`preview_surface.glossy`) keep `area_samples`: the filter denoises the diffuse term
             only, not highlights (the set at 640x480, against 64 samples: 1 filtered at matte
             points and 16 at glossy ones 38.5 dB, 1 everywhere 34.8, 16 unfiltered 37.9).
+        memory_budget: bytes the per-light caches (transports and unit images, `cache_bytes`)
+            may hold between renders; None: MEMORY_BUDGET_FRACTION of the machine's memory
+            (`default_memory_budget`). Over it, the relighter drops the transports of the lights
+            edited longest ago (a later shaping edit of one traces it again), makes a light's
+            images tile by tile without keeping its transport when that would not fit, and then
+            keeps unit images in half precision (a relative rounding of 2^-11, far below the
+            light samples' noise). The G-buffer, the BVH and one frame's temporaries are outside it.
     """
 
     area_samples: int = 16
@@ -126,6 +133,17 @@ class RelightSettings:
     shadow_map_march_steps: int = 16
     shadow_filter_radius: int | None = None
     filtered_area_samples: int = 1
+    memory_budget: int | None = None
+
+
+MEMORY_BUDGET_FRACTION = 1 / 8
+"""Share of the machine's physical memory the per-light caches get by default: on a 24 GB machine
+3 GB, which leaves the rest of an 8 GB relighter for the G-buffer and a frame at 1920x1080."""
+
+
+def default_memory_budget() -> int:
+    """MEMORY_BUDGET_FRACTION of this machine's physical memory, in bytes."""
+    return int(MEMORY_BUDGET_FRACTION * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
 
 
 AUTO_FILTER_MIN_PIXELS = 240
@@ -287,6 +305,7 @@ class _LightState:
     shading_key: tuple
     transports: list[_Transport] | None = None  # one per sample group (`Relighter._sample_groups`)
     images: torch.Tensor | None = None  # (2, N, 3) diffuse and specular unit images
+    edited: int = 0  # when it was last set (`Relighter._edits`): the budget drops the oldest first
 
 
 class Relighter:
@@ -344,6 +363,11 @@ class Relighter:
         self._active: str | None = None
         self._others: torch.Tensor | None = None
         self._surface_filter: SurfaceFilter | None = None
+        self.memory_budget = default_memory_budget() if settings.memory_budget is None else settings.memory_budget
+        if self.memory_budget < 0:
+            raise ValueError(f"memory_budget must be >= 0 bytes, got {self.memory_budget}")
+        self._half_images = False  # set once the budget asks for half-precision unit images
+        self._edits = 0  # counts set_light calls: each light's last one orders what the budget drops
 
     # -- lights ---------------------------------------------------------------------------------
 
@@ -365,6 +389,8 @@ class Relighter:
         elif state.shading_key != shading_key:
             state.images, state.shading_key = None, shading_key
         state.light = light
+        self._edits += 1
+        state.edited = self._edits
         self._lights[light.path] = state
         if light.path != self._active:
             self._active, self._others = light.path, None
@@ -510,8 +536,9 @@ class Relighter:
         n = self.gbuffer.num_samples if points is None else points.shape[0]
         step = max(1, min(self.settings.chunk_samples // num_samples, -(-n // pieces)))
         if points is not None:
-            return [points[i:i + step] for i in range(0, n, step)]
-        return [slice(i, min(i + step, n)) for i in range(0, n, step)]
+            return [points[i:i + step] for i in range(0, n, step)] or [points]
+        # No covered point (a camera that sees only sky) is one empty chunk: an empty transport.
+        return [slice(i, min(i + step, n)) for i in range(0, n, step)] or [slice(0, 0)]
 
     def _sample_groups(self, light: Light) -> list[tuple[torch.Tensor | None, int]]:
         """(points or None for all, samples per point) of each group the light's transport is
@@ -551,9 +578,7 @@ class Relighter:
         one transport per sample group (`_sample_groups`)."""
         if state.transports is not None:
             return state.transports
-        light = dataclasses.replace(unit_light(state.light), shaping=None, barzel=None)
-        if light.shadow_link is not None and not isinstance(self.visibility, RayVisibility):
-            raise ValueError(f"{light.path}: shadow linking needs Embree shadow rays (shadows='embree')")
+        light = self._transport_light(state)
         state.transports = []
         # Tiles of points on threads of their own on the CPU (`relight_torch.parallel`).
         threads = tile_threads(self.gbuffer.device, self.visibility.thread_safe)
@@ -567,6 +592,13 @@ class Relighter:
         state.images = None
         self.counters["visibility"] += 1
         return state.transports
+
+    def _transport_light(self, state: _LightState) -> Light:
+        """The unshaped unit light whose transport is cached (shaping and colour apply later)."""
+        light = dataclasses.replace(unit_light(state.light), shaping=None, barzel=None)
+        if light.shadow_link is not None and not isinstance(self.visibility, RayVisibility):
+            raise ValueError(f"{light.path}: shadow linking needs Embree shadow rays (shadows='embree')")
+        return light
 
     def _view_directions(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(N, 3) unit world directions E to the viewer, (N,) N.E and (N,) 1 / |N| of the shading
@@ -614,20 +646,24 @@ class Relighter:
         (Heitz et al. 2018; `visibility.surface_filter`) and drop the sums. The groups' sums
         are filtered together: each sum is already its group's mean over its samples."""
         g = self.gbuffer
-        if self._surface_filter is None:
-            self._surface_filter = SurfaceFilter(g, self.filter_radius)
         sums = g.position.new_zeros(g.num_samples, 2)
         for transport in transports:
             if transport.points is None:
                 sums += transport.shadow_sums
             else:
                 sums.index_add_(0, transport.points, transport.shadow_sums)
-        shadowed, unshadowed = self._surface_filter(sums).unbind(-1)
-        visibility = torch.where(unshadowed > 0, shadowed / torch.where(unshadowed > 0, unshadowed, 1.0), 0.0)
+        visibility = self._filtered_visibility(sums)
         for transport in transports:
             points = transport.points
             transport.diffuse_ratio = transport.diffuse_ratio * (visibility if points is None else visibility[points])
             transport.shadow_sums = None
+
+    def _filtered_visibility(self, sums: torch.Tensor) -> torch.Tensor:
+        """(N,) filtered visibility F(sum w V) / F(sum w) of per-point (N, 2) sums (0 where unlit)."""
+        if self._surface_filter is None:
+            self._surface_filter = SurfaceFilter(self.gbuffer, self.filter_radius)
+        shadowed, unshadowed = self._surface_filter(sums).unbind(-1)
+        return torch.where(unshadowed > 0, shadowed / torch.where(unshadowed > 0, unshadowed, 1.0), 0.0)
 
     def _chunk_transport(self, light: Light, chunk: slice | torch.Tensor, u: torch.Tensor,
                          viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor]) -> _Transport:
@@ -714,6 +750,10 @@ class Relighter:
         """The light's diffuse and specular unit images (2, N, 3): transport x shaping, per point."""
         if state.images is not None:
             return state.images
+        if state.transports is None and not self._transport_fits(state):
+            state.images = self._streamed_images(state)
+            self._fit_budget(state)
+            return state.images
         transports = self._transports(state)
         if len(transports) == 1 and transports[0].points is None:
             state.images = self._per_point(state.light, transports[0])
@@ -726,7 +766,74 @@ class Relighter:
                 else:
                     state.images.index_add_(1, transport.points, per_point)
         self.counters["shading"] += 1
+        if self._half_images:
+            state.images = state.images.half()
+        self._fit_budget(state)
         return state.images
+
+    # -- memory budget ----------------------------------------------------------------------------
+
+    def _transport_fits(self, state: _LightState) -> bool:
+        """Whether the light's whole transport, kept, would leave the caches within the budget.
+
+        Estimated from the kept layout (`_Transport`): per point and sample up to six scalar
+        factors and a direction, or two RGB lobes and a direction, in the G-buffer's dtype.
+        """
+        light = state.light
+        size = self.gbuffer.position.element_size()
+        per_sample = (6 + 3) * size if light.texture is None else (2 * 3 + 3) * size
+        samples = max(num for _, num in self._sample_groups(light))
+        needed = self.gbuffer.num_samples * samples * per_sample
+        kept = sum(other.images.numel() * other.images.element_size()
+                   for other in self._lights.values() if other.images is not None)
+        return kept + needed <= self.memory_budget
+
+    def _fit_budget(self, current: _LightState) -> None:
+        """Bring `cache_bytes` within the budget after `current`'s images were made: drop the
+        transports of the lights edited longest ago, then `current`'s own, then keep every unit
+        image in half precision."""
+        # The lights edited longest ago first, the one just shaded last.
+        others = sorted((state for state in self._lights.values() if state is not current), key=lambda s: s.edited)
+        for state in others + [current]:
+            if self.cache_bytes() <= self.memory_budget:
+                return
+            state.transports = None
+        if self.cache_bytes() > self.memory_budget and not self._half_images:
+            self._half_images = True
+            for state in self._lights.values():
+                if state.images is not None:
+                    state.images = state.images.half()
+
+    def _streamed_images(self, state: _LightState) -> torch.Tensor:
+        """The light's unit images (2, N, 3) made tile by tile, each tile's transport dropped once
+        shaded: what a light costs when its transport does not fit the budget (a later shaping
+        edit traces it again). The same numbers as `_transports` then `_images`."""
+        light = self._transport_light(state)
+        g = self.gbuffer
+        images = g.position.new_zeros(2, g.num_samples, 3)
+        sums = None
+        threads = tile_threads(g.device, self.visibility.thread_safe)
+        for points, num_samples in self._sample_groups(light):
+            chunks = self._chunks(num_samples, points, threads)
+            u, viewer = self._fixed_u(num_samples), self._view_directions()
+
+            def tile(chunk):
+                part = self._chunk_transport(light, chunk, u, viewer)
+                if part.points is None:  # the whole tile: name its points, as `_joined` does
+                    part.points = (torch.arange(chunk.start, chunk.stop, device=g.device)
+                                   if isinstance(chunk, slice) else chunk)
+                return part.points, self._per_point(state.light, part), part.shadow_sums
+
+            for index, per_point, shadow_sums in parallel_map(tile, chunks, threads):
+                images.index_add_(1, index, per_point)
+                if shadow_sums is not None:
+                    sums = g.position.new_zeros(g.num_samples, 2) if sums is None else sums
+                    sums.index_add_(0, index, shadow_sums)
+        if sums is not None:  # the filtered visibility multiplies the diffuse image (see _filter_visibility)
+            images[0].mul_(self._filtered_visibility(sums).unsqueeze(-1))
+        self.counters["visibility"] += 1
+        self.counters["shading"] += 1
+        return images.half() if self._half_images else images
 
     def _per_point(self, light: Light, transport: _Transport) -> torch.Tensor:
         """(2, P, 3) diffuse and specular sums of one transport's samples at its points, shaped."""

@@ -400,7 +400,9 @@ class MultiviewRelighter:
                                       self.settings.chunk_samples)
             columns.index_copy_(1, points, fresh.permute(2, 1, 0).reshape(columns.shape[0], -1))
         self._count("view_shading", 1)
-        return group_images(gbuffer.params, self._directions, columns.reshape(CHANNELS, -1, gbuffer.num_samples),
+        # The group count spelt out: with no covered sample (only sky) -1 would be ambiguous.
+        groups = columns.shape[0] // CHANNELS
+        return group_images(gbuffer.params, self._directions, columns.reshape(CHANNELS, groups, gbuffer.num_samples),
                             self._colours)
 
     def _refined_points(self, light: Light, totals: torch.Tensor) -> torch.Tensor:

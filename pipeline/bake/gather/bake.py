@@ -148,7 +148,8 @@ def _gather_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
     # torch on one thread per batch: the many small ops of the clustering ran ~100x slower with
     # intra-op threads on a busy machine.
     with torch_threads(1), ThreadPoolExecutor(spec.option("threads") or chunk_threads()) as pool:
-        parts = list(pool.map(work, range(0, samples.size, per_batch)))
+        # An empty chunk (a camera that sees only sky) is one empty batch: empty arrays of each field.
+        parts = list(pool.map(work, range(0, samples.size, per_batch) or [0]))
     arrays = {name: np.concatenate([getattr(p, name) for p in parts]) for name in _FIELD_DTYPES}
     arrays["counts"] = np.concatenate([p.counts for p in parts])
     return arrays

@@ -92,6 +92,9 @@ def reconstruction_weights(view: GBuffer, sample_index: np.ndarray, num_neighbou
     """Each view sample's nearest representatives in the 6-D metric and their RBF weights."""
     points = view_features(view, position_weight).numpy().astype(np.float64)
     num_kept = min(num_neighbours, sample_index.size)
+    if num_kept == 0:  # no view sample (a camera that sees only sky): nothing to reconstruct
+        return Representatives(sample_index, np.zeros((points.shape[0], 0), np.int64),
+                               np.zeros((points.shape[0], 0), np.float32))
     distances, neighbours = cKDTree(points[sample_index]).query(points, k=num_kept)
     distances = np.asarray(distances, np.float64).reshape(points.shape[0], num_kept)
     neighbours = np.asarray(neighbours, np.int64).reshape(points.shape[0], num_kept)

@@ -166,7 +166,8 @@ def _bake_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
         return compress_rows(block.reshape(-1, side, side, 3), num_kept, bool(spec.param("rowColour")))
 
     with ThreadPoolExecutor(spec.option("threads") or chunk_threads()) as pool:
-        parts = list(pool.map(work, range(spec.start, spec.stop, batch)))
+        # An empty chunk (a camera that sees only sky) is one empty batch: rows of the right layout.
+        parts = list(pool.map(work, range(spec.start, spec.stop, batch) or [spec.start]))
     return encode_rows(concatenate(parts), spec.param("encoding")).arrays()
 
 

@@ -1,0 +1,123 @@
+"""The relighter's memory budget (`RelightSettings.memory_budget`): over it, the transports of the
+lights edited longest ago are dropped, a light whose transport does not fit is shaded tile by tile
+without keeping it, and unit images go to half precision. The image stays the unbounded
+relighter's (to float rounding; to half-precision rounding once images are halved), a colour edit
+still shades nothing, and a shaping edit of a light whose transport was dropped traces it again.
+
+Shares the Cornell-box bake and lights of tests/test_relighter_cache_counters.py.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import pytest
+import torch
+
+from pipeline import cli
+from pipeline.bake.direct import bake_direct
+from pipeline.scene import find_camera, load_scene
+from pipeline.scenes import SCENES
+from relight_torch.io.exr import read_exr
+from relight_torch.direct.relighter import MEMORY_BUDGET_FRACTION, Relighter, RelightSettings, default_memory_budget
+from tests.test_relighter_cache_counters import SETTINGS, assert_same_image, baked, low_rect, moved, spot  # noqa: F401
+
+FILTERED = dataclasses.replace(SETTINGS, shadow_filter_radius=1)  # the rect light's visibility filtered
+
+
+def _relighter(baked: Relighter, budget: int | None, settings: RelightSettings = SETTINGS) -> Relighter:
+    relighter = Relighter(baked.gbuffer, baked.visibility, baked.supersampling, baked.exposure_scale,
+                          dataclasses.replace(settings, memory_budget=budget))
+    relighter.set_lights(baked.lights + [spot(), low_rect()])
+    return relighter
+
+
+def _image_bytes(relighter: Relighter, element_size: int = 4) -> int:
+    return len(relighter.lights) * 2 * relighter.gbuffer.num_samples * 3 * element_size
+
+
+def _transports(relighter: Relighter) -> dict[str, bool]:
+    return {path: state.transports is not None for path, state in relighter._lights.items()}
+
+
+def test_the_oldest_transports_are_dropped(baked):
+    unbounded = _relighter(baked, 1 << 40)
+    expected = unbounded.render()
+    largest = max(sum(t.num_bytes for t in state.transports) for state in unbounded._lights.values())
+    budget = _image_bytes(unbounded) + largest
+    relighter = _relighter(baked, budget)
+    assert_same_image(relighter.render(), expected)
+    assert relighter.cache_bytes() <= budget < unbounded.cache_bytes()
+    kept = _transports(relighter)
+    assert any(kept.values()) and not all(kept.values())
+    assert not relighter._half_images
+
+
+def test_a_colour_edit_under_the_budget_shades_nothing(baked):
+    unbounded = _relighter(baked, 1 << 40)
+    relighter = _relighter(baked, _image_bytes(unbounded))
+    relighter.render()
+    before = dict(relighter.counters)
+    light = dataclasses.replace(relighter.lights[0], color=(0.2, 0.5, 1.0))
+    relighter.set_light(light)
+    unbounded.set_light(light)
+    assert_same_image(relighter.render(), unbounded.render())
+    assert dict(relighter.counters) == before
+
+
+def test_a_shaping_edit_of_a_dropped_light_traces_it_again(baked):
+    unbounded = _relighter(baked, 1 << 40)
+    relighter = _relighter(baked, _image_bytes(unbounded))  # room for the images only: nothing kept
+    relighter.render()
+    assert not any(_transports(relighter).values())
+    light = next(light for light in relighter.lights if light.path == "/Test/Spot")
+    edited = dataclasses.replace(light, shaping=dataclasses.replace(light.shaping, cone_angle=15.0))
+    visibility = relighter.counters["visibility"]
+    for r in (relighter, unbounded):
+        r.set_light(edited)
+    assert_same_image(relighter.render(), unbounded.render())
+    assert relighter.counters["visibility"] == visibility + 1
+
+
+@pytest.mark.parametrize("settings", [SETTINGS, FILTERED], ids=["unfiltered", "filtered"])
+def test_tiles_shaded_without_their_transport_match(baked, settings):
+    """Images made tile by tile (no transport fits) equal those of the kept transports, the
+    filtered visibility of the rect light's ratio estimator included."""
+    unbounded = _relighter(baked, 1 << 40, settings)
+    relighter = _relighter(baked, _image_bytes(unbounded), settings)
+    assert_same_image(relighter.render(), unbounded.render())
+    assert relighter.cache_bytes() == _image_bytes(unbounded)
+    for r in (relighter, unbounded):
+        r.set_light(moved(next(light for light in r.lights if light.path == "/Test/LowRect")))
+    assert_same_image(relighter.render(), unbounded.render())
+
+
+def test_half_precision_images_when_even_they_do_not_fit(baked):
+    unbounded = _relighter(baked, 1 << 40)
+    expected = unbounded.render()
+    relighter = _relighter(baked, 0)
+    image = relighter.render()
+    assert relighter._half_images and relighter.cache_bytes() == _image_bytes(relighter, 2)
+    # float16 keeps 11 significant bits: a relative rounding of 2^-11 per light's image.
+    torch.testing.assert_close(image, expected, rtol=2e-3, atol=2e-3 * float(expected.abs().max()))
+
+
+def test_render_memory_budget_option(tmp_path, capsys):
+    bundled = SCENES["cornell_box"]
+    scene = load_scene(bundled.write(tmp_path / "scene"), width=16, height=16)
+    layer = bake_direct(scene, find_camera(scene, bundled.camera), tmp_path / "cache", "cornell_box")
+    default, small = tmp_path / "default.exr", tmp_path / "small.exr"
+    assert cli.main(["render", str(layer), "-o", str(default)]) == 0
+    assert cli.main(["render", str(layer), "-o", str(small), "--memory-budget", "0"]) == 0
+    a, b = (read_exr(path)[0]["R"] for path in (default, small))
+    assert abs(a - b).max() <= 2e-3 * abs(a).max()
+    assert cli.main(["render", str(layer), "-o", str(small), "--memory-budget", "-1"]) == 2
+    assert "--memory-budget" in capsys.readouterr().err
+
+
+def test_default_budget_is_a_share_of_the_machine(baked):
+    physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    assert _relighter(baked, None).memory_budget == default_memory_budget() == int(MEMORY_BUDGET_FRACTION * physical)
+    with pytest.raises(ValueError, match="memory_budget"):
+        _relighter(baked, -1)
