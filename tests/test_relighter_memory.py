@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from pipeline import cli
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.io.exr import read_exr

@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         raise RelightError(f"--camera: {args.cache} is a {method.name!r} cache, baked for its camera only; bake it "
                            f"with {moving} to move the camera")
     relighter = open_cache(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights,
-                         settings=relight_settings(args))
+                           settings=relight_settings(args))
     image = relighter.render().cpu().numpy()
     write_rgb_exr(args.out, image, light_group_layers(relighter) if "lightgroups" in args.aov else None)
     if args.png:
