@@ -245,11 +245,11 @@ def _require(condition: bool, path: Path, prim: Usd.Prim, message: str) -> None:
         raise RelightError(f"{path}: {prim.GetPath()}.{message}")
 
 
-def _plain_dtype(name: str) -> bool:
+def plain_dtype(name: str) -> bool:
     """True for the name of a numpy dtype holding no Python objects (nothing that needs pickle)."""
     try:
         return bool(name) and not np.dtype(name).hasobject
-    except TypeError:
+    except (TypeError, ValueError, SyntaxError):
         return False
 
 
@@ -282,7 +282,7 @@ def _read_payload(prim: Usd.Prim, path: Path) -> Payload:
                  f"relight:shape {list(payload.shape)} of an EXR payload must be empty or a positive (H, W)")
     else:
         _require(all(n >= 0 for n in payload.shape), path, prim, f"relight:shape {list(payload.shape)} is negative")
-        _require(_plain_dtype(payload.dtype), path, prim,
+        _require(plain_dtype(payload.dtype), path, prim,
                  f"relight:dtype {payload.dtype!r} is not a numpy dtype without objects")
     return payload
 
