@@ -29,9 +29,17 @@ _SHOT_METADATA = (
 )
 
 
-def _one_line(error: Exception) -> str:
-    """The first non-empty line of a (possibly multi-line) pxr error message."""
-    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+def usd_error_line(error: Exception) -> str:
+    """The first non-empty line of a (possibly multi-line) pxr error message.
+
+    pxr cannot even build the message of some errors on a file that is not UTF-8 (its `str()`
+    raises UnicodeDecodeError, as does `.args`): those say so.
+    """
+    try:
+        text = str(error)
+    except UnicodeDecodeError:
+        return "it holds bytes that are not UTF-8 text"
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
     return lines[0] if lines else type(error).__name__
 
 
@@ -48,7 +56,7 @@ def _open_layer(path: str | Path, role: str) -> Sdf.Layer:
     try:
         layer = Sdf.Layer.FindOrOpen(str(file.resolve()))
     except Tf.ErrorException as error:
-        raise RelightError(f"{role} {file} is not a readable USD file: {_one_line(error)}") from None
+        raise RelightError(f"{role} {file} is not a readable USD file: {usd_error_line(error)}") from None
     if layer is None:
         raise RelightError(f"{role} {file} is not a readable USD file")
     return layer
@@ -84,7 +92,7 @@ def open_stage(path: str | Path, lights_layer: str | Path | None = None) -> Usd.
     try:
         return Usd.Stage.Open(root, Usd.Stage.LoadAll)
     except Tf.ErrorException as error:
-        raise RelightError(f"stage {path} could not be opened: {_one_line(error)}") from None
+        raise RelightError(f"stage {path} could not be opened: {usd_error_line(error)}") from None
 
 
 def time_code(stage: Usd.Stage, time: float | None) -> Usd.TimeCode:

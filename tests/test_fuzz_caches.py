@@ -242,3 +242,26 @@ def test_a_huge_declared_shape_is_refused_before_allocating(baked, tmp_path):
     finally:
         tracemalloc.stop()
     assert peak < 1 << 20
+
+
+@pytest.mark.parametrize("file", ["../scene/cornell_box.usda", "/etc/hostname", "./sub/../../direct/x.npy", "..", "."])
+def test_a_payload_path_out_of_the_cache_folder_is_refused(baked, tmp_path, file):
+    layer = copy_cache(baked["direct"], tmp_path)
+    sdf = Sdf.Layer.FindOrOpen(str(layer))
+    sdf.GetPrimAtPath("/Cache/occluders").attributes["relight:file"].default = Sdf.AssetPath(file)
+    sdf.Save()
+    outcome = render(layer, tmp_path / "out" / "relit.exr")
+    assert outcome.status == 2
+    assert outcome.error == (f"relight: error: {layer}: /Cache/occluders.relight:file {file!r} is not a file in "
+                             f"the cache layer's own folder")
+
+
+def test_a_cache_layer_with_bytes_that_are_not_utf8_is_one_line(baked, tmp_path):
+    # pxr cannot build the text of its own parse error here: str() of it raised UnicodeDecodeError.
+    layer = copy_cache(baked["direct"], tmp_path)
+    content = bytearray(layer.read_bytes())
+    content[5] ^= 0x80
+    layer.write_bytes(bytes(content))
+    outcome = render(layer, tmp_path / "out" / "relit.exr")
+    assert outcome.status == 2
+    assert outcome.error.startswith(f"relight: error: {layer}: not a readable USD layer")
