@@ -1,5 +1,9 @@
 """Helpers of the fuzz and fault tests (tests/test_fuzz_*.py, tests/test_faults*.py).
 
+Run as a script, `python fuzz_support.py FSIZE -- relight arguments...` runs `relight` in this
+process with every file it writes limited to FSIZE bytes (RLIMIT_FSIZE; SIGXFSZ ignored, so a
+write past the limit fails with EFBIG as on a full disk) — 0 for no limit.
+
 Tiny bakes of the bundled Cornell box for every method (16 x 12, small settings), copies of
 them to damage, the `relight render` outcome of a (possibly damaged) cache as a value, and the
 hypothesis profiles: 'default' keeps the suite fast on two cores, 'nightly' (selected with
@@ -10,11 +14,12 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import io
 import os
 import re
 import shutil
 import signal
+import subprocess
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,21 +28,10 @@ import numpy as np
 from hypothesis import HealthCheck, settings
 
 from pipeline import cli
-from pipeline.scenes import SCENES
+from pipeline.benchmarks.tiny_caches import METHODS, SCENE, bake_arguments, bake_tiny, quiet_main  # noqa: F401
+from pipeline.bake.inputs import CODE_VERSION_VARIABLE
 from relight_torch.io.exr import read_exr
 
-SCENE = "cornell_box"
-WIDTH, HEIGHT = 16, 12
-COMMON_OPTIONS = ["--width", str(WIDTH), "--height", str(HEIGHT), "--supersampling", "1", "--texture-samples", "1"]
-METHOD_OPTIONS = {
-    "direct": [],
-    "transfer": ["--gathers", "16", "--coefficients", "8", "--bounces", "2", "--bounce-coefficients", "4"],
-    "gather": ["--directions", "16", "--clusters", "4", "--representatives", "32"],
-    "cuts": ["--mode", "indirect", "--cut-lights", "16"],
-    "multiview": ["--caching-resolution", "16", "--coverage", "0.5"],
-}
-"""Small settings per method: each bakes in about a second at 16 x 12."""
-METHODS = tuple(METHOD_OPTIONS)
 RENDER_SECONDS = 60
 """An open + render of a tiny cache that takes longer than this counts as a hang."""
 
@@ -48,33 +42,9 @@ settings.register_profile("nightly", max_examples=300, deadline=None, suppress_h
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
 
-def bake_arguments(shot: Path, out: Path, method: str) -> list[str]:
-    """`relight bake` arguments of the tiny bake of `method`."""
-    return ["bake", str(shot), "--camera", SCENES[SCENE].camera, "--out", str(out), "--method", method,
-            *COMMON_OPTIONS, *METHOD_OPTIONS[method]]
-
-
-def quiet_main(arguments: list[str]) -> tuple[int, str]:
-    """`relight ARGUMENTS` in this process -> (exit status, stderr); stdout is discarded."""
-    stderr = io.StringIO()
-    with contextlib.redirect_stderr(stderr), contextlib.redirect_stdout(io.StringIO()):
-        status = cli.main(arguments)
-    return status, stderr.getvalue()
-
-
 def bake_all(directory: Path, methods: tuple[str, ...] = METHODS) -> dict[str, Path]:
-    """The shot under directory/scene and one tiny cache per method under directory/<method>.
-
-    Returns:
-        method -> cache layer.
-    """
-    shot = SCENES[SCENE].write(directory / "scene")
-    layers = {}
-    for method in methods:
-        status, stderr = quiet_main(bake_arguments(shot, directory / method, method))
-        assert status == 0, stderr
-        layers[method] = directory / method / f"{SCENE}.relight.usda"
-    return layers
+    """`bake_tiny` (method -> cache layer), as a test fixture wants it."""
+    return bake_tiny(directory, methods)
 
 
 def copy_cache(layer: Path, directory: Path) -> Path:
@@ -162,3 +132,30 @@ def payload_files(layer: Path) -> list[Path]:
     """The payload files a cache layer names (from its text: the reader is under test)."""
     names = re.findall(r"asset relight:file = @\./([^@]+)@", layer.read_text())
     return [layer.parent / name for name in names]
+
+
+def relight_process(arguments: list[str], file_size_limit: int = 0, code_version: str = "test-faults"
+                    ) -> subprocess.Popen:
+    """`relight ARGUMENTS` in a child process (one torch thread, a pinned code version), started."""
+    environment = {**os.environ, "OMP_NUM_THREADS": "1", CODE_VERSION_VARIABLE: code_version,
+                   "PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).parent.parent),
+                                                               os.environ.get("PYTHONPATH")]))}
+    return subprocess.Popen([sys.executable, __file__, str(file_size_limit), "--", *arguments],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=environment)
+
+
+def run_relight(arguments: list[str], file_size_limit: int = 0, timeout: float = 300) -> tuple[int, str]:
+    """`relight_process` run to its end -> (exit status, stderr)."""
+    process = relight_process(arguments, file_size_limit)
+    _, stderr = process.communicate(timeout=timeout)
+    return process.returncode, stderr
+
+
+if __name__ == "__main__":
+    import resource
+
+    limit = int(sys.argv[1])
+    if limit:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    sys.exit(cli.main(sys.argv[3:]))
