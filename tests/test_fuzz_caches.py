@@ -265,3 +265,28 @@ def test_a_cache_layer_with_bytes_that_are_not_utf8_is_one_line(baked, tmp_path)
     outcome = render(layer, tmp_path / "out" / "relit.exr")
     assert outcome.status == 2
     assert outcome.error.startswith(f"relight: error: {layer}: not a readable USD layer")
+
+
+def test_an_exr_header_damaged_into_bytes_that_are_not_utf8_is_one_line(baked, tmp_path):
+    # OpenImageIO's error quotes the damaged attribute type name; its binding raised UnicodeDecodeError.
+    layer = copy_cache(baked["direct"], tmp_path)
+    dfb = layer.parent / "cornell_box.dfb.exr"
+    content = bytearray(dfb.read_bytes())
+    content[16] |= 0x80  # in 'chlist', the type name of the channels attribute
+    dfb.write_bytes(bytes(content))
+    outcome = render(layer, tmp_path / "out" / "relit.exr")
+    assert outcome.status == 2
+    assert outcome.error.startswith(f"relight: error: {dfb.resolve()}: ")
+
+
+def test_a_transfer_layer_that_lost_its_row_colour_parameter_is_refused(baked, tmp_path):
+    # The rows' scalar values were read as three channels: an IndexError deep in the relighter.
+    layer = copy_cache(baked["transfer"], tmp_path)
+    sdf = Sdf.Layer.FindOrOpen(str(layer))
+    cache = sdf.GetPrimAtPath("/Cache")
+    cache.RemoveProperty(cache.attributes["relight:parameters:rowColour"])
+    sdf.Save()
+    outcome = render(layer, tmp_path / "out" / "relit.exr")
+    assert outcome.status == 2
+    assert outcome.error.startswith(f"relight: error: {layer}: finalGather rows are malformed (values without a row "
+                                    f"colour must be (nnz, 3)")
