@@ -4,7 +4,8 @@ bake, and readers rendering while a re-bake replaces the cache.
 The disk fills up for real: the child process runs with RLIMIT_FSIZE (SIGXFSZ ignored), so the
 write that crosses the limit fails with EFBIG inside OpenEXR, numpy or USD, as on a full file
 system. Kills are real SIGKILLs from outside at random times during the bake. The default suite
-tries one kill point per method; HYPOTHESIS_PROFILE=nightly tries KILLS_NIGHTLY per method.
+runs the disk-full bake for two methods and one kill point for two others; HYPOTHESIS_PROFILE=nightly
+runs every method, KILLS_NIGHTLY kill points each.
 """
 
 from __future__ import annotations
@@ -38,17 +39,18 @@ def shot(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def clean(shot) -> dict[str, tuple[Path, str]]:
-    """Each method's uninterrupted bake, in this process: method -> (cache folder, tree hash)."""
+def clean(shot) -> dict[str, tuple[Path, str, float]]:
+    """Each method's uninterrupted bake, in this process: method -> (cache folder, tree hash, seconds)."""
     previous = os.environ.get(CODE_VERSION_VARIABLE)
     os.environ[CODE_VERSION_VARIABLE] = CODE_VERSION
     try:
         bakes = {}
         for method in METHODS:
             out = shot.parent.parent / "clean" / method
+            start = time.perf_counter()
             status, stderr = quiet_main(bake_arguments(shot, out, method))
             assert status == 0, stderr
-            bakes[method] = (out, tree_hash(out))
+            bakes[method] = (out, tree_hash(out), time.perf_counter() - start)
         return bakes
     finally:
         os.environ.pop(CODE_VERSION_VARIABLE) if previous is None else os.environ.update(
@@ -73,17 +75,18 @@ def _leftovers(out: Path) -> list[Path]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", METHODS if NIGHTLY else ("transfer", "multiview"))
 def test_disk_full_during_a_bake_leaves_no_cache_and_a_rerun_bakes_the_same(shot, clean, tmp_path, method):
     out = _beside_clean(shot, tmp_path, method)
     arguments = bake_arguments(shot, out, method)
-    clean_out, clean_hash = clean[method]
+    clean_out, clean_hash, _ = clean[method]
     largest = max(p.stat().st_size for p in clean_out.iterdir())
     limit = random.Random(method).randrange(largest // 8, largest)
     status, stderr = run_relight(arguments, file_size_limit=limit)
     assert status == 2, stderr
     line = _one_error_line(stderr)
-    assert str(out) in line and "File too large" in line, line
+    # 'File too large' (EFBIG) from most writers; numpy's tofile says '... requested and ... written'.
+    assert str(out) in line and "could not be written" in line and "nothing was replaced" in line, line
     assert not _leftovers(out), _leftovers(out)
     # Space freed: the re-run finishes (from the chunks already done) with the clean bake's files.
     status, stderr = run_relight(arguments)
@@ -91,7 +94,7 @@ def test_disk_full_during_a_bake_leaves_no_cache_and_a_rerun_bakes_the_same(shot
     assert tree_hash(out) == clean_hash
 
 
-@pytest.mark.parametrize("method", ["direct", "multiview"])
+@pytest.mark.parametrize("method", METHODS if NIGHTLY else ("multiview",))
 def test_disk_full_during_a_render_writes_nothing(clean, tmp_path, method):
     layer = clean[method][0] / f"{SCENE}.relight.usda"
     image = tmp_path / "relit.exr"
@@ -99,7 +102,7 @@ def test_disk_full_during_a_render_writes_nothing(clean, tmp_path, method):
                                  file_size_limit=512)
     assert status == 2, stderr
     line = _one_error_line(stderr)
-    assert str(tmp_path) in line and "File too large" in line, line
+    assert str(tmp_path) in line and "could not be written" in line, line
     assert not list(tmp_path.iterdir())
     assert cache_status(layer).verdict == "valid"
 
@@ -130,14 +133,11 @@ def _bake_killed_at(arguments: list[str], out: Path, seconds: float) -> tuple[in
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", METHODS if NIGHTLY else ("gather", "cuts"))
 def test_bake_killed_at_random_moments_resumes_to_the_uninterrupted_cache(shot, clean, tmp_path, method):
     out = _beside_clean(shot, tmp_path, method)
     arguments = bake_arguments(shot, out, method)
-    # How long the bake runs once its output folder exists (a child process, as the killed ones).
-    status, duration = _bake_killed_at(arguments, out, 600)
-    assert status == 0
-    shutil.rmtree(out)
+    duration = clean[method][2]  # an in-process bake: what a child runs once its output folder exists
     for fraction in _kill_points(method):
         status, _ = _bake_killed_at(arguments, out, fraction * duration)
         assert status in (0, -signal.SIGKILL)
@@ -162,7 +162,7 @@ def test_readers_during_a_rebake_see_the_old_or_the_new_cache(shot, clean, tmp_p
     seen, stop = [], threading.Event()
 
     def rebake() -> None:
-        for arguments in (new_arguments, old_arguments, new_arguments):
+        for arguments in (new_arguments, old_arguments):
             status, stderr = run_relight(arguments)
             assert status == 0, stderr
         stop.set()

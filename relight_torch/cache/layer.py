@@ -90,6 +90,7 @@ class CacheDescription:
         payloads: the payload files.
         code_version: the code that baked it (package version + digest of its sources); ''
             when not recorded.
+        layer: the cache layer it was read from ('' for one not read from a file), for messages.
     """
 
     method: str
@@ -104,12 +105,14 @@ class CacheDescription:
     parameters: dict[str, bool | int | float | str]
     payloads: tuple[Payload, ...]
     code_version: str = ""
+    layer: str = ""
 
     def payload(self, name: str) -> Payload:
         for payload in self.payloads:
             if payload.name == name:
                 return payload
-        raise RelightError(f"cache has no payload named {name!r} (has {[p.name for p in self.payloads]})")
+        raise RelightError(f"{self.layer or 'cache'}: has no payload named {name!r} "
+                           f"(has {[p.name for p in self.payloads]})")
 
 
 def file_sha256(path: str | os.PathLike) -> str:
@@ -355,4 +358,5 @@ def read_cache_layer(path: str | os.PathLike) -> CacheDescription:
         parameters=parameters,
         payloads=payloads,
         code_version=str(cache.GetAttribute("relight:codeVersion").Get() or ""),
+        layer=str(path),
     )

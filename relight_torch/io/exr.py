@@ -66,7 +66,10 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray],
     header.update(attributes or {})
     with atomic_path(path) as temp:
         with OpenEXR.File(header, data) as exr:
-            exr.write(str(temp))
+            try:
+                exr.write(str(temp))
+            except RuntimeError as error:  # OpenEXR's failed write (disk full...): atomic_path reports OSErrors
+                raise OSError(_one_line(error)) from error
 
 
 def write_rgb_exr(path: str | os.PathLike, rgb: np.ndarray,
