@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import os
 import re
 import shutil
@@ -132,6 +133,24 @@ def payload_files(layer: Path) -> list[Path]:
     """The payload files a cache layer names (from its text: the reader is under test)."""
     names = re.findall(r"asset relight:file = @\./([^@]+)@", layer.read_text())
     return [layer.parent / name for name in names]
+
+
+TALLY_VARIABLE = "RELIGHT_FAULT_TALLY"
+"""When set, a file the fuzz and fault tests append one JSON line per example to (what was tried
+and how it ended), for `pipeline.benchmarks.fault_figures`."""
+
+
+def tally(test: str, **record) -> None:
+    """Append {"test": test, **record} to the tally file, if one is set (one short O_APPEND write,
+    so xdist workers do not interleave lines)."""
+    path = os.environ.get(TALLY_VARIABLE)
+    if path:
+        line = json.dumps({"test": test, **record}) + "\n"
+        descriptor = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:
+            os.write(descriptor, line.encode())
+        finally:
+            os.close(descriptor)
 
 
 def relight_process(arguments: list[str], file_size_limit: int = 0, code_version: str = "test-faults"

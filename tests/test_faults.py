@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fuzz_support import (METHODS, SCENE, bake_arguments, quiet_main, relight_process, render, run_relight,
+from fuzz_support import (METHODS, SCENE, bake_arguments, quiet_main, relight_process, render, run_relight, tally,
                           tree_hash)
 from pipeline.bake.inputs import CODE_VERSION_VARIABLE
 from pipeline.scenes import SCENES
@@ -92,6 +92,7 @@ def test_disk_full_during_a_bake_leaves_no_cache_and_a_rerun_bakes_the_same(shot
     status, stderr = run_relight(arguments)
     assert status == 0, stderr
     assert tree_hash(out) == clean_hash
+    tally("disk full during a bake", method=method, refused=True)
 
 
 @pytest.mark.parametrize("method", METHODS if NIGHTLY else ("multiview",))
@@ -105,6 +106,7 @@ def test_disk_full_during_a_render_writes_nothing(clean, tmp_path, method):
     assert str(tmp_path) in line and "could not be written" in line, line
     assert not list(tmp_path.iterdir())
     assert cache_status(layer).verdict == "valid"
+    tally("disk full during a render", method=method, refused=True)
 
 
 def _kill_points(method: str) -> list[float]:
@@ -138,12 +140,15 @@ def test_bake_killed_at_random_moments_resumes_to_the_uninterrupted_cache(shot, 
     out = _beside_clean(shot, tmp_path, method)
     arguments = bake_arguments(shot, out, method)
     duration = clean[method][2]  # an in-process bake: what a child runs once its output folder exists
+    landed = 0
     for fraction in _kill_points(method):
         status, _ = _bake_killed_at(arguments, out, fraction * duration)
         assert status in (0, -signal.SIGKILL)
+        landed += status == -signal.SIGKILL
     status, stderr = run_relight(arguments)
     assert status == 0, stderr
     assert tree_hash(out) == clean[method][1]
+    tally("SIGKILL during a bake", method=method, kills=len(_kill_points(method)), landed=landed)
 
 
 def test_readers_during_a_rebake_see_the_old_or_the_new_cache(shot, clean, tmp_path):
@@ -183,3 +188,4 @@ def test_readers_during_a_rebake_see_the_old_or_the_new_cache(shot, clean, tmp_p
     finally:
         writer.join()
     assert seen
+    tally("readers during a re-bake", method="direct", **{name: seen.count(name) for name in ("old", "new", "refused")})

@@ -192,6 +192,20 @@ def run_session(layer: Path, num_edits: int, num_checkpoints: int = 4, num_rss_s
     return SessionReport(rss, errors, kinds)
 
 
+def run_sessions(num_edits: int, methods: tuple[str, ...] = METHODS, seed: int = 0) -> dict[str, SessionReport]:
+    """`run_session` on a tiny cache of each method (baked into a temporary folder)."""
+    with tempfile.TemporaryDirectory(prefix="long-session-") as temp:
+        return {method: run_session(layer, num_edits, seed=seed)
+                for method, layer in bake_tiny(Path(temp), methods).items()}
+
+
+def curve_csv(reports: dict[str, SessionReport]) -> str:
+    """The memory curves as CSV: method, edit, rss_bytes."""
+    rows = ["method,edit,rss_bytes"] + [f"{method},{edit},{rss}" for method, report in reports.items()
+                                         for edit, rss in report.rss]
+    return "\n".join(rows) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--edits", type=int, default=10_000, help="edits per method (default 10000)")
@@ -200,18 +214,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, help="CSV of the memory curve (method, edit, rss_bytes)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    rows = ["method,edit,rss_bytes"]
-    with tempfile.TemporaryDirectory(prefix="long-session-") as temp:
-        layers = bake_tiny(Path(temp), tuple(args.methods))
-        for method, layer in layers.items():
-            report = run_session(layer, args.edits, seed=args.seed)
-            rows += [f"{method},{edit},{rss}" for edit, rss in report.rss]
-            print(f"{method}: {args.edits} edits, RSS {report.rss[0][1] / 2 ** 20:.1f} -> "
-                  f"{report.rss[-1][1] / 2 ** 20:.1f} MiB, growth after the first 10 %: "
-                  f"{100 * report.growth_after(0.1):+.2f} %, largest checkpoint difference "
-                  f"{max(report.checkpoint_errors):.2e} of the image's peak")
+    reports = run_sessions(args.edits, tuple(args.methods), args.seed)
+    for method, report in reports.items():
+        print(f"{method}: {args.edits} edits, RSS {report.rss[0][1] / 2 ** 20:.1f} -> "
+              f"{report.rss[-1][1] / 2 ** 20:.1f} MiB, growth after the first 10 %: "
+              f"{100 * report.growth_after(0.1):+.2f} %, largest checkpoint difference "
+              f"{max(report.checkpoint_errors):.2e} of the image's peak")
     if args.out:
-        write_text_atomic(args.out, "\n".join(rows) + "\n")
+        write_text_atomic(args.out, curve_csv(reports))
     return 0
 
 
