@@ -107,3 +107,30 @@ def time_code(stage: Usd.Stage, time: float | None) -> Usd.TimeCode:
     if stage.HasAuthoredTimeCodeRange():
         return Usd.TimeCode(stage.GetStartTimeCode())
     return Usd.TimeCode.EarliestTime()
+
+
+def defining_layer(stage: Usd.Stage, message: str, shot: str | Path) -> str:
+    """The file of the strongest layer authoring the prim a walker message starts with ('/Rig/Key: ...'),
+    else the shot: the walker names prims, the user needs the file to fix too."""
+    prim_path = message.split(":", 1)[0]
+    prim = stage.GetPrimAtPath(prim_path) if Sdf.Path.IsValidPathString(prim_path) else None
+    stack = prim.GetPrimStack() if prim else []
+    return next((spec.layer.realPath for spec in stack if spec.layer.realPath), str(shot))
+
+
+_MISSING_FILE_ERRORS = ("ErrorInvalidSublayerPath", "ErrorInvalidAssetPath", "ErrorInvalidExternalTargetPath")
+"""Composition errors that mean a file the shot names is missing or unreadable: fatal, since USD
+would compose the stage without it and the bake would silently lose what it holds."""
+
+
+def check_composition(stage: Usd.Stage, path: str | Path) -> None:
+    """Refuse a stage that names a missing or unreadable file (a sublayer, reference or payload).
+
+    Raises:
+        RelightError: one line naming the shot, the layer and the file, and how many more there are.
+    """
+    errors = [e for e in stage.GetCompositionErrors() if type(e).__name__ in _MISSING_FILE_ERRORS]
+    if errors:
+        first = str(errors[0]).strip().splitlines()[0].removesuffix("; skipping.")
+        more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+        raise RelightError(f"stage {path}: {first}{more}")

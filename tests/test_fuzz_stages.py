@@ -77,7 +77,7 @@ def _lights_layer(data: st.DataObject, directory: Path) -> Path:
                       label="edited attributes")
     body = "\n".join(f"            {_declared(data, name)}" for name in edits)
     new_lights = []
-    for k in range(data.draw(st.sampled_from([0, 0, 1, 3, 60]), label="new lights")):
+    for k in range(data.draw(st.sampled_from([0, 0, 1, 3, 12]), label="new lights")):
         kind = data.draw(st.sampled_from(_KINDS), label="kind")
         attributes = data.draw(st.lists(st.sampled_from(sorted(_ATTRIBUTES)), max_size=2, unique=True),
                                label="new light attributes")
@@ -212,3 +212,17 @@ def test_lights_layer_sublayer_cycle_is_one_line(baked, tmp_path):
     layer.write_text("#usda 1.0\n(\n    subLayers = [@./lights.usda@]\n)\n")
     outcome = render(baked["direct"], tmp_path / "out" / "relit.exr", "--lights", str(layer))
     assert_refused_or_finite(outcome, layer, tmp_path)
+
+
+@pytest.mark.parametrize("declaration", ['int inputs:color = 0', 'string inputs:color = "x"',
+                                         'float3 inputs:width = (1, 2, 3)', 'string inputs:normalize = "yes"'])
+def test_a_light_input_authored_with_another_type_is_one_line(baked, tmp_path, declaration):
+    # An int colour raised TypeError and a one-number colour IndexError in the light reader; a string
+    # colour gave "could not convert string to float: 'x'" naming nothing.
+    layer = tmp_path / "lights.usda"
+    layer.write_text('#usda 1.0\nover "World"\n{\n    over "Lights"\n    {\n        over "CeilingLight"\n'
+                     f"        {{\n            {declaration}\n        }}\n    }}\n}}\n")
+    outcome = render(baked["direct"], tmp_path / "out" / "relit.exr", "--lights", str(layer))
+    name = declaration.split()[1]
+    assert outcome.status == 2 and f"{LIGHT}: {name} = " in outcome.error and "authored as" in outcome.error, outcome
+    assert str(layer) in outcome.error, outcome.error

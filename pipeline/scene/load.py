@@ -4,14 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pxr import Sdf, Usd, UsdGeom
+from pxr import Usd, UsdGeom
 
 from pipeline.errors import RelightError, warn
 from pipeline.scene.camera import read_cameras
 from pipeline.scene.geometry import read_geometry
 from pipeline.scene.lights import read_lights
 from pipeline.scene.materials import MaterialLibrary
-from relight_torch.stage import open_stage, time_code
+from relight_torch.stage import check_composition, defining_layer, open_stage, time_code
 from pipeline.scene.types import Camera, Scene
 
 
@@ -66,40 +66,13 @@ def load_scene(path: str | Path, *, time: float | None = None, lights_layer: str
     except RelightError as error:
         if Path(path).name in str(error):
             raise
-        raise RelightError(f"{_defining_layer(stage, str(error), path)}: {error}") from None
+        raise RelightError(f"{defining_layer(stage, str(error), path)}: {error}") from None
     if scene.geometry.num_triangles == 0:
         skipped = f" ({len(scene.warnings)} warnings; first: {scene.warnings[0]})" if scene.warnings else ""
         raise RelightError(f"stage {path} has no renderable meshes or gprims{skipped}")
     if not scene.lights:
         warn(f"stage {path} has no lights", scene.warnings)
     return scene
-
-
-def _defining_layer(stage: Usd.Stage, message: str, shot: str | Path) -> str:
-    """The file of the strongest layer authoring the prim a walker message starts with ('/Rig/Key: ...'),
-    else the shot: the walker names prims, the user needs the file to fix too."""
-    prim_path = message.split(":", 1)[0]
-    prim = stage.GetPrimAtPath(prim_path) if Sdf.Path.IsValidPathString(prim_path) else None
-    stack = prim.GetPrimStack() if prim else []
-    return next((spec.layer.realPath for spec in stack if spec.layer.realPath), str(shot))
-
-
-_MISSING_FILE_ERRORS = ("ErrorInvalidSublayerPath", "ErrorInvalidAssetPath", "ErrorInvalidExternalTargetPath")
-"""Composition errors that mean a file the shot names is missing or unreadable: fatal, since USD
-would compose the stage without it and the bake would silently lose what it holds."""
-
-
-def check_composition(stage: Usd.Stage, path: str | Path) -> None:
-    """Refuse a stage that names a missing or unreadable file (a sublayer, reference or payload).
-
-    Raises:
-        RelightError: one line naming the shot, the layer and the file, and how many more there are.
-    """
-    errors = [e for e in stage.GetCompositionErrors() if type(e).__name__ in _MISSING_FILE_ERRORS]
-    if errors:
-        first = str(errors[0]).strip().splitlines()[0].removesuffix("; skipping.")
-        more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
-        raise RelightError(f"stage {path}: {first}{more}")
 
 
 def find_camera(scene: Scene, path: str) -> Camera:
