@@ -111,7 +111,7 @@ MAX_NPY_HEADER = 10_000
 _NPY_KEYS = {"descr", "fortran_order", "shape"}
 
 
-def _npy_header_dict(handle, path: Path) -> dict:
+def _npy_header_dict(handle: BinaryIO, path: Path) -> dict:
     """The header dictionary of an open .npy file, its handle left at the first data byte.
 
     Parsed here, not by numpy's reader: that one runs Python's tokenizer over the header and lets
@@ -125,7 +125,7 @@ def _npy_header_dict(handle, path: Path) -> dict:
         raise RelightError(f"{path}: not a .npy array (unsupported .npy version {version[0]}.{version[1]})")
     length_bytes = handle.read(2 if version == (1, 0) else 4)
     length = int.from_bytes(length_bytes, "little")
-    if len(length_bytes) < (2 if version == (1, 0) else 4) or length > MAX_NPY_HEADER:
+    if len(length_bytes) < (2 if version == (1, 0) else 4) or not 1 <= length <= MAX_NPY_HEADER:
         raise RelightError(f"{path}: not a .npy array (header length {length} is not in 1..{MAX_NPY_HEADER})")
     text = handle.read(length)
     if len(text) < length:
@@ -140,7 +140,7 @@ def _npy_header_dict(handle, path: Path) -> dict:
     return header
 
 
-def read_npy_header(path: Path, handle=None) -> tuple[tuple[int, ...], np.dtype, bool, int]:
+def read_npy_header(path: Path, handle: BinaryIO | None = None) -> tuple[tuple[int, ...], np.dtype, bool, int]:
     """(shape, dtype, fortran_order, data offset) from a .npy file's header, without reading the array.
 
     Args:
