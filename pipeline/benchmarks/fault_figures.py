@@ -25,6 +25,8 @@ from pipeline.benchmarks.long_session import SessionReport, curve_csv, run_sessi
 from pipeline.benchmarks.tiny_caches import METHODS
 from relight_torch.io.atomic import write_text_atomic
 
+FUZZ_TESTS = ("damaged cache", "bad lights layer", "bad shot")
+"""The tallies (tests/fuzz_support.py `tally`) of generated inputs; the rest are faults."""
 TESTS = ("tests/test_fuzz_caches.py", "tests/test_fuzz_stages.py", "tests/test_faults.py")
 START, END = "<!-- fault-figures:start -->", "<!-- fault-figures:end -->"
 ROOT = Path(__file__).resolve().parents[2]
@@ -48,7 +50,7 @@ def fuzz_table(records: list[dict]) -> list[str]:
     """Markdown rows: per fuzzed input and method, examples run, refused in one line, rendered finite."""
     counts = collections.Counter()
     for record in records:
-        if "refused" in record and "kills" not in record:
+        if record["test"] in FUZZ_TESTS:
             key = (record["test"], record["method"], record.get("damage", ""))
             counts[key + ("examples",)] += 1
             counts[key + ("refused" if record["refused"] else "rendered",)] += 1
@@ -65,9 +67,12 @@ def fault_table(records: list[dict]) -> list[str]:
     """Markdown rows of the kills and the readers."""
     rows = ["| Fault | Method | Tried | Outcome |", "|---|---|---|---|"]
     for record in records:
-        if "kills" in record:
+        if record["test"].startswith("disk full"):
+            rows.append(f"| {record['test']} (file-size limit) | {record['method']} | 1 | one line, exit 2, nothing "
+                        f"left behind{'; the re-run bakes the same bytes' if 'bake' in record['test'] else ''} |")
+        elif "kills" in record:
             rows.append(f"| SIGKILL at random moments of a bake | {record['method']} | {record['kills']} kill "
-                        f"points ({record['landed']} landed before the bake ended) | re-run equals the "
+                        f"point{'s' if record['kills'] > 1 else ''} ({record['landed']} landed before the bake ended) | re-run equals the "
                         f"uninterrupted bake (same tree hash) |")
         elif record["test"] == "readers during a re-bake":
             rows.append(f"| renders while a re-bake replaces the cache | {record['method']} | "
