@@ -72,8 +72,8 @@ def fault_table(records: list[dict]) -> list[str]:
                         f"left behind{'; the re-run bakes the same bytes' if 'bake' in record['test'] else ''} |")
         elif "kills" in record:
             rows.append(f"| SIGKILL at random moments of a bake | {record['method']} | {record['kills']} kill "
-                        f"point{'s' if record['kills'] > 1 else ''} ({record['landed']} landed before the bake ended) | re-run equals the "
-                        f"uninterrupted bake (same tree hash) |")
+                        f"point{'s' if record['kills'] > 1 else ''} ({record['landed']} landed before the bake "
+                        f"ended) | re-run equals the uninterrupted bake (same tree hash) |")
         elif record["test"] == "readers during a re-bake":
             rows.append(f"| renders while a re-bake replaces the cache | {record['method']} | "
                         f"{record['old'] + record['new'] + record['refused']} renders | {record['old']} old image, "
