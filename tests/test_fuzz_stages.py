@@ -226,3 +226,16 @@ def test_a_light_input_authored_with_another_type_is_one_line(baked, tmp_path, d
     name = declaration.split()[1]
     assert outcome.status == 2 and f"{LIGHT}: {name} = " in outcome.error and "authored as" in outcome.error, outcome
     assert str(layer) in outcome.error, outcome.error
+
+
+def test_a_mesh_of_empty_faces_is_an_empty_mesh(tmp_path):
+    # faceVertexCounts = [0] and no indices ended the bake in numpy's "zero-size array to reduction".
+    fields = {"meters": "1", "counts": "[0]", "indices": "[]", "points": WALL, "scale": "(1, 1, 1)",
+              "camera": "(0, 0, 5)", "focal": "50", "kind": "SphereLight", "intensity": "10", "radius": "0.5",
+              "light": "(0, 0, 3)"}
+    shot = tmp_path / "shot.usda"
+    shot.write_text(SHOT.format(**fields))
+    status, stderr = quiet_main(["bake", str(shot), "--camera", "/World/Camera", "--out", str(tmp_path / "out"),
+                                 "--width", "8", "--height", "6", "--supersampling", "1", "--texture-samples", "1"])
+    errors = [line for line in stderr.splitlines() if line.startswith("relight: error: ")]
+    assert status == 2 and errors == [f"relight: error: stage {shot} has no renderable meshes or gprims"], stderr
