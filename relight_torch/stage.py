@@ -31,9 +31,17 @@ _SHOT_METADATA = (
 )
 
 
-def _one_line(error: Exception) -> str:
-    """The first non-empty line of a (possibly multi-line) pxr error message."""
-    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+def usd_error_line(error: Exception) -> str:
+    """The first non-empty line of a (possibly multi-line) pxr error message.
+
+    pxr cannot even build the message of some errors on a file that is not UTF-8 (its `str()`
+    raises UnicodeDecodeError, as does `.args`): those say so.
+    """
+    try:
+        text = str(error)
+    except UnicodeDecodeError:
+        return "it holds bytes that are not UTF-8 text"
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
     return lines[0] if lines else type(error).__name__
 
 
@@ -50,7 +58,7 @@ def _open_layer(path: str | Path, role: str) -> Sdf.Layer:
     try:
         layer = Sdf.Layer.FindOrOpen(str(file.resolve()))
     except Tf.ErrorException as error:
-        raise RelightError(f"{role} {file} is not a readable USD file: {_one_line(error)}") from None
+        raise RelightError(f"{role} {file} is not a readable USD file: {usd_error_line(error)}") from None
     if layer is None:
         raise RelightError(f"{role} {file} is not a readable USD file")
     return layer
@@ -86,7 +94,7 @@ def open_stage(path: str | Path, lights_layer: str | Path | None = None) -> Usd.
     try:
         return Usd.Stage.Open(root, Usd.Stage.LoadAll)
     except Tf.ErrorException as error:
-        raise RelightError(f"stage {path} could not be opened: {_one_line(error)}") from None
+        raise RelightError(f"stage {path} could not be opened: {usd_error_line(error)}") from None
 
 
 def time_code(stage: Usd.Stage, time: float | None) -> Usd.TimeCode:
@@ -162,3 +170,39 @@ def composition_problems(stage: Usd.Stage) -> CompositionProblems:
         else:
             fatal.append(message)
     return CompositionProblems(tuple(fatal), tuple(material))
+
+
+def defining_layer(stage: Usd.Stage, message: str, shot: str | Path) -> str:
+    """The file of the strongest layer authoring the prim a walker message starts with ('/Rig/Key: ...'),
+    else the shot: the walker names prims, the user needs the file to fix too."""
+    prim_path = message.split(":", 1)[0]
+    prim = stage.GetPrimAtPath(prim_path) if Sdf.Path.IsValidPathString(prim_path) else None
+    stack = prim.GetPrimStack() if prim else []
+    return next((spec.layer.realPath for spec in stack if spec.layer.realPath), str(shot))
+
+
+def check_composition(stage: Usd.Stage, path: str | Path) -> list[str]:
+    """Refuse a stage that names a missing or unreadable file, unless only a material's look is lost.
+
+    A sublayer, or a reference or payload of geometry, lights or cameras, is fatal (USD would compose
+    the stage without it). One that concerns only a material (`relight_torch.stage.composition_problems`)
+    is a warning: the material reader reads `.mtlx` documents itself and falls back as documented
+    in docs/MATERIALS.md.
+
+    Returns:
+        One warning per material problem that the material reader does not handle itself (a
+        `.mtlx` reference is reported there, once it is known whether the document reads).
+
+    Raises:
+        RelightError: one line naming the shot, the layer and the file, and how many more there are.
+    """
+    problems = composition_problems(stage)
+    if problems.fatal:
+        more = f" (and {len(problems.fatal) - 1} more)" if len(problems.fatal) > 1 else ""
+        raise RelightError(f"stage {path}: {problems.fatal[0]}{more}")
+    return [
+        f"stage {path}: material {prim}: {message}; rendering the material without it (grey 0.18 diffuse "
+        f"if no surface shader is left, docs/MATERIALS.md)"
+        for prim, asset, message in problems.material
+        if not asset.lower().endswith(".mtlx")
+    ]

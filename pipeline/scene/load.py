@@ -4,14 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pxr import Sdf, Usd, UsdGeom
+from pxr import Usd, UsdGeom
 
 from pipeline.errors import RelightError, warn
 from pipeline.scene.camera import read_cameras
 from pipeline.scene.geometry import read_geometry
 from pipeline.scene.lights import read_lights
 from pipeline.scene.materials import MaterialLibrary
-from relight_torch.stage import composition_problems, open_stage, time_code
+from relight_torch.stage import check_composition, defining_layer, open_stage, time_code
 from pipeline.scene.types import Camera, Scene
 
 
@@ -67,7 +67,7 @@ def load_scene(path: str | Path, *, time: float | None = None, lights_layer: str
     except RelightError as error:
         if Path(path).name in str(error):
             raise
-        raise RelightError(f"{_defining_layer(stage, str(error), path)}: {error}") from None
+        raise RelightError(f"{defining_layer(stage, str(error), path)}: {error}") from None
     for message in material_warnings:
         warn(message, scene.warnings)
     if scene.geometry.num_triangles == 0:
@@ -76,42 +76,6 @@ def load_scene(path: str | Path, *, time: float | None = None, lights_layer: str
     if not scene.lights:
         warn(f"stage {path} has no lights", scene.warnings)
     return scene
-
-
-def _defining_layer(stage: Usd.Stage, message: str, shot: str | Path) -> str:
-    """The file of the strongest layer authoring the prim a walker message starts with ('/Rig/Key: ...'),
-    else the shot: the walker names prims, the user needs the file to fix too."""
-    prim_path = message.split(":", 1)[0]
-    prim = stage.GetPrimAtPath(prim_path) if Sdf.Path.IsValidPathString(prim_path) else None
-    stack = prim.GetPrimStack() if prim else []
-    return next((spec.layer.realPath for spec in stack if spec.layer.realPath), str(shot))
-
-
-def check_composition(stage: Usd.Stage, path: str | Path) -> list[str]:
-    """Refuse a stage that names a missing or unreadable file, unless only a material's look is lost.
-
-    A sublayer, or a reference or payload of geometry, lights or cameras, is fatal (USD would compose
-    the stage without it). One that concerns only a material (`relight_torch.stage.composition_problems`)
-    is a warning: the material reader reads `.mtlx` documents itself and falls back as documented
-    in docs/MATERIALS.md.
-
-    Returns:
-        One warning per material problem that the material reader does not handle itself (a
-        `.mtlx` reference is reported there, once it is known whether the document reads).
-
-    Raises:
-        RelightError: one line naming the shot, the layer and the file, and how many more there are.
-    """
-    problems = composition_problems(stage)
-    if problems.fatal:
-        more = f" (and {len(problems.fatal) - 1} more)" if len(problems.fatal) > 1 else ""
-        raise RelightError(f"stage {path}: {problems.fatal[0]}{more}")
-    return [
-        f"stage {path}: material {prim}: {message}; rendering the material without it (grey 0.18 diffuse "
-        f"if no surface shader is left, docs/MATERIALS.md)"
-        for prim, asset, message in problems.material
-        if not asset.lower().endswith(".mtlx")
-    ]
 
 
 def find_camera(scene: Scene, path: str) -> Camera:

@@ -144,7 +144,7 @@ def mesh_topology(mesh: UsdGeom.Mesh, time: Usd.TimeCode, warnings: list[str]):
     points = np.asarray(mesh.GetPointsAttr().Get(time) or [], np.float32).reshape(-1, 3)
     counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(time) or [], np.int64)
     indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(time) or [], np.int64)
-    if counts.size == 0:
+    if counts.size == 0 or (indices.size == 0 and not counts.any()):  # no faces, or only empty ones
         return None
     if (counts.sum() != indices.size or (counts < 0).any() or indices.min() < 0
             or indices.max() >= len(points)):

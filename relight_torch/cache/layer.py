@@ -34,6 +34,7 @@ from relight_torch.errors import RelightError
 from relight_torch.methods import METHOD_NAMES
 from relight_torch.io.atomic import atomic_path
 from relight_torch.schema import register_schemas
+from relight_torch.stage import usd_error_line
 
 CACHE_PRIM = "/Cache"
 CACHE_VERSION = 2
@@ -89,6 +90,7 @@ class CacheDescription:
         payloads: the payload files.
         code_version: the code that baked it (package version + digest of its sources); ''
             when not recorded.
+        layer: the cache layer it was read from ('' for one not read from a file), for messages.
     """
 
     method: str
@@ -103,12 +105,14 @@ class CacheDescription:
     parameters: dict[str, bool | int | float | str]
     payloads: tuple[Payload, ...]
     code_version: str = ""
+    layer: str = ""
 
     def payload(self, name: str) -> Payload:
         for payload in self.payloads:
             if payload.name == name:
                 return payload
-        raise RelightError(f"cache has no payload named {name!r} (has {[p.name for p in self.payloads]})")
+        raise RelightError(f"{self.layer or 'cache'}: has no payload named {name!r} "
+                           f"(has {[p.name for p in self.payloads]})")
 
 
 def file_sha256(path: str | os.PathLike) -> str:
@@ -158,7 +162,7 @@ def shot_units(source: str | os.PathLike) -> tuple[str, float]:
     try:
         layer = Sdf.Layer.FindOrOpen(os.fspath(source))
     except Exception as error:  # pxr raises Tf.ErrorException with multi-line text
-        raise RelightError(f"{source}: not a readable USD layer ({str(error).splitlines()[0]})") from None
+        raise RelightError(f"{source}: not a readable USD layer ({usd_error_line(error)})") from None
     if layer is None:
         raise RelightError(f"{source}: no such USD layer (the cache's source)")
     root = layer.pseudoRoot
@@ -245,11 +249,11 @@ def _require(condition: bool, path: Path, prim: Usd.Prim, message: str) -> None:
         raise RelightError(f"{path}: {prim.GetPath()}.{message}")
 
 
-def _plain_dtype(name: str) -> bool:
+def plain_dtype(name: str) -> bool:
     """True for the name of a numpy dtype holding no Python objects (nothing that needs pickle)."""
     try:
         return bool(name) and not np.dtype(name).hasobject
-    except TypeError:
+    except (TypeError, ValueError, SyntaxError):
         return False
 
 
@@ -261,9 +265,14 @@ def _read_payload(prim: Usd.Prim, path: Path) -> Payload:
              f"relight:constantValues has {len(values)} values for {len(names)} relight:constantChannels")
     file = _get(prim, "relight:file", path).path
     _require(bool(file), path, prim, "relight:file is empty")
+    # Payloads live beside their layer: a path out of its folder would let an edited layer make
+    # the relighter read (and report on) any file.
+    normal = os.path.normpath(file)
+    outside = os.path.isabs(file) or normal in (os.curdir, os.pardir) or normal.startswith(os.pardir + os.sep)
+    _require(not outside, path, prim, f"relight:file {file!r} is not a file in the cache layer's own folder")
     payload = Payload(
         name=prim.GetName(),
-        file=os.path.normpath(file),
+        file=normal,
         format=_get(prim, "relight:format", path),
         sha256=_get(prim, "relight:sha256", path),
         num_bytes=int(_get(prim, "relight:bytes", path)),
@@ -282,7 +291,7 @@ def _read_payload(prim: Usd.Prim, path: Path) -> Payload:
                  f"relight:shape {list(payload.shape)} of an EXR payload must be empty or a positive (H, W)")
     else:
         _require(all(n >= 0 for n in payload.shape), path, prim, f"relight:shape {list(payload.shape)} is negative")
-        _require(_plain_dtype(payload.dtype), path, prim,
+        _require(plain_dtype(payload.dtype), path, prim,
                  f"relight:dtype {payload.dtype!r} is not a numpy dtype without objects")
     return payload
 
@@ -301,7 +310,7 @@ def read_cache_layer(path: str | os.PathLike) -> CacheDescription:
     try:
         stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
     except Exception as error:  # pxr raises Tf.ErrorException with multi-line text
-        raise RelightError(f"{path}: not a readable USD layer ({str(error).splitlines()[0]})") from None
+        raise RelightError(f"{path}: not a readable USD layer ({usd_error_line(error)})") from None
     cache = stage.GetPrimAtPath(CACHE_PRIM)
     if not cache or cache.GetTypeName() != "RelightCache":
         raise RelightError(f"{path}: not a relight cache (no RelightCache prim at {CACHE_PRIM})")
@@ -318,6 +327,10 @@ def read_cache_layer(path: str | os.PathLike) -> CacheDescription:
     hashes = list(_get(cache, "relight:inputHashes", path))
     _require(len(files) == len(hashes), path, cache,
              f"relight:inputHashes has {len(hashes)} entries for {len(files)} relight:inputFiles")
+    camera_path = _get(cache, "relight:cameraPath", path)
+    _require(Sdf.Path.IsValidPathString(camera_path) and Sdf.Path(camera_path).IsAbsolutePath()
+             and Sdf.Path(camera_path).IsPrimPath(), path, cache,
+             f"relight:cameraPath {camera_path!r} is not an absolute prim path")
     resolution = tuple(int(v) for v in _get(cache, "relight:resolution", path))
     _require(min(resolution) > 0, path, cache, f"relight:resolution {list(resolution)} must be positive")
     supersampling = int(_get(cache, "relight:supersampling", path))
@@ -335,7 +348,7 @@ def read_cache_layer(path: str | os.PathLike) -> CacheDescription:
     return CacheDescription(
         method=method,
         source=str((directory / source).resolve()),
-        camera_path=_get(cache, "relight:cameraPath", path),
+        camera_path=camera_path,
         resolution=resolution,
         supersampling=supersampling,
         world_from_camera=matrix,
@@ -345,4 +358,5 @@ def read_cache_layer(path: str | os.PathLike) -> CacheDescription:
         parameters=parameters,
         payloads=payloads,
         code_version=str(cache.GetAttribute("relight:codeVersion").Get() or ""),
+        layer=str(path),
     )

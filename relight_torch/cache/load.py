@@ -6,20 +6,26 @@ and dtype) matches what the layer records, and its size and sha256 match (stream
 or truncated file is refused without being loaded); then the inputs the bake read are re-hashed,
 so a cache whose shot changed is reported stale, naming the files. The header comes before the
 hash so that a payload replaced by another file says what is wrong with it (another resolution,
-other channels), not only that its bytes changed. No pickle anywhere: .npy files are read with
-allow_pickle=False.
+other channels), not only that its bytes changed. A payload is checked and decoded through one open
+handle (`opened_payload`), so a file renamed over it meanwhile (a re-bake) is never decoded against
+the old record. No pickle anywhere: .npy headers are parsed here with `ast.literal_eval` and the
+arrays mapped with `np.memmap`.
 """
 
 from __future__ import annotations
 
+import ast
+import contextlib
+import hashlib
 import math
 import os
 from pathlib import Path
+from typing import BinaryIO, Iterator
 
 import numpy as np
 
 from relight_torch.cache.gbuffer_exr import check_channel_types, gbuffer_from_channels
-from relight_torch.cache.layer import CacheDescription, Payload, file_sha256
+from relight_torch.cache.layer import CacheDescription, Payload, file_sha256, plain_dtype
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.io.exr import ExrHeader, read_exr, read_exr_header
@@ -39,17 +45,34 @@ def payload_file(layer_path: Path, payload: Payload) -> Path:
     return path
 
 
-def check_payload_bytes(path: Path, payload: Payload) -> None:
-    """Refuse a payload file whose size or sha256 differs from the layer's record."""
-    size = path.stat().st_size
+def _handle_sha256(handle: BinaryIO) -> str:
+    """Hex sha256 of an open file's bytes, read from its start in 1 MB blocks."""
+    handle.seek(0)
+    digest = hashlib.sha256()
+    for block in iter(lambda: handle.read(1 << 20), b""):
+        digest.update(block)
+    return digest.hexdigest()
+
+
+def check_payload_bytes(path: Path, payload: Payload, handle: BinaryIO | None = None) -> None:
+    """Refuse a payload file whose size or sha256 differs from the layer's record.
+
+    Args:
+        handle: the file open in binary mode, to check that very file (else `path` is opened).
+    """
+    if handle is None:
+        with open(path, "rb") as own:
+            return check_payload_bytes(path, payload, own)
+    size = os.fstat(handle.fileno()).st_size
     if size < payload.num_bytes:
         raise RelightError(f"{path}: payload {payload.name} is truncated ({size} of {payload.num_bytes} bytes)")
     if size != payload.num_bytes:
         raise RelightError(f"{path}: payload {payload.name} is {size} bytes, the cache layer records "
                            f"{payload.num_bytes} (replaced or appended to)")
-    if file_sha256(path) != payload.sha256:
+    if _handle_sha256(handle) != payload.sha256:
         raise RelightError(f"{path}: payload {payload.name} does not match the sha256 the cache layer records "
                            f"(corrupt, edited, or overwritten by another bake)")
+    return None
 
 
 def sub_sample_size(description: CacheDescription) -> tuple[int, int]:
@@ -82,65 +105,151 @@ def check_exr_header(path: Path, payload: Payload, header: ExrHeader, image_size
     check_channel_types(header.channels, str(path))
 
 
-def read_npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
-    """(shape, dtype) from a .npy file's header, without reading the array.
+NPY_MAGIC = b"\x93NUMPY"
+MAX_NPY_HEADER = 10_000
+"""Longest .npy header read (numpy's own default limit): ours are under 200 bytes."""
+_NPY_KEYS = {"descr", "fortran_order", "shape"}
+
+
+def _npy_header_dict(handle: BinaryIO, path: Path) -> dict:
+    """The header dictionary of an open .npy file, its handle left at the first data byte.
+
+    Parsed here, not by numpy's reader: that one runs Python's tokenizer over the header and lets
+    its errors (`tokenize.TokenError`, `SyntaxError`, `RecursionError`...) escape on damaged bytes.
+    """
+    magic = handle.read(8)
+    if len(magic) < 8 or magic[:6] != NPY_MAGIC:
+        raise RelightError(f"{path}: not a .npy array (no .npy magic string)")
+    version = (magic[6], magic[7])
+    if version not in ((1, 0), (2, 0)):
+        raise RelightError(f"{path}: not a .npy array (unsupported .npy version {version[0]}.{version[1]})")
+    length_bytes = handle.read(2 if version == (1, 0) else 4)
+    length = int.from_bytes(length_bytes, "little")
+    if len(length_bytes) < (2 if version == (1, 0) else 4) or not 1 <= length <= MAX_NPY_HEADER:
+        raise RelightError(f"{path}: not a .npy array (header length {length} is not in 1..{MAX_NPY_HEADER})")
+    text = handle.read(length)
+    if len(text) < length:
+        raise RelightError(f"{path}: not a .npy array (header cut short at {len(text)} of {length} bytes)")
+    try:
+        header = ast.literal_eval(text.decode("latin1"))
+    except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError) as error:
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise RelightError(f"{path}: not a .npy array (malformed header: {reason})") from None
+    if not isinstance(header, dict) or set(header) != _NPY_KEYS:
+        raise RelightError(f"{path}: not a .npy array (the header is not a dictionary of {sorted(_NPY_KEYS)})")
+    return header
+
+
+def read_npy_header(path: Path, handle: BinaryIO | None = None) -> tuple[tuple[int, ...], np.dtype, bool, int]:
+    """(shape, dtype, fortran_order, data offset) from a .npy file's header, without reading the array.
+
+    Args:
+        path: the file (named in errors).
+        handle: the file already open in binary mode (read from its start), else `path` is opened.
 
     Raises:
-        RelightError: not a .npy file, an unsupported version, a malformed header, or a header
-            whose shape and dtype do not account for the file's size exactly (a header claiming a
-            huge array is refused before anything is allocated or mapped).
+        RelightError: not a .npy file, an unsupported version, a malformed header, a dtype holding
+            objects or of zero size, or a header whose shape and dtype do not account for the file's
+            size exactly (a header claiming a huge array is refused before anything is allocated or
+            mapped).
     """
-    with open(path, "rb") as handle:
-        try:
-            version = np.lib.format.read_magic(handle)
-            if version not in ((1, 0), (2, 0)):
-                raise ValueError(f"unsupported .npy version {version[0]}.{version[1]}")
-            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                           else np.lib.format.read_array_header_2_0)
-            shape, _, dtype = read_header(handle)
-            data_offset = handle.tell()
-        except (ValueError, EOFError) as error:
-            reason = str(error).splitlines()[0] if str(error) else type(error).__name__
-            raise RelightError(f"{path}: not a .npy array ({reason})") from None
-    shape = tuple(int(n) for n in shape)
+    if handle is None:
+        with open(path, "rb") as own:
+            return read_npy_header(path, own)
+    handle.seek(0)
+    header = _npy_header_dict(handle, path)
+    data_offset = handle.tell()
+    shape, descr, fortran_order = header["shape"], header["descr"], header["fortran_order"]
+    if not isinstance(shape, tuple) or not all(type(n) is int and n >= 0 for n in shape):
+        raise RelightError(f"{path}: not a .npy array (shape {shape!r} is not a tuple of counts)")
+    if not isinstance(fortran_order, bool):
+        raise RelightError(f"{path}: not a .npy array (fortran_order {fortran_order!r} is not a bool)")
+    if not isinstance(descr, str) or not plain_dtype(descr):
+        raise RelightError(f"{path}: not a .npy array (descr {descr!r} is not a plain numpy dtype)")
+    dtype = np.dtype(descr)
+    if dtype.itemsize == 0:
+        raise RelightError(f"{path}: not a .npy array (dtype {descr!r} has no size)")
     data_bytes = math.prod(shape) * dtype.itemsize
-    size = path.stat().st_size
+    size = os.fstat(handle.fileno()).st_size
     if data_offset + data_bytes != size:
         raise RelightError(f"{path}: .npy header claims {dtype.name}{list(shape)} ({data_bytes} bytes of data) but "
                            f"the file holds {size - data_offset}; refused before reading")
-    return shape, dtype
+    return shape, dtype, fortran_order, data_offset
 
 
 def check_npy_header(path: Path, payload: Payload, header: tuple[tuple[int, ...], np.dtype]) -> None:
     """Refuse a .npy payload whose shape or dtype (`header`, from `read_npy_header`) differ from the layer's."""
-    shape, dtype = header
+    shape, dtype = header[:2]
     if shape != payload.shape or dtype.name != payload.dtype:
         raise RelightError(f"{path}: payload {payload.name} is {dtype.name}{list(shape)}, the cache layer says "
                            f"{payload.dtype}{list(payload.shape)}")
 
 
-def check_payload(layer_path: Path, description: CacheDescription, payload: Payload) -> Path:
-    """Every check of one payload file short of decoding it; returns its path.
+@contextlib.contextmanager
+def opened_payload(layer_path: Path, description: CacheDescription, payload: Payload,
+                   image_size: tuple[int, int] | None = None) -> Iterator[tuple[Path, BinaryIO, object]]:
+    """Open one payload file and make every check short of decoding it; yields (path, handle, header).
 
-    A header that cannot be parsed in a file shorter than recorded is reported as truncated; a
-    header that parses but differs from the layer's record is reported as such, whatever the size.
+    The header and bytes checked are those of the open handle's file, so what is decoded from the
+    handle (`load_npy` maps it) is what was checked, even if a re-bake renames a new file over the
+    path meanwhile. A header that cannot be parsed in a file shorter than recorded is reported as
+    truncated; a header that parses but differs from the layer's record is reported as such,
+    whatever the size.
+
+    Args:
+        image_size: an EXR payload's expected (H, W) (default: the layer's shape, else the cache's
+            sub-sample size).
 
     Raises:
         RelightError: one line naming the file and what is wrong with it.
     """
     path = payload_file(layer_path, payload)
     try:
-        header = read_exr_header(path) if payload.format == "exr" else read_npy_header(path)
-    except RelightError:
-        if path.stat().st_size < payload.num_bytes:
-            check_payload_bytes(path, payload)
-        raise
-    if payload.format == "exr":
-        check_exr_header(path, payload, header, payload.shape or sub_sample_size(description))
-    else:
-        check_npy_header(path, payload, header)
-    check_payload_bytes(path, payload)
-    return path
+        handle = open(path, "rb")
+    except OSError as error:
+        raise RelightError(f"{path}: payload {payload.name} cannot be opened ({error.strerror})") from None
+    with handle:
+        try:
+            header = read_exr_header(path) if payload.format == "exr" else read_npy_header(path, handle)
+        except RelightError:
+            if os.fstat(handle.fileno()).st_size < payload.num_bytes:
+                check_payload_bytes(path, payload, handle)
+            raise
+        if payload.format == "exr":
+            check_exr_header(path, payload, header, image_size or payload.shape or sub_sample_size(description))
+        else:
+            check_npy_header(path, payload, header)
+        check_payload_bytes(path, payload, handle)
+        yield path, handle, header
+
+
+def check_payload(layer_path: Path, description: CacheDescription, payload: Payload) -> Path:
+    """Every check of one payload file short of decoding it (`opened_payload`); returns its path."""
+    with opened_payload(layer_path, description, payload) as (path, _, _):
+        return path
+
+
+def _identity(status: os.stat_result) -> tuple[int, ...]:
+    return status.st_dev, status.st_ino, status.st_size, status.st_mtime_ns, status.st_ctime_ns
+
+
+def read_payload_exr(layer_path: Path, description: CacheDescription, payload: Payload,
+                     image_size: tuple[int, int] | None = None) -> tuple[Path, dict[str, np.ndarray]]:
+    """An EXR payload's channels, checked as `opened_payload` does; returns (path, channels).
+
+    OpenEXR reads by path, so the file is checked to be the one whose bytes were hashed after it is
+    decoded (the handle held open meanwhile, so its inode cannot be reused).
+
+    Raises:
+        RelightError: as `opened_payload`, or the file was replaced while being read.
+    """
+    with opened_payload(layer_path, description, payload, image_size) as (path, handle, _):
+        channels, _ = read_exr(path)
+        replaced = not path.is_file() or _identity(os.stat(path)) != _identity(os.fstat(handle.fileno()))
+    if replaced:
+        raise RelightError(f"{path}: payload {payload.name} was replaced while being read (a bake writing "
+                           f"this cache?); open the cache again")
+    return path, channels
 
 
 def stale_inputs(description: CacheDescription) -> dict[str, str]:
@@ -165,14 +274,20 @@ def check_inputs(layer_path: Path, description: CacheDescription) -> None:
 def load_gbuffer(layer_path: Path, description: CacheDescription) -> GBuffer:
     """The deep framebuffer payload as a CPU GBuffer."""
     payload = description.payload("deepFramebuffer")
-    path = check_payload(layer_path, description, payload)
-    channels, _ = read_exr(path)
+    path, channels = read_payload_exr(layer_path, description, payload)
     camera_position = description.world_from_camera[:3, 3]
     return gbuffer_from_channels(channels, payload.constants, camera_position, str(path))
 
 
 def load_npy(layer_path: Path, description: CacheDescription, name: str) -> np.ndarray:
-    """A .npy payload, memory-mapped, its header checked against the layer before mapping."""
+    """A .npy payload, memory-mapped read-only from the very file whose header and bytes were checked.
+
+    An empty array is returned as such (there is nothing to map).
+    """
     payload = description.payload(name)
-    path = check_payload(layer_path, description, payload)
-    return np.load(path, mmap_mode="r", allow_pickle=False)
+    with opened_payload(layer_path, description, payload) as (_, handle, header):
+        shape, dtype, fortran_order, offset = header
+        if math.prod(shape) == 0:
+            return np.empty(shape, dtype, order="F" if fortran_order else "C")
+        return np.memmap(handle, dtype=dtype, mode="r", offset=offset, shape=shape,
+                         order="F" if fortran_order else "C")

@@ -63,7 +63,7 @@ from relight_torch.lights.usd import read_stage_lights
 from relight_torch.math.frame import dot, to_local
 from relight_torch.parallel import parallel_map, tile_threads
 from relight_torch.protocol import refuse_material_edit
-from relight_torch.stage import open_stage, time_code
+from relight_torch.stage import check_composition, defining_layer, open_stage, time_code
 from relight_torch.visibility import Visibility
 from relight_torch.visibility.embree import EmbreeCaster, ShadowLinkCasters
 from relight_torch.visibility.opacity import OPACITY_PAYLOADS, OpacityTable
@@ -951,7 +951,9 @@ def shot_lights(description: CacheDescription, lights_layer: str | os.PathLike |
         RelightError: a file cannot be opened, or a light has a bad value (naming prim and attribute).
     """
     stage = open_stage(description.source, lights_layer)
+    check_composition(stage, lights_layer or description.source)
     try:
         return read_stage_lights(stage, time_code(stage, description.parameters.get("time")))
     except ValueError as error:
-        raise RelightError(str(error)) from None
+        raise RelightError(f"{defining_layer(stage, str(error), lights_layer or description.source)}: "
+                           f"{error}") from None

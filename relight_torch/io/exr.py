@@ -66,7 +66,10 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray],
     header.update(attributes or {})
     with atomic_path(path) as temp:
         with OpenEXR.File(header, data) as exr:
-            exr.write(str(temp))
+            try:
+                exr.write(str(temp))
+            except RuntimeError as error:  # OpenEXR's failed write (disk full...): atomic_path reports OSErrors
+                raise OSError(_one_line(error)) from error
 
 
 def write_rgb_exr(path: str | os.PathLike, rgb: np.ndarray,
@@ -105,6 +108,15 @@ def _one_line(text: str) -> str:
     return lines[-1] if lines else "unknown error"
 
 
+def _oiio_error() -> str:
+    """OpenImageIO's last error, one line; its text can hold a damaged header's bytes, which are not
+    always UTF-8 (the binding then raises UnicodeDecodeError instead of returning it)."""
+    try:
+        return _one_line(oiio.geterror())
+    except UnicodeDecodeError:
+        return "the header holds bytes that are not UTF-8 text"
+
+
 def read_exr_header(path: str | os.PathLike) -> ExrHeader:
     """Read part 0's header: size, channel names and pixel types, compression.
 
@@ -118,7 +130,7 @@ def read_exr_header(path: str | os.PathLike) -> ExrHeader:
         raise RelightError(f"{path}: no such EXR file")
     image = oiio.ImageInput.open(str(path))
     if image is None:
-        raise RelightError(f"{path}: not a readable EXR file ({_one_line(oiio.geterror())})")
+        raise RelightError(f"{path}: not a readable EXR file ({_oiio_error()})")
     try:
         spec = image.spec()
         if image.format_name() != "openexr":

@@ -198,11 +198,23 @@ def _read_inputs(prim: Usd.Prim, time: Usd.TimeCode, inputs: tuple[_Input, ...])
 def _checked(prim: Usd.Prim, spec: _Input, attribute: Usd.Attribute, value, time: Usd.TimeCode):
     """Convert a USD value to the dataclass field's Python type, raising ValueError when out of range."""
     where = f"{prim.GetPath()}: {spec.attribute}"
+    stack = attribute.GetPropertyStack(time)
+    authored = f"{where} = {value!r} (authored as {stack[0].typeName if stack else attribute.GetTypeName()})"
     if spec.check == "flag":
+        if not isinstance(value, (bool, int)):
+            raise ValueError(f"{authored} is not a bool")
         return bool(value)
     if spec.check == "asset":
+        if not isinstance(value, Sdf.AssetPath):
+            raise ValueError(f"{authored} is not an asset path")
         return _resolve_asset(attribute, value, where, time)
-    numbers = tuple(float(x) for x in value) if spec.check in ("colour", "pair", "positive_pair") else (float(value),)
+    # A layer may author an input with another type than the schema's (a string, an int array):
+    # refused here, not left to fail in a conversion below.
+    count = {"colour": 3, "pair": 2, "positive_pair": 2}.get(spec.check, 1)
+    items = [value] if count == 1 else (list(value) if hasattr(value, "__len__") and not isinstance(value, str) else [])
+    if len(items) != count or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in items):
+        raise ValueError(f"{authored} is not {'a number' if count == 1 else f'{count} numbers'}")
+    numbers = tuple(float(x) for x in items)
     minimum, strict = {"nonnegative": (0.0, False), "colour": (0.0, False), "positive": (0.0, True),
                        "positive_pair": (0.0, True)}.get(spec.check, (-math.inf, False))
     if not all(math.isfinite(x) and (x > minimum if strict else x >= minimum) for x in numbers):

@@ -14,10 +14,9 @@ import numpy as np
 
 from relight_torch.cache.gbuffer_exr import gbuffer_from_channels
 from relight_torch.cache.layer import CacheDescription
-from relight_torch.cache.load import check_exr_header, check_payload_bytes, load_npy, payload_file
+from relight_torch.cache.load import load_npy, read_payload_exr
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
-from relight_torch.io.exr import read_exr, read_exr_header
 from relight_torch.multiview.views import camera_column, check_camera_table, world_from_camera
 
 
@@ -52,9 +51,6 @@ def load_view_gbuffers(layer_path: Path, description: CacheDescription, table: n
     positions = world_from_camera(table)[:, :3, 3]
     for k in range(table.shape[0]):
         payload = description.payload(view_payload_name(k))
-        path = payload_file(layer_path, payload)
-        check_exr_header(path, payload, read_exr_header(path), _image_size(table, k, layer_path))
-        check_payload_bytes(path, payload)
-        channels, _ = read_exr(path)
+        path, channels = read_payload_exr(layer_path, description, payload, _image_size(table, k, layer_path))
         gbuffers.append(gbuffer_from_channels(channels, payload.constants, positions[k], str(path)))
     return gbuffers

@@ -84,6 +84,8 @@ class SparseRows:
         if self.row_colour is not None and (self.values.shape[1] != 1 or self.row_colour.shape != (self.num_rows, 3)):
             raise ValueError(f"a row colour needs (nnz, 1) values and ({self.num_rows}, 3) colours; got "
                              f"{tuple(self.values.shape)} and {tuple(self.row_colour.shape)}")
+        if self.row_colour is None and self.values.shape[1] != 3:
+            raise ValueError(f"values without a row colour must be (nnz, 3); got {tuple(self.values.shape)}")
         if bool((offsets[1:] < offsets[:-1]).any()):
             raise ValueError("offsets must be non-decreasing")
         if nnz and (int(self.indices.min()) < 0 or int(self.indices.max()) >= self.num_columns):
