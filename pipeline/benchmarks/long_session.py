@@ -33,7 +33,7 @@ from relight_torch.cache.load import load_npy
 from relight_torch.io.atomic import write_text_atomic
 from relight_torch.lights.light import Light, LightKind, Shadow, Shaping
 from relight_torch.lights.linking import decode_paths
-from relight_torch.transfer.open import open_cache_relighter
+from relight_torch import open_cache
 
 EDIT_KINDS = ("intensity", "colour", "move", "resize", "shaping", "link", "shadow", "add", "remove")
 MAX_LIGHTS = 6
@@ -48,7 +48,7 @@ def resident_bytes() -> int:
 
 def open_session(layer: Path):
     """The relighter of `layer`'s method, ready to render (a multiview one set to the cache's camera)."""
-    relighter = open_cache_relighter(layer)
+    relighter = open_cache(layer)
     description = read_cache_layer(layer)
     if description.method == "multiview":
         width, height = description.resolution
