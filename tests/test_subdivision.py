@@ -4,6 +4,8 @@ valence, boundaries, creases and corners), the screen-space level choice and the
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
@@ -413,3 +415,11 @@ def test_degenerate_cages_render_as_the_cage(points, indices, message):
     geometry, warnings, _ = _read(stage)
     assert geometry.num_triangles == 2
     assert any(message in w for w in warnings) and any("dropped 1 degenerate" in w for w in warnings)
+
+
+@pytest.mark.parametrize("focal_length", [0.0, -1.0, float("nan")])
+def test_a_camera_with_no_focal_length_sets_no_dicing_rate(focal_length):
+    # Found by the stage fuzzer: focalLength 0 divided by zero here and ended the bake in a traceback.
+    broken = dataclasses.replace(_camera([0, 0, 10]), focal_length=focal_length)
+    assert dicing.views_from_cameras({"/Broken": broken}) == []
+    assert len(dicing.views_from_cameras({"/Broken": broken, "/Fine": _camera([0, 0, 10])})) == 1

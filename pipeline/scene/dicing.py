@@ -57,9 +57,14 @@ class View:
 
 
 def views_from_cameras(cameras: dict[str, Camera]) -> list[View]:
-    """One `View` per camera (at the image size it is rendered at)."""
+    """One `View` per camera (at the image size it is rendered at); a camera with no finite, positive
+    focal length and aperture projects nothing and sets no dicing rate (rendering from it is refused
+    where it is used)."""
     views = []
     for camera in cameras.values():
+        lengths = (camera.focal_length, camera.horizontal_aperture)
+        if not all(math.isfinite(length) and length > 0 for length in lengths):
+            continue
         focal_pixels = camera.focal_length / camera.horizontal_aperture * camera.width
         half_x = camera.horizontal_aperture / 2 + abs(camera.horizontal_aperture_offset)
         half_y = camera.vertical_aperture / 2 + abs(camera.vertical_aperture_offset)
