@@ -8,9 +8,8 @@ shaded separately by the relighter and box-filtered after shading.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import dataclasses
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -61,16 +60,18 @@ def bake_deep_framebuffer(scene: Scene, camera: Camera, supersampling: int = 1, 
                           tracer: Tracer | None = None, rows: tuple[int, int] | None = None) -> DeepFramebuffer:
     """Trace the camera's sub-sample rays and record the visible surfaces.
 
-    Textures are filtered over each sub-sample's footprint, as a production renderer filters them:
-    the material parameters (and the normal-mapped normal) of a sub-sample are the average over a
-    t x t grid of rays inside it that hit the same object as its centre ray. Geometry (position,
-    geometric normal, depth, ids) is the centre ray's.
+    Textures and normal maps are filtered over each sub-sample's footprint so that the relit pixel
+    converges to the reference's pixel average: the material parameters and the normal-mapped normal
+    of a sub-sample are averaged over a grid of rays inside it that hit the same object as its
+    centre ray, 2 x 2 first and t x t where those differ or a texture is minified
+    (`_filter_materials`). Geometry (position, geometric normal, depth, ids) is the centre ray's.
 
     Args:
         scene: the shot.
         camera: the camera (its width and height set the resolution).
         supersampling: s >= 1 sub-samples per pixel side.
-        texture_samples: t >= 1 material samples per sub-sample side (1 = point-sampled textures).
+        texture_samples: t >= 1 material samples per sub-sample side where materials vary
+            (1 = point-sampled textures).
         tracer: reuse a built tracer (the BVH is built otherwise).
         rows: bake only the pixel rows [first, last) (a chunk of a bake; the sub-samples keep
             their indices in the whole (H s, W s) image); None: every row.
@@ -111,13 +112,11 @@ def bake_deep_framebuffer(scene: Scene, camera: Camera, supersampling: int = 1, 
 
 
 def _fold_normal_spread(params: dict[str, np.ndarray], length: np.ndarray) -> None:
-    """Fold the spread of averaged normals (mean length `length` (N,) in (0, 1]) into the material.
+    """Widen the specular lobes by the spread of averaged normals (mean length `length` (N,) in (0, 1]).
 
-    Diffuse light is linear in the normal (E[n . l] = E[n] . l away from the horizon), so shading
-    with the unit mean normal and the diffuse colour scaled by |E[n]| is exact for it. The specular
-    lobes widen as in Toksvig's method: the normals' spread, as a von Mises-Fisher lobe of
-    concentration kappa = (3 |n| - |n|^3) / (1 - |n|^2), adds 2 / kappa to the GGX alpha^2
-    (alpha = roughness^2, as UsdPreviewSurface squares it).
+    Toksvig's method: the normals' spread, as a von Mises-Fisher lobe of concentration
+    kappa = (3 |n| - |n|^3) / (1 - |n|^2), adds 2 / kappa to the GGX alpha^2 (alpha = roughness^2, as
+    UsdPreviewSurface squares it). The diffuse part needs no widening (`_average_samples`).
     """
     spread = 1.0 - length * length
     inverse_kappa = np.where(spread > 1e-6, spread / np.maximum(3.0 * length - length**3, 1e-6), 0.0)

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.bake.deep_framebuffer import grid_rays
+from pipeline.bake.deep_framebuffer import grid_rays, texel_density
 from pipeline.bake.direct import bake_direct
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
@@ -50,16 +50,9 @@ def pixel_classes(scene: Scene, camera: Camera) -> np.ndarray:
     height, width, n = camera.height, camera.width, CLASS_GRID
     per_pixel = object_id.reshape(height, n, width, n).transpose(0, 2, 1, 3).reshape(height, width, n * n)
     edge = np.any(per_pixel != per_pixel[..., :1], axis=-1)
-    textured_materials = np.array([any(getattr(m, f.name).texture is not None for f in _inputs(m))
-                                   for m in scene.materials] + [False])
+    textured_materials = np.append(texel_density(scene) > 0, False)           # -1: no hit
     material = material_id.reshape(height, n, width, n)[:, 0, :, 0]
-    textured = textured_materials[material]
-    return np.where(edge, 0, np.where(textured, 1, 2))
-
-
-def _inputs(material):
-    import dataclasses
-    return [f for f in dataclasses.fields(material) if hasattr(getattr(material, f.name), "texture")]
+    return np.where(edge, 0, np.where(textured_materials[material], 1, 2))
 
 
 def directory_size(path: Path) -> int:
