@@ -136,8 +136,8 @@ PROBE_SAMPLES = 2
 the requested count (`bake_deep_framebuffer`'s texture_samples) in a second pass."""
 
 VARIATION = 0.01
-"""A sub-sample is refined where a material parameter's standard deviation over its probe samples,
-or the spread 1 - |mean normal| of their normals / 10, exceeds this."""
+"""A sub-sample is refined where a material parameter's standard deviation over its probe samples
+exceeds this, or the spread 1 - |mean normal| of their normals exceeds a tenth of it."""
 
 
 def _filter_materials(scene: Scene, tracer: Tracer, tangents: np.ndarray, camera: Camera, s: int, t: int,
