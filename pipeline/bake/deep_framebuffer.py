@@ -17,10 +17,8 @@ layer (front surface, alpha, surface behind) would be exact at any supersampling
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import dataclasses
-import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -71,16 +69,18 @@ def bake_deep_framebuffer(scene: Scene, camera: Camera, supersampling: int = 1, 
                           tracer: Tracer | None = None, rows: tuple[int, int] | None = None) -> DeepFramebuffer:
     """Trace the camera's sub-sample rays and record the visible surfaces.
 
-    Textures are filtered over each sub-sample's footprint, as a production renderer filters them:
-    the material parameters (and the normal-mapped normal) of a sub-sample are the average over a
-    t x t grid of rays inside it that hit the same object as its centre ray. Geometry (position,
-    geometric normal, depth, ids) is the centre ray's.
+    Textures and normal maps are filtered over each sub-sample's footprint so that the relit pixel
+    converges to the reference's pixel average: the material parameters and the normal-mapped normal
+    of a sub-sample are averaged over a grid of rays inside it that hit the same object as its
+    centre ray, 2 x 2 first and t x t where those differ or a texture is minified
+    (`_filter_materials`). Geometry (position, geometric normal, depth, ids) is the centre ray's.
 
     Args:
         scene: the shot.
         camera: the camera (its width and height set the resolution).
         supersampling: s >= 1 sub-samples per pixel side.
-        texture_samples: t >= 1 material samples per sub-sample side (1 = point-sampled textures).
+        texture_samples: t >= 1 material samples per sub-sample side where materials vary
+            (1 = point-sampled textures).
         tracer: reuse a built tracer (the BVH is built otherwise).
         rows: bake only the pixel rows [first, last) (a chunk of a bake; the sub-samples keep
             their indices in the whole (H s, W s) image); None: every row.
@@ -121,15 +121,12 @@ def bake_deep_framebuffer(scene: Scene, camera: Camera, supersampling: int = 1, 
 
 
 def _fold_normal_spread(params: dict[str, np.ndarray], length: np.ndarray) -> None:
-    """Fold the spread of averaged normals (mean length `length` (N,) in (0, 1]) into the material.
+    """Widen the specular lobes by the spread of averaged normals (mean length `length` (N,) in (0, 1]).
 
-    Diffuse light is linear in the normal (E[n . l] = E[n] . l away from the horizon), so shading
-    with the unit mean normal and the diffuse colour scaled by |E[n]| is exact for it. The specular
-    lobes widen as in Toksvig's method: the normals' spread, as a von Mises-Fisher lobe of
-    concentration kappa = (3 |n| - |n|^3) / (1 - |n|^2), adds 2 / kappa to the GGX alpha^2
-    (alpha = roughness^2, as UsdPreviewSurface squares it).
+    Toksvig's method: the normals' spread, as a von Mises-Fisher lobe of concentration
+    kappa = (3 |n| - |n|^3) / (1 - |n|^2), adds 2 / kappa to the GGX alpha^2 (alpha = roughness^2, as
+    UsdPreviewSurface squares it). The diffuse part needs no widening (`_average_samples`).
     """
-    params["diffuse_color"] = params["diffuse_color"] * length[:, None]
     spread = 1.0 - length * length
     inverse_kappa = np.where(spread > 1e-6, spread / np.maximum(3.0 * length - length**3, 1e-6), 0.0)
     # Only where the lobe exists, so that a material without it keeps a constant (elided) channel.
@@ -143,9 +140,20 @@ def _fold_normal_spread(params: dict[str, np.ndarray], length: np.ndarray) -> No
         params[name] = np.where(lobe, widened, params[name])
 
 
+PROBE_SAMPLES = 2
+"""Material samples per sub-sample side of the first pass; sub-samples whose samples differ get
+the requested count (`bake_deep_framebuffer`'s texture_samples) in a second pass."""
+
+VARIATION = 0.01
+"""A sub-sample is refined where a material parameter's standard deviation over its probe samples
+exceeds this, or the spread 1 - |mean normal| of their normals exceeds a tenth of it."""
+
+
 def _filter_materials(scene: Scene, tracer: Tracer, tangents: np.ndarray, camera: Camera, s: int, t: int,
                       rows: tuple[int, int], pixel_index: np.ndarray, centre: ShadingPoints):
-    """Average material parameters and shading normals of t x t rays per covered sub-sample.
+    """Average material parameters and shading normals of t x t rays per covered sub-sample,
+    adaptively: `PROBE_SAMPLES` per side first, t only where those differ (textured or normal-mapped
+    surfaces; a constant material on a smooth surface is already converged).
 
     Args:
         rows: the pixel rows [first, last) baked; pixel_index: (N,) the covered sub-samples'
@@ -154,37 +162,102 @@ def _filter_materials(scene: Scene, tracer: Tracer, tangents: np.ndarray, camera
     Returns (params, normal, tangent, bitangent) for the N covered sub-samples, the frame
     re-orthonormalised around the averaged normal.
     """
-    height, width = rows[1] - rows[0], camera.width
-    origins, directions = grid_rays(camera, s * t, rows)
-    hits = tracer.intersect(origins, directions)
-    fine = shading_points(scene, tangents, hits, directions)
-    fine_index = np.flatnonzero(hits.hit)
-    row, col = np.divmod(fine_index, width * s * t)
-    owner_pixel = (row // t) * (width * s) + col // t          # flat sub-sample of each fine hit
-    slot = np.full(height * s * width * s, -1, np.int64)
-    slot[pixel_index] = np.arange(pixel_index.size)
-    owner = slot[owner_pixel]
-    same = owner >= 0
-    same[same] &= fine.object_id[same] == centre.object_id[owner[same]]
-    owner, counts = owner[same], np.bincount(owner[same], minlength=pixel_index.size).astype(np.float32)
-    counts = np.maximum(counts, 1.0)
-
-    def average(fine_values: np.ndarray, centre_values: np.ndarray) -> np.ndarray:
-        # Channels from the centre's shape: with no fine hit (a chunk of sky) -1 has nothing to divide.
-        flat = fine_values[same].reshape(owner.size, math.prod(centre_values.shape[1:])).astype(np.float64)
-        sums = np.stack([np.bincount(owner, flat[:, c], pixel_index.size) for c in range(flat.shape[1])], -1)
-        mean = (sums / counts[:, None]).reshape(centre_values.shape).astype(np.float32)
-        has = np.bincount(owner, minlength=pixel_index.size) > 0
-        return np.where(has.reshape((-1,) + (1,) * (centre_values.ndim - 1)), mean, centre_values)
-
-    fields = {f.name: getattr(centre.params, f.name).numpy() for f in dataclasses.fields(centre.params)}
-    filtered = {name: (values if values.dtype == bool else average(getattr(fine.params, name).numpy(), values))
-                for name, values in fields.items()}
-    normal = average(fine.normal, centre.normal)
-    length = np.clip(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-6, 1.0)
-    normal /= length
-    _fold_normal_spread(filtered, length[:, 0])
+    probe = min(t, PROBE_SAMPLES)
+    filtered, normal, spread_length, varies = _average_samples(
+        scene, tracer, tangents, camera, s, probe, rows, pixel_index, centre, None)
+    if t > probe and varies.any():
+        fine = _average_samples(scene, tracer, tangents, camera, s, t, rows, pixel_index, centre, varies)
+        filtered = {name: np.where(varies.reshape((-1,) + (1,) * (value.ndim - 1)), fine[0][name], value)
+                    for name, value in filtered.items()}
+        normal = np.where(varies[:, None], fine[1], normal)
+        spread_length = np.where(varies, fine[2], spread_length)
+    _fold_normal_spread(filtered, spread_length)
     # The averaged normal may lie along the centre's tangent (samples on both sides of an edge).
     tangent = tangent_about(normal, centre.tangent)
     bitangent = np.cross(normal, tangent).astype(np.float32)
     return PreviewSurfaceParams.from_numpy(filtered), normal, tangent.astype(np.float32), bitangent
+
+
+def _average_samples(scene: Scene, tracer: Tracer, tangents: np.ndarray, camera: Camera, s: int, t: int,
+                     rows: tuple[int, int], pixel_index: np.ndarray, centre: ShadingPoints,
+                     selected: np.ndarray | None):
+    """Trace t x t rays per covered sub-sample (only the `selected` (N,) ones where given) and
+    average what the rays that see the centre's object hit.
+
+    Returns:
+        params: name -> (N, ...) averaged UsdPreviewSurface parameters (bool ones the centre's);
+        normal: (N, 3) unit mean shading normal of the samples facing the viewer;
+        spread_length: (N,) |mean normal| of those samples, in (0, 1], for `_fold_normal_spread`;
+        varies: (N,) bool, whether the samples differ (see `VARIATION`).
+        Sub-samples without samples keep the centre's values.
+    """
+    height, width = rows[1] - rows[0], camera.width
+    slot = np.full(height * s * width * s, -1, np.int64)
+    slot[pixel_index] = np.arange(pixel_index.size)
+    origins, directions = grid_rays(camera, s * t, rows)
+    ray_row, ray_col = np.divmod(np.arange(origins.shape[0]), width * s * t)
+    ray_owner = slot[(ray_row // t) * (width * s) + ray_col // t]
+    traced = np.flatnonzero(ray_owner >= 0 if selected is None else (ray_owner >= 0) & selected[ray_owner])
+    hits = tracer.intersect(origins[traced], directions[traced])
+    fine = shading_points(scene, tangents, hits, directions[traced])
+    owner = ray_owner[traced[hits.hit]]
+    same = fine.object_id == centre.object_id[owner]
+    fine_kept = np.flatnonzero(same)
+    owner = owner[same]
+    counts = np.maximum(np.bincount(owner, minlength=pixel_index.size), 1).astype(np.float64)
+    has = np.bincount(owner, minlength=pixel_index.size) > 0
+
+    def average(fine_values: np.ndarray, centre_values: np.ndarray) -> np.ndarray:
+        flat = fine_values[fine_kept].reshape(owner.size, int(np.prod(centre_values.shape[1:]))).astype(np.float64)
+        sums = np.stack([np.bincount(owner, flat[:, c], pixel_index.size) for c in range(flat.shape[1])], -1)
+        mean = (sums / counts[:, None]).reshape(centre_values.shape).astype(np.float32)
+        return np.where(has.reshape((-1,) + (1,) * (centre_values.ndim - 1)), mean, centre_values)
+
+    fields = {f.name: getattr(centre.params, f.name).numpy() for f in dataclasses.fields(centre.params)}
+    fine_fields = {name: getattr(fine.params, name).numpy() for name in fields}
+    filtered, varies = {}, np.zeros(pixel_index.size, bool)
+    for name, values in fields.items():
+        if values.dtype == bool:
+            filtered[name] = values
+            continue
+        filtered[name] = average(fine_fields[name], values)
+        second = average(np.square(fine_fields[name].astype(np.float64)), np.square(values.astype(np.float64)))
+        variance = (second - np.square(filtered[name].astype(np.float64))).reshape(pixel_index.size, -1)
+        varies |= np.any(variance > VARIATION**2, axis=-1)
+    # The shading model is zero where the shading normal faces away from the viewer (the view is
+    # fixed here), so such samples are black: they add nothing to the sums below.
+    visible = (np.einsum("nk,nk->n", fine.normal, fine.wo_world) > 0).astype(np.float32)
+    normal = average(fine.normal * visible[:, None], centre.normal)
+    length = np.linalg.norm(normal, axis=-1, keepdims=True)
+    # Every sample faces away (black in the reference): keep the centre's frame; the colour is zero below.
+    normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-6), centre.normal).astype(np.float32)
+    # Lambertian light is linear in the normal: sum_i a_i (n_i . l) = (sum_i a_i n_i) . l, kept as the
+    # colour on the mean normal (exact away from the light's horizon), so colour and normal stay correlated.
+    projection = np.zeros(visible.shape, np.float32)
+    projection[fine_kept] = np.einsum("nk,nk->n", fine.normal[fine_kept], normal[owner]) * visible[fine_kept]
+    filtered["diffuse_color"] = average(fine_fields["diffuse_color"] * projection[:, None], fields["diffuse_color"])
+    visible_mean = average(visible[:, None], np.ones((pixel_index.size, 1), np.float32))[:, 0]
+    spread_length = np.clip(length[:, 0] / np.maximum(visible_mean, 1e-6), 1e-6, 1.0)
+    varies |= (1.0 - spread_length) > 0.1 * VARIATION
+    # A probe can miss what its footprint holds (a mortar line between bricks): refine wherever the
+    # probe samples span more than half a texel of a texture of the material.
+    uv = hits.uv[hits.hit][fine_kept].astype(np.float64)
+    low = np.full((pixel_index.size, 2), np.inf)
+    high = np.full((pixel_index.size, 2), -np.inf)
+    np.minimum.at(low, owner, uv)
+    np.maximum.at(high, owner, uv)
+    span = np.where(has[:, None], high - low, 0.0).max(axis=-1)
+    varies |= span * texel_density(scene)[centre.material_id] > 0.5
+    return filtered, normal, spread_length, varies & has
+
+
+def texel_density(scene: Scene) -> np.ndarray:
+    """(M,) texels per unit of texture coordinate of each material's densest texture (0: untextured)."""
+    density = np.zeros(len(scene.materials))
+    for index, material in enumerate(scene.materials):
+        for field in dataclasses.fields(material):
+            texture = getattr(getattr(material, field.name), "texture", None)
+            if texture is not None:
+                stretch = np.linalg.norm(texture.st_from_uv[:2, :2], 2)   # largest singular value
+                density[index] = max(density[index], max(texture.pixels.shape[:2]) * stretch)
+    return density

@@ -34,8 +34,9 @@ def add_parser(subparsers) -> None:
                         help=f"S x S sub-samples per pixel, shaded separately and box-filtered (default 2; 1 for "
                              f"{' and '.join(single)}, whose every edit costs S^2 and whose error is mostly indirect "
                              f"light)")
-    parser.add_argument("--texture-samples", type=int, default=2, metavar="T",
-                        help="T x T material samples per sub-sample, averaged: texture filtering (default 2)")
+    parser.add_argument("--texture-samples", type=int, default=4, metavar="T",
+                        help="up to T x T material samples per sub-sample, averaged: texture and normal-map "
+                             "filtering; 2 x 2 where materials are constant (default 4)")
     parser.add_argument("--stem", help="file name stem (default: the scene file's stem)")
     parser.add_argument("--quality", type=float, metavar="PSNR",
                         help="PSNR in dB against the path tracer that pilot bakes at a small size size the cache "

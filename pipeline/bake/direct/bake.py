@@ -148,7 +148,7 @@ def prepare_output(out_dir: str | Path, stem: str, supersampling: int, texture_s
 
 
 def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
-                texture_samples: int = 2, time_code: float | None = None) -> Path:
+                texture_samples: int = 4, time_code: float | None = None) -> Path:
     """Bake the direct-lighting cache of `camera`; returns the cache layer's path.
 
     Args:
