@@ -43,7 +43,7 @@ class ExrHeader:
     compression: str
 
 
-def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray],
+def write_exr(path: str | os.PathLike[str], channels: dict[str, np.ndarray],
               attributes: dict[str, object] | None = None) -> None:
     """Write single-part scanline EXR with ZIP compression, atomically.
 
@@ -69,7 +69,7 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray],
             exr.write(str(temp))
 
 
-def write_rgb_exr(path: str | os.PathLike, rgb: np.ndarray,
+def write_rgb_exr(path: str | os.PathLike[str], rgb: np.ndarray,
                   layers: dict[str, np.ndarray] | None = None,
                   attributes: dict[str, object] | None = None) -> None:
     """Write an (H, W, 3) float image as R, G, B (float32), plus optional `layer` -> (H, W, 3) as layer.R/G/B."""
@@ -105,7 +105,7 @@ def _one_line(text: str) -> str:
     return lines[-1] if lines else "unknown error"
 
 
-def read_exr_header(path: str | os.PathLike) -> ExrHeader:
+def read_exr_header(path: str | os.PathLike[str]) -> ExrHeader:
     """Read part 0's header: size, channel names and pixel types, compression.
 
     OpenImageIO reads it: OpenEXR's Python header-only mode does not report pixel types.
@@ -134,7 +134,7 @@ def read_exr_header(path: str | os.PathLike) -> ExrHeader:
         image.close()
 
 
-def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, object]]:
+def read_exr(path: str | os.PathLike[str]) -> tuple[dict[str, np.ndarray], dict[str, object]]:
     """Read every channel of part 0 as separate (H, W) arrays, and the header.
 
     Raises:
@@ -153,7 +153,7 @@ def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, 
     return channels, header
 
 
-def read_rgb_exr(path: str | os.PathLike, layer: str = "") -> np.ndarray:
+def read_rgb_exr(path: str | os.PathLike[str], layer: str = "") -> np.ndarray:
     """Read (H, W, 3) float32 from R, G, B (or `layer`.R/G/B)."""
     channels, _ = read_exr(path)
     prefix = f"{layer}." if layer else ""

@@ -16,7 +16,7 @@ def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
 
 
-def write_png(path: str | os.PathLike, linear_rgb: np.ndarray, exposure: float = 0.0) -> None:
+def write_png(path: str | os.PathLike[str], linear_rgb: np.ndarray, exposure: float = 0.0) -> None:
     """Write an (H, W, 3) linear image as an 8-bit sRGB PNG, atomically.
 
     Args:

@@ -16,7 +16,7 @@ import torch
 
 from relight_torch.io.images import read_image
 
-def read_linear_rgb(path: str | os.PathLike) -> np.ndarray:
+def read_linear_rgb(path: str | os.PathLike[str]) -> np.ndarray:
     """Read an image file as linear RGB (`relight_torch.io.images.read_image`, 'auto' colour space).
 
     Args:

@@ -337,7 +337,7 @@ def read_stage_lights(stage: Usd.Stage, time: Usd.TimeCode, warnings: list[str] 
     return lights
 
 
-def read_lights_layer(path: str | os.PathLike) -> list[Light]:
+def read_lights_layer(path: str | os.PathLike[str]) -> list[Light]:
     """Read every supported light of a USD layer (e.g. one written by `write_lights_layer`).
 
     Raises:
@@ -351,7 +351,7 @@ def read_lights_layer(path: str | os.PathLike) -> list[Light]:
     return read_stage_lights(stage, Usd.TimeCode.Default())
 
 
-def write_lights_layer(path: str | os.PathLike, lights: list[Light]) -> None:
+def write_lights_layer(path: str | os.PathLike[str], lights: list[Light]) -> None:
     """Write `lights` to a new USD layer at `path` atomically (temp file, then rename).
 
     Each light keeps its world transform (`!resetXformStack!`), so the layer can be composed as the

@@ -428,8 +428,8 @@ class MultiviewRelighter:
         return torch.nonzero(refined).squeeze(-1)
 
 
-def open_multiview_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
-                             lights_layer: str | os.PathLike | None = None,
+def open_multiview_relighter(path: str | os.PathLike[str], device: str | torch.device = "cpu", shadows: str = "embree",
+                             lights_layer: str | os.PathLike[str] | None = None,
                              settings: RelightSettings = RelightSettings(),
                              sample_groups: int = 1, blend_lighting: bool = False,
                              edge_contrast: float | None = 0.8, near_field: float | None = 0.1) -> MultiviewRelighter:
