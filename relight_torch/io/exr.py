@@ -10,6 +10,7 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import OpenEXR
@@ -22,7 +23,7 @@ OpenEXR.set_global_thread_count(os.cpu_count() or 1)
 
 _ALLOWED = (np.float16, np.float32, np.uint32)
 # OpenImageIO's names of the three EXR pixel types, and the numpy dtype each reads back as.
-_PIXEL_TYPES = {"half": np.dtype(np.float16), "float": np.dtype(np.float32), "uint": np.dtype(np.uint32)}
+_PIXEL_TYPES: dict[str, np.dtype[Any]] = {"half": np.dtype(np.float16), "float": np.dtype(np.float32), "uint": np.dtype(np.uint32)}
 # The EXR specification's names of the pixel types, by numpy dtype (for messages and reports).
 PIXEL_TYPE_NAMES = {np.dtype(np.float16): "HALF", np.dtype(np.float32): "FLOAT", np.dtype(np.uint32): "UINT"}
 
@@ -99,7 +100,7 @@ def exr_layer_names(names: list[str], taken: tuple[str, ...] = ()) -> list[str]:
     return layers
 
 
-def _one_line(text: str) -> str:
+def _one_line(text: str | BaseException) -> str:
     """The last non-empty line of a (possibly multi-line) library message: its most specific part."""
     lines = [line.strip() for line in str(text).splitlines() if line.strip()]
     return lines[-1] if lines else "unknown error"
