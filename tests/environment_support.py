@@ -21,7 +21,7 @@ from packaging.requirements import Requirement
 PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
 TEST_EXTRA = "test"
 # Distributions whose import name is not their project name (lower-case project name -> module).
-IMPORT_NAMES = {"usd-core": "pxr", "openexr": "OpenEXR", "pytest-xdist": "xdist"}
+IMPORT_NAMES = {"usd-core": "pxr", "openexr": "OpenEXR", "pytest-xdist": "xdist", "materialx": "MaterialX"}
 
 
 def declared_test_requirements(pyproject: Path = PYPROJECT) -> list[Requirement]:
