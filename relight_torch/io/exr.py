@@ -23,7 +23,9 @@ OpenEXR.set_global_thread_count(os.cpu_count() or 1)
 
 _ALLOWED = (np.float16, np.float32, np.uint32)
 # OpenImageIO's names of the three EXR pixel types, and the numpy dtype each reads back as.
-_PIXEL_TYPES: dict[str, np.dtype[Any]] = {"half": np.dtype(np.float16), "float": np.dtype(np.float32), "uint": np.dtype(np.uint32)}
+_PIXEL_TYPES: dict[str, np.dtype[Any]] = {
+    "half": np.dtype(np.float16), "float": np.dtype(np.float32), "uint": np.dtype(np.uint32)
+}
 # The EXR specification's names of the pixel types, by numpy dtype (for messages and reports).
 PIXEL_TYPE_NAMES = {np.dtype(np.float16): "HALF", np.dtype(np.float32): "FLOAT", np.dtype(np.uint32): "UINT"}
 

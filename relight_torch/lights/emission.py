@@ -246,7 +246,9 @@ def intersect_light(light: Light, origins: torch.Tensor, directions: torch.Tenso
     return _checked_trace(light, origins, directions)[0]
 
 
-def _checked_trace(light: Light, points: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _checked_trace(
+    light: Light, points: torch.Tensor, directions: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     check_last_dim(points, 3, "points")
     check_last_dim(directions, 3, "directions")
     return _trace(light, LightFrame.of(light, directions), points, directions)
@@ -259,7 +261,9 @@ def _trace(light: Light, frame: LightFrame, points: torch.Tensor, directions: to
     `points` stay unbroadcast, so that per-point work is done once per point. `hits`: the rays'
     hits on a rect or disk light when known (`planar_hits`), else they are intersected.
     """
-    batch = torch.broadcast_shapes(points.shape, directions.shape)  # type: ignore[no-untyped-call]  # unannotated in torch
+    batch = torch.broadcast_shapes(  # type: ignore[no-untyped-call]  # unannotated in torch
+        points.shape, directions.shape
+    )
     directions = directions.expand(batch)
     scale = torch.as_tensor(light_radiance_scale(light), device=directions.device, dtype=directions.dtype)
     miss = torch.full_like(directions[..., 0], math.inf)

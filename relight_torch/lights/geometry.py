@@ -182,7 +182,9 @@ def intersect_surface(light: Light, frame: LightFrame, origins: torch.Tensor, di
     """
     # Per-origin work on the unbroadcast origins (samples share their receiver), then broadcast.
     origin_local = frame.point_to_local(origins)
-    origins, directions = torch.broadcast_tensors(origins, directions)  # type: ignore[no-untyped-call]  # unannotated in torch
+    origins, directions = torch.broadcast_tensors(  # type: ignore[no-untyped-call]  # unannotated in torch
+        origins, directions
+    )
     origin_local = origin_local.expand(origins.shape)
     direction_local = frame.vector_to_local(directions)
     area = surface_area(light)
