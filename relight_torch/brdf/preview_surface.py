@@ -33,7 +33,9 @@ an albedo estimate at wo (Schlick F at N.E for the specular lobes).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import torch
 
@@ -196,11 +198,15 @@ def split_factors(
                                  cos_l.new_empty(4, *batch), view_sq, light_sq, cosine=False)
 
 
+# `split_factors_cosines`' factor blocks: one (F, P, M) tensor, or F (P, M) tensors (compiled callers).
+_Blocks = TypeVar("_Blocks", bound=torch.Tensor | Sequence[torch.Tensor])
+
+
 def split_factors_cosines(
     roughnesses: tuple[torch.Tensor, ...], cos_e: torch.Tensor, cos_l: torch.Tensor, e_dot_l: torch.Tensor,
-    weight: torch.Tensor | float, out: torch.Tensor, scratch: torch.Tensor,
+    weight: torch.Tensor | float, out: _Blocks, scratch: torch.Tensor | Sequence[torch.Tensor],
     view_sq: torch.Tensor | float = 1.0, light_sq: torch.Tensor | float = 1.0, cosine: bool = True,
-) -> torch.Tensor:
+) -> _Blocks:
     """`split_factors` times max(N.L, 0) (or without it: `cosine` False) from dot products,
     computed in place: for P points with M light directions each, in blocks that stay in cache.
 
@@ -216,8 +222,8 @@ def split_factors_cosines(
         roughnesses: (P, 1) roughness, then (P, 1) clearcoat roughness if the coat's factors are wanted.
         cos_e: (P, 1) N.E. cos_l, e_dot_l: (P, M) N.L and E.L (may be strided views).
         weight: (P, M) e.g. solid angle times visibility (the cosine is applied here), or a number.
-        out: (F, P, M) the factors (F = 2 + 2 len(roughnesses)), written.
-        scratch: (4, P, M) work space of the same dtype, overwritten.
+        out: (F, P, M) the factors (F = 2 + 2 len(roughnesses)), written (or a sequence of F (P, M)).
+        scratch: (4, P, M) work space of the same dtype, overwritten (or a sequence of 4 (P, M)).
         view_sq: |E|^2, (P, 1) or 1. light_sq: |L|^2, (P, M) or 1.
         cosine: whether the factors carry max(N.L, 0).
         (Any shapes broadcasting to out's (P, M) will do.)
