@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+from typing import cast
 
 import torch
 
@@ -100,12 +101,14 @@ class TransferRelighter(IndirectRelighter):
         """F (I + M + ... + M^(B-1)) radiance: (G, 3) gather radiance -> (R, 3) at the view rows."""
         total, bounced = radiance, radiance
         for _ in range(self.num_bounces - 1):
+            assert self.bounce is not None  # __init__ requires M for more than one bounce
             bounced = self.bounce.matmul(self._wavelet(bounced))
             total = total + bounced
         self.counters["transfer"] += 1
         light = self._wavelet(total)
         if self.cull_tolerance == 0.0:
             return self.final_gather.matmul(light)
+        assert self._column_norms is not None  # computed whenever culling is on
         return self.final_gather.matmul(cull_light(light, self._column_norms, self.cull_tolerance))
 
     def _rows_to_image(self, rows: torch.Tensor) -> torch.Tensor:
@@ -133,7 +136,8 @@ class TransferRelighter(IndirectRelighter):
         unit = unit_light(light)
         gather_light = dataclasses.replace(unit, light_link=None)
         key = gather_light_key(gather_light)
-        state = self._per_light.get(light.path)
+        # IndirectRelighter types its per-light cache as objects; this subclass stores only these.
+        state = cast("_IndirectState | None", self._per_light.get(light.path))
         if state is None or state.gather_key != key:
             settings = self.direct.settings
             num_samples = self._gather_samples(unit, self.gather_samples)
