@@ -8,6 +8,7 @@ anonymous root copies the shot's (up axis, units, time codes, default prim, rend
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +46,7 @@ def usd_error_line(error: Exception) -> str:
     return lines[0] if lines else type(error).__name__
 
 
-def _open_layer(path: str | Path, role: str) -> Sdf.Layer:
+def _open_layer(path: str | os.PathLike[str], role: str) -> Sdf.Layer:
     """Open `path` as an Sdf layer, raising `RelightError` if it is missing or not USD.
 
     Args:
@@ -64,7 +65,7 @@ def _open_layer(path: str | Path, role: str) -> Sdf.Layer:
     return layer
 
 
-def open_stage(path: str | Path, lights_layer: str | Path | None = None) -> Usd.Stage:
+def open_stage(path: str | os.PathLike[str], lights_layer: str | os.PathLike[str] | None = None) -> Usd.Stage:
     """Open a shot (.usd, .usda, .usdc or .usdz), with an optional light-edit layer over it.
 
     Registers the project's schemas first (they must be known before any stage is opened).
@@ -135,7 +136,7 @@ class CompositionProblems:
     material: tuple[tuple[str, str, str], ...]
 
 
-def _first_line(error) -> str:
+def _first_line(error: object) -> str:
     return str(error).strip().splitlines()[0].removesuffix("; skipping.")
 
 

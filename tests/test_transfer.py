@@ -137,6 +137,15 @@ def test_colour_factored_product_matches_dense(device):
     torch.testing.assert_close(product.cpu(), expected, rtol=1e-12, atol=1e-12)
 
 
+
+def test_concatenate_refuses_rows_with_and_without_colour():
+    # A first part without a colour used to drop the later parts' colours silently.
+    scalars = torch.randn((4, 4, 4, 1), generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    coloured = dataclasses.replace(keep_top_k(scalars[2:], 5), row_colour=torch.rand(2, 3, dtype=torch.float64))
+    for parts in ([keep_top_k(scalars[:2], 5), coloured], [coloured, keep_top_k(scalars[:2], 5)]):
+        with pytest.raises(ValueError, match="row colour"):
+            concatenate(parts)
+
 def test_factor_colour_is_exact_for_one_colour_and_optimal_otherwise():
     generator = torch.Generator().manual_seed(8)
     shape = torch.randn((1, 4, 4, 1), generator=generator, dtype=torch.float64)

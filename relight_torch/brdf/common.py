@@ -45,7 +45,8 @@ def mirror(wo_local: torch.Tensor) -> torch.Tensor:
 
 def expand_to(tensor: torch.Tensor, *others: torch.Tensor) -> torch.Tensor:
     """Broadcast a (..., 3) direction to the batch shape it shares with `others` (..., k)."""
-    batch = torch.broadcast_shapes(tensor.shape[:-1], *(o.shape[:-1] for o in others))
+    shapes = (tensor.shape[:-1], *(o.shape[:-1] for o in others))
+    batch = torch.broadcast_shapes(*shapes)  # type: ignore[no-untyped-call]  # unannotated in torch
     return tensor.expand(*batch, tensor.shape[-1])
 
 

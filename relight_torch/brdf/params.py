@@ -10,7 +10,7 @@ Rows broadcast against the batch axes of the directions: params of N rows shade 
 from __future__ import annotations
 
 import dataclasses
-from typing import Mapping, Self
+from typing import Any, Mapping, Self
 
 import numpy as np
 import torch
@@ -18,17 +18,20 @@ import torch
 _CHANNELS = "channels"
 
 
-def colour() -> dataclasses.Field:
-    """Field of (N, 3) linear RGB values."""
+def colour() -> Any:
+    """Field of (N, 3) linear RGB values.
+
+    Typed `Any`, as `dataclasses.field` itself is, so that `rho: torch.Tensor = colour()` type-checks.
+    """
     return dataclasses.field(metadata={_CHANNELS: 3})
 
 
-def scalar() -> dataclasses.Field:
+def scalar() -> Any:
     """Field of (N,) floating values."""
     return dataclasses.field(metadata={_CHANNELS: 0})
 
 
-def flag() -> dataclasses.Field:
+def flag() -> Any:
     """Field of (N,) booleans (never cast by `.to(dtype=...)`)."""
     return dataclasses.field(metadata={_CHANNELS: 0, "bool": True})
 
@@ -91,5 +94,5 @@ class BrdfParams:
         return cls(**values)
 
 
-def _insert_axis(value: torch.Tensor, item: dataclasses.Field) -> torch.Tensor:
+def _insert_axis(value: torch.Tensor, item: dataclasses.Field[Any]) -> torch.Tensor:
     return value.unsqueeze(-2) if item.metadata[_CHANNELS] else value.unsqueeze(-1)

@@ -33,7 +33,9 @@ an albedo estimate at wo (Schlick F at N.E for the specular lobes).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import torch
 
@@ -188,18 +190,23 @@ def split_factors(
         view_sq, light_sq: |E|^2 and |L|^2 where the directions are not unit.
     """
     roughnesses = (params.roughness, params.clearcoat_roughness)[:1 + coat]
-    batch = torch.broadcast_shapes(cos_e.shape, cos_l.shape, e_dot_l.shape, *(r.shape for r in roughnesses),
-                                   () if weight is None else weight.shape)
+    batch = torch.broadcast_shapes(  # type: ignore[no-untyped-call]  # unannotated in torch
+        cos_e.shape, cos_l.shape, e_dot_l.shape, *(r.shape for r in roughnesses), () if weight is None else weight.shape
+    )
     out = cos_l.new_empty(2 + 2 * len(roughnesses), *batch)
     return split_factors_cosines(roughnesses, cos_e, cos_l, e_dot_l, 1.0 if weight is None else weight, out,
                                  cos_l.new_empty(4, *batch), view_sq, light_sq, cosine=False)
 
 
+# `split_factors_cosines`' factor blocks: one (F, P, M) tensor, or F (P, M) tensors (compiled callers).
+_Blocks = TypeVar("_Blocks", bound=torch.Tensor | Sequence[torch.Tensor])
+
+
 def split_factors_cosines(
     roughnesses: tuple[torch.Tensor, ...], cos_e: torch.Tensor, cos_l: torch.Tensor, e_dot_l: torch.Tensor,
-    weight: torch.Tensor, out: torch.Tensor, scratch: torch.Tensor,
+    weight: torch.Tensor | float, out: _Blocks, scratch: torch.Tensor | Sequence[torch.Tensor],
     view_sq: torch.Tensor | float = 1.0, light_sq: torch.Tensor | float = 1.0, cosine: bool = True,
-) -> torch.Tensor:
+) -> _Blocks:
     """`split_factors` times max(N.L, 0) (or without it: `cosine` False) from dot products,
     computed in place: for P points with M light directions each, in blocks that stay in cache.
 
@@ -215,8 +222,8 @@ def split_factors_cosines(
         roughnesses: (P, 1) roughness, then (P, 1) clearcoat roughness if the coat's factors are wanted.
         cos_e: (P, 1) N.E. cos_l, e_dot_l: (P, M) N.L and E.L (may be strided views).
         weight: (P, M) e.g. solid angle times visibility (the cosine is applied here), or a number.
-        out: (F, P, M) the factors (F = 2 + 2 len(roughnesses)), written.
-        scratch: (4, P, M) work space of the same dtype, overwritten.
+        out: (F, P, M) the factors (F = 2 + 2 len(roughnesses)), written (or a sequence of F (P, M)).
+        scratch: (4, P, M) work space of the same dtype, overwritten (or a sequence of 4 (P, M)).
         view_sq: |E|^2, (P, 1) or 1. light_sq: |L|^2, (P, M) or 1.
         cosine: whether the factors carry max(N.L, 0).
         (Any shapes broadcasting to out's (P, M) will do.)
@@ -349,7 +356,10 @@ def sample(
     """
     check_sample_args(wo_local, u)
     probabilities = lobe_probabilities(params, wo_local)
-    probabilities = probabilities.expand(*torch.broadcast_shapes(probabilities.shape[:-1], u.shape[:-1]), 3)
+    batch = torch.broadcast_shapes(  # type: ignore[no-untyped-call]  # unannotated in torch
+        probabilities.shape[:-1], u.shape[:-1]
+    )
+    probabilities = probabilities.expand(*batch, 3)
     upper = probabilities.cumsum(-1)
     # Scaled by the rounded total so that u < 1 never selects a trailing lobe of probability 0.
     u_select = u[..., 0] * upper[..., 2]
@@ -364,7 +374,10 @@ def sample(
     wi_diffuse, _ = cosine_hemisphere(u_lobe)
     wi_specular, _ = sample_ggx_reflection(wo_local, storm_alpha(params.roughness), u_lobe)
     wi_coat, _ = sample_ggx_reflection(wo_local, storm_alpha(params.clearcoat_roughness), u_lobe)
-    candidates = torch.stack(torch.broadcast_tensors(wi_diffuse, wi_specular, wi_coat), dim=-2)
+    wis = torch.broadcast_tensors(  # type: ignore[no-untyped-call]  # unannotated in torch
+        wi_diffuse, wi_specular, wi_coat
+    )
+    candidates = torch.stack(wis, dim=-2)
     wi_local = candidates.gather(-2, lobe.unsqueeze(-1).expand(*lobe.shape[:-1], 1, 3)).squeeze(-2)
     return wi_local, pdf(params, wo_local, wi_local)
 
@@ -374,7 +387,7 @@ def pdf(params: PreviewSurfaceParams, wo_local: torch.Tensor, wi_local: torch.Te
     check_pair(wo_local, wi_local)
     probabilities = lobe_probabilities(params, wo_local)
     densities = torch.stack(
-        torch.broadcast_tensors(
+        torch.broadcast_tensors(  # type: ignore[no-untyped-call]  # unannotated in torch
             cosine_hemisphere_pdf(wi_local),
             ggx_reflection_pdf(wo_local, wi_local, storm_alpha(params.roughness)),
             ggx_reflection_pdf(wo_local, wi_local, storm_alpha(params.clearcoat_roughness)),

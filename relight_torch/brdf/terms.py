@@ -70,9 +70,10 @@ def eval_terms(
     if not terms:
         raise ValueError("eval_terms needs at least one BRDF term")
     check_pair(wo_local, wi_local)
-    total = None
+    total: torch.Tensor | None = None
     for colour, name, params in terms:
         check_last_dim(colour, 3, f"colour of BRDF term {name!r}")
         value = colour * term_module(name).eval(params, wo_local, wi_local)
         total = value if total is None else total + value
+    assert total is not None  # terms is not empty
     return total

@@ -11,6 +11,7 @@ over reused cache-sized buffers (about thirty passes per block), or compiled by 
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from typing import Callable
 
 import torch
@@ -79,7 +80,7 @@ def dense_dots(node_points: torch.Tensor, node: torch.Tensor, geometry: torch.Te
 
 def grid_block(node_points: torch.Tensor, nodes: torch.Tensor, geometry: torch.Tensor, position: torch.Tensor | None,
                roughnesses: tuple[torch.Tensor, ...], cos_e: torch.Tensor, view_sq: torch.Tensor,
-               weight: torch.Tensor, out: torch.Tensor, work: tuple) -> None:
+               weight: torch.Tensor, out: torch.Tensor | Sequence[torch.Tensor], work: tuple) -> None:
     """The factors (F, P, C) of P sub-samples towards every cluster `nodes` (C,) into `out`
     (e.g. a view of the column sums); `weight` (P, C) |C| <v>, `roughnesses` (P, 1) each,
     `cos_e`, `view_sq` (P, 1) N.E and |E|^2; `work` (`work_blocks`, P x C; or tuples of (P, C)

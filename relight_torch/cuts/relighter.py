@@ -241,8 +241,10 @@ class CutsRelighter:
         # (3, 2L) per node its mean direction (env) or mean position (indirect) by component,
         # and a last column for the padding node of `VisibilityBatch` (weight 0).
         if cuts.mode == "env":
+            assert cuts.leaf_directions is not None  # env mode has leaf directions
             points = torch.nn.functional.normalize(tree.aggregate(cuts.leaf_directions), dim=-1)
         else:
+            assert cuts.leaf_points is not None  # indirect mode has leaf points
             points = tree.aggregate(cuts.leaf_points.position) / tree.size.to(g.position.dtype).unsqueeze(-1)
         self._node_points = torch.cat((points, points.new_zeros((1, 3)))).t().contiguous()
         self._domes: dict[str, Light] = {}
@@ -384,10 +386,12 @@ class CutsRelighter:
         """
         cuts = self.cuts
         if self.mode == "env":
+            assert cuts.leaf_directions is not None and cuts.leaf_weights is not None  # env mode
             if self._leaf_pattern is None:
                 self._leaf_pattern = cell_pattern(cuts.leaf_directions, cuts.leaf_weights)
             return dome_leaf_light(lights, self._leaf_pattern, cuts.leaf_weights)
         points = cuts.leaf_points
+        assert points is not None  # indirect mode
         radiance = points.emission.clone() if emission else torch.zeros_like(points.position)
         for light in lights:
             cached = self._leaf_radiance.get(light.path)
@@ -485,7 +489,8 @@ class CutsRelighter:
 
         def frame_batch(index: int) -> collections.Counter[str]:
             """Batch `index`'s columns brought to this frame and its rows' sums; its `stats`."""
-            batch, stats = batches[index], collections.Counter()
+            batch = batches[index]
+            stats: collections.Counter[str] = collections.Counter()
             stats["inputs"] += batch.inputs
             stats["dark"] += batch.dark
             shape = (batch.rows.shape[0], num_factors, state.slot_node.shape[0])
@@ -511,8 +516,9 @@ class CutsRelighter:
             dirty_rows = torch.nonzero(dirty).squeeze(1)
             if dirty_rows.shape[0] and not bool(new.all()):   # the lobes' factors (2 on) of their rows
                 # The grids of the last edit if it was of the same rows (a roughness slider dragged).
-                kept = state.grids[index] if keep else None
-                kept = kept[1] if kept is not None and torch.equal(kept[0], dirty_rows) else None
+                last = state.grids[index] if keep else None
+                kept = last[1] if last is not None and torch.equal(last[0], dirty_rows) else None
+                assert every_table is not None  # made whenever rows are dirty
                 grids = []
                 for number, part in enumerate(dirty_rows.split(MERGE_ROWS)):   # the column sums' scatter stays in cache
                     values, grid = self._factor_columns(batch, every_table, num_factors, part, first_factor=2,
@@ -613,6 +619,7 @@ class CutsRelighter:
             entry = None    # every entry of the (P, M) rows
             column = table.column.index_select(0, flat_node)
         else:   # only the entries of the wanted nodes' subtrees and of the nodes above them
+            assert by_node is not None  # callers pass it for a partial table
             order, offsets = by_node
             entry = order.index_select(0, _concatenated_ranges(offsets.index_select(0, table.ranges[0]).long(),
                                                                offsets.index_select(0, table.ranges[1]).long())).long()
@@ -698,14 +705,16 @@ class CutsRelighter:
         part of the illumination cut) and kept; a frame's batches, on several threads, each fill
         their own entry of the list `visibility_batches` makes."""
         batch = self.visibility_batches()[index]
-        if self._by_node[index] is None:
+        assert self._by_node is not None  # made with the batches
+        entry = self._by_node[index]
+        if entry is None:
             node = batch.node.view(-1)
             counts = torch.bincount(node, minlength=self.cuts.tree.num_nodes + 1)
             offsets = torch.cat((counts.new_zeros(1), torch.cumsum(counts, 0)))
             # The padding (node 2L - 1, sorted last) is never looked up: not kept.
             order = torch.argsort(node, stable=True)[:int(offsets[self.cuts.tree.num_nodes])].int()
-            self._by_node[index] = (order, offsets.int())
-        return self._by_node[index]
+            entry = self._by_node[index] = (order, offsets.int())
+        return entry
 
     def visibility_batches(self) -> list[VisibilityBatch]:
         """The merged visibility cuts of every covered sub-sample, in batches of
@@ -732,9 +741,11 @@ class CutsRelighter:
                     node.append(merged.node[lit])
                     visibility.append(blend[lit])
                     dark += int((~lit).sum())
-                length, node, visibility = _padded_rows(torch.cat(row), (torch.cat(node), torch.cat(visibility)),
-                                                        rows.shape[0], (self.cuts.tree.num_nodes, 0.0))
-                batches.append(VisibilityBatch(rows, self._geometry[rows], node.int(), visibility, length.int(),
+                length, padded_node, padded_visibility = _padded_rows(
+                    torch.cat(row), (torch.cat(node), torch.cat(visibility)), rows.shape[0],
+                    (self.cuts.tree.num_nodes, 0.0))
+                batches.append(VisibilityBatch(rows, self._geometry[rows], padded_node.int(), padded_visibility,
+                                               length.int(),
                                                int(inputs[rows].sum()), dark))
             self._visibility_batches = (batch_rows, batches)
             self._by_node = [None] * len(batches)
@@ -743,7 +754,9 @@ class CutsRelighter:
     def _visibility(self, merged: MergedCuts, weights: torch.Tensor) -> torch.Tensor:
         """(Q,) barycentric blend of the three vertices' cluster means; `weights` (P, 3) per row."""
         values = self.cuts.visibility.values
-        return sum(weights[merged.row, j] * values[merged.cover[j]] for j in range(3))
+        row, cover = merged.row, merged.cover
+        return (weights[row, 0] * values[cover[0]] + weights[row, 1] * values[cover[1]]
+                + weights[row, 2] * values[cover[2]])
 
     def merged_visibility(self, rows: torch.Tensor) -> MergedCuts:
         """The merged visibility cuts of the three lattice vertices of sub-samples `rows` (P,)."""

@@ -23,6 +23,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import functools
+from typing import cast
 
 import torch
 
@@ -78,8 +79,8 @@ class SurfacePoints:
         return sum(t.numel() * t.element_size() for t in dataclasses.astuple(self))
 
     def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> "SurfacePoints":
-        return SurfacePoints(*(t.to(device, dtype) for t in (self.position, self.normal, self.albedo)),
-                             object_id=self.object_id.to(device, torch.int64))
+        position, normal, albedo = (t.to(device, dtype) for t in (self.position, self.normal, self.albedo))
+        return SurfacePoints(position, normal, albedo, object_id=self.object_id.to(device, torch.int64))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -254,7 +255,8 @@ class GatherRelighter(IndirectRelighter):
     def _unit_indirect(self, light: Light) -> torch.Tensor:
         unit = unit_light(light)
         key = gather_light_key(unit)
-        cached = self._per_light.get(light.path)
+        # IndirectRelighter types its per-light cache as objects; this subclass stores only these pairs.
+        cached = cast("tuple[object, torch.Tensor] | None", self._per_light.get(light.path))
         if cached is None or cached[0] != key:
             self.counters["gather_light"] += 1
             cached = (key, self.reconstruct(self.surface_radiance(unit)))

@@ -16,7 +16,7 @@ from relight_torch.errors import RelightError
 
 
 @contextlib.contextmanager
-def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(target: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path to write; on success it replaces `target`, on error it is removed.
 
     Raises:
@@ -41,7 +41,7 @@ def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
             temp.unlink()
 
 
-def remove_temp_files(directory: str | os.PathLike, stem: str = "") -> list[Path]:
+def remove_temp_files(directory: str | os.PathLike[str], stem: str = "") -> list[Path]:
     """Delete the temp files `atomic_path` left in `directory` for targets named `<stem>...` (all
     with stem ''): a process killed while writing (SIGKILL, power loss) never removes its own.
     Call it only where no other live writer is at work; returns what was removed."""
@@ -53,12 +53,12 @@ def remove_temp_files(directory: str | os.PathLike, stem: str = "") -> list[Path
     return removed
 
 
-def write_bytes_atomic(target: str | os.PathLike, data: bytes) -> None:
+def write_bytes_atomic(target: str | os.PathLike[str], data: bytes) -> None:
     """Write `data` to `target` atomically."""
     with atomic_path(target) as temp:
         temp.write_bytes(data)
 
 
-def write_text_atomic(target: str | os.PathLike, text: str) -> None:
+def write_text_atomic(target: str | os.PathLike[str], text: str) -> None:
     """Write `text` (UTF-8) to `target` atomically."""
     write_bytes_atomic(target, text.encode("utf-8"))

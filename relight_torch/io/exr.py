@@ -10,6 +10,7 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import OpenEXR
@@ -22,7 +23,9 @@ OpenEXR.set_global_thread_count(os.cpu_count() or 1)
 
 _ALLOWED = (np.float16, np.float32, np.uint32)
 # OpenImageIO's names of the three EXR pixel types, and the numpy dtype each reads back as.
-_PIXEL_TYPES = {"half": np.dtype(np.float16), "float": np.dtype(np.float32), "uint": np.dtype(np.uint32)}
+_PIXEL_TYPES: dict[str, np.dtype[Any]] = {
+    "half": np.dtype(np.float16), "float": np.dtype(np.float32), "uint": np.dtype(np.uint32)
+}
 # The EXR specification's names of the pixel types, by numpy dtype (for messages and reports).
 PIXEL_TYPE_NAMES = {np.dtype(np.float16): "HALF", np.dtype(np.float32): "FLOAT", np.dtype(np.uint32): "UINT"}
 
@@ -43,7 +46,7 @@ class ExrHeader:
     compression: str
 
 
-def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray],
+def write_exr(path: str | os.PathLike[str], channels: dict[str, np.ndarray],
               attributes: dict[str, object] | None = None) -> None:
     """Write single-part scanline EXR with ZIP compression, atomically.
 
@@ -72,7 +75,7 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray],
                 raise OSError(_one_line(error)) from error
 
 
-def write_rgb_exr(path: str | os.PathLike, rgb: np.ndarray,
+def write_rgb_exr(path: str | os.PathLike[str], rgb: np.ndarray,
                   layers: dict[str, np.ndarray] | None = None,
                   attributes: dict[str, object] | None = None) -> None:
     """Write an (H, W, 3) float image as R, G, B (float32), plus optional `layer` -> (H, W, 3) as layer.R/G/B."""
@@ -102,7 +105,7 @@ def exr_layer_names(names: list[str], taken: tuple[str, ...] = ()) -> list[str]:
     return layers
 
 
-def _one_line(text: str) -> str:
+def _one_line(text: str | BaseException) -> str:
     """The last non-empty line of a (possibly multi-line) library message: its most specific part."""
     lines = [line.strip() for line in str(text).splitlines() if line.strip()]
     return lines[-1] if lines else "unknown error"
@@ -117,7 +120,7 @@ def _oiio_error() -> str:
         return "the header holds bytes that are not UTF-8 text"
 
 
-def read_exr_header(path: str | os.PathLike) -> ExrHeader:
+def read_exr_header(path: str | os.PathLike[str]) -> ExrHeader:
     """Read part 0's header: size, channel names and pixel types, compression.
 
     OpenImageIO reads it: OpenEXR's Python header-only mode does not report pixel types.
@@ -146,7 +149,7 @@ def read_exr_header(path: str | os.PathLike) -> ExrHeader:
         image.close()
 
 
-def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, object]]:
+def read_exr(path: str | os.PathLike[str]) -> tuple[dict[str, np.ndarray], dict[str, object]]:
     """Read every channel of part 0 as separate (H, W) arrays, and the header.
 
     Raises:
@@ -165,7 +168,7 @@ def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, 
     return channels, header
 
 
-def read_rgb_exr(path: str | os.PathLike, layer: str = "") -> np.ndarray:
+def read_rgb_exr(path: str | os.PathLike[str], layer: str = "") -> np.ndarray:
     """Read (H, W, 3) float32 from R, G, B (or `layer`.R/G/B)."""
     channels, _ = read_exr(path)
     prefix = f"{layer}." if layer else ""

@@ -95,5 +95,5 @@ def read_image(path: str, source_color_space: str = "auto") -> DecodedImage:
         pixels = pixels.copy()
         pixels[..., :num_color] = srgb_to_linear(pixels[..., :num_color])
     wrap_names = spec.get_string_attribute("wrapmodes").split(",")
-    file_wrap_modes = tuple(_OIIO_WRAP_MODES.get(name.strip()) for name in (wrap_names + [""])[:2])
-    return DecodedImage(np.ascontiguousarray(pixels), file_wrap_modes)
+    wrap_s, wrap_t = (_OIIO_WRAP_MODES.get(name.strip()) for name in (wrap_names + [""])[:2])
+    return DecodedImage(np.ascontiguousarray(pixels), (wrap_s, wrap_t))

@@ -13,10 +13,11 @@ from relight_torch.io.atomic import atomic_path
 def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
     """sRGB encoding (IEC 61966-2-1) of linear values clamped to [0, 1]."""
     x = np.clip(linear, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+    encoded: np.ndarray = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+    return encoded
 
 
-def write_png(path: str | os.PathLike, linear_rgb: np.ndarray, exposure: float = 0.0) -> None:
+def write_png(path: str | os.PathLike[str], linear_rgb: np.ndarray, exposure: float = 0.0) -> None:
     """Write an (H, W, 3) linear image as an 8-bit sRGB PNG, atomically.
 
     Args:

@@ -130,7 +130,7 @@ def light_radiance_scale(light: Light) -> np.ndarray:
     is the radiant intensity I (0 unless normalize, see the module doc). Zero-area rect, disk and
     cylinder lights emit nothing.
     """
-    scale = light.intensity * 2.0**light.exposure * np.asarray(light.color, np.float64)
+    scale: np.ndarray = light.intensity * 2.0**light.exposure * np.asarray(light.color, np.float64)
     if light.enable_color_temperature:
         scale = scale * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(light.color_temperature), np.float64)
     if light.kind is LightKind.SPHERE and light.radius == 0.0:
@@ -246,20 +246,25 @@ def intersect_light(light: Light, origins: torch.Tensor, directions: torch.Tenso
     return _checked_trace(light, origins, directions)[0]
 
 
-def _checked_trace(light: Light, points: torch.Tensor, directions: torch.Tensor):
+def _checked_trace(
+    light: Light, points: torch.Tensor, directions: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     check_last_dim(points, 3, "points")
     check_last_dim(directions, 3, "directions")
     return _trace(light, LightFrame.of(light, directions), points, directions)
 
 
 def _trace(light: Light, frame: LightFrame, points: torch.Tensor, directions: torch.Tensor,
-           hits: SurfaceHits | None = None):
+           hits: SurfaceHits | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(distance (...), radiance (..., 3), pdf (...)) of rays from `points` along `directions`.
 
     `points` stay unbroadcast, so that per-point work is done once per point. `hits`: the rays'
     hits on a rect or disk light when known (`planar_hits`), else they are intersected.
     """
-    directions = directions.expand(torch.broadcast_shapes(points.shape, directions.shape))
+    batch = torch.broadcast_shapes(  # type: ignore[no-untyped-call]  # unannotated in torch
+        points.shape, directions.shape
+    )
+    directions = directions.expand(batch)
     scale = torch.as_tensor(light_radiance_scale(light), device=directions.device, dtype=directions.dtype)
     miss = torch.full_like(directions[..., 0], math.inf)
     if is_delta_light(light) or not bool((scale > 0).any()):
@@ -273,7 +278,7 @@ def _trace(light: Light, frame: LightFrame, points: torch.Tensor, directions: to
         return miss, scale * inside.unsqueeze(-1), pdf
     if light.kind is LightKind.SPHERE:
         distance, pdf = _sphere_hits(light, frame, points, directions)
-        texture = 1.0
+        texture: torch.Tensor | float = 1.0
     else:
         hits = intersect_surface(light, frame, points, directions) if hits is None else hits
         distance, pdf = hits.distance, hits.pdf
@@ -281,7 +286,7 @@ def _trace(light: Light, frame: LightFrame, points: torch.Tensor, directions: to
         texture = _rect_texture(light, hits.point_local) if has_texture else 1.0
         distance = torch.where(hits.cos_light > 0, distance, math.inf)
     lit = (distance < math.inf).unsqueeze(-1)  # distances are >= 0: finite
-    factor = _shape(light, frame, -directions, points)
+    factor: torch.Tensor | float | None = _shape(light, frame, -directions, points)
     if factor is None and not torch.is_tensor(texture):  # a constant: a multiply, not a 3-channel where
         return distance, lit * scale, pdf
     factor = texture if factor is None else factor * texture
@@ -298,7 +303,9 @@ def _shape(light: Light, frame: LightFrame, emission_world: torch.Tensor,
     return emission_factor(light, emission_local, receivers, frame.origin)
 
 
-def _sphere_hits(light: Light, frame: LightFrame, points: torch.Tensor, directions: torch.Tensor):
+def _sphere_hits(
+    light: Light, frame: LightFrame, points: torch.Tensor, directions: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(distance inf on a miss, cap-sampling pdf) of rays from outside a sphere light."""
     radius = world_radius(light)
     to_centre = frame.origin - points
@@ -318,11 +325,14 @@ def _sphere_hits(light: Light, frame: LightFrame, points: torch.Tensor, directio
 
 def _rect_texture(light: Light, point_local: torch.Tensor) -> torch.Tensor:
     """(..., 3) rect light texture at local hit points (..., 3): pixel (0, 0) at (+X, +Y)."""
+    assert light.texture is not None  # the caller checks
     st = torch.stack((0.5 - point_local[..., 0] / light.width, 0.5 + point_local[..., 1] / light.height), dim=-1)
     return lookup_bilinear(image_tensors.get(light.texture, point_local.device, point_local.dtype), st)
 
 
-def _dome_radiance_pdf(light: Light, frame: LightFrame, directions: torch.Tensor, scale: torch.Tensor):
+def _dome_radiance_pdf(
+    light: Light, frame: LightFrame, directions: torch.Tensor, scale: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(radiance (..., 3), pdf (...)) of a dome light along world directions (..., 3)."""
     if light.texture is None:
         return scale.expand_as(directions), torch.full_like(directions[..., 0], 0.25 / math.pi)

@@ -100,7 +100,8 @@ def check_transform(light: Light) -> None:
 
 def axis_scales(light: Light) -> np.ndarray:
     """(3,) world length of the light's unit local X, Y and Z axes."""
-    return np.linalg.norm(light.world_from_light[:3, :3], axis=0)
+    scales: np.ndarray = np.linalg.norm(light.world_from_light[:3, :3], axis=0)
+    return scales
 
 
 def world_radius(light: Light) -> float:
@@ -141,6 +142,7 @@ def sample_area_local(light: Light, disk_points: torch.Tensor | None, u: torch.T
     if light.kind is LightKind.RECT:
         return torch.stack(((u[..., 0] - 0.5) * light.width, (u[..., 1] - 0.5) * light.height, zero), dim=-1)
     if light.kind is LightKind.DISK:
+        assert disk_points is not None, "a disk light's points need disk_points"
         return torch.cat((disk_points * light.radius, zero.unsqueeze(-1)), dim=-1)
     phi = 2.0 * math.pi * u[..., 1]
     return torch.stack(((u[..., 0] - 0.5) * light.length, light.radius * torch.cos(phi),
@@ -180,7 +182,9 @@ def intersect_surface(light: Light, frame: LightFrame, origins: torch.Tensor, di
     """
     # Per-origin work on the unbroadcast origins (samples share their receiver), then broadcast.
     origin_local = frame.point_to_local(origins)
-    origins, directions = torch.broadcast_tensors(origins, directions)
+    origins, directions = torch.broadcast_tensors(  # type: ignore[no-untyped-call]  # unannotated in torch
+        origins, directions
+    )
     origin_local = origin_local.expand(origins.shape)
     direction_local = frame.vector_to_local(directions)
     area = surface_area(light)
@@ -228,7 +232,9 @@ def _solid_angle_density(distance: torch.Tensor, cos_light: torch.Tensor, hit: t
     return torch.where(hit, distance.square() / (area * safe_cos), torch.zeros_like(distance))
 
 
-def _plane_crossing(light: Light, origin_local: torch.Tensor, direction_local: torch.Tensor):
+def _plane_crossing(
+    light: Light, origin_local: torch.Tensor, direction_local: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(distance (...) inf on a miss, emitting normal (..., 3) = local -Z) for a rect or disk."""
     distance = -origin_local[..., 2] / direction_local[..., 2]
     point = origin_local + torch.nan_to_num(distance, posinf=0.0, neginf=0.0).unsqueeze(-1) * direction_local
@@ -241,7 +247,9 @@ def _plane_crossing(light: Light, origin_local: torch.Tensor, direction_local: t
     return torch.where(hit, distance, math.inf), normal
 
 
-def _cylinder_crossings(light: Light, origin_local: torch.Tensor, direction_local: torch.Tensor):
+def _cylinder_crossings(
+    light: Light, origin_local: torch.Tensor, direction_local: torch.Tensor
+) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """Both crossings of the cylinder's side: [(distance inf if none, outward normal (..., 3))] * 2."""
     oy, oz = origin_local[..., 1], origin_local[..., 2]
     dy, dz = direction_local[..., 1], direction_local[..., 2]

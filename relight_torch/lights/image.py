@@ -9,14 +9,14 @@ from __future__ import annotations
 import collections
 import os
 import weakref
-from typing import Callable, Hashable
+from typing import Callable, Generic, Hashable, TypeVar
 
 import numpy as np
 import torch
 
 from relight_torch.io.images import read_image
 
-def read_linear_rgb(path: str | os.PathLike) -> np.ndarray:
+def read_linear_rgb(path: str | os.PathLike[str]) -> np.ndarray:
     """Read an image file as linear RGB (`relight_torch.io.images.read_image`, 'auto' colour space).
 
     Args:
@@ -36,7 +36,10 @@ def read_linear_rgb(path: str | os.PathLike) -> np.ndarray:
     return np.ascontiguousarray(rgb, np.float32)
 
 
-class ArrayTensorCache:
+_Value = TypeVar("_Value")
+
+
+class ArrayTensorCache(Generic[_Value]):
     """Derived tensors keyed by a numpy array's identity and a device/dtype, built once.
 
     Light images are large and lights are frozen dataclasses re-used across many kernel calls, so
@@ -45,12 +48,14 @@ class ArrayTensorCache:
     used out). Arrays are treated as immutable, as the frozen light dataclasses intend.
     """
 
-    def __init__(self, build: Callable[[np.ndarray, torch.device, torch.dtype], object], max_entries: int = 16):
+    def __init__(self, build: Callable[[np.ndarray, torch.device, torch.dtype], _Value], max_entries: int = 16):
         self._build = build
         self._max_entries = max_entries
-        self._entries: collections.OrderedDict[Hashable, tuple[weakref.ref, object]] = collections.OrderedDict()
+        self._entries: collections.OrderedDict[Hashable, tuple[weakref.ref[np.ndarray], _Value]] = (
+            collections.OrderedDict()
+        )
 
-    def get(self, array: np.ndarray, device: torch.device, dtype: torch.dtype) -> object:
+    def get(self, array: np.ndarray, device: torch.device, dtype: torch.dtype) -> _Value:
         """The value built from `array` for this device and dtype (built on first use)."""
         key = (id(array), str(device), dtype)
         entry = self._entries.get(key)

@@ -21,7 +21,7 @@ from pxr import Sdf, Usd, UsdGeom
 
 def _linkable(prim: Usd.Prim) -> bool:
     """Whether a prim is an object a link can name: a geometry prim or a point instancer."""
-    return prim.IsA(UsdGeom.Gprim) or prim.IsA(UsdGeom.PointInstancer)
+    return bool(prim.IsA(UsdGeom.Gprim) or prim.IsA(UsdGeom.PointInstancer))
 
 
 def _links_everything(collection: Usd.CollectionAPI) -> bool:

@@ -40,7 +40,10 @@ def has_closed_form(light: Light) -> bool:
     return light.kind is LightKind.RECT and light.texture is None and surface_area(light) > 0.0
 
 
-def _edge_term(ax, ay, az, bx, by, bz, nx, ny, nz) -> torch.Tensor:
+def _edge_term(
+    ax: torch.Tensor, ay: torch.Tensor, az: torch.Tensor, bx: torch.Tensor, by: torch.Tensor, bz: torch.Tensor,
+    nx: torch.Tensor, ny: torch.Tensor, nz: torch.Tensor,
+) -> torch.Tensor:
     """theta (n . Gamma) of the edges a -> b (components, broadcasting): 0 for a degenerate edge.
 
     Gamma = (a x b) / |a x b|, theta = atan2(|a x b|, a . b); in-place on fresh temporaries (this

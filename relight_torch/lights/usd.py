@@ -13,8 +13,9 @@ from __future__ import annotations
 import logging
 import math
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Iterator
+from typing import Any, Iterator
 
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
@@ -184,9 +185,12 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode = Usd.TimeCode.Default()) -> L
     return light
 
 
-def _read_inputs(prim: Usd.Prim, time: Usd.TimeCode, inputs: tuple[_Input, ...]) -> dict[str, object]:
-    """field -> checked value of every input that has a value (authored or schema fallback)."""
-    values = {}
+def _read_inputs(prim: Usd.Prim, time: Usd.TimeCode, inputs: tuple[_Input, ...]) -> dict[str, Any]:
+    """field -> checked value of every input that has a value (authored or schema fallback).
+
+    Typed `Any`: each value's type follows its input's `check`, which the dataclass fields mirror.
+    """
+    values: dict[str, Any] = {}
     for spec in inputs:
         attribute = prim.GetAttribute(spec.attribute)
         value = attribute.Get(time) if attribute else None
@@ -195,7 +199,9 @@ def _read_inputs(prim: Usd.Prim, time: Usd.TimeCode, inputs: tuple[_Input, ...])
     return values
 
 
-def _checked(prim: Usd.Prim, spec: _Input, attribute: Usd.Attribute, value, time: Usd.TimeCode):
+def _checked(
+    prim: Usd.Prim, spec: _Input, attribute: Usd.Attribute, value: Any, time: Usd.TimeCode
+) -> bool | str | float | tuple[float, ...]:
     """Convert a USD value to the dataclass field's Python type, raising ValueError when out of range."""
     where = f"{prim.GetPath()}: {spec.attribute}"
     stack = attribute.GetPropertyStack(time)
@@ -227,7 +233,7 @@ def _resolve_asset(attribute: Usd.Attribute, value: Sdf.AssetPath, where: str, t
     """Absolute path of an authored image asset ('' when empty); ValueError when the file is missing."""
     if not value.path:
         return ""
-    resolved = value.resolvedPath
+    resolved: str = value.resolvedPath
     if not resolved:
         layer = attribute.GetPropertyStack(time)[0].layer
         resolved = Sdf.ComputeAssetPathRelativeToLayer(layer, value.path)
@@ -302,7 +308,7 @@ def _author_api_schemas(prim: Usd.Prim, applied: dict[str, bool]) -> None:
     spec = prim.GetStage().GetEditTarget().GetPrimSpecForScenePath(prim.GetPath())
     current = spec.GetInfo("apiSchemas") if spec.HasInfo("apiSchemas") else Sdf.TokenListOp()
 
-    def unmanaged(items) -> list[str]:
+    def unmanaged(items: Iterable[str]) -> list[str]:
         return [item for item in items if item not in applied]
 
     wanted = [name for name, on in applied.items() if on]
@@ -349,7 +355,7 @@ def read_stage_lights(stage: Usd.Stage, time: Usd.TimeCode, warnings: list[str] 
     return lights
 
 
-def read_lights_layer(path: str | os.PathLike) -> list[Light]:
+def read_lights_layer(path: str | os.PathLike[str]) -> list[Light]:
     """Read every supported light of a USD layer (e.g. one written by `write_lights_layer`).
 
     Raises:
@@ -363,7 +369,7 @@ def read_lights_layer(path: str | os.PathLike) -> list[Light]:
     return read_stage_lights(stage, Usd.TimeCode.Default())
 
 
-def write_lights_layer(path: str | os.PathLike, lights: list[Light]) -> None:
+def write_lights_layer(path: str | os.PathLike[str], lights: list[Light]) -> None:
     """Write `lights` to a new USD layer at `path` atomically (temp file, then rename).
 
     Each light keeps its world transform (`!resetXformStack!`), so the layer can be composed as the

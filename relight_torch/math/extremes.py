@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import torch
 
 
-def extremes_of_four(values: Sequence[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+def extremes_of_four(values: Sequence[torch.Tensor] | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Element-wise (maximum, minimum) of four same-shaped tensors (or the rows of a (4, ...) tensor):
     three `torch.maximum` / `torch.minimum` each, on the CPU much faster than stacking them and
     reducing over the new axis."""

@@ -89,7 +89,7 @@ def storm_schlick_ggx_g(cos_o: torch.Tensor, cos_i: torch.Tensor, alpha: torch.T
     return schlick_ggx_g1(cos_o, k) * schlick_ggx_g1(cos_i, k)
 
 
-def schlick_fresnel(f0: torch.Tensor, f90: torch.Tensor, cos_theta: torch.Tensor) -> torch.Tensor:
+def schlick_fresnel(f0: torch.Tensor, f90: torch.Tensor | float, cos_theta: torch.Tensor) -> torch.Tensor:
     """Schlick Fresnel, mix(f0, f90, (1 - cos)^5), with cos clamped to [0, 1].
 
     All arguments broadcast; to weight a colour (..., 3) by a cosine (...), pass cos[..., None].

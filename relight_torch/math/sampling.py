@@ -146,7 +146,9 @@ def sobol(
     Returns:
         (num_points, dim) numbers in [0, 1).
     """
-    engine = torch.quasirandom.SobolEngine(dimension=dim, scramble=True, seed=seed)
+    engine = torch.quasirandom.SobolEngine(  # type: ignore[no-untyped-call]  # unannotated in torch
+        dimension=dim, scramble=True, seed=seed
+    )
     points = engine.draw(num_points, dtype=torch.float64)
     # Rounding a float64 point just below 1 to float32 can give exactly 1; keep the half-open range.
     points = points.to(dtype).clamp_max(1.0 - torch.finfo(dtype).eps / 2)

@@ -18,7 +18,8 @@ import torch
 from scipy import ndimage
 
 from relight_torch.gbuffer import GBuffer
-from relight_torch.multiview.correspondence import SAME_SURFACE_COS, ViewPoints
+from relight_torch.multiview.correspondence import ViewPoints
+from relight_torch.multiview.views import SAME_SURFACE_COS
 
 MAX_FILL_PIXELS = 2
 # Neighbour offsets (drow, dcol) within two pixels, nearest first: the order a hole pixel tries them.

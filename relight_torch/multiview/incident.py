@@ -136,7 +136,9 @@ def _chunk_table(light: Light, unit: Light, position: torch.Tensor, normal: torc
     if light.shaping is not None or light.barzel is not None:
         local = torch.nn.functional.normalize(LightFrame.of(light, direction).vector_to_local(-direction), dim=-1)
         origin = torch.as_tensor(light.world_from_light[:3, 3], device=position.device, dtype=position.dtype)
-        weight = weight * emission_factor(light, local, position, origin)
+        factor = emission_factor(light, local, position, origin)
+        assert factor is not None  # the light has shaping or Barzel controls
+        weight = weight * factor
     lit = weight.sum((0, 2))
     if unit.shadow.enable:
         weight = weight * shadow_factor(unit.shadow, torch.isfinite(distance), distance)

@@ -34,7 +34,7 @@ import dataclasses
 import os
 import threading
 from pathlib import Path
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 import torch
@@ -94,6 +94,7 @@ def view_gbuffer(views: CachingViews, view: ViewPoints, patch: GBuffer | None = 
         The GBuffer over the view's (H, W) sub-sample image, the hole report and the blend.
     """
     correspondence = correspondence_map(views, view.position, view.geometric_normal, view.object_id)
+    assert correspondence.pixel is not None  # correspondence_map always sets it
     rows, report = fill_small_holes(view, correspondence.pool_row, views.pool)
     keep = torch.nonzero(rows >= 0).squeeze(-1)
 
@@ -232,7 +233,7 @@ class MultiviewRelighter:
         self._lights[light.path] = light
         if relighter is not None:
             relighter.set_light(light)
-        if not (had and relighter.unit_images(light.path) is not None):
+        if not (had and relighter is not None and relighter.unit_images(light.path) is not None):
             self._tables.pop(light.path, None)
             self._num_samples.pop(light.path, None)
             self._ready -= {(light.path, False), (light.path, True)}
@@ -353,7 +354,9 @@ class MultiviewRelighter:
         if ready is not None:
             if ready in self._ready:
                 return table, total
+            assert self._view is not None  # set_view comes before any image
             rows = self._view.taps.reshape(-1) if taps else self._view.rows
+        assert rows is not None  # given, or the view's
         missing = rows.new_zeros(0) if bool(done.all()) else torch.unique(rows[~done.index_select(0, rows)])
         if missing.numel():
             def pick(values: torch.Tensor) -> torch.Tensor:
@@ -373,11 +376,15 @@ class MultiviewRelighter:
 
     def _view_images(self, light: Light) -> torch.Tensor:
         """(2, N, 3) the light's unit images at the view: cached lighting, the view's BRDF."""
-        view, gbuffer = self._view, self._view.gbuffer
+        view, directions = self._view, self._directions
+        assert view is not None and directions is not None  # set_view comes before any image
+        gbuffer = view.gbuffer
         refine = self.edge_contrast is not None or self.near_field is not None
         table, totals = self._pool_table(light, None)
         if self.blend_lighting:
-            columns = sum(take_rows(table, view.taps[:, t]) * view.weights[:, t] for t in range(view.taps.shape[1]))
+            # Four taps: never the empty sum's 0.
+            columns = cast(torch.Tensor, sum(take_rows(table, view.taps[:, t]) * view.weights[:, t]
+                                             for t in range(view.taps.shape[1])))
         else:
             columns = take_rows(table, view.rows)
         cached = view.rows.shape[0]
@@ -402,7 +409,7 @@ class MultiviewRelighter:
         self._count("view_shading", 1)
         # The group count spelt out: with no covered sample (only sky) -1 would be ambiguous.
         groups = columns.shape[0] // CHANNELS
-        return group_images(gbuffer.params, self._directions, columns.reshape(CHANNELS, groups, gbuffer.num_samples),
+        return group_images(gbuffer.params, directions, columns.reshape(CHANNELS, groups, gbuffer.num_samples),
                             self._colours)
 
     def _refined_points(self, light: Light, totals: torch.Tensor) -> torch.Tensor:
@@ -414,6 +421,7 @@ class MultiviewRelighter:
         `near_field`, those whose nearest caching sample is farther from them than that fraction
         of their distance to the light's bounding sphere."""
         view = self._view
+        assert view is not None  # set_view comes before any image
         count = view.rows.shape[0]
         refined = torch.zeros(count, dtype=torch.bool, device=totals.device)
         if self.edge_contrast is not None:
@@ -440,8 +448,8 @@ class MultiviewRelighter:
         return torch.nonzero(refined).squeeze(-1)
 
 
-def open_multiview_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
-                             lights_layer: str | os.PathLike | None = None,
+def open_multiview_relighter(path: str | os.PathLike[str], device: str | torch.device = "cpu", shadows: str = "embree",
+                             lights_layer: str | os.PathLike[str] | None = None,
                              settings: RelightSettings = RelightSettings(),
                              sample_groups: int = 1, blend_lighting: bool = False,
                              edge_contrast: float | None = 0.8, near_field: float | None = 0.1) -> MultiviewRelighter:

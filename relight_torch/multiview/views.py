@@ -164,8 +164,8 @@ def cube_faces(table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
               & np.isclose(np.abs(forward).max(-1), 1.0))
     candidates = (camera_column(table, "kind") == PRIMARY) & square
     groups: dict[int, list[int]] = {}
-    for k in np.flatnonzero(candidates):
-        groups.setdefault(int(camera_column(table, "group")[k]), []).append(int(k))
+    for k in map(int, np.flatnonzero(candidates)):
+        groups.setdefault(int(camera_column(table, "group")[k]), []).append(k)
     cubes, singles = [], [int(k) for k in np.flatnonzero(~candidates)]
     for members in groups.values():
         centre = world[members[0], :3, 3]
@@ -300,7 +300,8 @@ class CachingViews:
         if len(gbuffers) != table.shape[0]:
             raise ValueError(f"{table.shape[0]} cameras but {len(gbuffers)} deep framebuffers")
         device = gbuffers[0].device if gbuffers else torch.device("cpu")
-        sizes, rows, depths, owners, centres = [], [], [], [], []
+        sizes, rows, depths, centres = [], [], [], []
+        owners: list[torch.Tensor] = []
         start = 0
         for gbuffer in gbuffers:
             height, width = gbuffer.image_size

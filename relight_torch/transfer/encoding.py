@@ -100,11 +100,11 @@ class EncodedRows:
     def arrays(self) -> dict[str, np.ndarray]:
         """Payload part name -> array to store (indices narrowed to uint16 where they fit)."""
         index_dtype = np.uint16 if self.num_columns <= 1 << 16 else np.int32
-        arrays = {"Values": self.values.stored, "Scale": self.values.scale, "Low": self.values.low,
-                  "Indices": self.indices, "Offsets": self.offsets}
+        tensors = {"Values": self.values.stored, "Scale": self.values.scale, "Low": self.values.low,
+                   "Indices": self.indices, "Offsets": self.offsets}
         if self.row_colour is not None:
-            arrays["Colour"] = self.row_colour
-        arrays = {name: tensor.cpu().numpy() for name, tensor in arrays.items()}
+            tensors["Colour"] = self.row_colour
+        arrays = {name: tensor.cpu().numpy() for name, tensor in tensors.items()}
         arrays["Indices"] = arrays["Indices"].astype(index_dtype)
         return arrays
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+from typing import cast
 
 import torch
 
@@ -103,11 +104,13 @@ class TransferRelighter(IndirectRelighter):
         light reaches only a few gathers, and reflected radiance never is."""
         total, bounced = radiance, radiance
         for _ in range(self.num_bounces - 1):
+            assert self.bounce is not None  # __init__ requires M for more than one bounce
             bounced = self.bounce.matmul(self._wavelet(bounced))
             total = total + bounced
         self.counters["transfer"] += 1
         light = self._wavelet(total)
         if self.cull_tolerance > 0.0:
+            assert self._column_norms is not None  # computed whenever culling is on
             light = cull_light(light, self._column_norms, self.cull_tolerance)
         return self.final_gather.matmul(light).clamp_(min=0.0)
 
@@ -146,7 +149,8 @@ class TransferRelighter(IndirectRelighter):
         unit = unit_light(light)
         gather_light = dataclasses.replace(unit, light_link=None)
         key = gather_light_key(gather_light)
-        state = self._per_light.get(light.path)
+        # IndirectRelighter types its per-light cache as objects; this subclass stores only these.
+        state = cast("_IndirectState | None", self._per_light.get(light.path))
         if state is None or state.gather_key != key:
             settings = self.direct.settings
             num_samples = self._gather_samples(unit, self.gather_samples)

@@ -204,7 +204,10 @@ def concatenate(parts: list[SparseRows]) -> SparseRows:
     for part in parts[:-1]:
         starts.append(starts[-1] + int(part.offsets[-1]))
     offsets = torch.cat([parts[0].offsets[:1]] + [p.offsets[1:] + s for p, s in zip(parts, starts)])
-    colour = None if parts[0].row_colour is None else torch.cat([p.row_colour for p in parts])
+    colours = [p.row_colour for p in parts if p.row_colour is not None]
+    if colours and len(colours) != len(parts):
+        raise ValueError("cannot concatenate rows with a row colour and rows without one")
+    colour = torch.cat(colours) if colours else None
     return SparseRows(torch.cat([p.values for p in parts]), torch.cat([p.indices for p in parts]), offsets,
                       parts[0].num_columns, colour)
 

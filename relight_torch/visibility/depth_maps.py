@@ -149,6 +149,14 @@ class DepthMap:
         """(...) depth along the map's rays of world points given by their coordinates (`project`'s depth alone)."""
         raise NotImplementedError
 
+    def texel_bounds(self, corners: torch.Tensor) -> torch.Tensor:
+        """(F, T, 4) long texel bounds of (T, 3, 3) world triangles per face (`RasterTarget`)."""
+        raise NotImplementedError
+
+    def affine_rays(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each face's ray origins and directions as affine functions of image coordinates (`RasterTarget`)."""
+        raise NotImplementedError
+
     def lookup(self, points: torch.Tensor, jitter: torch.Tensor | None = None) -> MapLookup:
         """The texels world points fall in (nearest texel, optionally jittered).
 
@@ -168,7 +176,7 @@ class DepthMap:
         return MapLookup(stored, depth, origin, direction, _take(self.slope, flat))
 
     def sample(self, x: torch.Tensor, y: torch.Tensor, z: torch.Tensor,
-               jitter: tuple[torch.Tensor, torch.Tensor] | None = None) -> MapSample:
+               jitter: tuple[torch.Tensor, ...] | None = None) -> MapSample:
         """`lookup` without the texel-centre rays, of world points given by their coordinates
         (broadcast to (...), see `project_components`); `jitter`: column and row offsets in
         texels (broadcast to (...)), or None. MapSample of shape (...)."""
@@ -180,7 +188,8 @@ class DepthMap:
         return MapSample(stored, depth, _take(self.slope, flat), row, col, flat)
 
     def _texel(self, face: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
-               jitter: tuple[torch.Tensor, torch.Tensor] | None) -> tuple[torch.Tensor, ...]:
+               jitter: tuple[torch.Tensor, ...] | None
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """(face, row, col, flat index) int32 (...) of the texel image coordinates (u, v) (...)
         fall in on `face`, after adding the (column, row) `jitter` in texels."""
         half = 0.5 * self.resolution

@@ -86,8 +86,8 @@ class RayVisibility:
             result[live] = found
         else:
             result = found.astype(np.float32, copy=False)
-        result = torch.from_numpy(np.ascontiguousarray(result)).reshape(num_samples, num_points)
-        return result.transpose(0, 1).to(distances.device, distances.dtype)
+        by_sample = torch.from_numpy(np.ascontiguousarray(result)).reshape(num_samples, num_points)
+        return by_sample.transpose(0, 1).to(distances.device, distances.dtype)
 
 
 def _float32_rows(values: torch.Tensor) -> np.ndarray:

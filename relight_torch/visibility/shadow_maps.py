@@ -58,11 +58,11 @@ tangent-plane test is exact for planes only).
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import math
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -143,7 +143,7 @@ class ShadowMapVisibility:
         self.max_spot_half_angle = max_spot_half_angle
         self.thread_safe = False  # maps are built and cached on first use
         self.num_builds = 0
-        self.seconds: collections.Counter[str] = collections.Counter()
+        self.seconds: dict[str, float] = {"build": 0.0, "lookup": 0.0}  # process time spent
         self._maps: dict[str, tuple[tuple, DepthMap]] = {}
         # Texel directions shared by every cube map (they do not depend on the light's position).
         self._cube_directions: torch.Tensor | None = None
@@ -189,6 +189,7 @@ class ShadowMapVisibility:
                                f"use shadows='embree'")
         key = _map_key(light)
         cached = self._maps.get(light.path)
+        depth_map: DepthMap
         if light.kind is LightKind.DISTANT:
             window = self._distant_window(light, points)
             if cached is not None and cached[0][:-1] == key and _contains(cached[0][-1], window):
@@ -366,8 +367,9 @@ class _Segments:
     def rows(self, index: torch.Tensor) -> "_Segments":
         """The segments of the points `index` (M,) long."""
         pick = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        return _Segments(**{name: tuple(t[index] for t in value) if isinstance(value, tuple) else value[index]
-                            for name, value in pick.items()})
+        fields: dict[str, Any] = {name: tuple(t[index] for t in value) if isinstance(value, tuple) else value[index]
+                                  for name, value in pick.items()}
+        return _Segments(**fields)
 
 
 def _tap(depth_map: DepthMap, segments: _Segments, blocker_depth: torch.Tensor,
@@ -389,7 +391,8 @@ def _tap(depth_map: DepthMap, segments: _Segments, blocker_depth: torch.Tensor,
         the module doc.
     """
     along = ((segments.receiver_depth - blocker_depth) / segments.span).clamp(0.0, 1.0) * segments.reach
-    look = depth_map.sample(*(p + along * d for p, d in zip(segments.point, segments.direction)), jitter)
+    x, y, z = (p + along * d for p, d in zip(segments.point, segments.direction))
+    look = depth_map.sample(x, y, z, jitter)
     stored = _receiver_plane(depth_map, look, segments)
     bias = depth_map.footprint(torch.minimum(stored, segments.receiver_depth)) * BEHIND_TEXELS + look.slope
     in_front = stored < segments.receiver_depth - bias
@@ -440,11 +443,12 @@ def _percentage_closer(depth_map: DepthMap, points: torch.Tensor, normals: torch
         return torch.full_like(reach, torch.inf)
     tiny = torch.finfo(reach.dtype).tiny
     jitter = tuple(t.unsqueeze(0).contiguous() for t in _sample_jitter(num_samples, points).unbind(-1))
-    point = tuple(t.unsqueeze(-1).contiguous() for t in points.unbind(-1))
-    direction = tuple(t.contiguous() for t in directions.unbind(-1))
+    px, py, pz = (t.unsqueeze(-1).contiguous() for t in points.unbind(-1))
+    dx, dy, dz = (t.contiguous() for t in directions.unbind(-1))
+    point, direction = (px, py, pz), (dx, dy, dz)
     normal = normals.unsqueeze(1)
     end_depth = depth_map.depth_of(*(p + reach * d for p, d in zip(point, direction)))
-    centre = depth_map.sample(*point)
+    centre = depth_map.sample(px, py, pz)
     segments = _Segments(point, normal, (points * normals).sum(-1, keepdim=True), direction,
                          reach, centre.depth, (centre.depth - end_depth).clamp_min(tiny))
     stored = _receiver_plane(depth_map, centre, segments)
