@@ -34,8 +34,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     parser.add_argument("--version", action="version", version=f"relight {__version__}")
-    parser.add_argument("--debug", action="store_true",
-                        help="print the traceback of an unexpected error (default: write it to a log file)")
+    parser.add_argument(
+        "--debug",
+        action="store_true",
+        help="print the traceback of an unexpected error (default: write it to a log file)",
+    )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMANDS:
         module = importlib.import_module(f"pipeline.commands.{name}")
@@ -76,8 +79,9 @@ def _internal_error(args: argparse.Namespace, argv: list[str] | None, error: Bas
         print(f"relight: internal error in '{step}': {summary}", file=sys.stderr)
     else:
         log = write_traceback_log(step, argv if argv is not None else sys.argv[1:], error)
-        print(f"relight: internal error in '{step}': {summary} (traceback in {log}; --debug prints it)",
-              file=sys.stderr)
+        print(
+            f"relight: internal error in '{step}': {summary} (traceback in {log}; --debug prints it)", file=sys.stderr
+        )
     return 1
 
 

@@ -65,7 +65,9 @@ def shading_points(scene: Scene, tangents: np.ndarray, hits: Hits, ray_direction
     return ShadingPoints(
         position=hits.position[hit],
         geometric_normal=geometric.astype(np.float32),
-        tangent=t, bitangent=b, normal=n,
+        tangent=t,
+        bitangent=b,
+        normal=n,
         wo_world=wo.astype(np.float32),
         params=PreviewSurfaceParams.from_numpy(values),
         object_id=hits.object_id[hit],

@@ -30,6 +30,7 @@ from pipeline.scene.types import Geometry, Scene
 from relight_torch.visibility.embree import CHUNK_RAYS, EmbreeCaster
 from relight_torch.visibility.opacity import OpacityTable
 
+
 @dataclass(frozen=True)
 class SurfaceTables:
     """Per-triangle data the hit attributes are gathered from.
@@ -89,8 +90,7 @@ class Hits:
     def shading_normal(self) -> np.ndarray:
         normal = self._interpolate(self.surface.geometry.normals)
         squared_length = np.einsum("nk,nk->n", normal, normal)
-        np.divide(normal, np.sqrt(squared_length)[:, None], out=normal,
-                  where=(squared_length > 0)[:, None])
+        np.divide(normal, np.sqrt(squared_length)[:, None], out=normal, where=(squared_length > 0)[:, None])
         degenerate = self.hit & (squared_length == 0)
         if degenerate.any():
             normal[degenerate] = self.surface.face_normals[self.triangle_id[degenerate]]
@@ -164,8 +164,7 @@ class Tracer(EmbreeCaster):
     def geometry(self) -> Geometry:
         return self._surface.geometry
 
-    def intersect(self, origins: np.ndarray, directions: np.ndarray,
-                  t_far: np.ndarray | None = None) -> Hits:
+    def intersect(self, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray | None = None) -> Hits:
         """Closest hit of each ray; its surface attributes are computed when first read.
 
         Args and shapes as `EmbreeCaster.intersect`.
@@ -201,5 +200,4 @@ def _check_geometry(geometry: Geometry) -> None:
     for name, (shape, dtype) in expected.items():
         array = getattr(geometry, name)
         if array.shape != shape or array.dtype != dtype:
-            raise ValueError(f"Geometry.{name} must be {np.dtype(dtype).name} {shape}, "
-                             f"got {array.dtype} {array.shape}")
+            raise ValueError(f"Geometry.{name} must be {np.dtype(dtype).name} {shape}, got {array.dtype} {array.shape}")

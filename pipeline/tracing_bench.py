@@ -98,8 +98,9 @@ def heightfield_geometry(num_triangles: int) -> Geometry:
     )
 
 
-def pinhole_rays(eye: np.ndarray, target: np.ndarray, vertical_fov_degrees: float,
-                 width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+def pinhole_rays(
+    eye: np.ndarray, target: np.ndarray, vertical_fov_degrees: float, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Coherent camera rays through the pixel centres of a look-at pinhole (world up = +z).
 
     Args:
@@ -133,8 +134,9 @@ def synthetic_rays(num_rays: int) -> tuple[np.ndarray, np.ndarray]:
     return pinhole_rays(np.array([0.0, -1.8, 1.5]), np.array([0.0, 0.0, -0.1]), 45.0, side, side)
 
 
-def shadow_rays(tracer: Tracer, origins: np.ndarray, directions: np.ndarray,
-                light_position: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def shadow_rays(
+    tracer: Tracer, origins: np.ndarray, directions: np.ndarray, light_position: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rays from the camera rays' hit points (offset off the surface) to a point light.
 
     Returns:
@@ -172,8 +174,9 @@ def median_seconds(call: Callable[[], object], repeats: int) -> float:
     return float(np.median(seconds))
 
 
-def run_benchmark(geometry: Geometry, origins: np.ndarray, directions: np.ndarray,
-                  repeats: int = 5, num_threads: int | None = None) -> list[Timing]:
+def run_benchmark(
+    geometry: Geometry, origins: np.ndarray, directions: np.ndarray, repeats: int = 5, num_threads: int | None = None
+) -> list[Timing]:
     """Time raw embreex against `Tracer` on the same scene and rays.
 
     Args:
@@ -189,27 +192,34 @@ def run_benchmark(geometry: Geometry, origins: np.ndarray, directions: np.ndarra
     mesh_construction.TriangleMesh(raw_scene, geometry.positions)
     single = Tracer(geometry, num_threads=1)
     multi = Tracer(geometry, num_threads=num_threads)
-    shadow_origins, shadow_directions, shadow_t_far = shadow_rays(
-        single, origins, directions, light_position(geometry))
+    shadow_origins, shadow_directions, shadow_t_far = shadow_rays(single, origins, directions, light_position(geometry))
     # Raw calls get the same per-call inputs ours builds (a fresh t_far, which embreex overwrites).
     num_rays = len(origins)
-    closest_hit = {"raw embreex": lambda: raw_scene.run(
-        origins, directions, dists=np.full(num_rays, np.inf, np.float32), output=1)}
-    occlusion = {"raw embreex": lambda: raw_scene.run(
-        shadow_origins, shadow_directions, dists=shadow_t_far.copy(), query="OCCLUDED")}
+    closest_hit = {
+        "raw embreex": lambda: raw_scene.run(origins, directions, dists=np.full(num_rays, np.inf, np.float32), output=1)
+    }
+    occlusion = {
+        "raw embreex": lambda: raw_scene.run(
+            shadow_origins, shadow_directions, dists=shadow_t_far.copy(), query="OCCLUDED"
+        )
+    }
     for tracer in (single, multi):
         threads = f"{tracer.num_threads} thread{'s' if tracer.num_threads > 1 else ''}"
         closest_hit[f"Tracer, {threads}"] = partial(tracer.intersect, origins, directions)
         closest_hit[f"Tracer + attributes, {threads}"] = partial(
-            _intersect_with_attributes, tracer, origins, directions)
-        occlusion[f"Tracer, {threads}"] = partial(tracer.occluded, shadow_origins, shadow_directions,
-                                                  shadow_t_far)
+            _intersect_with_attributes, tracer, origins, directions
+        )
+        occlusion[f"Tracer, {threads}"] = partial(tracer.occluded, shadow_origins, shadow_directions, shadow_t_far)
     timings = []
-    for query, num_query_rays, calls in (("closest hit", num_rays, closest_hit),
-                                         ("occlusion", len(shadow_origins), occlusion)):
+    for query, num_query_rays, calls in (
+        ("closest hit", num_rays, closest_hit),
+        ("occlusion", len(shadow_origins), occlusion),
+    ):
         seconds = {name: median_seconds(call, repeats) for name, call in calls.items()}
-        timings += [Timing(query, name, num_query_rays, elapsed, seconds["raw embreex"] / elapsed)
-                    for name, elapsed in seconds.items()]
+        timings += [
+            Timing(query, name, num_query_rays, elapsed, seconds["raw embreex"] / elapsed)
+            for name, elapsed in seconds.items()
+        ]
     return timings
 
 
@@ -223,11 +233,12 @@ def _intersect_with_attributes(tracer: Tracer, origins: np.ndarray, directions: 
 
 def format_table(timings: list[Timing]) -> str:
     """The timings as an aligned text table, one row per (query, implementation)."""
-    header = (f"{'query':<12} {'implementation':<30} {'rays':>9} {'median ms':>10} {'Mrays/s':>8} "
-              f"{'ours/raw':>8}")
+    header = f"{'query':<12} {'implementation':<30} {'rays':>9} {'median ms':>10} {'Mrays/s':>8} {'ours/raw':>8}"
     lines = [header, "-" * len(header)]
     for timing in timings:
-        lines.append(f"{timing.query:<12} {timing.implementation:<30} {timing.num_rays:>9} "
-                     f"{timing.median_seconds * 1e3:>10.1f} {timing.rays_per_second / 1e6:>8.2f} "
-                     f"{timing.ratio:>8.2f}")
+        lines.append(
+            f"{timing.query:<12} {timing.implementation:<30} {timing.num_rays:>9} "
+            f"{timing.median_seconds * 1e3:>10.1f} {timing.rays_per_second / 1e6:>8.2f} "
+            f"{timing.ratio:>8.2f}"
+        )
     return "\n".join(lines)

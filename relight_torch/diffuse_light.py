@@ -24,10 +24,18 @@ from relight_torch.lights.shadow import shadow_factor
 from relight_torch.visibility import Visibility
 
 
-def diffuse_radiance(light: Light, position: torch.Tensor, normal: torch.Tensor, albedo: torch.Tensor,
-                     visibility: Visibility, num_samples: int, seed: int = 0,
-                     chunk_points: int = 1 << 16, object_id: torch.Tensor | None = None,
-                     object_paths: Sequence[str] | None = None) -> torch.Tensor:
+def diffuse_radiance(
+    light: Light,
+    position: torch.Tensor,
+    normal: torch.Tensor,
+    albedo: torch.Tensor,
+    visibility: Visibility,
+    num_samples: int,
+    seed: int = 0,
+    chunk_points: int = 1 << 16,
+    object_id: torch.Tensor | None = None,
+    object_paths: Sequence[str] | None = None,
+) -> torch.Tensor:
     """Radiance (G, 3) leaving G diffuse points after one reflection of `light`.
 
     L = diffuse * albedo / pi * E, E the irradiance from `num_samples` fixed light samples per
@@ -69,8 +77,12 @@ def diffuse_radiance(light: Light, position: torch.Tensor, normal: torch.Tensor,
         distance = torch.full_like(sample.distance, math.inf)
         if point.numel():
             distance[point, live] = visibility.occluder_distance(
-                light, position[chunk][point], normal[chunk][point], sample.direction[point, live].unsqueeze(1),
-                sample.distance[point, live].unsqueeze(1)).squeeze(1)
+                light,
+                position[chunk][point],
+                normal[chunk][point],
+                sample.direction[point, live].unsqueeze(1),
+                sample.distance[point, live].unsqueeze(1),
+            ).squeeze(1)
         shadow = shadow_factor(light.shadow, torch.isfinite(distance), distance)
         irradiance[chunk] = (weight * shadow).mean(dim=1)
         # The ratio estimator (lights.polygon): the samples' unshadowed estimate against the closed form.
@@ -83,13 +95,14 @@ def diffuse_radiance(light: Light, position: torch.Tensor, normal: torch.Tensor,
     return light.diffuse * albedo / math.pi * irradiance
 
 
-def link_mask(light: Light, object_id: torch.Tensor | None,
-              object_paths: Sequence[str] | None) -> torch.Tensor | None:
+def link_mask(light: Light, object_id: torch.Tensor | None, object_paths: Sequence[str] | None) -> torch.Tensor | None:
     """(G,) bool on `object_id`'s device: whether the light's light link includes each point's
     object; None when the light links every object."""
     if light.light_link is None:
         return None
     if object_id is None or object_paths is None:
-        raise RelightError(f"{light.path}: light linking of indirect light needs the gathers' object ids "
-                           f"(re-bake the cache with this version)")
+        raise RelightError(
+            f"{light.path}: light linking of indirect light needs the gathers' object ids "
+            f"(re-bake the cache with this version)"
+        )
     return linked_points(object_paths, light.light_link, object_id)

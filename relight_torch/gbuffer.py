@@ -55,7 +55,7 @@ class GBuffer:
         """(N, 3) unit directions from each sample towards the camera."""
         return torch.nn.functional.normalize(self.camera_position - self.position, dim=-1)
 
-    def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> "GBuffer":
+    def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> GBuffer:
         """Move to `device`; floating tensors to `dtype`, integer tensors keep theirs."""
         moved = {}
         for f in fields(self):
@@ -68,8 +68,13 @@ class GBuffer:
         return GBuffer(**moved)
 
     @staticmethod
-    def from_numpy(image_size: tuple[int, int], pixel_index: np.ndarray, params: PreviewSurfaceParams,
-                   camera_position: np.ndarray, **arrays: np.ndarray) -> "GBuffer":
+    def from_numpy(
+        image_size: tuple[int, int],
+        pixel_index: np.ndarray,
+        params: PreviewSurfaceParams,
+        camera_position: np.ndarray,
+        **arrays: np.ndarray,
+    ) -> GBuffer:
         """Build from numpy arrays named as the fields (position, normal, ..., depth)."""
         tensors = {name: torch.from_numpy(np.ascontiguousarray(a)) for name, a in arrays.items()}
         return GBuffer(

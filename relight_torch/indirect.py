@@ -13,10 +13,10 @@ import dataclasses
 import numpy as np
 import torch
 
+from relight_torch.direct.relighter import Relighter, colour_scale, light_group
 from relight_torch.lights.emission import is_delta_light
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.protocol import refuse_material_edit
-from relight_torch.direct.relighter import Relighter, colour_scale, light_group
 
 
 def light_snapshot(value: object) -> object:
@@ -47,7 +47,7 @@ class IndirectRelighter:
     """
 
     view_pixels: torch.Tensor
-    material_edits = False   # the transport was baked with the materials (`CacheRelighter`)
+    material_edits = False  # the transport was baked with the materials (`CacheRelighter`)
 
     def __init__(self, direct: Relighter):
         self.direct = direct
@@ -126,8 +126,9 @@ class IndirectRelighter:
 
     def _emission_rows(self) -> torch.Tensor:
         """(R, 3) indirect light of the surfaces' own emission; zero unless a method carries it."""
-        return torch.zeros((self.view_pixels.shape[0], 3), device=self.view_pixels.device,
-                           dtype=self.direct.gbuffer.position.dtype)
+        return torch.zeros(
+            (self.view_pixels.shape[0], 3), device=self.view_pixels.device, dtype=self.direct.gbuffer.position.dtype
+        )
 
     def _gather_samples(self, light: Light, area_samples: int) -> int:
         """Light samples per gather: 1 for a delta light, the direct settings' dome count for a dome,

@@ -61,7 +61,7 @@ class GatherSamples:
         """n, the side of the square texture."""
         return math.isqrt(self.num_gathers)
 
-    def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> "GatherSamples":
+    def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> GatherSamples:
         """Floating fields cast to `dtype`; the object ids stay int64."""
         moved = {f.name: getattr(self, f.name).to(device, dtype) for f in fields(self) if f.name != "object_id"}
         return GatherSamples(**moved, object_id=None if self.object_id is None else self.object_id.to(device))
@@ -72,9 +72,15 @@ def gather_payload_name(field: str) -> str:
     return "gather" + "".join(word.capitalize() for word in field.split("_"))
 
 
-def gather_radiance(light: Light, gathers: GatherSamples, visibility: Visibility, num_samples: int,
-                    seed: int = 0, chunk_points: int = 1 << 16,
-                    object_paths: Sequence[str] | None = None) -> torch.Tensor:
+def gather_radiance(
+    light: Light,
+    gathers: GatherSamples,
+    visibility: Visibility,
+    num_samples: int,
+    seed: int = 0,
+    chunk_points: int = 1 << 16,
+    object_paths: Sequence[str] | None = None,
+) -> torch.Tensor:
     """Radiance (G, 3) leaving each gather after one diffuse reflection of `light`.
 
     L = diffuse * albedo / pi * E, with E the irradiance from `num_samples` fixed light samples per
@@ -92,5 +98,15 @@ def gather_radiance(light: Light, gathers: GatherSamples, visibility: Visibility
         object_paths: the cache's object prim paths (`gathers.object_id` indexes them); needed
             only for a light with a light link.
     """
-    return diffuse_radiance(light, gathers.position, gathers.normal, gathers.albedo, visibility, num_samples,
-                            seed, chunk_points, gathers.object_id, object_paths)
+    return diffuse_radiance(
+        light,
+        gathers.position,
+        gathers.normal,
+        gathers.albedo,
+        visibility,
+        num_samples,
+        seed,
+        chunk_points,
+        gathers.object_id,
+        object_paths,
+    )

@@ -19,8 +19,13 @@ from relight_torch.lights.light import Light, LightKind
 from relight_torch.math.sampling import sobol
 
 
-def fixed_light_samples(num_points: int, num_samples: int, seed: int = 0,
-                        device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> torch.Tensor:
+def fixed_light_samples(
+    num_points: int,
+    num_samples: int,
+    seed: int = 0,
+    device: torch.device | str = "cpu",
+    dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
     """(N, S, 2) sample positions in [0, 1), deterministic in (N, S, seed).
 
     Laid out samples first in memory (a transposed (S, N, 2) tensor), the layout `sample_light`

@@ -24,15 +24,16 @@ import torch
 
 from relight_torch.errors import RelightError
 
-if TYPE_CHECKING:   # types only: the direct method's package is imported by its entry, not here
+if TYPE_CHECKING:  # types only: the direct method's package is imported by its entry, not here
     from relight_torch.direct.relighter import RelightSettings
     from relight_torch.protocol import CacheRelighter
 
 METHOD_NAMES = ("direct", "transfer", "gather", "cuts", "multiview")
 """Every relighting method of this build, in the order the bench runs them."""
 
-Opener = Callable[[str | os.PathLike, str | torch.device, str, str | os.PathLike | None, "RelightSettings"],
-                  "CacheRelighter"]
+Opener = Callable[
+    [str | os.PathLike, str | torch.device, str, str | os.PathLike | None, "RelightSettings"], "CacheRelighter"
+]
 """(cache layer path, device, shadows ('embree' or 'shadowmaps'), lights layer or None, direct
 relight settings) -> the cache's relighter, with the shot's lights; raises RelightError."""
 

@@ -12,9 +12,13 @@ from relight_torch.methods import relight_method
 from relight_torch.protocol import CacheRelighter
 
 
-def open_cache(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
-               lights_layer: str | os.PathLike | None = None,
-               settings: RelightSettings = RelightSettings()) -> CacheRelighter:
+def open_cache(
+    path: str | os.PathLike,
+    device: str | torch.device = "cpu",
+    shadows: str = "embree",
+    lights_layer: str | os.PathLike | None = None,
+    settings: RelightSettings = RelightSettings(),
+) -> CacheRelighter:
     """The relighter of a cache layer, by the method the layer records (`relight_torch.methods`).
 
     Args:

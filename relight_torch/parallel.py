@@ -12,6 +12,7 @@ renderer parallelise the same way (`torch_threads(1)` around a thread pool).
 The workers live as long as the process: a thread's first torch operation costs ~2 ms of
 set-up, which a pool made per call paid every time (4 ms per call against 0.25 ms).
 """
+
 from __future__ import annotations
 
 import contextlib

@@ -66,8 +66,10 @@ def refuse_material_edit(relighter: object) -> None:
     Raises:
         RelightError: always, naming the relighter's class.
     """
-    raise RelightError(f"{type(relighter).__name__}: this cache's method bakes the materials into its light "
-                       f"transport; re-bake after a material edit (material_edits is False)")
+    raise RelightError(
+        f"{type(relighter).__name__}: this cache's method bakes the materials into its light "
+        f"transport; re-bake after a material edit (material_edits is False)"
+    )
 
 
 def tensor_bytes(*tensors: torch.Tensor | None) -> int:

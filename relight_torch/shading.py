@@ -15,9 +15,14 @@ from relight_torch.brdf import preview_surface
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 
 
-def reflected_radiance(params: PreviewSurfaceParams, wo_local: torch.Tensor, wi_local: torch.Tensor,
-                       radiance: torch.Tensor, diffuse_scale: float = 1.0,
-                       specular_scale: float = 1.0) -> torch.Tensor:
+def reflected_radiance(
+    params: PreviewSurfaceParams,
+    wo_local: torch.Tensor,
+    wi_local: torch.Tensor,
+    radiance: torch.Tensor,
+    diffuse_scale: float = 1.0,
+    specular_scale: float = 1.0,
+) -> torch.Tensor:
     """Radiance reflected towards wo from light arriving along wi.
 
     Args:

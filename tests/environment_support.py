@@ -46,8 +46,9 @@ def import_name(distribution: str) -> str:
     name with '_' for '-' when it lists none."""
     files = importlib.metadata.distribution(distribution).files or []
     tops = {path.parts[0] for path in files if len(path.parts) > 1 or path.suffix in (".py", ".so", ".pyd")}
-    modules = sorted({top.split(".")[0] for top in tops
-                      if not top.endswith((".dist-info", ".libs", ".data"))}, key=str.lower)
+    modules = sorted(
+        {top.split(".")[0] for top in tops if not top.endswith((".dist-info", ".libs", ".data"))}, key=str.lower
+    )
     modules = [module for module in modules if module.isidentifier() and not module.startswith("_")]
     named = [module for module in modules if _normalized(module) == _normalized(distribution)]
     return (named or modules or [distribution.replace("-", "_")])[0]

@@ -29,16 +29,15 @@ import numpy as np
 from hypothesis import HealthCheck, settings
 
 from pipeline import cli
-from pipeline.benchmarks.tiny_caches import METHODS, SCENE, bake_arguments, bake_tiny, quiet_main  # noqa: F401
 from pipeline.bake.inputs import CODE_VERSION_VARIABLE
+from pipeline.benchmarks.tiny_caches import METHODS, SCENE, bake_arguments, bake_tiny, quiet_main  # noqa: F401
 from relight_torch.io.exr import read_exr
 
 RENDER_SECONDS = 60
 """An open + render of a tiny cache that takes longer than this counts as a hang."""
 
 _health = [HealthCheck.too_slow, HealthCheck.function_scoped_fixture, HealthCheck.data_too_large]
-settings.register_profile("default", max_examples=6, deadline=None, derandomize=True,
-                          suppress_health_check=_health)
+settings.register_profile("default", max_examples=6, deadline=None, derandomize=True, suppress_health_check=_health)
 settings.register_profile("nightly", max_examples=300, deadline=None, suppress_health_check=_health)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
@@ -153,14 +152,23 @@ def tally(test: str, **record) -> None:
             os.close(descriptor)
 
 
-def relight_process(arguments: list[str], file_size_limit: int = 0, code_version: str = "test-faults"
-                    ) -> subprocess.Popen:
+def relight_process(
+    arguments: list[str], file_size_limit: int = 0, code_version: str = "test-faults"
+) -> subprocess.Popen:
     """`relight ARGUMENTS` in a child process (one torch thread, a pinned code version), started."""
-    environment = {**os.environ, "OMP_NUM_THREADS": "1", CODE_VERSION_VARIABLE: code_version,
-                   "PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).parent.parent),
-                                                               os.environ.get("PYTHONPATH")]))}
-    return subprocess.Popen([sys.executable, __file__, str(file_size_limit), "--", *arguments],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=environment)
+    environment = {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        CODE_VERSION_VARIABLE: code_version,
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).parent.parent), os.environ.get("PYTHONPATH")])),
+    }
+    return subprocess.Popen(
+        [sys.executable, __file__, str(file_size_limit), "--", *arguments],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=environment,
+    )
 
 
 def run_relight(arguments: list[str], file_size_limit: int = 0, timeout: float = 300) -> tuple[int, str]:

@@ -22,9 +22,26 @@ from pathlib import Path
 from pipeline.scenes import SCENES
 
 SIZE = 8
-BAKE_OPTIONS = ["--width", str(SIZE), "--height", str(SIZE), "--supersampling", "1", "--texture-samples", "1",
-                "--method", "transfer", "--gathers", "16", "--coefficients", "8", "--bounces", "2",
-                "--bounce-coefficients", "4"]
+BAKE_OPTIONS = [
+    "--width",
+    str(SIZE),
+    "--height",
+    str(SIZE),
+    "--supersampling",
+    "1",
+    "--texture-samples",
+    "1",
+    "--method",
+    "transfer",
+    "--gathers",
+    "16",
+    "--coefficients",
+    "8",
+    "--bounces",
+    "2",
+    "--bounce-coefficients",
+    "4",
+]
 
 
 def write_shot(directory: Path) -> Path:

@@ -18,8 +18,23 @@ def shot(tmp_path):
 
 
 def _bake(shot, out, capsys, *options) -> str:
-    assert cli.main(["bake", str(shot), "--camera", SCENES["cornell_box"].camera, "--out", str(out), *SIZE,
-                     "--method", "direct", *options]) == 0
+    assert (
+        cli.main(
+            [
+                "bake",
+                str(shot),
+                "--camera",
+                SCENES["cornell_box"].camera,
+                "--out",
+                str(out),
+                *SIZE,
+                "--method",
+                "direct",
+                *options,
+            ]
+        )
+        == 0
+    )
     return capsys.readouterr().out
 
 
@@ -33,8 +48,9 @@ def test_same_request_is_up_to_date(shot, tmp_path, capsys):
     description = read_cache_layer(layer)
     assert "request" in description.parameters
     # The recorded content hash still covers every recorded parameter, the request included.
-    assert description.content_hash == content_hash(description.inputs, description.parameters,
-                                                    description.code_version)
+    assert description.content_hash == content_hash(
+        description.inputs, description.parameters, description.code_version
+    )
 
 
 @pytest.mark.parametrize("change", ["option", "input", "payload"])

@@ -46,9 +46,10 @@ def test_csv_has_the_shared_columns_and_one_row_per_point_and_edit(quick):
 
 def test_json_holds_the_csv_rows_and_the_fits(quick):
     csv_rows, json_rows = read_csv(quick / "bench.csv"), read_json(quick / "bench.json")
-    assert [(r.method, r.params, r.light_edit) for r in csv_rows] == [(r.method, r.params, r.light_edit)
-                                                                      for r in json_rows]
-    for a, b in zip(csv_rows, json_rows):
+    assert [(r.method, r.params, r.light_edit) for r in csv_rows] == [
+        (r.method, r.params, r.light_edit) for r in json_rows
+    ]
+    for a, b in zip(csv_rows, json_rows, strict=True):
         assert a.psnr_db == pytest.approx(b.psnr_db, rel=1e-5, nan_ok=True)
 
 
@@ -57,7 +58,9 @@ def test_comparison_rows_pair_every_timed_shot_row(quick):
     timed = [r for r in rows if r.method not in COMPARISONS and r.light_edit == "shot"]
     for kind in COMPARISONS:
         compared = [r for r in rows if r.method == kind]
-        assert sorted(r.params.split(" spp=")[0] for r in compared) == sorted(f"vs={r.method} {r.params}" for r in timed)
+        assert sorted(r.params.split(" spp=")[0] for r in compared) == sorted(
+            f"vs={r.method} {r.params}" for r in timed
+        )
     for row in (r for r in rows if r.method == "reference-full"):
         method = next(r for r in timed if f"vs={r.method} {r.params}" == row.params.split(" spp=")[0])
         parameters = row.parameters()
@@ -98,8 +101,10 @@ def test_spp_curve_inverts_its_own_prediction():
 
 
 def test_params_round_trip_and_reject_separators():
-    assert parse_params(format_params({"gathers": 1024, "encoding": "float16"})) == {"gathers": "1024",
-                                                                                      "encoding": "float16"}
+    assert parse_params(format_params({"gathers": 1024, "encoding": "float16"})) == {
+        "gathers": "1024",
+        "encoding": "float16",
+    }
     with pytest.raises(ValueError, match="must not contain"):
         format_params({"name": "a b"})
     assert SweepRow("direct", "s", 1, 1, "shot", "").parameters() == {}

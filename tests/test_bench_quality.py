@@ -14,8 +14,8 @@ from pipeline.reference.path_tracer import PathTracer, ReferenceImage, Reference
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.metrics import psnr
 from relight_torch.direct.relighter import open_relighter
+from relight_torch.metrics import psnr
 
 TARGET_DB = 30.0
 
@@ -23,8 +23,27 @@ TARGET_DB = 30.0
 def test_direct_sized_for_a_target_meets_it_with_a_smaller_cache_than_the_default(tmp_path):
     bundled = SCENES["cornell_box"]
     shot = bundled.write(tmp_path / "scene")
-    assert main(["bake", str(shot), "--camera", bundled.camera, "--width", "32", "--height", "32",
-                 "--out", str(tmp_path / "sized"), "--quality", str(TARGET_DB), "--method", "direct"]) == 0
+    assert (
+        main(
+            [
+                "bake",
+                str(shot),
+                "--camera",
+                bundled.camera,
+                "--width",
+                "32",
+                "--height",
+                "32",
+                "--out",
+                str(tmp_path / "sized"),
+                "--quality",
+                str(TARGET_DB),
+                "--method",
+                "direct",
+            ]
+        )
+        == 0
+    )
     layer = tmp_path / "sized" / "cornell_box.relight.usda"
     description = read_cache_layer(layer)
     parameters = description.parameters
@@ -42,8 +61,7 @@ def test_direct_sized_for_a_target_meets_it_with_a_smaller_cache_than_the_defaul
     # The simple scene needs fewer sub-samples than the default 2 x 2: a smaller cache.
     default = bake_direct(scene, camera, tmp_path / "default", "cornell_box")
     assert parameters["supersampling"] < 2
-    assert (sum(p.num_bytes for p in description.payloads)
-            < sum(p.num_bytes for p in read_cache_layer(default).payloads))
+    assert sum(p.num_bytes for p in description.payloads) < sum(p.num_bytes for p in read_cache_layer(default).payloads)
 
 
 def test_pilot_size_keeps_the_aspect_and_never_grows():
@@ -56,8 +74,9 @@ def test_corrected_psnr_removes_the_reference_noise_on_average():
     rng = np.random.default_rng(0)
     truth = np.full((64, 64, 3), 0.5, np.float32)
     variance = np.full_like(truth, 1e-3)
-    reference = ReferenceImage(truth + rng.normal(0.0, math.sqrt(1e-3), truth.shape).astype(np.float32), variance,
-                               0.0, 1)
+    reference = ReferenceImage(
+        truth + rng.normal(0.0, math.sqrt(1e-3), truth.shape).astype(np.float32), variance, 0.0, 1
+    )
     image = truth + 0.01  # a true MSE of 1e-4: 40 dB
     corrected, raw = corrected_psnr(image, reference)
     assert raw == pytest.approx(10 * math.log10(1 / 1.1e-3), abs=0.2)

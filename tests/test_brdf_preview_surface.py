@@ -85,8 +85,10 @@ def _storm_evaluate_light(p: dict, n_dot_l: float, n_dot_e: float, n_dot_h: floa
     epsilon = 0.001
 
     def mix(x, y, a):
-        return tuple(xi * (1 - a) + yi * a for xi, yi in zip(x, y)) if isinstance(a, float) else tuple(
-            xi * (1 - ai) + yi * ai for xi, yi, ai in zip(x, y, a)
+        return (
+            tuple(xi * (1 - a) + yi * a for xi, yi in zip(x, y, strict=True))
+            if isinstance(a, float)
+            else tuple(xi * (1 - ai) + yi * ai for xi, yi, ai in zip(x, y, a, strict=True))
         )
 
     def normal_distribution(roughness, ndoth):
@@ -117,9 +119,9 @@ def _storm_evaluate_light(p: dict, n_dot_l: float, n_dot_e: float, n_dot_h: floa
         f90 = spec_color
         d = tuple(c * (1.0 - p["metallic"]) for c in d)
     s1 = direct_specular(f0, f90, specular_roughness, fresnel)
-    d = tuple(di * (1.0 - fi) for di, fi in zip(d, mix(f0, f90, fresnel)))
+    d = tuple(di * (1.0 - fi) for di, fi in zip(d, mix(f0, f90, fresnel), strict=True))
     s2 = tuple(p["clearcoat"] * c for c in direct_specular((r * r,) * 3, (1.0, 1.0, 1.0), clearcoat_roughness, fresnel))
-    return d, tuple(a + b for a, b in zip(s1, s2))
+    return d, tuple(a + b for a, b in zip(s1, s2, strict=True))
 
 
 def test_matches_a_scalar_transcription_of_storm(tolerances):
@@ -172,7 +174,9 @@ def test_exact_ggx_conserves_energy_at_low_roughness():
     # normal incidence (the lobe scaled by 1.63); with the exact GGX we use it stays just below 1.
     # (At normal incidence the integrand does not depend on phi: few phi cells, many theta cells.)
     for roughness, num_theta in ((0.2, 4096), (0.05, 8192)):
-        albedo = _albedo(_params(diffuse=(1, 1, 1), metallic=1.0, roughness=roughness), 0.0, num_theta=num_theta, num_phi=4)
+        albedo = _albedo(
+            _params(diffuse=(1, 1, 1), metallic=1.0, roughness=roughness), 0.0, num_theta=num_theta, num_phi=4
+        )
         assert 0.99 < albedo <= 1.0
 
 

@@ -7,8 +7,8 @@ comparisons use a fine midpoint grid. Random numbers are seeded; the tests are d
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from types import ModuleType
-from typing import Callable
 
 import pytest
 import scipy.stats
@@ -24,8 +24,10 @@ WO_PHI = 0.7  # off the tangent axis, so that Ward's anisotropy matters
 
 
 def _rows(device, dtype, *values) -> torch.Tensor:
-    return torch.tensor([values], device=device, dtype=dtype) if len(values) == 3 else torch.tensor(
-        values, device=device, dtype=dtype
+    return (
+        torch.tensor([values], device=device, dtype=dtype)
+        if len(values) == 3
+        else torch.tensor(values, device=device, dtype=dtype)
     )
 
 
@@ -308,5 +310,5 @@ def test_float32_and_float64_agree_on_device(case, device):
         density = module.pdf(params, wo.to(device, dtype), wi.to(device, dtype))
         assert value.dtype == dtype and density.dtype == dtype and value.device.type == device.type
         results[dtype] = (value.double().cpu(), density.double().cpu())
-    for low, high in zip(results[torch.float32], results[torch.float64]):
+    for low, high in zip(results[torch.float32], results[torch.float64], strict=True):
         torch.testing.assert_close(low, high, rtol=2e-4, atol=1e-6)

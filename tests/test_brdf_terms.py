@@ -21,7 +21,14 @@ def _directions(num: int, seed: int) -> torch.Tensor:
 
 def test_registry_names_every_brdf_module():
     assert set(TERM_MODULES) == {
-        "lambert", "phong", "blinn_phong", "cook_torrance", "oren_nayar", "minnaert", "ward", "preview_surface",
+        "lambert",
+        "phong",
+        "blinn_phong",
+        "cook_torrance",
+        "oren_nayar",
+        "minnaert",
+        "ward",
+        "preview_surface",
     }
     for name, module in TERM_MODULES.items():
         assert module is importlib.import_module(f"relight_torch.brdf.{name}")

@@ -119,7 +119,15 @@ GRADCHECK_CASES = {
     "preview_surface": (
         brdf.preview_surface,
         lambda albedo, scalar: brdf.PreviewSurfaceParams(
-            albedo, albedo * 0, albedo * 0.5, scalar, scalar + 0.2, scalar, scalar, scalar + 1.2, scalar * 0 + 1,
+            albedo,
+            albedo * 0,
+            albedo * 0.5,
+            scalar,
+            scalar + 0.2,
+            scalar,
+            scalar,
+            scalar + 1.2,
+            scalar * 0 + 1,
             torch.tensor([False, True, False, True], device=albedo.device),
         ),
     ),

@@ -13,12 +13,17 @@ from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, UsdValidation
 from pipeline.cli import COMMANDS
 from pipeline.commands import scenes as scenes_command
 from pipeline.errors import RelightError
-from pipeline.scenes import SCENES, example_light_edits, write_light_edits
-from pipeline.scenes import cornell_box, glossy
+from pipeline.scenes import SCENES, cornell_box, example_light_edits, glossy, write_light_edits
 from pipeline.scenes import set as set_scene
 from pipeline.scenes.authoring import aim_rotation_xyz, place
-from pipeline.scenes.colorimetry import (CMF_XYZ, D65, WAVELENGTHS_NM, emission_to_linear_rec709,
-                                         linear_rec709_from_xyz_matrix, reflectance_to_linear_rec709)
+from pipeline.scenes.colorimetry import (
+    CMF_XYZ,
+    D65,
+    WAVELENGTHS_NM,
+    emission_to_linear_rec709,
+    linear_rec709_from_xyz_matrix,
+    reflectance_to_linear_rec709,
+)
 from pipeline.scenes.meshes import MeshData, box, newell_normals, revolve, torus, uv_sphere
 from pipeline.scenes.textures import brick_height, normal_map_from_height
 
@@ -48,8 +53,10 @@ def _validation_issues(stage: Usd.Stage) -> list[tuple[str, str]]:
     """(type, 'validator: message') for every issue all UsdValidation validators report."""
     registry = UsdValidation.ValidationRegistry()
     context = UsdValidation.ValidationContext(registry.GetOrLoadAllValidators())
-    return [(str(error.GetType()), f"{error.GetValidator().GetMetadata().name}: {error.GetMessage()}")
-            for error in context.Validate(stage)]
+    return [
+        (str(error.GetType()), f"{error.GetValidator().GetMetadata().name}: {error.GetMessage()}")
+        for error in context.Validate(stage)
+    ]
 
 
 def _world_from_local(prim: Usd.Prim) -> np.ndarray:
@@ -59,8 +66,11 @@ def _world_from_local(prim: Usd.Prim) -> np.ndarray:
 
 def _triangle_count(stage: Usd.Stage) -> int:
     """Triangles of every rendered mesh, instances (instanceable prims and PointInstancers) expanded."""
+
     def mesh_triangles(root: Usd.Prim, instance_proxies: bool) -> int:
-        predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate) if instance_proxies else Usd.PrimAllPrimsPredicate
+        predicate = (
+            Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate) if instance_proxies else Usd.PrimAllPrimsPredicate
+        )
         total = 0
         iterator = iter(Usd.PrimRange(root, predicate))
         for prim in iterator:
@@ -68,15 +78,19 @@ def _triangle_count(stage: Usd.Stage) -> int:
                 instancer = UsdGeom.PointInstancer(prim)
                 counts = np.bincount(np.asarray(instancer.GetProtoIndicesAttr().Get()))
                 targets = instancer.GetPrototypesRel().GetTargets()
-                total += sum(int(n) * mesh_triangles(stage.GetPrimAtPath(t), False) for n, t in zip(counts, targets))
+                total += sum(
+                    int(n) * mesh_triangles(stage.GetPrimAtPath(t), False) for n, t in zip(counts, targets, strict=True)
+                )
                 iterator.PruneChildren()
             elif prim.IsA(UsdGeom.Mesh):
                 total += int(np.sum(np.asarray(UsdGeom.Mesh(prim).GetFaceVertexCountsAttr().Get()) - 2))
         return total
+
     return mesh_triangles(stage.GetPseudoRoot(), True)
 
 
 # ---------------------------------------------------------------------------------------- every scene
+
 
 @pytest.mark.parametrize("name", sorted(SCENES))
 def test_scene_writes_a_valid_stage(name, written, stages):
@@ -119,7 +133,7 @@ def test_scene_has_the_expected_lights_camera_and_materials(name, stages):
     assert found == light_types
     assert sum(prim.IsA(UsdGeom.Camera) for prim in prims) == 1
     assert sum(prim.IsA(UsdShade.Material) for prim in prims) == num_materials
-    for prim in prims:   # every binding has its API; every material is UsdPreviewSurface
+    for prim in prims:  # every binding has its API; every material is UsdPreviewSurface
         if prim.HasRelationship("material:binding"):
             assert prim.HasAPI(UsdShade.MaterialBindingAPI), prim.GetPath()
         if prim.IsA(UsdShade.Material):
@@ -132,6 +146,7 @@ def test_writing_twice_gives_the_same_layer(name, written, tmp_path):
 
 
 # ---------------------------------------------------------------------------------------- colorimetry
+
 
 def test_perfect_reflector_is_white_and_matrix_matches_iec_61966():
     assert reflectance_to_linear_rec709(np.array([380.0, 780.0]), np.ones(2)) == pytest.approx(np.ones(3), abs=1e-9)
@@ -148,6 +163,7 @@ def test_equal_energy_emission_has_the_rgb_of_illuminant_e():
 
 def test_cie_tables_match_mitsuba_copy():
     import mitsuba as mi  # here, not at the top: importing mitsuba takes a while
+
     previous = mi.variant()
     mi.set_variant("scalar_spectral")
     try:
@@ -162,6 +178,7 @@ def test_cie_tables_match_mitsuba_copy():
 
 
 # ---------------------------------------------------------------------------------------- Cornell box
+
 
 def _diffuse_color(stage: Usd.Stage, prim_path: str) -> np.ndarray:
     material, _ = UsdShade.MaterialBindingAPI(stage.GetPrimAtPath(prim_path)).ComputeBoundMaterial()
@@ -204,11 +221,15 @@ def _mesh_corners(stage: Usd.Stage, path: str) -> np.ndarray:
 
 def test_cornell_camera_sees_red_wall_left_and_green_right(stages):
     stage = stages["cornell_box"]
-    centroids = np.array([_mesh_corners(stage, f"/World/Geometry/{name}").reshape(-1, 3).mean(axis=0)
-                          for name in ("LeftWall", "RightWall", "TallBlock", "ShortBlock")])
+    centroids = np.array(
+        [
+            _mesh_corners(stage, f"/World/Geometry/{name}").reshape(-1, 3).mean(axis=0)
+            for name in ("LeftWall", "RightWall", "TallBlock", "ShortBlock")
+        ]
+    )
     x = _ndc_x(stage, cornell_box.CAMERA, centroids)
-    assert x[0] < -0.6 and x[1] > 0.6          # red wall left, green wall right, as photographed
-    assert x[2] < 0 < x[3]                      # tall block on the left, short block on the right
+    assert x[0] < -0.6 and x[1] > 0.6  # red wall left, green wall right, as photographed
+    assert x[2] < 0 < x[3]  # tall block on the left, short block on the right
     assert UsdGeom.Mesh(stage.GetPrimAtPath("/World/Geometry/Floor")).GetOrientationAttr().Get() == "rightHanded"
 
 
@@ -231,16 +252,17 @@ def test_cornell_light_fills_the_published_opening_facing_down(stages):
     light = UsdLux.RectLight(prim)
     world_from_light = _world_from_local(prim)
     half_w, half_h = light.GetWidthAttr().Get() / 2, light.GetHeightAttr().Get() / 2
-    corners_local = np.array([[-half_w, -half_h, 0, 1], [half_w, -half_h, 0, 1], [half_w, half_h, 0, 1],
-                              [-half_w, half_h, 0, 1]])
+    corners_local = np.array(
+        [[-half_w, -half_h, 0, 1], [half_w, -half_h, 0, 1], [half_w, half_h, 0, 1], [-half_w, half_h, 0, 1]]
+    )
     corners = (corners_local @ world_from_light.T)[:, :3]
     np.testing.assert_allclose([corners[:, 0].min(), corners[:, 0].max()], [213.0, 343.0], atol=1e-4)
     np.testing.assert_allclose([corners[:, 2].min(), corners[:, 2].max()], [227.0, 332.0], atol=1e-4)
-    assert np.all((corners[:, 1] < 548.8) & (corners[:, 1] > 547.0))       # just below the ceiling
-    np.testing.assert_allclose(-world_from_light[:3, 2], [0.0, -1.0, 0.0], atol=1e-6)   # emits down
+    assert np.all((corners[:, 1] < 548.8) & (corners[:, 1] > 547.0))  # just below the ceiling
+    np.testing.assert_allclose(-world_from_light[:3, 2], [0.0, -1.0, 0.0], atol=1e-6)  # emits down
     color = np.array(light.GetColorAttr().Get())
     assert color @ [0.2126, 0.7152, 0.0722] == pytest.approx(1.0, abs=2e-3)
-    assert color[0] > color[1] > color[2]                                    # tungsten: reddish
+    assert color[0] > color[1] > color[2]  # tungsten: reddish
 
 
 def test_cornell_camera_is_the_published_one(stages):
@@ -248,8 +270,8 @@ def test_cornell_camera_is_the_published_one(stages):
     camera = UsdGeom.Camera(prim)
     world_from_camera = _world_from_local(prim)
     np.testing.assert_allclose(world_from_camera[:3, 3], [278.0, 273.0, -800.0])
-    np.testing.assert_allclose(-world_from_camera[:3, 2], [0.0, 0.0, 1.0], atol=1e-6)   # looks along +z
-    np.testing.assert_allclose(world_from_camera[:3, 1], [0.0, 1.0, 0.0], atol=1e-6)    # +y up
+    np.testing.assert_allclose(-world_from_camera[:3, 2], [0.0, 0.0, 1.0], atol=1e-6)  # looks along +z
+    np.testing.assert_allclose(world_from_camera[:3, 1], [0.0, 1.0, 0.0], atol=1e-6)  # +y up
     # 35 mm lens, 25 mm film: tenths of a millimetre in a millimetre stage.
     assert camera.GetFocalLengthAttr().Get() == pytest.approx(350.0)
     assert camera.GetHorizontalApertureAttr().Get() == camera.GetVerticalApertureAttr().Get() == pytest.approx(250.0)
@@ -257,10 +279,13 @@ def test_cornell_camera_is_the_published_one(stages):
 
 # ---------------------------------------------------------------------------------------- glossy
 
+
 def test_glossy_materials_textures_and_primitives(written, stages):
     stage = stages["glossy"]
     layer_dir = written["glossy"].parent
-    shaders = {prim.GetPath().pathString: UsdShade.Shader(prim) for prim in stage.Traverse() if prim.IsA(UsdShade.Shader)}
+    shaders = {
+        prim.GetPath().pathString: UsdShade.Shader(prim) for prim in stage.Traverse() if prim.IsA(UsdShade.Shader)
+    }
     normal_tex = shaders["/World/Materials/Bricks/normalTexture"]
     assert normal_tex.GetInput("sourceColorSpace").Get() == "raw"
     assert tuple(normal_tex.GetInput("scale").Get()) == (2, 2, 2, 1)
@@ -301,13 +326,15 @@ def test_normal_map_of_a_ramp_tilts_against_the_slope():
     # h = 0.25 s on a 64-pixel texture with depth 1: dh/ds = 0.25 -> n = (-0.25, 0, 1) / |.|.
     size = 64
     ramp_s = np.tile(np.arange(size) / size * 0.25, (size, 1))
-    ramp_t = ramp_s.T[::-1]                                   # rows run down, t runs up
+    ramp_t = ramp_s.T[::-1]  # rows run down, t runs up
     expected_s = np.array([-0.25, 0.0, 1.0]) / np.sqrt(1.0625)
     expected_t = np.array([0.0, -0.25, 1.0]) / np.sqrt(1.0625)
-    np.testing.assert_allclose(normal_map_from_height(ramp_s, 1.0)[5:-5, 5:-5], np.broadcast_to(expected_s, (54, 54, 3)),
-                               atol=1e-6)
-    np.testing.assert_allclose(normal_map_from_height(ramp_t, 1.0)[5:-5, 5:-5], np.broadcast_to(expected_t, (54, 54, 3)),
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        normal_map_from_height(ramp_s, 1.0)[5:-5, 5:-5], np.broadcast_to(expected_s, (54, 54, 3)), atol=1e-6
+    )
+    np.testing.assert_allclose(
+        normal_map_from_height(ramp_t, 1.0)[5:-5, 5:-5], np.broadcast_to(expected_t, (54, 54, 3)), atol=1e-6
+    )
 
 
 def test_brick_height_tiles_and_has_mortar():
@@ -320,6 +347,7 @@ def test_brick_height_tiles_and_has_mortar():
 
 # ---------------------------------------------------------------------------------------- set
 
+
 def test_set_has_enough_triangles_and_uses_both_instancing_kinds(stages):
     stage = stages["set"]
     num_triangles = _triangle_count(stage)
@@ -329,6 +357,7 @@ def test_set_has_enough_triangles_and_uses_both_instancing_kinds(stages):
     assert sum(p.IsA(UsdGeom.PointInstancer) for p in stage.Traverse()) == 2
     # The project's walker expands the same instances to the same count.
     from pipeline.scene import load_scene
+
     assert load_scene(stage.GetRootLayer().realPath).geometry.positions.shape[0] == num_triangles
 
 
@@ -343,31 +372,44 @@ def test_set_columns_stand_on_the_floor_under_the_arches(stages):
 
 # ---------------------------------------------------------------------------------------- meshes
 
+
 def _signed_volume(mesh: MeshData) -> float:
     """Volume enclosed by a closed mesh (divergence theorem); positive when faces face outwards."""
     starts = np.concatenate([[0], np.cumsum(mesh.face_vertex_counts)[:-1]])
     total = 0.0
-    for k in range(1, mesh.face_vertex_counts.max() - 1):      # fan triangle k of every face that has one
+    for k in range(1, mesh.face_vertex_counts.max() - 1):  # fan triangle k of every face that has one
         has = mesh.face_vertex_counts > k + 1
         a, b, c = (mesh.points[mesh.face_vertex_indices[starts[has] + i]].astype(np.float64) for i in (0, k, k + 1))
         total += np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0
     return total
 
 
-@pytest.mark.parametrize("mesh, volume", [
-    (box((1.0, 2.0, 3.0), (5.0, -1.0, 2.0)), 6.0),
-    (uv_sphere(2.0, 96, 48), 4.0 / 3.0 * np.pi * 8.0),
-    (torus(3.0, 1.0, 128, 64), 2.0 * np.pi**2 * 3.0),
-])
+@pytest.mark.parametrize(
+    "mesh, volume",
+    [
+        (box((1.0, 2.0, 3.0), (5.0, -1.0, 2.0)), 6.0),
+        (uv_sphere(2.0, 96, 48), 4.0 / 3.0 * np.pi * 8.0),
+        (torus(3.0, 1.0, 128, 64), 2.0 * np.pi**2 * 3.0),
+    ],
+)
 def test_closed_meshes_face_outwards_and_enclose_their_volume(mesh, volume):
     assert _signed_volume(mesh) == pytest.approx(volume, rel=3e-3)
 
 
-@pytest.mark.parametrize("mesh", [
-    box((1.0, 2.0, 3.0)), uv_sphere(1.0, 16, 8), torus(2.0, 0.5, 24, 12),
-    revolve(np.array([[1.0, 2.0], [1.0, 0.0]]), 8),             # a downward profile faces the axis
-    set_scene.column_mesh(), set_scene.arch_mesh(), set_scene.vase_mesh(), set_scene.chair_mesh(),
-], ids=["box", "sphere", "torus", "inward_band", "column", "arch", "vase", "chair"])
+@pytest.mark.parametrize(
+    "mesh",
+    [
+        box((1.0, 2.0, 3.0)),
+        uv_sphere(1.0, 16, 8),
+        torus(2.0, 0.5, 24, 12),
+        revolve(np.array([[1.0, 2.0], [1.0, 0.0]]), 8),  # a downward profile faces the axis
+        set_scene.column_mesh(),
+        set_scene.arch_mesh(),
+        set_scene.vase_mesh(),
+        set_scene.chair_mesh(),
+    ],
+    ids=["box", "sphere", "torus", "inward_band", "column", "arch", "vase", "chair"],
+)
 def test_authored_normals_agree_with_the_winding(mesh):
     starts = np.concatenate([[0], np.cumsum(mesh.face_vertex_counts)[:-1]])
     corners = [mesh.face_vertex_indices[starts + i] for i in range(3)]
@@ -387,6 +429,7 @@ def test_uv_sphere_triangle_count_has_pole_triangles():
 
 # ---------------------------------------------------------------------------------------- transforms
 
+
 @pytest.mark.parametrize("direction", [(0, 0, -1), (0, -1, 0), (0, 1, 0), (1, 0, 0), (0.3, -0.8, 0.5), (-2, 1, 3)])
 def test_aim_rotation_turns_minus_z_onto_the_direction_without_roll(direction):
     stage = Usd.Stage.CreateInMemory()
@@ -395,10 +438,11 @@ def test_aim_rotation_turns_minus_z_onto_the_direction_without_roll(direction):
     world_from_local = _world_from_local(xform.GetPrim())
     d = np.asarray(direction, float) / np.linalg.norm(direction)
     np.testing.assert_allclose(-world_from_local[:3, 2], d, atol=1e-6)
-    assert world_from_local[1, 0] == pytest.approx(0.0, abs=1e-6)          # local +X stays horizontal
+    assert world_from_local[1, 0] == pytest.approx(0.0, abs=1e-6)  # local +X stays horizontal
 
 
 # ---------------------------------------------------------------------------------------- light edits
+
 
 def _compose(scene_layer: Path, edit_text: str) -> Usd.Stage:
     """The scene with the edit as the strongest sublayer of an anonymous root."""
@@ -414,7 +458,7 @@ def _compose(scene_layer: Path, edit_text: str) -> Usd.Stage:
 def test_light_edits_compose_over_the_scene(name, written, stages):
     edits = example_light_edits(name)
     assert len(edits) >= 3
-    for edit, (edit_name, text) in zip(SCENES[name].light_edits, edits):
+    for edit, (edit_name, text) in zip(SCENES[name].light_edits, edits, strict=True):
         assert edit.name == edit_name
         composed = _compose(written[name], text)
         for override in edit.overrides:
@@ -432,8 +476,11 @@ def test_reaim_edit_points_the_glossy_spot_at_the_torus(written):
     text = dict(example_light_edits("glossy"))["reaim_spot"]
     composed = _compose(written["glossy"], text)
     world_from_spot = _world_from_local(composed.GetPrimAtPath(glossy.SPOT))
-    torus_center = np.array(UsdGeom.Xformable(composed.GetPrimAtPath("/World/Geometry/AluminiumTorus"))
-                            .ComputeLocalToWorldTransform(Usd.TimeCode.Default()).ExtractTranslation())
+    torus_center = np.array(
+        UsdGeom.Xformable(composed.GetPrimAtPath("/World/Geometry/AluminiumTorus"))
+        .ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+        .ExtractTranslation()
+    )
     expected = torus_center - world_from_spot[:3, 3]
     np.testing.assert_allclose(-world_from_spot[:3, 2], expected / np.linalg.norm(expected), atol=1e-6)
 
@@ -445,6 +492,7 @@ def test_write_light_edits_writes_layers_beside_the_scene(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------- CLI
+
 
 def _run_scenes_command(argv: list[str]) -> int:
     """Parse and run `relight scenes ...` through this subcommand alone (independent of the others)."""
@@ -461,7 +509,8 @@ def test_cli_lists_and_writes(tmp_path, capsys):
     assert [line.split()[:2] for line in listed] == [[name, scene.camera] for name, scene in SCENES.items()]
     assert _run_scenes_command(["write", str(tmp_path), "--name", "cornell_box"]) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
-        ["cornell_box.usda"] + [f"cornell_box.lights.{e.name}.usda" for e in cornell_box.LIGHT_EDITS])
+        ["cornell_box.usda"] + [f"cornell_box.lights.{e.name}.usda" for e in cornell_box.LIGHT_EDITS]
+    )
     (tmp_path / "a_file").write_text("")
     with pytest.raises(RelightError, match="a_file"):
         _run_scenes_command(["write", str(tmp_path / "a_file")])

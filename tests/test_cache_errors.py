@@ -21,8 +21,8 @@ from pipeline import cli
 from pipeline.errors import RelightError
 from pipeline.scene import load_scene
 from relight_torch.cache.layer import CACHE_VERSION, file_sha256
-from relight_torch.io.exr import read_exr, write_exr
 from relight_torch.direct.relighter import open_relighter
+from relight_torch.io.exr import read_exr, write_exr
 
 
 @pytest.fixture(scope="module")
@@ -75,45 +75,58 @@ def _other_resolution(channels: dict) -> None:
 
 def _three_nan_positions(channels: dict) -> None:
     """NaN in three pixels at the image centre (the box's back wall: covered)."""
-    channels["P.Z"][SIZE // 2, SIZE // 2 - 1: SIZE // 2 + 2] = np.nan
+    channels["P.Z"][SIZE // 2, SIZE // 2 - 1 : SIZE // 2 + 2] = np.nan
 
 
 # (damage(cache), pattern the message must match; {dfb}/{occluders}/{shot} stand for the file paths)
 CASES = {
     "payload missing": (lambda c: _dfb(c).unlink(), r"payload deepFramebuffer file {dfb} is missing"),
-    "payload truncated": (lambda c: _truncate(_dfb(c), 5000),
-                          r"{dfb}: payload deepFramebuffer is truncated \(5000 of \d+ bytes\)"),
-    "header truncated": (lambda c: _truncate(_dfb(c), 100),
-                         r"{dfb}: payload deepFramebuffer is truncated \(100 of \d+ bytes\)"),
+    "payload truncated": (
+        lambda c: _truncate(_dfb(c), 5000),
+        r"{dfb}: payload deepFramebuffer is truncated \(5000 of \d+ bytes\)",
+    ),
+    "header truncated": (
+        lambda c: _truncate(_dfb(c), 100),
+        r"{dfb}: payload deepFramebuffer is truncated \(100 of \d+ bytes\)",
+    ),
     "payload edited in place": (
         lambda c: _dfb(c).write_bytes(_dfb(c).read_bytes()[:-1] + b"\x7f"),
-        r"{dfb}: payload deepFramebuffer does not match the sha256 the cache layer records"),
+        r"{dfb}: payload deepFramebuffer does not match the sha256 the cache layer records",
+    ),
     "payload replaced by another resolution": (
         lambda c: write_exr(_dfb(c), {n: a[:16, :16].copy() for n, a in read_exr(_dfb(c))[0].items()}),
-        r"{dfb}: payload deepFramebuffer is a 16x16 EXR, the cache layer says 32x32"),
+        r"{dfb}: payload deepFramebuffer is a 16x16 EXR, the cache layer says 32x32",
+    ),
     "other resolution, layer re-recorded": (
         lambda c: _rewrite_dfb(c, _other_resolution),
-        r"{dfb}: payload deepFramebuffer is a 16x16 EXR, the cache layer says 32x32"),
+        r"{dfb}: payload deepFramebuffer is a 16x16 EXR, the cache layer says 32x32",
+    ),
     "channel dropped, layer re-recorded": (
         lambda c: _rewrite_dfb(c, lambda ch: ch.pop("N.Y")),
         r"{dfb}: payload deepFramebuffer channels differ from the cache layer's "
-        r"\(unexpected \[\], missing \['N.Y'\]\)"),
+        r"\(unexpected \[\], missing \['N.Y'\]\)",
+    ),
     "position stored as half, layer re-recorded": (
         lambda c: _rewrite_dfb(c, lambda ch: ch.update({"P.X": ch["P.X"].astype(np.float16)})),
-        r"{dfb}: channel P.X is HALF, expected FLOAT"),
+        r"{dfb}: channel P.X is HALF, expected FLOAT",
+    ),
     "non-finite positions, layer re-recorded": (
         lambda c: _rewrite_dfb(c, _three_nan_positions),
-        r"{dfb}: channel P.Z has 3 non-finite covered values"),
+        r"{dfb}: channel P.Z has 3 non-finite covered values",
+    ),
     "npy header garbage": (
         lambda c: _occluders(c).write_bytes(b"\x93NUMPY\x01\x00\x10\x00{'descr': oops}\n" + b"\0" * 1200),
-        r"{occluders}: not a .npy array"),
+        r"{occluders}: not a .npy array",
+    ),
     "npy not numpy at all": (lambda c: _occluders(c).write_bytes(b"P3\n" * 500), r"{occluders}: not a .npy array"),
     "npy of another shape": (
         lambda c: np.save(_occluders(c), np.zeros((10, 3), np.float64)),
-        r"{occluders}: payload occluders is float64\[10, 3\], the cache layer says float32\[\d+, 3, 3\]"),
+        r"{occluders}: payload occluders is float64\[10, 3\], the cache layer says float32\[\d+, 3, 3\]",
+    ),
     "shot edited after the bake": (
         lambda c: _shot(c).write_text(_shot(c).read_text() + "\n# edited\n"),
-        r"stale cache: input {shot} changed since the bake; re-bake it"),
+        r"stale cache: input {shot} changed since the bake; re-bake it",
+    ),
     "shot deleted": (lambda c: _shot(c).unlink(), r"stale cache: input {shot} missing since the bake"),
 }
 
@@ -132,8 +145,10 @@ def test_damaged_cache_is_refused_saying_what_is_wrong(cache, case):
     assert "\n" not in str(error.value)
 
 
-@pytest.mark.parametrize("case", ["payload missing", "other resolution, layer re-recorded",
-                                  "npy of another shape", "shot edited after the bake"])
+@pytest.mark.parametrize(
+    "case",
+    ["payload missing", "other resolution, layer re-recorded", "npy of another shape", "shot edited after the bake"],
+)
 def test_render_command_exits_2_with_one_line_and_writes_nothing(cache, case, capsys, tmp_path):
     damage, pattern = CASES[case]
     damage(cache)
@@ -146,17 +161,21 @@ def test_render_command_exits_2_with_one_line_and_writes_nothing(cache, case, ca
 
 
 def test_render_command_refuses_a_hand_edited_layer(cache, capsys, tmp_path):
-    text = cache.read_text().replace(f"uniform int relight:version = {CACHE_VERSION}", "uniform int relight:version = 7")
+    text = cache.read_text().replace(
+        f"uniform int relight:version = {CACHE_VERSION}", "uniform int relight:version = 7"
+    )
     cache.write_text(text)
     assert cli.main(["render", str(cache), "-o", str(tmp_path / "relit.exr")]) == 2
-    assert capsys.readouterr().err == (f"relight: error: {cache}: cache version 7 is not supported "
-                                       f"(this relight reads version {CACHE_VERSION}); re-bake it\n")
+    assert capsys.readouterr().err == (
+        f"relight: error: {cache}: cache version 7 is not supported "
+        f"(this relight reads version {CACHE_VERSION}); re-bake it\n"
+    )
     assert not (tmp_path / "relit.exr").exists()
 
 
 def _lights_layer(directory: Path, body: str) -> Path:
     path = directory / "lights.usda"
-    path.write_text(f"#usda 1.0\n(\n    defaultPrim = \"Rig\"\n)\n\ndef Xform \"Rig\"\n{{\n{body}\n}}\n")
+    path.write_text(f'#usda 1.0\n(\n    defaultPrim = "Rig"\n)\n\ndef Xform "Rig"\n{{\n{body}\n}}\n')
     return path
 
 
@@ -183,4 +202,3 @@ def test_non_finite_light_attribute_names_prim_and_attribute_when_relighting(cac
     lights = _lights_layer(tmp_path, '    def SphereLight "Key"\n    {\n        float inputs:intensity = nan\n    }')
     with pytest.raises(RelightError, match=r"/Rig/Key: inputs:intensity = nan must be finite"):
         open_relighter(cache, lights_layer=lights)
-

@@ -95,8 +95,9 @@ def test_pixel_types_in_the_file(glossy):
         assert types[name] == np.float32, name
     for name in ("materialId", "objectId"):
         assert types[name] == np.uint32, name
-    assert {types[name] for name in types if name not in ("P.X", "P.Y", "P.Z", "Z", "materialId", "objectId")} \
-        == {np.dtype(np.float16)}
+    assert {types[name] for name in types if name not in ("P.X", "P.Y", "P.Z", "Z", "materialId", "objectId")} == {
+        np.dtype(np.float16)
+    }
 
 
 def test_loaded_gbuffer_matches_the_written_channels(glossy):
@@ -105,8 +106,9 @@ def test_loaded_gbuffer_matches_the_written_channels(glossy):
     covered = written["coverage"].reshape(-1) > 0.5
     assert gbuffer.num_samples == int(covered.sum()) and gbuffer.image_size == (SIZE, SIZE)
     np.testing.assert_array_equal(gbuffer.position[:, 1].numpy(), written["P.Y"].reshape(-1)[covered])
-    np.testing.assert_array_equal(gbuffer.params.metallic.numpy(),
-                                  written["metallic"].reshape(-1)[covered].astype(np.float32))
+    np.testing.assert_array_equal(
+        gbuffer.params.metallic.numpy(), written["metallic"].reshape(-1)[covered].astype(np.float32)
+    )
     np.testing.assert_array_equal(gbuffer.material_id.numpy(), written["materialId"].reshape(-1)[covered])
 
 

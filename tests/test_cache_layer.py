@@ -33,8 +33,11 @@ def _all_errors(layer) -> list[str]:
     register_cache_validators()
     registry = UsdValidation.ValidationRegistry()
     context = UsdValidation.ValidationContext(registry.GetOrLoadAllValidators())
-    return [f"{e.GetName()}: {e.GetMessage()}" for e in context.Validate(Usd.Stage.Open(str(layer)))
-            if e.GetType() == UsdValidation.ValidationErrorType.Error]
+    return [
+        f"{e.GetName()}: {e.GetMessage()}"
+        for e in context.Validate(Usd.Stage.Open(str(layer)))
+        if e.GetType() == UsdValidation.ValidationErrorType.Error
+    ]
 
 
 def _edit(layer, prim_path: str, edit) -> None:
@@ -47,8 +50,12 @@ def _edit(layer, prim_path: str, edit) -> None:
 def test_written_layer_is_clean_under_every_usd_validator(baked):
     register_cache_validators()
     names = {v.GetMetadata().name for v in UsdValidation.ValidationRegistry().GetOrLoadAllValidators()}
-    assert {"usdGeomValidators:StageMetadataChecker", "usdValidation:AttributeTypeMismatch",
-            "usdUtilsValidators:MissingReferenceValidator", PAYLOAD_FILE_VALIDATOR} <= names
+    assert {
+        "usdGeomValidators:StageMetadataChecker",
+        "usdValidation:AttributeTypeMismatch",
+        "usdUtilsValidators:MissingReferenceValidator",
+        PAYLOAD_FILE_VALIDATOR,
+    } <= names
     assert _all_errors(baked) == []
 
 
@@ -118,16 +125,19 @@ def _bad_sha(prim):
     prim.attributes["relight:sha256"].default = "not a digest"
 
 
-@pytest.mark.parametrize("prim_path, edit, message", [
-    ("/Cache", _bump_version, f"cache version {CACHE_VERSION + 1} is not supported"),
-    # Without the authored value the schema's fallback (version 1, sha "") would stand in silently.
-    ("/Cache", _remove_version, "/Cache.relight:version is missing"),
-    ("/Cache/deepFramebuffer", _remove_sha, "/Cache/deepFramebuffer.relight:sha256 is missing"),
-    ("/Cache/deepFramebuffer", _retype_bytes, "/Cache/deepFramebuffer.relight:bytes = '13000' is not a int64"),
-    ("/Cache", _drop_a_hash, "relight:inputHashes has 0 entries for 1 relight:inputFiles"),
-    ("/Cache/deepFramebuffer", _drop_a_constant, "relight:constantValues has"),
-    ("/Cache/deepFramebuffer", _bad_sha, "relight:sha256 'not a digest' is not a sha256 hex digest"),
-])
+@pytest.mark.parametrize(
+    "prim_path, edit, message",
+    [
+        ("/Cache", _bump_version, f"cache version {CACHE_VERSION + 1} is not supported"),
+        # Without the authored value the schema's fallback (version 1, sha "") would stand in silently.
+        ("/Cache", _remove_version, "/Cache.relight:version is missing"),
+        ("/Cache/deepFramebuffer", _remove_sha, "/Cache/deepFramebuffer.relight:sha256 is missing"),
+        ("/Cache/deepFramebuffer", _retype_bytes, "/Cache/deepFramebuffer.relight:bytes = '13000' is not a int64"),
+        ("/Cache", _drop_a_hash, "relight:inputHashes has 0 entries for 1 relight:inputFiles"),
+        ("/Cache/deepFramebuffer", _drop_a_constant, "relight:constantValues has"),
+        ("/Cache/deepFramebuffer", _bad_sha, "relight:sha256 'not a digest' is not a sha256 hex digest"),
+    ],
+)
 def test_hand_edited_layer_is_refused_naming_the_attribute(cache, prim_path, edit, message):
     _edit(cache, prim_path, edit)
     with pytest.raises(RelightError, match=re.escape(message)) as error:

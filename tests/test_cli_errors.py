@@ -21,13 +21,16 @@ def _one_line(err: str) -> str:
     return lines[0]
 
 
-@pytest.mark.parametrize("argv", [
-    ["bake", "{missing}", "--camera", "/Cam", "--out", "{tmp}/out"],
-    ["render", "{missing}", "-o", "{tmp}/out.exr"],
-    ["render", "{file}", "-o", "{tmp}/out.exr"],
-    ["info", "{missing}"],
-    ["reference", "{missing}", "--camera", "/Cam", "-o", "{tmp}/out.exr"],
-])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["bake", "{missing}", "--camera", "/Cam", "--out", "{tmp}/out"],
+        ["render", "{missing}", "-o", "{tmp}/out.exr"],
+        ["render", "{file}", "-o", "{tmp}/out.exr"],
+        ["info", "{missing}"],
+        ["reference", "{missing}", "--camera", "/Cam", "-o", "{tmp}/out.exr"],
+    ],
+)
 def test_bad_input_is_one_line_and_status_2(tmp_path, capsys, argv):
     (tmp_path / "file.usda").write_text("not usd")
     paths = {"missing": str(tmp_path / "missing.usda"), "file": str(tmp_path / "file.usda"), "tmp": str(tmp_path)}
@@ -39,8 +42,20 @@ def test_an_output_folder_that_is_a_file_is_bad_input(tmp_path, capsys):
     shot = SCENES["cornell_box"].write(tmp_path)
     blocker = tmp_path / "blocker"
     blocker.write_text("")
-    status = cli.main(["bake", str(shot), "--camera", SCENES["cornell_box"].camera, "--width", "8", "--height", "8",
-                       "--out", str(blocker)])
+    status = cli.main(
+        [
+            "bake",
+            str(shot),
+            "--camera",
+            SCENES["cornell_box"].camera,
+            "--width",
+            "8",
+            "--height",
+            "8",
+            "--out",
+            str(blocker),
+        ]
+    )
     assert status == 2
     line = _one_line(capsys.readouterr().err)
     assert line.startswith("relight: error: ") and str(blocker) in line
@@ -49,6 +64,7 @@ def test_an_output_folder_that_is_a_file_is_bad_input(tmp_path, capsys):
 def _break_info(monkeypatch):
     def run(args):
         raise ZeroDivisionError("a bug deep inside")
+
     monkeypatch.setattr(info, "run", run)
 
 

@@ -16,16 +16,23 @@ from relight_torch.cuts.blocks import BlockEvaluator
 def _block(generator: torch.Generator, rows: int, width: int, num_nodes: int) -> dict[str, torch.Tensor]:
     """A random block: node points (3, num_nodes) unit directions, frames (rows, 3, 4) (not quite
     orthonormal, as stored in float16, with the viewer's direction in the last column), materials."""
+
     def uniform(*shape: int) -> torch.Tensor:
         return torch.rand(*shape, generator=generator)
 
     points = torch.nn.functional.normalize(torch.randn(num_nodes, 3, generator=generator), dim=-1).t().contiguous()
     frames = torch.linalg.qr(torch.randn(rows, 3, 3, generator=generator))[0].half().float()
     wo = torch.nn.functional.normalize(torch.randn(rows, 3, generator=generator), dim=-1)
-    wo[:, 2] = wo[:, 2].abs() * torch.where(uniform(rows) < 0.1, -1.0, 1.0)    # a few viewers below
+    wo[:, 2] = wo[:, 2].abs() * torch.where(uniform(rows) < 0.1, -1.0, 1.0)  # a few viewers below
     geometry = torch.cat((frames, frames @ wo.unsqueeze(-1)), dim=-1)
-    return {"node_points": points, "geometry": geometry, "roughnesses": 0.05 + uniform(rows, 1),
-            "cos_e": wo[:, 2:], "view_sq": (wo * wo).sum(-1, keepdim=True), "weight": uniform(rows, width)}
+    return {
+        "node_points": points,
+        "geometry": geometry,
+        "roughnesses": 0.05 + uniform(rows, 1),
+        "cos_e": wo[:, 2:],
+        "view_sq": (wo * wo).sum(-1, keepdim=True),
+        "weight": uniform(rows, width),
+    }
 
 
 def test_compiled_blocks_equal_the_eager_functions(cxx_compiler):
@@ -43,8 +50,17 @@ def test_compiled_blocks_equal_the_eager_functions(cxx_compiler):
     results = []
     for compiled, dtype in ((False, torch.float64), (False, torch.float32), (True, torch.float32)):
         evaluator = BlockEvaluator(4, dtype, torch.device("cpu"), compiled)
-        args = tuple(t.to(dtype) for t in (block["geometry"], block["node_points"], 0.15 + block["roughnesses"],
-                                             block["cos_e"], block["view_sq"], block["weight"]))
+        args = tuple(
+            t.to(dtype)
+            for t in (
+                block["geometry"],
+                block["node_points"],
+                0.15 + block["roughnesses"],
+                block["cos_e"],
+                block["view_sq"],
+                block["weight"],
+            )
+        )
         geometry, points, roughness, cos_e, view_sq, weight = args
         grid = torch.zeros(4, rows, width + 2, dtype=dtype)
         evaluator.grid(points, nodes, geometry, None, (roughness,), cos_e, view_sq, weight, grid[:, :, :width])
@@ -54,10 +70,11 @@ def test_compiled_blocks_equal_the_eager_functions(cxx_compiler):
     exact, eager, compiled = results
     grid = eager[0]
     assert float(grid.abs().max()) > 0 and bool((grid[:, :, width:] == 0).all())
-    assert bool((grid[:, :, :width] == 0).any())   # some directions below a horizon
+    assert bool((grid[:, :, :width] == 0).any())  # some directions below a horizon
     for factor in range(4):
-        torch.testing.assert_close(compiled[0][factor], grid[factor], rtol=1e-5,
-                                   atol=1e-6 * float(grid[factor].abs().max()))
+        torch.testing.assert_close(
+            compiled[0][factor], grid[factor], rtol=1e-5, atol=1e-6 * float(grid[factor].abs().max())
+        )
         # Sums of ~45 entries, against float64: the lobe (factors 2, 3) is ill-conditioned near
         # N.h = 1 (d ln D / d N.h ~ 4 / alpha^2), so float32 dot products rounded differently
         # (eager's addcmul, compiled C++) move it by ~1e-5 of the peak (measured: eager 2.7e-6,
@@ -84,8 +101,13 @@ def test_a_failed_compile_names_the_setting(tmp_path):
         "except RelightError as error:\n"
         "    print('ERROR', error)\n"
     )
-    env = dict(os.environ, CXX=str(tmp_path / "no-such-g++"), TORCHINDUCTOR_CACHE_DIR=str(tmp_path / "inductor"),
-               TORCHINDUCTOR_FX_GRAPH_CACHE="0", OMP_NUM_THREADS="1")
+    env = dict(
+        os.environ,
+        CXX=str(tmp_path / "no-such-g++"),
+        TORCHINDUCTOR_CACHE_DIR=str(tmp_path / "inductor"),
+        TORCHINDUCTOR_FX_GRAPH_CACHE="0",
+        OMP_NUM_THREADS="1",
+    )
     result = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
     lines = [line for line in result.stdout.splitlines() if line.startswith("ERROR")]
     assert len(lines) == 1, result.stdout + result.stderr

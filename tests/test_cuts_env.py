@@ -22,16 +22,16 @@ from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scene.types import MaterialInput
 from pipeline.scenes import SCENES, write_light_edits
+from relight_torch import open_cache
 from relight_torch.brdf import preview_surface
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.cuts import relighter as cuts_relighter
 from relight_torch.cuts.merge import refine
 from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
+from relight_torch.direct.relighter import RelightSettings, open_relighter
 from relight_torch.math.frame import to_local
 from relight_torch.metrics import psnr
 from relight_torch.parallel import torch_threads
-from relight_torch.direct.relighter import RelightSettings, open_relighter
-from relight_torch import open_cache
 
 WIDTH, HEIGHT, LIGHTS = 32, 24, 4096
 REFERENCE = ReferenceSettings(spp=256, max_bounces=0, num_workers=1)
@@ -43,8 +43,15 @@ def dome(tmp_path_factory):
     shot = SCENES["dome"].write(directory)
     scene = load_scene(shot, width=WIDTH, height=HEIGHT)
     camera = find_camera(scene, SCENES["dome"].camera)
-    layer = bake_cuts(scene, camera, directory / "cache", "dome", supersampling=2, texture_samples=2,
-                      settings=CutsSettings(num_lights=LIGHTS, sigma=2.0, lattice_edge=0.03))
+    layer = bake_cuts(
+        scene,
+        camera,
+        directory / "cache",
+        "dome",
+        supersampling=2,
+        texture_samples=2,
+        settings=CutsSettings(num_lights=LIGHTS, sigma=2.0, lattice_edge=0.03),
+    )
     reference = PathTracer(scene, REFERENCE).render(camera).mean
     return scene, camera, layer, torch.from_numpy(reference), directory
 
@@ -72,10 +79,10 @@ def test_env_relight_matches_the_path_tracer(dome):
     # per sub-sample gets 29.6 dB: the reference's own noise and pixel filtering bound both).
     assert _psnr(image, reference) > 27.5
     direct = open_relighter(layer, settings=RelightSettings(dome_samples=256)).render()
-    assert _psnr(image, direct) > 32.0      # measured 33.7 dB
+    assert _psnr(image, direct) > 32.0  # measured 33.7 dB
     assert relighter.stats["illumination_cut"] == 256
     groups = relighter.light_group_images()
-    assert relighter.stats["evaluated"] == 0       # the one group holds the dome: the kept columns serve
+    assert relighter.stats["evaluated"] == 0  # the one group holds the dome: the kept columns serve
     assert torch.allclose(sum(groups.values()) + relighter.emission_image(), image, atol=1e-5)
 
 
@@ -85,7 +92,7 @@ def test_dome_edits_relight_without_rebaking(dome):
     for name in ("rotate", "warm"):
         cuts = open_cache(layer, lights_layer=edits[name]).render()
         direct = open_relighter(layer, lights_layer=edits[name], settings=RelightSettings(dome_samples=256)).render()
-        assert _psnr(cuts, direct) > 31.0, name       # measured 32.7 (rotate), 32.3 (warm)
+        assert _psnr(cuts, direct) > 31.0, name  # measured 32.7 (rotate), 32.3 (warm)
 
 
 def test_material_edit_matches_a_fresh_reference_of_the_edited_scene(dome):
@@ -97,15 +104,17 @@ def test_material_edit_matches_a_fresh_reference_of_the_edited_scene(dome):
     relighter.edit_material(index, diffuse_color=green, roughness=roughness)
     after = relighter.render()
     materials = list(scene.materials)
-    materials[index] = materials[index].replace(diffuse_color=MaterialInput(np.asarray(green, np.float32)),
-                                                roughness=MaterialInput(np.asarray([roughness], np.float32)))
+    materials[index] = materials[index].replace(
+        diffuse_color=MaterialInput(np.asarray(green, np.float32)),
+        roughness=MaterialInput(np.asarray([roughness], np.float32)),
+    )
     edited = dataclasses.replace(scene, materials=materials)
     reference = torch.from_numpy(PathTracer(edited, REFERENCE).render(camera).mean)
     changed = (after - before).abs().amax(dim=-1) > 0.02
-    assert int(changed.sum()) >= 8                       # the cylinder turned green
+    assert int(changed.sum()) >= 8  # the cylinder turned green
     assert bool((after[..., 1] > after[..., 0])[changed].float().mean() > 0.9)
-    assert _psnr(after, reference) > 27.5                # measured 28.7 dB
-    assert _psnr(before, reference) < _psnr(after, reference) - 1.5   # unedited: 26.2 dB
+    assert _psnr(after, reference) > 27.5  # measured 28.7 dB
+    assert _psnr(before, reference) < _psnr(after, reference) - 1.5  # unedited: 26.2 dB
 
 
 def test_merge_cost_follows_the_merged_cut_size(dome):
@@ -177,22 +186,26 @@ def test_kept_factor_columns_follow_light_and_material_edits(dome, monkeypatch):
     assert relighter.kept_bytes() > relighter.direct.gbuffer.num_samples * 4 * 256 * 4
     turned = rotated(dome_light, 3.0)
     relighter.set_light(turned)
-    torch.testing.assert_close(relighter.cut_samples(relighter.lights, keep=True), _per_cluster(relighter),
-                               rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(
+        relighter.cut_samples(relighter.lights, keep=True), _per_cluster(relighter), rtol=1e-4, atol=1e-5
+    )
     merged = relighter.stats["merged"]
     assert 0 < relighter.stats["evaluated"] < 0.5 * merged
-    relighter.set_light(moved(turned, 0.01))       # a dome at infinity: same light, nothing evaluated
-    torch.testing.assert_close(relighter.cut_samples(relighter.lights, keep=True), _per_cluster(relighter),
-                               rtol=1e-4, atol=1e-5)
+    relighter.set_light(moved(turned, 0.01))  # a dome at infinity: same light, nothing evaluated
+    torch.testing.assert_close(
+        relighter.cut_samples(relighter.lights, keep=True), _per_cluster(relighter), rtol=1e-4, atol=1e-5
+    )
     assert relighter.stats["evaluated"] == 0 and relighter.stats["merged"] == merged
     index = next(i for i, material in enumerate(scene.materials) if material.path.endswith("RedPlastic"))
     relighter.edit_material(index, diffuse_color=(0.1, 0.5, 0.15))
-    torch.testing.assert_close(relighter.cut_samples(relighter.lights, keep=True), _per_cluster(relighter),
-                               rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(
+        relighter.cut_samples(relighter.lights, keep=True), _per_cluster(relighter), rtol=1e-4, atol=1e-5
+    )
     assert relighter.stats["evaluated"] == 0
     relighter.edit_material(index, roughness=0.6)
-    torch.testing.assert_close(relighter.cut_samples(relighter.lights, keep=True), _per_cluster(relighter),
-                               rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(
+        relighter.cut_samples(relighter.lights, keep=True), _per_cluster(relighter), rtol=1e-4, atol=1e-5
+    )
     rows = relighter.direct.gbuffer.material_id == index
     assert 0 < relighter.stats["evaluated"] < merged * float(rows.float().mean()) * 3
 
@@ -206,7 +219,7 @@ def test_a_repeated_roughness_edit_keeps_its_rows_grids(dome, monkeypatch):
     scene, _, layer, _, _ = dome
     index = next(i for i, material in enumerate(scene.materials) if material.path.endswith("RedPlastic"))
     images = []
-    for share in (0.0, 1.0):   # never (unless no column is live), or whenever a column is dead
+    for share in (0.0, 1.0):  # never (unless no column is live), or whenever a column is dead
         monkeypatch.setattr(cuts_relighter, "GRID_LIVE_SHARE", share)
         relighter = open_cache(layer)
         relighter.set_settings(CutsRelightSettings(rows_per_batch=97, factor_dtype=torch.float32))
@@ -221,9 +234,9 @@ def test_a_repeated_roughness_edit_keeps_its_rows_grids(dome, monkeypatch):
         second = relighter.cut_samples(relighter.lights, keep=True)
         torch.testing.assert_close(second, _per_cluster(relighter), rtol=1e-4, atol=1e-5)
         assert relighter.stats["evaluated"] == evaluated
-        for new, old in zip(relighter._columns.grids, kept):
+        for new, old in zip(relighter._columns.grids, kept, strict=True):
             assert (new is None) == (old is None)
-            assert new is None or all(reused is grid for reused, grid in zip(new[1], old[1]))
+            assert new is None or all(reused is grid for reused, grid in zip(new[1], old[1], strict=True))
         if share == 1.0:
             num_columns = relighter.illumination_cut(relighter.lights)[0].shape[0]
             assert any(grid.columns.shape[0] < num_columns for grids in kept if grids is not None for grid in grids[1])
@@ -232,7 +245,7 @@ def test_a_repeated_roughness_edit_keeps_its_rows_grids(dome, monkeypatch):
         torch.testing.assert_close(frames[-1], _per_cluster(relighter), rtol=1e-4, atol=1e-5)
         assert all(grids is None for grids in relighter._columns.grids)
         images.append(frames)
-    for whole, live in zip(*images):
+    for whole, live in zip(*images, strict=True):
         torch.testing.assert_close(live, whole, rtol=1e-6, atol=1e-7)
 
 
@@ -256,7 +269,7 @@ def test_batches_on_two_threads_give_the_images_of_one(dome):
         frames.append(images)
         stats.append(dict(relighter.stats))
     assert len(relighter.visibility_batches()) > 2 and stats[1] == stats[0]
-    for threaded, serial in zip(*reversed(frames)):
+    for threaded, serial in zip(*reversed(frames), strict=True):
         torch.testing.assert_close(threaded, serial, rtol=1e-5, atol=1e-6)
 
 
@@ -280,8 +293,16 @@ def test_the_sweeps_reuse_only_a_cache_baked_alike(dome):
     settings = CutsSettings(num_lights=LIGHTS, sigma=2.0, lattice_edge=0.03)
     parameters = {**settings.parameters(), "textureSamples": 2}
     assert reusable_bake(layer, "cuts", (WIDTH, HEIGHT), 2, parameters) == layer
-    assert reusable_bake(layer, "cuts", (WIDTH, HEIGHT), 2,
-                         {**dataclasses.replace(settings, sigma=3.0).parameters(), "textureSamples": 2}) is None
+    assert (
+        reusable_bake(
+            layer,
+            "cuts",
+            (WIDTH, HEIGHT),
+            2,
+            {**dataclasses.replace(settings, sigma=3.0).parameters(), "textureSamples": 2},
+        )
+        is None
+    )
     assert reusable_bake(layer, "cuts", (2 * WIDTH, HEIGHT), 2, parameters) is None
     assert reusable_bake(layer, "cuts", (WIDTH, HEIGHT), 1, parameters) is None
     assert reusable_bake(layer, "multiview", (WIDTH, HEIGHT), 2, parameters) is None
@@ -297,8 +318,11 @@ def test_lattice_interpolates_the_hit_points():
     u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
     barycentrics = np.stack((u, v), axis=1).astype(np.float32)
     lattice = build_lattice(corners, triangle, barycentrics, np.array([0.0, 50.0, 0.0]), target_edge=1.0)
-    points = (1 - u - v)[:, None] * corners[triangle, 0] + u[:, None] * corners[triangle, 1] + v[:, None] * corners[
-        triangle, 2]
+    points = (
+        (1 - u - v)[:, None] * corners[triangle, 0]
+        + u[:, None] * corners[triangle, 1]
+        + v[:, None] * corners[triangle, 2]
+    )
     interpolated = np.einsum("nk,nkc->nc", lattice.sample_weights, lattice.position[lattice.sample_vertices])
     np.testing.assert_allclose(interpolated, points, atol=1e-4)
     assert bool((lattice.sample_weights >= 0).all())
@@ -326,11 +350,18 @@ def _mean_cut_size(layer: Path) -> float:
 
 def test_data_driven_tree_shortens_the_visibility_cuts(dome):
     scene, camera, layer, reference, directory = dome
-    driven = bake_cuts(scene, camera, directory / "driven", "dome", supersampling=2, texture_samples=2,
-                       settings=CutsSettings(num_lights=LIGHTS, sigma=2.0, lattice_edge=0.03, beta=0.5))
+    driven = bake_cuts(
+        scene,
+        camera,
+        directory / "driven",
+        "dome",
+        supersampling=2,
+        texture_samples=2,
+        settings=CutsSettings(num_lights=LIGHTS, sigma=2.0, lattice_edge=0.03, beta=0.5),
+    )
     gain = 1.0 - _mean_cut_size(driven) / _mean_cut_size(layer)
-    assert gain > 0.15                # measured 23 % (54.3 -> 42.0 nodes per vertex); the paper: 16-30 %
-    assert _psnr(open_cache(driven).render(), reference) > 27.5     # measured 28.5 dB
+    assert gain > 0.15  # measured 23 % (54.3 -> 42.0 nodes per vertex); the paper: 16-30 %
+    assert _psnr(open_cache(driven).render(), reference) > 27.5  # measured 28.5 dB
 
 
 def test_a_dome_light_link_masks_the_unlinked_objects(dome):
@@ -341,6 +372,7 @@ def test_a_dome_light_link_masks_the_unlinked_objects(dome):
     unlinked = relighter.cut_samples([light])
     linked = relighter.cut_samples([dataclasses.replace(light, light_link=(floor,))])
     on_floor = torch.from_numpy(np.asarray([obj.path == floor for obj in scene.objects]))[
-        relighter.direct.gbuffer.object_id.long()]
+        relighter.direct.gbuffer.object_id.long()
+    ]
     assert torch.equal(linked[~on_floor], torch.zeros_like(linked[~on_floor]))
     torch.testing.assert_close(linked[on_floor], unlinked[on_floor])

@@ -38,8 +38,10 @@ def test_tree_indices_match_a_postorder_traversal():
     assert tree.size.tolist() == size
     values = torch.arange(64, dtype=torch.float64)
     sums = tree.aggregate(values)
-    leaf_of_node = torch.searchsorted(tree.leaf_nodes, tree.leftleaf)   # leftmost leaf number
-    expected = torch.stack([values[int(m):int(m) + int(s)].sum() for m, s in zip(leaf_of_node, tree.size)])
+    leaf_of_node = torch.searchsorted(tree.leaf_nodes, tree.leftleaf)  # leftmost leaf number
+    expected = torch.stack(
+        [values[int(m) : int(m) + int(s)].sum() for m, s in zip(leaf_of_node, tree.size, strict=True)]
+    )
     assert torch.equal(sums, expected)
     assert torch.equal(tree.aggregate_batch(values[None]), sums[None])
     with pytest.raises(ValueError, match="power-of-two"):
@@ -60,8 +62,14 @@ def _random_cut(tree: LightTree, rng: np.random.Generator, split_probability: fl
     return sorted(nodes)
 
 
-def _paper_merge_loop(tree: LightTree, cuts: list[list[int]], values: list[list[float]], weights: list[float],
-                      light_nodes: list[int], light_values: list[float]) -> float:
+def _paper_merge_loop(
+    tree: LightTree,
+    cuts: list[list[int]],
+    values: list[list[float]],
+    weights: list[float],
+    light_nodes: list[int],
+    light_values: list[float],
+) -> float:
     """Seed 004's merge loop, transcribed: sum over merged clusters of |C| <l> (sum_j w_j <v_j>) f(node),
     with f(node) = 1 + node / 1000 standing in for the BRDF at the cluster's mean direction."""
     leftleaf, size = tree.leftleaf.tolist(), tree.size.tolist()
@@ -69,10 +77,10 @@ def _paper_merge_loop(tree: LightTree, cuts: list[list[int]], values: list[list[
     pointers = [0] * len(all_cuts)
     total = 0.0
     while True:
-        current = [cut[p] for cut, p in zip(all_cuts, pointers)]
+        current = [cut[p] for cut, p in zip(all_cuts, pointers, strict=True)]
         min_index = min(current)
         max_leftleaf = max(leftleaf[n] for n in current)
-        if max_leftleaf <= min_index:     # all current nodes overlap
+        if max_leftleaf <= min_index:  # all current nodes overlap
             visibility = sum(w * values[j][pointers[j]] for j, w in enumerate(weights))
             total += size[min_index] * light_values[pointers[-1]] * visibility * (1.0 + min_index / 1000.0)
         done = False
@@ -93,8 +101,11 @@ def test_batched_merge_matches_the_paper_loop(num_sources):
     cut_lists = [_random_cut(tree, rng, rng.uniform(0.3, 0.95)) for _ in range(num_cuts)]
     value_lists = [list(rng.random(len(c))) for c in cut_lists]
     counts = torch.tensor([len(c) for c in cut_lists])
-    cuts = Cuts(torch.cat((torch.zeros(1, dtype=torch.int64), counts.cumsum(0))),
-                torch.tensor(sum(cut_lists, [])), torch.tensor(sum(value_lists, []), dtype=torch.float64))
+    cuts = Cuts(
+        torch.cat((torch.zeros(1, dtype=torch.int64), counts.cumsum(0))),
+        torch.tensor(sum(cut_lists, [])),
+        torch.tensor(sum(value_lists, []), dtype=torch.float64),
+    )
     cuts.check(tree)
     rows = torch.from_numpy(rng.integers(0, num_cuts, (num_rows, num_sources)))
     weights = torch.from_numpy(rng.dirichlet(np.ones(num_sources), num_rows))
@@ -107,9 +118,14 @@ def test_batched_merge_matches_the_paper_loop(num_sources):
     batched = torch.zeros(num_rows, dtype=torch.float64).index_add_(0, merged.row, terms)
 
     for p in range(num_rows):
-        expected = _paper_merge_loop(tree, [cut_lists[r] for r in rows[p].tolist()],
-                                     [value_lists[r] for r in rows[p].tolist()], weights[p].tolist(),
-                                     light.tolist(), light_values.tolist())
+        expected = _paper_merge_loop(
+            tree,
+            [cut_lists[r] for r in rows[p].tolist()],
+            [value_lists[r] for r in rows[p].tolist()],
+            weights[p].tolist(),
+            light.tolist(),
+            light_values.tolist(),
+        )
         assert batched[p].item() == pytest.approx(expected, rel=1e-12)
     # The merged cut of a row is a sorted partition of the leaves.
     sizes = torch.bincount(merged.row, minlength=num_rows)
@@ -131,7 +147,7 @@ def test_variance_cuts_bound_every_node_and_are_minimal():
     assert bool((error <= sigma**2).all())
     # Minimal: every strict ancestor of a cut node violates the bound (checked on the parents).
     height = tree.height[chosen]
-    parents = torch.where(chosen + 1 < tree.num_nodes, chosen + 1, chosen)   # right children's parent
+    parents = torch.where(chosen + 1 < tree.num_nodes, chosen + 1, chosen)  # right children's parent
     right_child = (height < tree.height[parents]) & (parents != chosen)
     rows = torch.repeat_interleave(torch.arange(8), cuts.sizes())
     assert bool((tree.size[parents] * variances[rows, parents] > sigma**2)[right_child].all())
@@ -143,6 +159,6 @@ def test_intensity_cut_refines_the_brightest_nodes_up_to_its_size():
     leaf[700] = 100.0
     nodes = intensity_cut(tree, tree.aggregate(leaf), 32)
     assert nodes.shape[0] == 32
-    assert tree.leaf_nodes[700].item() in nodes.tolist()    # the bright light is isolated
+    assert tree.leaf_nodes[700].item() in nodes.tolist()  # the bright light is isolated
     Cuts(torch.tensor([0, 32]), nodes, nodes[:, None]).check(tree)
     assert intensity_cut(tree, tree.aggregate(leaf), 1).tolist() == [tree.root]

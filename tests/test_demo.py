@@ -10,7 +10,9 @@ from relight_torch.io.exr import read_rgb_exr
 
 
 def test_demo_writes_images_summary_and_chart(tmp_path):
-    assert main(["demo", "--out", str(tmp_path), "--width", "24", "--height", "24", "--spp", "4", "--quality", "25"]) == 0
+    assert (
+        main(["demo", "--out", str(tmp_path), "--width", "24", "--height", "24", "--spp", "4", "--quality", "25"]) == 0
+    )
     with open(tmp_path / "summary.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
     assert [row["edit"] for row in rows] == ["shot", "move", "white_light", "focus", "new_light"]

@@ -72,8 +72,16 @@ PAINT = """
 
 def _shot(directory: Path, **changes: str) -> Path:
     """Write the tiny shot (a wall facing a camera, a sphere light) with `changes` to its template."""
-    fields = {"metadata": "", "counts": "[4]", "indices": "[0, 1, 2, 3]", "points": WALL, "wall": "",
-              "camera": "(0, 0, 5)", "intensity": "10", "extra": ""}
+    fields = {
+        "metadata": "",
+        "counts": "[4]",
+        "indices": "[0, 1, 2, 3]",
+        "points": WALL,
+        "wall": "",
+        "camera": "(0, 0, 5)",
+        "intensity": "10",
+        "extra": "",
+    }
     path = directory / "shot.usda"
     path.write_text(SHOT.format(**{**fields, **changes}))
     return path
@@ -86,8 +94,26 @@ def bake(capsys, caplog):
 
     def run(shot: Path, out: Path) -> tuple[int, str]:
         caplog.clear()
-        status = main(["bake", str(shot), "--camera", "/World/Camera", "--out", str(out), "--width", "8",
-                       "--height", "8", "--supersampling", "1", "--texture-samples", "1", "--method", "direct"])
+        status = main(
+            [
+                "bake",
+                str(shot),
+                "--camera",
+                "/World/Camera",
+                "--out",
+                str(out),
+                "--width",
+                "8",
+                "--height",
+                "8",
+                "--supersampling",
+                "1",
+                "--texture-samples",
+                "1",
+                "--method",
+                "direct",
+            ]
+        )
         warnings = [f"relight: WARNING: {r.getMessage()}" for r in caplog.records if r.levelname == "WARNING"]
         return status, "\n".join(warnings + [capsys.readouterr().err])
 
@@ -128,52 +154,74 @@ def test_malformed_usd(tmp_path, bake):
 
 def test_missing_sublayer(tmp_path, bake):
     shot = _shot(tmp_path, metadata="\n    subLayers = [@./set.usda@]")
-    _assert_fatal(*bake(shot, tmp_path / "out"), tmp_path / "out", "shot.usda", "set.usda",
-                  "Could not load sublayer")
+    _assert_fatal(*bake(shot, tmp_path / "out"), tmp_path / "out", "shot.usda", "set.usda", "Could not load sublayer")
 
 
 def test_out_of_range_indices(tmp_path, bake):
     shot = _shot(tmp_path, indices="[0, 1, 2, 9]")
-    _assert_fatal(*bake(shot, tmp_path / "out"), tmp_path / "out", "shot.usda", "/World/Wall",
-                  "do not match its 4 points")
+    _assert_fatal(
+        *bake(shot, tmp_path / "out"), tmp_path / "out", "shot.usda", "/World/Wall", "do not match its 4 points"
+    )
 
 
 def test_nan_and_huge_coordinates(tmp_path, bake):
     # Two good triangles, one with a NaN corner, one with a corner at 1e30 (its area overflows).
-    shot = _shot(tmp_path, counts="[4, 3, 3]", indices="[0, 1, 2, 3, 0, 1, 4, 0, 1, 5]",
-                 points="[(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0), (nan, 0, 0), (1e30, 0, 0)]")
-    _assert_baked_with_warning(*bake(shot, tmp_path / "out"), tmp_path / "out", "/World/Wall",
-                               "dropped 2 degenerate or non-finite triangles")
+    shot = _shot(
+        tmp_path,
+        counts="[4, 3, 3]",
+        indices="[0, 1, 2, 3, 0, 1, 4, 0, 1, 5]",
+        points="[(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0), (nan, 0, 0), (1e30, 0, 0)]",
+    )
+    _assert_baked_with_warning(
+        *bake(shot, tmp_path / "out"), tmp_path / "out", "/World/Wall", "dropped 2 degenerate or non-finite triangles"
+    )
 
 
 def test_zero_area_and_sliver_triangles(tmp_path, bake):
     # The wall, a zero-area triangle (a repeated corner) and a sliver 1e-7 wide, which is kept.
-    shot = _shot(tmp_path, counts="[4, 3, 3]", indices="[0, 1, 2, 3, 0, 0, 1, 0, 1, 4]",
-                 points="[(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0), (0, -0.9999999, 1e-7)]")
-    _assert_baked_with_warning(*bake(shot, tmp_path / "out"), tmp_path / "out", "/World/Wall",
-                               "dropped 1 degenerate or non-finite triangles")
+    shot = _shot(
+        tmp_path,
+        counts="[4, 3, 3]",
+        indices="[0, 1, 2, 3, 0, 0, 1, 0, 1, 4]",
+        points="[(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0), (0, -0.9999999, 1e-7)]",
+    )
+    _assert_baked_with_warning(
+        *bake(shot, tmp_path / "out"), tmp_path / "out", "/World/Wall", "dropped 1 degenerate or non-finite triangles"
+    )
     assert read_cache_layer(tmp_path / "out" / f"shot{SUFFIX}").payload("occluders").shape == (3, 3, 3)
 
 
 def test_camera_inside_geometry(tmp_path, bake):
-    shot = _shot(tmp_path, camera="(0, 0, 0)", points=WALL.replace(", 0)", ", 1.5)"),
-                 extra='\n    def Cube "Box"\n    {\n        double size = 4\n    }')
-    _assert_baked_with_warning(*bake(shot, tmp_path / "out"), tmp_path / "out", "shot.usda",
-                               "/World/Camera", "inside geometry")
+    shot = _shot(
+        tmp_path,
+        camera="(0, 0, 0)",
+        points=WALL.replace(", 0)", ", 1.5)"),
+        extra='\n    def Cube "Box"\n    {\n        double size = 4\n    }',
+    )
+    _assert_baked_with_warning(
+        *bake(shot, tmp_path / "out"), tmp_path / "out", "shot.usda", "/World/Camera", "inside geometry"
+    )
 
 
 @pytest.mark.parametrize("intensity", ["-10", "nan"])
 def test_negative_or_nan_light_intensity(tmp_path, bake, intensity):
     shot = _shot(tmp_path, intensity=intensity)
-    _assert_fatal(*bake(shot, tmp_path / "out"), tmp_path / "out", "shot.usda", "/World/Key",
-                  "inputs:intensity", "must be finite and >= 0")
+    _assert_fatal(
+        *bake(shot, tmp_path / "out"),
+        tmp_path / "out",
+        "shot.usda",
+        "/World/Key",
+        "inputs:intensity",
+        "must be finite and >= 0",
+    )
 
 
 def test_texture_that_is_not_an_image(tmp_path, bake):
     (tmp_path / "notes.png").write_text("a text file named like a picture\n")
     shot = _shot(tmp_path, wall=TEXTURED, extra=PAINT)
-    _assert_baked_with_warning(*bake(shot, tmp_path / "out"), tmp_path / "out", "/World/Paint",
-                               "notes.png", "Not a PNG file")
+    _assert_baked_with_warning(
+        *bake(shot, tmp_path / "out"), tmp_path / "out", "/World/Paint", "notes.png", "Not a PNG file"
+    )
 
 
 def test_disk_full_mid_write(tmp_path, bake, monkeypatch):
@@ -226,15 +274,16 @@ def test_cache_header_claiming_a_huge_shape_is_refused_before_allocating(cache, 
     header_end = data.index(b"\n") + 1
     shape = "(1000000000000, 3, 3)"
     header = data[:header_end].decode("latin1")
-    old_shape = header[header.index("'shape': ") + 9:header.index("), ") + 1]
+    old_shape = header[header.index("'shape': ") + 9 : header.index("), ") + 1]
     forged = header.replace(old_shape, shape)
     forged = forged[:-1].rstrip(" ") + " " * (header_end - len(forged[:-1].rstrip(" ")) - 1) + "\n"
     assert len(forged) == header_end
     occluders.write_bytes(forged.encode("latin1") + data[header_end:])
     description = read_cache_layer(cache)
-    payloads = tuple(p if p.name != "occluders" else
-                     type(p)(**{**vars(p), "shape": (10**12, 3, 3), "sha256": _sha256(occluders)})
-                     for p in description.payloads)
+    payloads = tuple(
+        p if p.name != "occluders" else type(p)(**{**vars(p), "shape": (10**12, 3, 3), "sha256": _sha256(occluders)})
+        for p in description.payloads
+    )
     write_cache_layer(cache, type(description)(**{**vars(description), "payloads": payloads}))
     tracemalloc.start()
     tracemalloc.reset_peak()  # the peak of this render alone, whoever traced before in this process

@@ -22,8 +22,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fuzz_support import (METHODS, SCENE, bake_arguments, quiet_main, relight_process, render, run_relight, tally,
-                          tree_hash)
+from fuzz_support import (
+    METHODS,
+    SCENE,
+    bake_arguments,
+    quiet_main,
+    relight_process,
+    render,
+    run_relight,
+    tally,
+    tree_hash,
+)
 from pipeline.bake.inputs import CODE_VERSION_VARIABLE
 from pipeline.scenes import SCENES
 from relight_torch.cache.status import cache_status
@@ -54,7 +63,8 @@ def clean(shot) -> dict[str, tuple[Path, str, float]]:
         return bakes
     finally:
         os.environ.pop(CODE_VERSION_VARIABLE) if previous is None else os.environ.update(
-            {CODE_VERSION_VARIABLE: previous})
+            {CODE_VERSION_VARIABLE: previous}
+        )
 
 
 def _beside_clean(shot: Path, tmp_path: Path, method: str) -> Path:
@@ -99,8 +109,9 @@ def test_disk_full_during_a_bake_leaves_no_cache_and_a_rerun_bakes_the_same(shot
 def test_disk_full_during_a_render_writes_nothing(clean, tmp_path, method):
     layer = clean[method][0] / f"{SCENE}.relight.usda"
     image = tmp_path / "relit.exr"
-    status, stderr = run_relight(["render", str(layer), "-o", str(image), "--png", str(tmp_path / "relit.png")],
-                                 file_size_limit=512)
+    status, stderr = run_relight(
+        ["render", str(layer), "-o", str(image), "--png", str(tmp_path / "relit.png")], file_size_limit=512
+    )
     assert status == 2, stderr
     line = _one_error_line(stderr)
     assert str(tmp_path) in line and "could not be written" in line, line

@@ -16,11 +16,20 @@ import tracemalloc
 from pathlib import Path
 
 import pytest
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 from pxr import Gf, Sdf, Vt
 
-from fuzz_support import (METHODS, assert_refused_or_finite, bake_all, copy_cache, npy_header_span, payload_files,
-                          render, tally)
+from fuzz_support import (
+    METHODS,
+    assert_refused_or_finite,
+    bake_all,
+    copy_cache,
+    npy_header_span,
+    payload_files,
+    render,
+    tally,
+)
 from relight_torch.cache.layer import file_sha256, read_cache_layer
 from relight_torch.cache.load import load_npy
 from relight_torch.errors import RelightError
@@ -55,25 +64,37 @@ def _flip_bits(data: st.DataObject, file: Path, in_header: bool) -> None:
 def _huge_shape(layer: Path, file: Path, factor: int) -> None:
     """Forge a .npy header (and the layer's record of it) claiming `factor` times its first axis over the same data."""
     content = file.read_bytes()
-    header = content[10:npy_header_span(file)].decode("latin1")  # after the magic, version and length
-    old = header[header.index("'shape': (") + 10: header.index(")", header.index("'shape': ("))]
+    header = content[10 : npy_header_span(file)].decode("latin1")  # after the magic, version and length
+    old = header[header.index("'shape': (") + 10 : header.index(")", header.index("'shape': ("))]
     dims = [int(n) for n in old.split(",") if n.strip()] or [1]
-    dims[0] = min(max(dims[0], 1) * factor, 2 ** 62)
-    text = header[:header.index("'shape': (") + 10] + ", ".join(map(str, dims)) + ("," if len(dims) == 1 else "")
-    text += header[header.index(")", header.index("'shape': (")):]
+    dims[0] = min(max(dims[0], 1) * factor, 2**62)
+    text = header[: header.index("'shape': (") + 10] + ", ".join(map(str, dims)) + ("," if len(dims) == 1 else "")
+    text += header[header.index(")", header.index("'shape': (")) :]
     text = text.rstrip("\n ")
     text += " " * ((64 - (10 + len(text) + 1) % 64) % 64) + "\n"
-    file.write_bytes(b"\x93NUMPY\x01\x00" + len(text).to_bytes(2, "little") + text.encode("latin1")
-                     + content[npy_header_span(file):])
+    file.write_bytes(
+        b"\x93NUMPY\x01\x00"
+        + len(text).to_bytes(2, "little")
+        + text.encode("latin1")
+        + content[npy_header_span(file) :]
+    )
     _rerecord(layer, file, **{"relight:shape": Vt.Int64Array(dims)})
 
 
-_ODD_INTS = [-(2 ** 31), -1, 0, 1, 2, 3, 7, 2 ** 20, 2 ** 31 - 1]
-_ODD_INT64S = _ODD_INTS + [2 ** 40, 2 ** 62]
+_ODD_INTS = [-(2**31), -1, 0, 1, 2, 3, 7, 2**20, 2**31 - 1]
+_ODD_INT64S = _ODD_INTS + [2**40, 2**62]
 _ODD_DOUBLES = [math.nan, math.inf, -math.inf, 0.0, -1.0, 1e-300, 1e300]
 _ODD_STRINGS = ["", "x", "float64", "object", "npy", "exr", "O", "|V0", "<f4", "../x", "\u00e9\n"]
-_ODD_ASSETS = ["", "./missing.npy", "../scene/cornell_box.usda", "/etc/hostname", "./", "../../x.npy",
-               "./cornell_box.occluders.npy", "./cornell_box.dfb.exr"]
+_ODD_ASSETS = [
+    "",
+    "./missing.npy",
+    "../scene/cornell_box.usda",
+    "/etc/hostname",
+    "./",
+    "../../x.npy",
+    "./cornell_box.occluders.npy",
+    "./cornell_box.dfb.exr",
+]
 
 
 def _odd_value(data: st.DataObject, type_name: str, current):
@@ -90,11 +111,16 @@ def _odd_value(data: st.DataObject, type_name: str, current):
     if type_name == "asset":
         return Sdf.AssetPath(draw(st.sampled_from(_ODD_ASSETS), label="asset"))
     if type_name == "int2":
-        return Gf.Vec2i(*draw(st.sampled_from([(0, 12), (-16, 12), (16, 0), (32, 24), (8, 6), (2 ** 30, 12)]),
-                              label="int2"))
+        return Gf.Vec2i(
+            *draw(st.sampled_from([(0, 12), (-16, 12), (16, 0), (32, 24), (8, 6), (2**30, 12)]), label="int2")
+        )
     if type_name == "matrix4d":
-        return draw(st.sampled_from([Gf.Matrix4d(0.0), Gf.Matrix4d(math.nan), Gf.Matrix4d(1e300),
-                                     Gf.Matrix4d(1.0), Gf.Matrix4d(-1.0)]), label="matrix")
+        return draw(
+            st.sampled_from(
+                [Gf.Matrix4d(0.0), Gf.Matrix4d(math.nan), Gf.Matrix4d(1e300), Gf.Matrix4d(1.0), Gf.Matrix4d(-1.0)]
+            ),
+            label="matrix",
+        )
     items = list(current)
     kind = draw(st.sampled_from(["empty", "drop", "double", "odd"]), label="array edit")
     if kind == "empty" or (kind == "drop" and not items):
@@ -106,7 +132,7 @@ def _odd_value(data: st.DataObject, type_name: str, current):
     else:
         odd = {"int64[]": _ODD_INT64S, "double[]": _ODD_DOUBLES, "string[]": _ODD_STRINGS}[type_name]
         index = draw(st.integers(0, max(len(items) - 1, 0)), label="index")
-        items[index:index + 1] = [draw(st.sampled_from(odd), label="item")]
+        items[index : index + 1] = [draw(st.sampled_from(odd), label="item")]
     return {"int64[]": Vt.Int64Array, "double[]": Vt.DoubleArray, "string[]": Vt.StringArray}[type_name](items)
 
 
@@ -133,15 +159,19 @@ def _edit_attribute(data: st.DataObject, layer: Path) -> None:
 def _damage(data: st.DataObject, layer: Path) -> str:
     """Apply one drawn kind of damage to the cache at `layer`; returns the kind."""
     files = payload_files(layer)
-    kind = data.draw(st.sampled_from(["flip", "flip header", "truncate", "swap", "missing", "edit layer",
-                                      "huge shape", "flip layer"]), label="kind")
+    kind = data.draw(
+        st.sampled_from(
+            ["flip", "flip header", "truncate", "swap", "missing", "edit layer", "huge shape", "flip layer"]
+        ),
+        label="kind",
+    )
     file = data.draw(st.sampled_from(files), label="file")
     if kind in ("flip", "flip header"):
         _flip_bits(data, file, kind == "flip header")
     elif kind == "flip layer":
         _flip_bits(data, layer, False)
     elif kind == "truncate":
-        file.write_bytes(file.read_bytes()[:data.draw(st.integers(0, file.stat().st_size - 1), label="length")])
+        file.write_bytes(file.read_bytes()[: data.draw(st.integers(0, file.stat().st_size - 1), label="length")])
     elif kind == "swap":
         other = data.draw(st.sampled_from([f for f in files if f != file] or [file]), label="other")
         temp = file.with_name("swap.tmp")
@@ -155,7 +185,7 @@ def _damage(data: st.DataObject, layer: Path) -> str:
     else:
         npys = [f for f in files if f.suffix == ".npy"]
         file = data.draw(st.sampled_from(npys), label="npy")
-        _huge_shape(layer, file, data.draw(st.sampled_from([10 ** 3, 10 ** 6, 10 ** 12, 2 ** 62]), label="factor"))
+        _huge_shape(layer, file, data.draw(st.sampled_from([10**3, 10**6, 10**12, 2**62]), label="factor"))
     return kind
 
 
@@ -194,19 +224,22 @@ def test_eight_flipped_bits_in_a_npy_header_are_one_line_naming_the_file(baked, 
     assert outcome.status == 2 and f"{area.resolve()}: not a .npy array (malformed header" in outcome.error
 
 
-@pytest.mark.parametrize("header", [
-    b"{'descr': '<f4', 'fortran_order': False, 'shape': (4,), ",             # unclosed (TokenError in numpy)
-    b"{'descr': '<f4', 'fortran_order': False, 'shape': (4,), }" + b"(" * 200,  # nested too deep
-    b"{'descr': 'O', 'fortran_order': False, 'shape': (4,), }",               # objects: needs pickle
-    b"{'descr': '|V0', 'fortran_order': False, 'shape': (1000000000000,), }",  # zero-size items
-    b"{'descr': '<f4', 'fortran_order': 1, 'shape': (4,), }",
-    b"{'descr': '<f4', 'fortran_order': False, 'shape': (-4,), }",
-    b"{'descr': '<f4', 'fortran_order': False, 'shape': (True,), }",
-    b"{'descr': [('a', '<f4')], 'fortran_order': False, 'shape': (4,), }",
-    b"{'descr': '<f4', 'shape': (4,), }",
-    b"['descr', '<f4']",
-    b"\xff\xfe{}",
-])
+@pytest.mark.parametrize(
+    "header",
+    [
+        b"{'descr': '<f4', 'fortran_order': False, 'shape': (4,), ",  # unclosed (TokenError in numpy)
+        b"{'descr': '<f4', 'fortran_order': False, 'shape': (4,), }" + b"(" * 200,  # nested too deep
+        b"{'descr': 'O', 'fortran_order': False, 'shape': (4,), }",  # objects: needs pickle
+        b"{'descr': '|V0', 'fortran_order': False, 'shape': (1000000000000,), }",  # zero-size items
+        b"{'descr': '<f4', 'fortran_order': 1, 'shape': (4,), }",
+        b"{'descr': '<f4', 'fortran_order': False, 'shape': (-4,), }",
+        b"{'descr': '<f4', 'fortran_order': False, 'shape': (True,), }",
+        b"{'descr': [('a', '<f4')], 'fortran_order': False, 'shape': (4,), }",
+        b"{'descr': '<f4', 'shape': (4,), }",
+        b"['descr', '<f4']",
+        b"\xff\xfe{}",
+    ],
+)
 def test_malformed_npy_headers_are_one_line_naming_the_file(tmp_path, header):
     from relight_torch.cache.load import read_npy_header
 
@@ -231,7 +264,7 @@ def test_npy_header_lengths_outside_the_limit_are_refused(tmp_path, header_lengt
 def test_a_huge_declared_shape_is_refused_before_allocating(baked, tmp_path):
     layer = copy_cache(baked["gather"], tmp_path)
     file = layer.parent / "cornell_box.gatherPosition.npy"
-    _huge_shape(layer, file, 2 ** 62)
+    _huge_shape(layer, file, 2**62)
     description = read_cache_layer(layer)
     tracemalloc.start()
     try:
@@ -251,8 +284,9 @@ def test_a_payload_path_out_of_the_cache_folder_is_refused(baked, tmp_path, file
     sdf.Save()
     outcome = render(layer, tmp_path / "out" / "relit.exr")
     assert outcome.status == 2
-    assert outcome.error == (f"relight: error: {layer}: /Cache/occluders.relight:file {file!r} is not a file in "
-                             f"the cache layer's own folder")
+    assert outcome.error == (
+        f"relight: error: {layer}: /Cache/occluders.relight:file {file!r} is not a file in the cache layer's own folder"
+    )
 
 
 def test_a_cache_layer_with_bytes_that_are_not_utf8_is_one_line(baked, tmp_path):
@@ -287,5 +321,6 @@ def test_a_transfer_layer_that_lost_its_row_colour_parameter_is_refused(baked, t
     sdf.Save()
     outcome = render(layer, tmp_path / "out" / "relit.exr")
     assert outcome.status == 2
-    assert outcome.error.startswith(f"relight: error: {layer}: finalGather rows are malformed (values without a row "
-                                    f"colour must be (nnz, 3)")
+    assert outcome.error.startswith(
+        f"relight: error: {layer}: finalGather rows are malformed (values without a row colour must be (nnz, 3)"
+    )

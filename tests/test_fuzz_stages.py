@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 
 from fuzz_support import RENDER_SECONDS, assert_refused_or_finite, bake_all, bounded, quiet_main, render, tally
 from relight_torch.io.exr import read_exr
@@ -24,12 +25,25 @@ LIGHT = "/World/Lights/CeilingLight"
 _VALUES = ["nan", "inf", "-inf", "-1", "0", "1e-30", "1e30", "1e300", "3", "-1e30"]
 # attribute -> its USD type in the lights layer
 _ATTRIBUTES = {
-    "inputs:intensity": "float", "inputs:exposure": "float", "inputs:width": "float", "inputs:height": "float",
-    "inputs:radius": "float", "inputs:colorTemperature": "float", "inputs:diffuse": "float",
-    "inputs:specular": "float", "inputs:shaping:cone:angle": "float", "inputs:shaping:cone:softness": "float",
-    "inputs:shaping:focus": "float", "inputs:shadow:distance": "float", "inputs:shadow:falloff": "float",
-    "inputs:shadow:falloffGamma": "float", "inputs:color": "color3f", "xformOp:translate": "double3",
-    "xformOp:scale": "float3", "inputs:enableColorTemperature": "bool", "inputs:normalize": "bool",
+    "inputs:intensity": "float",
+    "inputs:exposure": "float",
+    "inputs:width": "float",
+    "inputs:height": "float",
+    "inputs:radius": "float",
+    "inputs:colorTemperature": "float",
+    "inputs:diffuse": "float",
+    "inputs:specular": "float",
+    "inputs:shaping:cone:angle": "float",
+    "inputs:shaping:cone:softness": "float",
+    "inputs:shaping:focus": "float",
+    "inputs:shadow:distance": "float",
+    "inputs:shadow:falloff": "float",
+    "inputs:shadow:falloffGamma": "float",
+    "inputs:color": "color3f",
+    "xformOp:translate": "double3",
+    "xformOp:scale": "float3",
+    "inputs:enableColorTemperature": "bool",
+    "inputs:normalize": "bool",
     "inputs:texture:file": "asset",
 }
 _KINDS = ["SphereLight", "RectLight", "DiskLight", "DistantLight", "CylinderLight", "DomeLight"]
@@ -51,8 +65,9 @@ def _value(data: st.DataObject, type_name: str) -> str:
     if type_name == "bool":
         return data.draw(st.sampled_from(["0", "1", "true", "false"]), label="bool")
     if type_name == "asset":
-        return data.draw(st.sampled_from(["@./missing.exr@", "@@", "@/etc/hostname@", "@./lights.usda@"]),
-                         label="asset")
+        return data.draw(
+            st.sampled_from(["@./missing.exr@", "@@", "@/etc/hostname@", "@./lights.usda@"]), label="asset"
+        )
     return scalar
 
 
@@ -73,25 +88,31 @@ def _declared(data: st.DataObject, name: str) -> str:
 
 def _lights_layer(data: st.DataObject, directory: Path) -> Path:
     """A lights layer of drawn edits over the shot's light, new lights, references and sublayers."""
-    edits = data.draw(st.lists(st.sampled_from(sorted(_ATTRIBUTES)), min_size=0, max_size=4, unique=True),
-                      label="edited attributes")
+    edits = data.draw(
+        st.lists(st.sampled_from(sorted(_ATTRIBUTES)), min_size=0, max_size=4, unique=True), label="edited attributes"
+    )
     body = "\n".join(f"            {_declared(data, name)}" for name in edits)
     new_lights = []
     for k in range(data.draw(st.sampled_from([0, 0, 1, 3, 12]), label="new lights")):
         kind = data.draw(st.sampled_from(_KINDS), label="kind")
-        attributes = data.draw(st.lists(st.sampled_from(sorted(_ATTRIBUTES)), max_size=2, unique=True),
-                               label="new light attributes")
+        attributes = data.draw(
+            st.lists(st.sampled_from(sorted(_ATTRIBUTES)), max_size=2, unique=True), label="new light attributes"
+        )
         lines = "\n".join(f"            {_declared(data, name)}" for name in attributes)
         new_lights.append(f'        def {kind} "New{k}"\n        {{\n{lines}\n        }}')
     metadata = []
-    structure = data.draw(st.sampled_from(["none", "self cycle", "two-layer cycle", "missing sublayer",
-                                           "missing reference", "reference to itself"]), label="structure")
+    structure = data.draw(
+        st.sampled_from(
+            ["none", "self cycle", "two-layer cycle", "missing sublayer", "missing reference", "reference to itself"]
+        ),
+        label="structure",
+    )
     extra = ""
     if structure == "self cycle":
         metadata.append("subLayers = [@./lights.usda@]")
     elif structure == "two-layer cycle":
         metadata.append("subLayers = [@./other.usda@]")
-        (directory / "other.usda").write_text('#usda 1.0\n(\n    subLayers = [@./lights.usda@]\n)\n')
+        (directory / "other.usda").write_text("#usda 1.0\n(\n    subLayers = [@./lights.usda@]\n)\n")
     elif structure == "missing sublayer":
         metadata.append("subLayers = [@./missing.usda@]")
     elif structure == "missing reference":
@@ -99,8 +120,10 @@ def _lights_layer(data: st.DataObject, directory: Path) -> Path:
     elif structure == "reference to itself":
         extra = '        def Xform "Ref" (references = @./lights.usda@</World>)\n        {\n        }\n'
     text = "#usda 1.0\n(\n    " + "\n    ".join(metadata) + "\n)\n"
-    text += ('over "World"\n{\n    over "Lights"\n    {\n        over "CeilingLight"\n        {\n'
-             f"{body}\n        }}\n" + "\n".join(new_lights) + "\n" + extra + "    }\n}\n")
+    text += (
+        'over "World"\n{\n    over "Lights"\n    {\n        over "CeilingLight"\n        {\n'
+        f"{body}\n        }}\n" + "\n".join(new_lights) + "\n" + extra + "    }\n}\n"
+    )
     path = directory / "lights.usda"
     path.write_text(text)
     return path
@@ -160,17 +183,30 @@ def _odd(data: st.DataObject, label: str, usual: str) -> str:
 def _shot(data: st.DataObject, directory: Path) -> Path:
     fields = {
         "meters": data.draw(st.sampled_from(["1", "0", "-1", "nan", "1e-30", "inf"]), label="metersPerUnit"),
-        "counts": data.draw(st.sampled_from(["[4]", "[3, 3]", "[5]", "[0]", "[2147483647]", "[]", "[-4]"]),
-                            label="counts"),
-        "indices": data.draw(st.sampled_from(["[0, 1, 2, 3]", "[0, 1, 2, 0, 2, 3]", "[0, 1, 2, 9]", "[]",
-                                              "[-1, 0, 1, 2]"]), label="indices"),
-        "points": data.draw(st.sampled_from([WALL, "[]", "[(nan, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)]",
-                                             "[(1e30, -1e30, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]",
-                                             "[(0, 0, 0), (0, 0, 0), (0, 0, 0), (0, 0, 0)]"]), label="points"),
-        "scale": data.draw(st.sampled_from(["(1, 1, 1)", "(0, 0, 0)", "(1, -1, 1)", "(nan, 1, 1)",
-                                            "(1e30, 1e30, 1e30)"]), label="scale"),
-        "camera": data.draw(st.sampled_from(["(0, 0, 5)", "(0, 0, 0)", "(nan, 0, 5)", "(0, 0, 1e30)"]),
-                            label="camera"),
+        "counts": data.draw(
+            st.sampled_from(["[4]", "[3, 3]", "[5]", "[0]", "[2147483647]", "[]", "[-4]"]), label="counts"
+        ),
+        "indices": data.draw(
+            st.sampled_from(["[0, 1, 2, 3]", "[0, 1, 2, 0, 2, 3]", "[0, 1, 2, 9]", "[]", "[-1, 0, 1, 2]"]),
+            label="indices",
+        ),
+        "points": data.draw(
+            st.sampled_from(
+                [
+                    WALL,
+                    "[]",
+                    "[(nan, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)]",
+                    "[(1e30, -1e30, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]",
+                    "[(0, 0, 0), (0, 0, 0), (0, 0, 0), (0, 0, 0)]",
+                ]
+            ),
+            label="points",
+        ),
+        "scale": data.draw(
+            st.sampled_from(["(1, 1, 1)", "(0, 0, 0)", "(1, -1, 1)", "(nan, 1, 1)", "(1e30, 1e30, 1e30)"]),
+            label="scale",
+        ),
+        "camera": data.draw(st.sampled_from(["(0, 0, 5)", "(0, 0, 0)", "(nan, 0, 5)", "(0, 0, 1e30)"]), label="camera"),
         "focal": _odd(data, "focal", "50"),
         "kind": data.draw(st.sampled_from(_KINDS), label="light kind"),
         "intensity": _odd(data, "intensity", "10"),
@@ -190,9 +226,24 @@ def test_bad_shot_is_one_line_or_a_finite_bake(tmp_path, data):
         shot = _shot(data, directory)
         out = directory / "out"
         with bounded(RENDER_SECONDS):
-            status, stderr = quiet_main(["bake", str(shot), "--camera", "/World/Camera", "--out", str(out),
-                                         "--width", "8", "--height", "6", "--supersampling", "1",
-                                         "--texture-samples", "1"])
+            status, stderr = quiet_main(
+                [
+                    "bake",
+                    str(shot),
+                    "--camera",
+                    "/World/Camera",
+                    "--out",
+                    str(out),
+                    "--width",
+                    "8",
+                    "--height",
+                    "6",
+                    "--supersampling",
+                    "1",
+                    "--texture-samples",
+                    "1",
+                ]
+            )
         errors = [line for line in stderr.splitlines() if line.startswith("relight: error: ")]
         if status == 0:
             channels, _ = read_exr(out / "shot.dfb.exr")
@@ -214,14 +265,23 @@ def test_lights_layer_sublayer_cycle_is_one_line(baked, tmp_path):
     assert_refused_or_finite(outcome, layer, tmp_path)
 
 
-@pytest.mark.parametrize("declaration", ['int inputs:color = 0', 'string inputs:color = "x"',
-                                         'float3 inputs:width = (1, 2, 3)', 'string inputs:normalize = "yes"'])
+@pytest.mark.parametrize(
+    "declaration",
+    [
+        "int inputs:color = 0",
+        'string inputs:color = "x"',
+        "float3 inputs:width = (1, 2, 3)",
+        'string inputs:normalize = "yes"',
+    ],
+)
 def test_a_light_input_authored_with_another_type_is_one_line(baked, tmp_path, declaration):
     # An int colour raised TypeError and a one-number colour IndexError in the light reader; a string
     # colour gave "could not convert string to float: 'x'" naming nothing.
     layer = tmp_path / "lights.usda"
-    layer.write_text('#usda 1.0\nover "World"\n{\n    over "Lights"\n    {\n        over "CeilingLight"\n'
-                     f"        {{\n            {declaration}\n        }}\n    }}\n}}\n")
+    layer.write_text(
+        '#usda 1.0\nover "World"\n{\n    over "Lights"\n    {\n        over "CeilingLight"\n'
+        f"        {{\n            {declaration}\n        }}\n    }}\n}}\n"
+    )
     outcome = render(baked["direct"], tmp_path / "out" / "relit.exr", "--lights", str(layer))
     name = declaration.split()[1]
     assert outcome.status == 2 and f"{LIGHT}: {name} = " in outcome.error and "authored as" in outcome.error, outcome
@@ -230,12 +290,38 @@ def test_a_light_input_authored_with_another_type_is_one_line(baked, tmp_path, d
 
 def test_a_mesh_of_empty_faces_is_an_empty_mesh(tmp_path):
     # faceVertexCounts = [0] and no indices ended the bake in numpy's "zero-size array to reduction".
-    fields = {"meters": "1", "counts": "[0]", "indices": "[]", "points": WALL, "scale": "(1, 1, 1)",
-              "camera": "(0, 0, 5)", "focal": "50", "kind": "SphereLight", "intensity": "10", "radius": "0.5",
-              "light": "(0, 0, 3)"}
+    fields = {
+        "meters": "1",
+        "counts": "[0]",
+        "indices": "[]",
+        "points": WALL,
+        "scale": "(1, 1, 1)",
+        "camera": "(0, 0, 5)",
+        "focal": "50",
+        "kind": "SphereLight",
+        "intensity": "10",
+        "radius": "0.5",
+        "light": "(0, 0, 3)",
+    }
     shot = tmp_path / "shot.usda"
     shot.write_text(SHOT.format(**fields))
-    status, stderr = quiet_main(["bake", str(shot), "--camera", "/World/Camera", "--out", str(tmp_path / "out"),
-                                 "--width", "8", "--height", "6", "--supersampling", "1", "--texture-samples", "1"])
+    status, stderr = quiet_main(
+        [
+            "bake",
+            str(shot),
+            "--camera",
+            "/World/Camera",
+            "--out",
+            str(tmp_path / "out"),
+            "--width",
+            "8",
+            "--height",
+            "6",
+            "--supersampling",
+            "1",
+            "--texture-samples",
+            "1",
+        ]
+    )
     errors = [line for line in stderr.splitlines() if line.startswith("relight: error: ")]
     assert status == 2 and errors == [f"relight: error: stage {shot} has no renderable meshes or gprims"], stderr

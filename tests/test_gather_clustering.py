@@ -30,8 +30,9 @@ def _slow_seeds(points: np.ndarray, num_clusters: int, num_iterations: int) -> n
         centre_b = 2.0 * points[members].mean(0) - centre_a
         side_b = np.zeros(len(members), bool)
         for _ in range(num_iterations):
-            side_b = (np.linalg.norm(points[members] - centre_b, axis=1)
-                      < np.linalg.norm(points[members] - centre_a, axis=1))
+            side_b = np.linalg.norm(points[members] - centre_b, axis=1) < np.linalg.norm(
+                points[members] - centre_a, axis=1
+            )
             if (~side_b).any():
                 centre_a = points[members[~side_b]].mean(0)
             if side_b.any():
@@ -43,8 +44,9 @@ def _slow_seeds(points: np.ndarray, num_clusters: int, num_iterations: int) -> n
 def _slow_kmeans(points: np.ndarray, labels: np.ndarray, num_clusters: int, num_iterations: int) -> np.ndarray:
     for _ in range(num_iterations):
         means = [points[labels == k].mean(0) if (labels == k).any() else None for k in range(num_clusters)]
-        updated = np.array([min((np.linalg.norm(p - m), k) for k, m in enumerate(means) if m is not None)[1]
-                            for p in points])
+        updated = np.array(
+            [min((np.linalg.norm(p - m), k) for k, m in enumerate(means) if m is not None)[1] for p in points]
+        )
         if (updated == labels).all():
             break
         labels = updated
@@ -71,8 +73,9 @@ def test_hierarchical_seeds_and_kmeans_match_their_loop_twins(sets):
         kept = valid[b].numpy()
         expected_seeds = _slow_seeds(points[b].numpy()[kept], 7, 3)
         np.testing.assert_array_equal(seeds[b].numpy()[kept], expected_seeds)
-        np.testing.assert_array_equal(refined[b].numpy()[kept],
-                                      _slow_kmeans(points[b].numpy()[kept], expected_seeds, 7, 6))
+        np.testing.assert_array_equal(
+            refined[b].numpy()[kept], _slow_kmeans(points[b].numpy()[kept], expected_seeds, 7, 6)
+        )
         assert (seeds[b].numpy()[~kept] == -1).all() and (refined[b].numpy()[~kept] == -1).all()
         assert len(np.unique(expected_seeds)) == 7
 
@@ -118,8 +121,9 @@ def test_a_set_with_fewer_distinct_points_than_clusters_leaves_clusters_empty():
 
 
 def test_rbf_weights_sum_to_one_and_fall_with_distance():
-    distances = torch.tensor([[0.0, 1.0, 2.0, 4.0], [3.0, 3.0, 3.0, 3.0], [0.5, 1.0, torch.inf, torch.inf]],
-                             dtype=torch.float64)
+    distances = torch.tensor(
+        [[0.0, 1.0, 2.0, 4.0], [3.0, 3.0, 3.0, 3.0], [0.5, 1.0, torch.inf, torch.inf]], dtype=torch.float64
+    )
     weights = rbf_weights(distances)
     torch.testing.assert_close(weights.sum(1), torch.ones(3, dtype=torch.float64))
     assert (weights[0, :-1] > weights[0, 1:]).all()
@@ -140,9 +144,13 @@ def test_interpolation_reproduces_a_constant():
 def _gather_set(offsets, neighbours, rbf, num_points=4) -> GatherSet:
     num_gathers = offsets[-1]
     generator = torch.Generator().manual_seed(1)
-    return GatherSet(index=torch.randint(0, num_points, (num_gathers,), generator=generator),
-                     weight=torch.rand(num_gathers, 3, generator=generator),
-                     offsets=torch.tensor(offsets), neighbours=torch.tensor(neighbours), rbf=torch.tensor(rbf))
+    return GatherSet(
+        index=torch.randint(0, num_points, (num_gathers,), generator=generator),
+        weight=torch.rand(num_gathers, 3, generator=generator),
+        offsets=torch.tensor(offsets),
+        neighbours=torch.tensor(neighbours),
+        rbf=torch.tensor(rbf),
+    )
 
 
 def test_representative_values_are_equation_3s_inner_sums():
@@ -170,8 +178,9 @@ def test_representative_values_are_equation_3s_inner_sums():
         torch.testing.assert_close(weighted.representative_values(radiance), expected, rtol=2e-6, atol=0.0)
 
 
-@pytest.mark.parametrize("offsets, neighbours", [([1, 2, 5], [[0, 1]]), ([0, 3, 2, 5], [[0, 1]]),
-                                                 ([0, 2, 5], [[0, 2]])])
+@pytest.mark.parametrize(
+    "offsets, neighbours", [([1, 2, 5], [[0, 1]]), ([0, 3, 2, 5], [[0, 1]]), ([0, 2, 5], [[0, 2]])]
+)
 def test_gather_sets_reject_broken_layouts(offsets, neighbours):
     with pytest.raises(ValueError):
         _gather_set(offsets, neighbours, [[0.5, 0.5]])

@@ -24,12 +24,12 @@ from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import cornell_box
 from pipeline.scenes.authoring import set_light, shape_spot
+from relight_torch import open_cache
+from relight_torch.direct.relighter import shot_lights
+from relight_torch.gather.relighter import GatherRelighter
 from relight_torch.io.exr import read_exr
 from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr
-from relight_torch.direct.relighter import shot_lights
-from relight_torch.gather.relighter import GatherRelighter
-from relight_torch import open_cache
 
 SIZE = 24
 
@@ -41,10 +41,17 @@ def cornell(tmp_path_factory):
     scene = load_scene(path, width=SIZE, height=SIZE)
     camera = find_camera(scene, cornell_box.CAMERA)
     settings = GatherSettings(num_directions=256, num_clusters=32)
-    layer = bake_gather(scene, camera, directory / "cache", "cornell", supersampling=1, texture_samples=1,
-                        settings=settings, progress=False)
-    references = {b: PathTracer(scene, ReferenceSettings(spp=256, max_bounces=b)).render(camera).mean
-                  for b in (0, 1)}
+    layer = bake_gather(
+        scene,
+        camera,
+        directory / "cache",
+        "cornell",
+        supersampling=1,
+        texture_samples=1,
+        settings=settings,
+        progress=False,
+    )
+    references = {b: PathTracer(scene, ReferenceSettings(spp=256, max_bounces=b)).render(camera).mean for b in (0, 1)}
     return layer, references
 
 
@@ -101,8 +108,9 @@ def test_light_and_shadow_links_reach_the_gathers(cornell):
     points, paths = relighter.points, relighter.direct.object_paths
     unlinked = relighter.surface_radiance(light)
     excluded = int(torch.bincount(points.object_id, unlinked.sum(1)).argmax())  # the most lit object
-    linked = relighter.surface_radiance(dataclasses.replace(
-        light, light_link=tuple(p for i, p in enumerate(paths) if i != excluded)))
+    linked = relighter.surface_radiance(
+        dataclasses.replace(light, light_link=tuple(p for i, p in enumerate(paths) if i != excluded))
+    )
     on_excluded = points.object_id == excluded
     assert float(linked[on_excluded].abs().max()) == 0.0 and float(unlinked[on_excluded].max()) > 0.0
     torch.testing.assert_close(linked[~on_excluded], unlinked[~on_excluded], rtol=1e-5, atol=1e-7)
@@ -115,8 +123,10 @@ def _small_strong_lights(path: Path) -> Path:
     spot on the floor; both make small, strong secondary sources."""
     stage = Usd.Stage.CreateNew(str(path))
     UsdLux.LightAPI(stage.OverridePrim(cornell_box.LIGHT)).CreateIntensityAttr(0.0)
-    for name, position, intensity, cone in (("Point", (530.0, 300.0, 300.0), 5000.0, None),
-                                            ("Spot", (278.0, 540.0, 280.0), 50000.0, 8.0)):
+    for name, position, intensity, cone in (
+        ("Point", (530.0, 300.0, 300.0), 5000.0, None),
+        ("Spot", (278.0, 540.0, 280.0), 50000.0, 8.0),
+    ):
         light = UsdLux.SphereLight.Define(stage, f"/World/Lights/{name}")
         light.CreateRadiusAttr(5.0)
         light.CreateTreatAsPointAttr(True)
@@ -152,9 +162,31 @@ def test_small_strong_secondary_sources_are_the_methods_failure_mode(cornell, tm
 def test_cli_bakes_and_renders_a_gather_cache(tmp_path):
     path = cornell_box.write(tmp_path)
     out = tmp_path / "cache"
-    assert main(["bake", str(path), "--camera", cornell_box.CAMERA, "--out", str(out), "--width", "12",
-                 "--height", "12", "--supersampling", "1", "--method", "gather", "--directions", "64",
-                 "--clusters", "8"]) == 0
+    assert (
+        main(
+            [
+                "bake",
+                str(path),
+                "--camera",
+                cornell_box.CAMERA,
+                "--out",
+                str(out),
+                "--width",
+                "12",
+                "--height",
+                "12",
+                "--supersampling",
+                "1",
+                "--method",
+                "gather",
+                "--directions",
+                "64",
+                "--clusters",
+                "8",
+            ]
+        )
+        == 0
+    )
     assert not list(out.glob(".cornell_box.gather-*"))  # the resumable chunks are cleaned up
     assert (out / "cornell_box.diffuseOffsets.npy").is_file()
     exr = tmp_path / "render.exr"
@@ -162,16 +194,32 @@ def test_cli_bakes_and_renders_a_gather_cache(tmp_path):
     channels, _ = read_exr(exr)
     image = np.stack([channels[c] for c in ("R", "G", "B")], axis=-1)
     assert np.isfinite(image).all() and image.mean() > 0
-    assert main(["bake", str(path), "--camera", cornell_box.CAMERA, "--out", str(out), "--method", "gather",
-                 "--clusters", "0"]) != 0
+    assert (
+        main(
+            [
+                "bake",
+                str(path),
+                "--camera",
+                cornell_box.CAMERA,
+                "--out",
+                str(out),
+                "--method",
+                "gather",
+                "--clusters",
+                "0",
+            ]
+        )
+        != 0
+    )
 
 
 def test_a_killed_bake_resumes_from_its_finished_chunks(tmp_path, monkeypatch):
     path = cornell_box.write(tmp_path)
     scene = load_scene(path, width=8, height=8)
     camera = find_camera(scene, cornell_box.CAMERA)
-    settings = GatherSettings(num_directions=32, num_clusters=4, num_representatives=16, tile=4,
-                              representatives_per_chunk=4)
+    settings = GatherSettings(
+        num_directions=32, num_clusters=4, num_representatives=16, tile=4, representatives_per_chunk=4
+    )
     calls = []
     real_chunk = gather_bake._gather_chunk
 
@@ -183,11 +231,27 @@ def test_a_killed_bake_resumes_from_its_finished_chunks(tmp_path, monkeypatch):
 
     monkeypatch.setattr(gather_bake, "_gather_chunk", dies_on_the_third_chunk)
     with pytest.raises(KeyboardInterrupt):
-        bake_gather(scene, camera, tmp_path / "cache", "cornell", supersampling=1, texture_samples=1,
-                    settings=settings, progress=False)
+        bake_gather(
+            scene,
+            camera,
+            tmp_path / "cache",
+            "cornell",
+            supersampling=1,
+            texture_samples=1,
+            settings=settings,
+            progress=False,
+        )
     assert len(list((tmp_path / "cache").glob(".cornell.gather-*/*.npz"))) == 2
     calls.clear()
-    layer = bake_gather(scene, camera, tmp_path / "cache", "cornell", supersampling=1, texture_samples=1,
-                        settings=settings, progress=False)
+    layer = bake_gather(
+        scene,
+        camera,
+        tmp_path / "cache",
+        "cornell",
+        supersampling=1,
+        texture_samples=1,
+        settings=settings,
+        progress=False,
+    )
     num_representatives = sum(s.num_representatives for s in open_cache(layer).sets.values())
     assert sum(calls) == num_representatives - 8  # the two finished chunks of four were not re-gathered

@@ -59,8 +59,7 @@ def test_shared_points_match_their_loop_twin(gathers):
     np.testing.assert_array_equal(index, expected_index)
     assert points.position.shape == (len(expected), 3) and 50 < len(expected) < 300
     for name, column in (("position", 0), ("normal", 1), ("albedo", 2), ("object", 3)):
-        np.testing.assert_allclose(getattr(points, name), np.array([e[column] for e in expected]), rtol=1e-5,
-                                   atol=1e-6)
+        np.testing.assert_allclose(getattr(points, name), np.array([e[column] for e in expected]), rtol=1e-5, atol=1e-6)
     # Every shared point is one of its gathers (a real surface point) on the same object.
     np.testing.assert_array_equal(points.object[index], gathers[3])
     assert np.isin(points.position.view(np.dtype((np.void, 12))), gathers[0].view(np.dtype((np.void, 12)))).all()
@@ -107,8 +106,9 @@ def test_remembered_visibility_answers_shaping_edits_from_memory():
     visibility.occluder_distance(shaped, *other_points)  # other points: traced
     moved = np.eye(4)
     moved[0, 3] = 2.0
-    torch.testing.assert_close(visibility.occluder_distance(dataclasses.replace(light, world_from_light=moved),
-                                                            *query), first + 2.0)
+    torch.testing.assert_close(
+        visibility.occluder_distance(dataclasses.replace(light, world_from_light=moved), *query), first + 2.0
+    )
     assert inner.calls == 3
     visibility.forget("/lamp")
     visibility.occluder_distance(light, *query)

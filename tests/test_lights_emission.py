@@ -12,8 +12,15 @@ import numpy as np
 import pytest
 import torch
 
-from relight_torch.lights.emission import (emitted_radiance, intersect_light, light_pdf, light_radiance_scale,
-                                           sample_light, size_factor, validate_light)
+from relight_torch.lights.emission import (
+    emitted_radiance,
+    intersect_light,
+    light_pdf,
+    light_radiance_scale,
+    sample_light,
+    size_factor,
+    validate_light,
+)
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.math.frame import orthonormal_basis, to_world
 from relight_torch.math.sampling import cosine_hemisphere, uniform_sphere
@@ -42,11 +49,13 @@ def assert_estimate(samples: torch.Tensor, expected: float) -> None:
     mean = samples.mean().item()
     standard_error = samples.std().item() / math.sqrt(samples.numel())
     assert abs(mean - expected) <= NUM_SIGMA * standard_error + 1e-12 * abs(expected), (
-        f"estimate {mean} +- {standard_error} vs expected {expected}")
+        f"estimate {mean} +- {standard_error} vs expected {expected}"
+    )
 
 
-def irradiance_by_light_sampling(light: Light, point, normal, num_samples: int, seed: int = 0,
-                                 device="cpu") -> torch.Tensor:
+def irradiance_by_light_sampling(
+    light: Light, point, normal, num_samples: int, seed: int = 0, device="cpu"
+) -> torch.Tensor:
     """(S,) per-sample estimates of the irradiance (first channel) at a point with a normal."""
     point = torch.tensor([point], dtype=torch.float64, device=device)
     sample = sample_light(light, point, uniform(1, num_samples, seed, device=device))
@@ -54,8 +63,9 @@ def irradiance_by_light_sampling(light: Light, point, normal, num_samples: int, 
     return sample.weight()[0, :, 0] * cosine
 
 
-def irradiance_by_cosine_sampling(light: Light, point, normal, num_samples: int, seed: int = 1,
-                                  device="cpu") -> torch.Tensor:
+def irradiance_by_cosine_sampling(
+    light: Light, point, normal, num_samples: int, seed: int = 1, device="cpu"
+) -> torch.Tensor:
     """(S,) per-sample irradiance estimates from cosine-weighted directions (as BSDF rays would go)."""
     normal = torch.tensor(normal, dtype=torch.float64, device=device)
     local, pdf = cosine_hemisphere(uniform(1, num_samples, seed, device=device)[0])
@@ -68,6 +78,7 @@ def irradiance_by_cosine_sampling(light: Light, point, normal, num_samples: int,
 # ---------------------------------------------------------------------------------------------
 # Units: intensity, exposure, colour temperature, normalize.
 
+
 def test_intensity_exposure_color():
     light = Light("/L", LightKind.RECT, intensity=3.0, exposure=2.0, color=(0.5, 1.0, 2.0))
     np.testing.assert_allclose(light_radiance_scale(light), [6.0, 12.0, 24.0])
@@ -75,21 +86,27 @@ def test_intensity_exposure_color():
 
 @pytest.mark.parametrize("temperature, rgb", [(6500.0, (1.0433, 0.9836, 1.0346)), (3000.0, (1.771, 0.844, 0.272))])
 def test_color_temperature_is_the_usdlux_blackbody_not_renormalised(temperature, rgb):
-    light = Light("/L", LightKind.SPHERE, intensity=2.0, enable_color_temperature=True,
-                  color_temperature=temperature)
+    light = Light("/L", LightKind.SPHERE, intensity=2.0, enable_color_temperature=True, color_temperature=temperature)
     np.testing.assert_allclose(light_radiance_scale(light), 2.0 * np.array(rgb), atol=2e-3)
     disabled = dataclasses.replace(light, enable_color_temperature=False)
     np.testing.assert_allclose(light_radiance_scale(disabled), [2.0, 2.0, 2.0])
 
 
-@pytest.mark.parametrize("light, area", [
-    (Light("/R", LightKind.RECT, width=2.0, height=3.0, world_from_light=transform(scale=(2, 1, 5))), 12.0),
-    (Light("/D", LightKind.DISK, radius=0.5, world_from_light=transform(scale=(3, 3, 1), rotate_x_deg=40)),
-     math.pi * 0.25 * 9.0),
-    (Light("/S", LightKind.SPHERE, radius=0.5, world_from_light=transform(scale=(2, 2, 2))), 4.0 * math.pi),
-    (Light("/C", LightKind.CYLINDER, radius=0.5, length=2.0, world_from_light=transform(scale=(3, 2, 2))),
-     12.0 * math.pi),
-])
+@pytest.mark.parametrize(
+    "light, area",
+    [
+        (Light("/R", LightKind.RECT, width=2.0, height=3.0, world_from_light=transform(scale=(2, 1, 5))), 12.0),
+        (
+            Light("/D", LightKind.DISK, radius=0.5, world_from_light=transform(scale=(3, 3, 1), rotate_x_deg=40)),
+            math.pi * 0.25 * 9.0,
+        ),
+        (Light("/S", LightKind.SPHERE, radius=0.5, world_from_light=transform(scale=(2, 2, 2))), 4.0 * math.pi),
+        (
+            Light("/C", LightKind.CYLINDER, radius=0.5, length=2.0, world_from_light=transform(scale=(3, 2, 2))),
+            12.0 * math.pi,
+        ),
+    ],
+)
 def test_normalize_divides_by_world_area(light, area):
     light = dataclasses.replace(light, intensity=10.0)
     assert size_factor(light) == pytest.approx(area)
@@ -97,11 +114,14 @@ def test_normalize_divides_by_world_area(light, area):
     np.testing.assert_allclose(light_radiance_scale(light), 10.0)
 
 
-@pytest.mark.parametrize("angle, expected", [
-    (0.0, 1.0),
-    (60.0, math.pi * 0.25),                       # thetaMax 30 deg: pi sin^2
-    (300.0, math.pi * (2.0 - 0.25)),              # thetaMax 150 deg: pi (2 - sin^2)
-])
+@pytest.mark.parametrize(
+    "angle, expected",
+    [
+        (0.0, 1.0),
+        (60.0, math.pi * 0.25),  # thetaMax 30 deg: pi sin^2
+        (300.0, math.pi * (2.0 - 0.25)),  # thetaMax 150 deg: pi (2 - sin^2)
+    ],
+)
 def test_distant_size_factor(angle, expected):
     assert size_factor(Light("/Sun", LightKind.DISTANT, angle=angle)) == pytest.approx(expected)
 
@@ -143,6 +163,7 @@ def test_zero_radius_sphere_emits_intensity_over_four_only_when_normalized():
 # ---------------------------------------------------------------------------------------------
 # Irradiance from closed forms.
 
+
 @pytest.mark.parametrize("radius, distance", [(0.5, 2.0), (1.0, 1.2), (0.01, 3.0)])
 def test_sphere_irradiance_matches_pi_l_r2_over_d2(radius, distance):
     light = Light("/S", LightKind.SPHERE, radius=radius, intensity=3.0, world_from_light=transform((0, 0, distance)))
@@ -152,11 +173,18 @@ def test_sphere_irradiance_matches_pi_l_r2_over_d2(radius, distance):
 
 def test_rect_irradiance_on_axis_matches_closed_form():
     width, height, distance = 2.0, 1.0, 1.5
-    light = Light("/R", LightKind.RECT, width=width, height=height, intensity=2.0,
-                  world_from_light=transform((0, 0, distance)))
+    light = Light(
+        "/R", LightKind.RECT, width=width, height=height, intensity=2.0, world_from_light=transform((0, 0, distance))
+    )
     x, y = width / 2 / distance, height / 2 / distance
-    closed_form = 2.0 * 2.0 * (x / math.hypot(1, x) * math.atan(y / math.hypot(1, x))
-                               + y / math.hypot(1, y) * math.atan(x / math.hypot(1, y)))
+    closed_form = (
+        2.0
+        * 2.0
+        * (
+            x / math.hypot(1, x) * math.atan(y / math.hypot(1, x))
+            + y / math.hypot(1, y) * math.atan(x / math.hypot(1, y))
+        )
+    )
     assert_estimate(irradiance_by_light_sampling(light, (0, 0, 0), (0, 0, 1), 20000), closed_form)
 
 
@@ -175,7 +203,7 @@ def test_one_sided_lights_emit_only_to_their_front():
 
 
 def test_rect_texture_faces_the_receiver_unmirrored():
-    texture = np.array([[[1, 0, 0], [0, 1, 0]], [[0, 0, 1], [1, 1, 1]]], np.float32)   # row 0 = top
+    texture = np.array([[[1, 0, 0], [0, 1, 0]], [[0, 0, 1], [1, 1, 1]]], np.float32)  # row 0 = top
     rect = Light("/R", LightKind.RECT, texture=texture, world_from_light=transform((0, 0, 1)))
     # Seen from below (-Z, looking up +Z), local +X is on the viewer's left: pixel (0, 0) at (+X, +Y).
     receivers = torch.tensor([[0.25, 0.25, 0.0], [-0.25, 0.25, 0.0], [0.25, -0.25, 0.0], [-0.25, -0.25, 0.0]])
@@ -266,6 +294,7 @@ def test_transforms_the_samplers_cannot_honour_are_rejected():
 # ---------------------------------------------------------------------------------------------
 # Dome light.
 
+
 def dome_texture(height: int = 16, width: int = 32, seed: int = 0) -> np.ndarray:
     """A lat-long image with a bright 'sun' patch over a dim sky."""
     rng = np.random.default_rng(seed)
@@ -290,16 +319,18 @@ def test_dome_pdf_integrates_to_one(device):
 
 
 def test_dome_importance_and_uniform_sampling_agree(device):
-    dome = Light("/Dome", LightKind.DOME, intensity=1.5, texture=dome_texture(),
-                 world_from_light=transform(rotate_x_deg=25))
+    dome = Light(
+        "/Dome", LightKind.DOME, intensity=1.5, texture=dome_texture(), world_from_light=transform(rotate_x_deg=25)
+    )
     normal = (0.0, 0.6, 0.8)
     importance = irradiance_by_light_sampling(dome, (0, 0, 0), normal, 20000, device=device)
     directions, density = uniform_sphere(uniform(1, 400000, 7, device=device)[0])
     cosine = (directions * torch.tensor(normal, dtype=torch.float64, device=device)).sum(-1).clamp_min(0.0)
     origin = torch.zeros(3, dtype=torch.float64, device=device)
     uniform_estimate = emitted_radiance(dome, origin, directions)[:, 0] * cosine / density
-    standard_error = math.sqrt(importance.var().item() / importance.numel()
-                               + uniform_estimate.var().item() / uniform_estimate.numel())
+    standard_error = math.sqrt(
+        importance.var().item() / importance.numel() + uniform_estimate.var().item() / uniform_estimate.numel()
+    )
     assert abs(importance.mean().item() - uniform_estimate.mean().item()) <= NUM_SIGMA * standard_error
     # Importance sampling is the point: far lower variance than uniform for a dome with a sun.
     assert importance.var() < 0.1 * uniform_estimate.var()
@@ -311,13 +342,16 @@ def test_untextured_dome_gives_pi_l():
     assert_estimate(estimate, 2.0 * math.pi)
 
 
-@pytest.mark.parametrize("pole_axis, direction, row, col", [
-    ("Y", (1.0, -0.02, 0.05), 4, 4),     # longitude ~+pi/2 -> u ~ 0.258; just below the equator -> v ~ 0.506
-    ("Y", (-0.05, -0.02, 1.0), 4, 8),    # longitude ~0 -> u ~ 0.508
-    ("Y", (0.0, 1.0, 0.0), 0, None),     # top pole -> row 0
-    ("Z", (-0.05, -1.0, -0.02), 4, 8),   # DomeLight_1 poleAxis Z: longitude 0 points to -Y
-    ("Z", (0.0, 0.0, 1.0), 0, None),     # and the top pole is +Z
-])
+@pytest.mark.parametrize(
+    "pole_axis, direction, row, col",
+    [
+        ("Y", (1.0, -0.02, 0.05), 4, 4),  # longitude ~+pi/2 -> u ~ 0.258; just below the equator -> v ~ 0.506
+        ("Y", (-0.05, -0.02, 1.0), 4, 8),  # longitude ~0 -> u ~ 0.508
+        ("Y", (0.0, 1.0, 0.0), 0, None),  # top pole -> row 0
+        ("Z", (-0.05, -1.0, -0.02), 4, 8),  # DomeLight_1 poleAxis Z: longitude 0 points to -Y
+        ("Z", (0.0, 0.0, 1.0), 0, None),  # and the top pole is +Z
+    ],
+)
 def test_dome_latlong_orientation(pole_axis, direction, row, col):
     texture = np.zeros((8, 16, 3), np.float32)
     texture[row, slice(None) if col is None else col] = 10.0

@@ -20,10 +20,10 @@ from pipeline import cli
 from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
+from relight_torch.direct.relighter import RelightSettings, light_group, open_relighter, shot_lights
 from relight_torch.io.exr import exr_layer_names
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.usd import write_lights_layer
-from relight_torch.direct.relighter import RelightSettings, light_group, open_relighter, shot_lights
 
 SIZE = 16
 SETTINGS = RelightSettings(area_samples=4)
@@ -32,8 +32,15 @@ SETTINGS = RelightSettings(area_samples=4)
 def _sphere(name: str, position: tuple[float, float, float], color: tuple[float, float, float]) -> Light:
     world_from_light = np.eye(4)
     world_from_light[:3, 3] = position
-    return Light(f"/World/Lights/{name}", LightKind.SPHERE, world_from_light, intensity=4.0, radius=30.0,
-                 color=color, light_group="key.rim")
+    return Light(
+        f"/World/Lights/{name}",
+        LightKind.SPHERE,
+        world_from_light,
+        intensity=4.0,
+        radius=30.0,
+        color=color,
+        light_group="key.rim",
+    )
 
 
 @pytest.fixture(scope="module")
@@ -41,10 +48,19 @@ def baked(tmp_path_factory):
     directory = tmp_path_factory.mktemp("groups")
     shot = SCENES["cornell_box"].write(directory / "scene")
     scene = load_scene(shot, width=SIZE, height=SIZE)
-    cache = bake_direct(scene, find_camera(scene, SCENES["cornell_box"].camera), directory / "cache", "cornell_box",
-                        supersampling=1, texture_samples=1)
-    lights = [*scene.lights, _sphere("KeyA", (150.0, 300.0, 200.0), (1.0, 0.5, 0.2)),
-              _sphere("KeyB", (400.0, 200.0, 150.0), (0.2, 0.6, 1.0))]
+    cache = bake_direct(
+        scene,
+        find_camera(scene, SCENES["cornell_box"].camera),
+        directory / "cache",
+        "cornell_box",
+        supersampling=1,
+        texture_samples=1,
+    )
+    lights = [
+        *scene.lights,
+        _sphere("KeyA", (150.0, 300.0, 200.0), (1.0, 0.5, 0.2)),
+        _sphere("KeyB", (400.0, 200.0, 150.0), (0.2, 0.6, 1.0)),
+    ]
     layer = directory / "groups.usda"
     write_lights_layer(layer, lights)
     return cache, layer
@@ -52,7 +68,12 @@ def baked(tmp_path_factory):
 
 def test_layer_names_are_sanitised_and_distinct():
     assert exr_layer_names(["key.rim", "key rim", "Fill", "", "ceiling"], taken=("ceiling",)) == [
-        "key_rim", "key_rim_2", "Fill", "_", "ceiling_2"]
+        "key_rim",
+        "key_rim_2",
+        "Fill",
+        "_",
+        "ceiling_2",
+    ]
 
 
 def test_render_writes_group_layers_that_sum_to_the_beauty(baked, tmp_path):
@@ -61,8 +82,9 @@ def test_render_writes_group_layers_that_sum_to_the_beauty(baked, tmp_path):
     assert cli.main(["render", str(cache), "--lights", str(layer), "-o", str(out), "--aov", "lightgroups"]) == 0
     image = oiio.ImageBuf(str(out))
     names = list(image.spec().channelnames)
-    assert sorted(names) == sorted(["R", "G", "B", "CeilingLight.R", "CeilingLight.G", "CeilingLight.B",
-                                    "key_rim.R", "key_rim.G", "key_rim.B"])
+    assert sorted(names) == sorted(
+        ["R", "G", "B", "CeilingLight.R", "CeilingLight.G", "CeilingLight.B", "key_rim.R", "key_rim.G", "key_rim.B"]
+    )
     pixels = {name: image.get_pixels(oiio.FLOAT)[..., i] for i, name in enumerate(names)}
     for channel in "RGB":
         beauty = pixels[channel]
@@ -84,26 +106,63 @@ def test_group_intensity_edit_is_a_rescale_of_its_layer(baked):
     assert list(after) == ["CeilingLight", "key.rim"]
     np.testing.assert_allclose(after["key.rim"].numpy(), 2.5 * before["key.rim"].numpy(), rtol=1e-6, atol=1e-9)
     assert np.array_equal(after["CeilingLight"].numpy(), before["CeilingLight"].numpy())
-    edited = [dataclasses.replace(light, intensity=2.5 * light.intensity) if light_group(light) == "key.rim"
-              else light for light in shot_lights(relighter.description, layer)]
+    edited = [
+        dataclasses.replace(light, intensity=2.5 * light.intensity) if light_group(light) == "key.rim" else light
+        for light in shot_lights(relighter.description, layer)
+    ]
     fresh = open_relighter(cache, settings=SETTINGS)
     fresh.set_lights(edited)
     np.testing.assert_allclose(sum(after.values()).numpy(), fresh.render().numpy(), rtol=1e-5, atol=1e-7)
 
 
-@pytest.mark.parametrize("method_options", [
-    ["--method", "transfer", "--gathers", "256", "--coefficients", "30"],
-    ["--method", "gather", "--directions", "64", "--clusters", "8"],
-], ids=["transfer", "gather"])
+@pytest.mark.parametrize(
+    "method_options",
+    [
+        ["--method", "transfer", "--gathers", "256", "--coefficients", "30"],
+        ["--method", "gather", "--directions", "64", "--clusters", "8"],
+    ],
+    ids=["transfer", "gather"],
+)
 def test_indirect_render_splits_each_group_into_direct_and_indirect(baked, tmp_path, method_options):
     _, layer = baked
     shot = SCENES["cornell_box"].write(tmp_path / "scene")
     out = tmp_path / "cache"
-    assert cli.main(["bake", str(shot), "--camera", SCENES["cornell_box"].camera, "--out", str(out), "--width",
-                     str(SIZE), "--height", str(SIZE), "--supersampling", "1", *method_options]) == 0
+    assert (
+        cli.main(
+            [
+                "bake",
+                str(shot),
+                "--camera",
+                SCENES["cornell_box"].camera,
+                "--out",
+                str(out),
+                "--width",
+                str(SIZE),
+                "--height",
+                str(SIZE),
+                "--supersampling",
+                "1",
+                *method_options,
+            ]
+        )
+        == 0
+    )
     exr = tmp_path / "groups.exr"
-    assert cli.main(["render", str(out / "cornell_box.relight.usda"), "--lights", str(layer), "-o", str(exr),
-                     "--aov", "lightgroups"]) == 0
+    assert (
+        cli.main(
+            [
+                "render",
+                str(out / "cornell_box.relight.usda"),
+                "--lights",
+                str(layer),
+                "-o",
+                str(exr),
+                "--aov",
+                "lightgroups",
+            ]
+        )
+        == 0
+    )
     image = oiio.ImageBuf(str(exr))
     names = list(image.spec().channelnames)
     layers = [f"{group}_{part}" for group in ("CeilingLight", "key_rim") for part in ("direct", "indirect")]

@@ -29,15 +29,15 @@ from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from pipeline.scenes.cornell_box import LIGHT
+from relight_torch import open_cache
+from relight_torch.direct.relighter import RelightSettings, open_relighter, shot_lights
 from relight_torch.errors import RelightError
+from relight_torch.indirect_samples import gather_radiance
 from relight_torch.lights.light import Light
 from relight_torch.lights.linking import decode_paths, encode_paths, linked_objects, read_link
 from relight_torch.lights.usd import read_light, write_light
 from relight_torch.metrics import psnr
-from relight_torch.direct.relighter import RelightSettings, open_relighter, shot_lights
 from relight_torch.schema import register_schemas
-from relight_torch.indirect_samples import gather_radiance
-from relight_torch import open_cache
 
 SIZE = 24
 SUPERSAMPLING = 4
@@ -71,10 +71,13 @@ def cornell(tmp_path_factory):
     shot = SCENES["cornell_box"].write(directory / "scene")
     scene = load_scene(shot, width=SIZE, height=SIZE)
     camera = find_camera(scene, SCENES["cornell_box"].camera)
-    cache = bake_direct(scene, camera, directory / "cache", "cornell_box", supersampling=SUPERSAMPLING,
-                        texture_samples=1)
-    layers = {"light_link": _lights_layer(directory / "light_link.usda", _link_tall_block_only),
-              "shadow_link": _lights_layer(directory / "shadow_link.usda", _unshadowed_by_short_block)}
+    cache = bake_direct(
+        scene, camera, directory / "cache", "cornell_box", supersampling=SUPERSAMPLING, texture_samples=1
+    )
+    layers = {
+        "light_link": _lights_layer(directory / "light_link.usda", _link_tall_block_only),
+        "shadow_link": _lights_layer(directory / "shadow_link.usda", _unshadowed_by_short_block),
+    }
     return shot, cache, layers
 
 
@@ -190,13 +193,15 @@ def test_shot_lights_read_links_from_the_layer(cornell):
 
 def test_shadow_maps_refuse_a_shadow_link(cornell):
     _, cache, layers = cornell
-    relighter = open_relighter(cache, shadows="shadowmaps", lights_layer=layers["shadow_link"],
-                               settings=RelightSettings(area_samples=1))
+    relighter = open_relighter(
+        cache, shadows="shadowmaps", lights_layer=layers["shadow_link"], settings=RelightSettings(area_samples=1)
+    )
     with pytest.raises(ValueError, match="shadow linking needs Embree"):
         relighter.render()
 
 
 # -- indirect light (the transfer method's gathers) ------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def transfer(cornell, tmp_path_factory):
@@ -205,14 +210,22 @@ def transfer(cornell, tmp_path_factory):
     shot, _, layers = cornell
     scene = load_scene(shot, width=SIZE, height=SIZE)
     camera = find_camera(scene, SCENES["cornell_box"].camera)
-    cache = bake_transfer(scene, camera, tmp_path_factory.mktemp("linking_transfer"), "cornell_box", supersampling=2,
-                          texture_samples=1, settings=TransferSettings(num_gathers=1024, num_coefficients=100),
-                          progress=False)
+    cache = bake_transfer(
+        scene,
+        camera,
+        tmp_path_factory.mktemp("linking_transfer"),
+        "cornell_box",
+        supersampling=2,
+        texture_samples=1,
+        settings=TransferSettings(num_gathers=1024, num_coefficients=100),
+        progress=False,
+    )
     indirect = {}
     for name, layer in layers.items():
         linked = load_scene(shot, lights_layer=layer, width=SIZE, height=SIZE)
-        bounce, direct = (PathTracer(linked, ReferenceSettings(spp=SPP, max_bounces=b, seed=3)).render(camera).mean
-                          for b in (1, 0))
+        bounce, direct = (
+            PathTracer(linked, ReferenceSettings(spp=SPP, max_bounces=b, seed=3)).render(camera).mean for b in (1, 0)
+        )
         indirect[name] = bounce - direct
     return cache, layers, indirect
 
@@ -256,5 +269,9 @@ def test_light_link_edit_remasks_the_gathers_without_tracing(cornell, transfer):
     assert torch.equal(relighter.indirect_image(), unlinked) and relighter.counters["transfer"] == 4
     gathers = relighter.gathers
     with pytest.raises(RelightError, match="gathers' object ids"):
-        gather_radiance(dataclasses.replace(lamp, light_link=(TALL,)), dataclasses.replace(gathers, object_id=None),
-                        relighter.direct.visibility, num_samples=1)
+        gather_radiance(
+            dataclasses.replace(lamp, light_link=(TALL,)),
+            dataclasses.replace(gathers, object_id=None),
+            relighter.direct.visibility,
+            num_samples=1,
+        )

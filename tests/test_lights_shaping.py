@@ -17,8 +17,10 @@ from relight_torch.lights.shaping import barzel_factor, shaping_factor
 def emission(theta_deg: float, azimuth_deg: float = 0.0) -> torch.Tensor:
     """Light-local unit emission direction at angle theta from the -Z axis, azimuth from +X."""
     theta, azimuth = math.radians(theta_deg), math.radians(azimuth_deg)
-    return torch.tensor([math.sin(theta) * math.cos(azimuth), math.sin(theta) * math.sin(azimuth), -math.cos(theta)],
-                        dtype=torch.float64)
+    return torch.tensor(
+        [math.sin(theta) * math.cos(azimuth), math.sin(theta) * math.sin(azimuth), -math.cos(theta)],
+        dtype=torch.float64,
+    )
 
 
 def projected(x: float, y: float) -> torch.Tensor:
@@ -26,12 +28,15 @@ def projected(x: float, y: float) -> torch.Tensor:
     return torch.nn.functional.normalize(torch.tensor([x, y, -1.0], dtype=torch.float64), dim=-1)
 
 
-@pytest.mark.parametrize("theta, expected", [
-    (10.0, 1.0),            # inside theta_start = 30 (1 - 0.5) = 15 deg
-    (20.0, 20.0 / 27.0),    # t = 1/3: 1 - t^2 (3 - 2t) = 1 - 7/27
-    (22.5, 0.5),            # halfway
-    (31.0, 0.0),            # beyond the half-angle
-])
+@pytest.mark.parametrize(
+    "theta, expected",
+    [
+        (10.0, 1.0),  # inside theta_start = 30 (1 - 0.5) = 15 deg
+        (20.0, 20.0 / 27.0),  # t = 1/3: 1 - t^2 (3 - 2t) = 1 - 7/27
+        (22.5, 0.5),  # halfway
+        (31.0, 0.0),  # beyond the half-angle
+    ],
+)
 def test_cone_with_softness(theta, expected):
     factor = shaping_factor(Shaping(cone_angle=30.0, cone_softness=0.5), emission(theta))
     np.testing.assert_allclose(factor.numpy(), expected, atol=1e-12)
@@ -62,16 +67,17 @@ def test_shaping_reaches_emitted_radiance_of_an_area_light():
 
 
 def test_sphere_light_without_shaping_emits_backwards_and_fallback_cone_cuts_it():
-    receiver = torch.tensor([0.0, 0.0, 5.0], dtype=torch.float64)   # behind the light (+Z side)
+    receiver = torch.tensor([0.0, 0.0, 5.0], dtype=torch.float64)  # behind the light (+Z side)
     towards_light = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
     sphere = Light("/S", LightKind.SPHERE)
     assert emitted_radiance(sphere, receiver, towards_light)[0] == 1.0
-    focus_only = Light("/S", LightKind.SPHERE, shaping=Shaping(focus=0.0))   # fallback coneAngle 90
+    focus_only = Light("/S", LightKind.SPHERE, shaping=Shaping(focus=0.0))  # fallback coneAngle 90
     assert emitted_radiance(focus_only, receiver, towards_light)[0] == 0.0
 
 
 # ---------------------------------------------------------------------------------------------
 # Barzel.
+
 
 def barzel_at(barzel: BarzelShaping, direction: torch.Tensor, distance: float = 1.0) -> np.ndarray:
     return barzel_factor(barzel, direction, torch.tensor(distance, dtype=torch.float64)).numpy()
@@ -83,36 +89,45 @@ def test_barzel_fallbacks_change_nothing():
 
 
 def test_window_superellipse_roundness_and_edge():
-    half = 0.5                                       # width = height = 1: half-size 0.5 at unit distance
-    corner = projected(0.9 * half, 0.9 * half)       # inside the square, outside the circle (q = 0.9 sqrt 2)
+    half = 0.5  # width = height = 1: half-size 0.5 at unit distance
+    corner = projected(0.9 * half, 0.9 * half)  # inside the square, outside the circle (q = 0.9 sqrt 2)
     ellipse = BarzelShaping(window_enable=True)
     square = BarzelShaping(window_enable=True, window_roundness=0.0)
     assert barzel_at(ellipse, corner)[0] == 0.0 and barzel_at(square, corner)[0] == 1.0
     soft = BarzelShaping(window_enable=True, window_edge=0.5, window_height=2.0)
-    np.testing.assert_allclose(barzel_at(soft, projected(0.75 * half, 0.0)), 0.5)   # smoothstep(0.5, 1, 0.75)
+    np.testing.assert_allclose(barzel_at(soft, projected(0.75 * half, 0.0)), 0.5)  # smoothstep(0.5, 1, 0.75)
     np.testing.assert_allclose(barzel_at(soft, projected(0.0, 0.75 * 2 * half)), 0.5)
-    assert barzel_at(ellipse, emission(100.0))[0] == 0.0   # behind the light
+    assert barzel_at(ellipse, emission(100.0))[0] == 0.0  # behind the light
 
 
 def test_window_roundness_two_is_a_diamond():
-    diamond = BarzelShaping(window_enable=True, window_roundness=2.0)   # n = 1: |2x| + |2y| <= 1
+    diamond = BarzelShaping(window_enable=True, window_roundness=2.0)  # n = 1: |2x| + |2y| <= 1
     assert barzel_at(diamond, projected(0.24, 0.24))[0] == 1.0
     assert barzel_at(diamond, projected(0.26, 0.26))[0] == 0.0
 
 
 def test_barn_doors():
     doors = BarzelShaping(barn_door_right=30.0, barn_door_top=10.0)
-    assert barzel_at(doors, emission(40.0, 0.0))[0] == 0.0     # towards +X, past the right door
-    assert barzel_at(doors, emission(40.0, 180.0))[0] == 1.0   # towards -X: left door open
+    assert barzel_at(doors, emission(40.0, 0.0))[0] == 0.0  # towards +X, past the right door
+    assert barzel_at(doors, emission(40.0, 180.0))[0] == 1.0  # towards -X: left door open
     assert barzel_at(doors, emission(20.0, 0.0))[0] == 1.0
-    assert barzel_at(doors, emission(15.0, 90.0))[0] == 0.0    # towards +Y, past the top door
+    assert barzel_at(doors, emission(15.0, 90.0))[0] == 0.0  # towards +Y, past the top door
     assert barzel_at(doors, emission(15.0, 270.0))[0] == 1.0
 
 
-@pytest.mark.parametrize("smooth, distance, expected", [
-    (False, 0.5, 0.0), (False, 1.5, 0.25), (False, 2.0, 0.5), (False, 4.0, 1.0), (False, 6.5, 0.25),
-    (False, 8.0, 0.0), (True, 1.5, 0.15625), (True, 6.5, 1.0 - 0.84375),
-])
+@pytest.mark.parametrize(
+    "smooth, distance, expected",
+    [
+        (False, 0.5, 0.0),
+        (False, 1.5, 0.25),
+        (False, 2.0, 0.5),
+        (False, 4.0, 1.0),
+        (False, 6.5, 0.25),
+        (False, 8.0, 0.0),
+        (True, 1.5, 0.15625),
+        (True, 6.5, 1.0 - 0.84375),
+    ],
+)
 def test_near_and_far_falloff(smooth, distance, expected):
     falloff = BarzelShaping(near_start=1.0, near_end=3.0, far_start=5.0, far_end=7.0, falloff_smooth=smooth)
     np.testing.assert_allclose(barzel_at(falloff, emission(0.0), distance), expected)
@@ -120,13 +135,13 @@ def test_near_and_far_falloff(smooth, distance, expected):
 
 def test_cookie_projection_and_orientation():
     cookie = np.zeros((2, 2, 3), np.float32)
-    cookie[0, 1] = (1.0, 2.0, 3.0)                 # top-right pixel: st (0.75, 0.75)
+    cookie[0, 1] = (1.0, 2.0, 3.0)  # top-right pixel: st (0.75, 0.75)
     barzel = BarzelShaping(cookie=cookie, cookie_scale=(2.0, 1.0), cookie_offset=(0.5, 0.0))
     # st = 0.5 + (p - offset) / (2 scale) = (0.75, 0.75) at p = (1.5, 0.5).
     np.testing.assert_allclose(barzel_at(barzel, projected(1.5, 0.5)), [1.0, 2.0, 3.0], rtol=1e-6)
-    assert barzel_at(barzel, projected(-0.5, 0.5)).sum() == 0.0     # st (0.25, 0.75): top-left, black
-    assert barzel_at(barzel, projected(3.0, 0.0)).sum() == 0.0      # outside the cookie's rectangle
-    assert barzel_at(barzel, emission(120.0)).sum() == 0.0          # behind the light
+    assert barzel_at(barzel, projected(-0.5, 0.5)).sum() == 0.0  # st (0.25, 0.75): top-left, black
+    assert barzel_at(barzel, projected(3.0, 0.0)).sum() == 0.0  # outside the cookie's rectangle
+    assert barzel_at(barzel, emission(120.0)).sum() == 0.0  # behind the light
 
 
 def test_barzel_reaches_emitted_radiance_with_world_distance():
@@ -142,6 +157,7 @@ def test_barzel_reaches_emitted_radiance_with_world_distance():
 # ---------------------------------------------------------------------------------------------
 # Shadows.
 
+
 def test_shadow_colour_distance_and_falloff():
     shadow = Shadow(color=(0.2, 0.5, 1.0), distance=10.0, falloff=4.0, falloff_gamma=2.0)
     occluded = torch.tensor([True, True, True, False])
@@ -156,6 +172,7 @@ def test_shadow_defaults_and_disabled():
     distance = torch.tensor([1e6, 0.0])
     np.testing.assert_allclose(shadow_factor(Shadow(), occluded, distance).numpy(), [[0, 0, 0], [1, 1, 1]])
     hard_limit = Shadow(distance=2.0)
-    np.testing.assert_allclose(shadow_factor(hard_limit, torch.tensor([True, True]), torch.tensor([1.0, 3.0])).numpy(),
-                               [[0, 0, 0], [1, 1, 1]])
+    np.testing.assert_allclose(
+        shadow_factor(hard_limit, torch.tensor([True, True]), torch.tensor([1.0, 3.0])).numpy(), [[0, 0, 0], [1, 1, 1]]
+    )
     np.testing.assert_allclose(shadow_factor(Shadow(enable=False), occluded, distance).numpy(), 1.0)

@@ -14,8 +14,7 @@ from pipeline.errors import RelightError
 from pipeline.scene.lights import read_lights
 from relight_torch.lights.image import read_linear_rgb
 from relight_torch.lights.light import Light, LightKind, Shaping
-from relight_torch.lights.usd import (iter_light_prims, read_light, read_lights_layer, write_light,
-                                      write_lights_layer)
+from relight_torch.lights.usd import iter_light_prims, read_light, read_lights_layer, write_light, write_lights_layer
 from relight_torch.schema import register_schemas
 
 DEFAULT = Usd.TimeCode.Default()
@@ -78,12 +77,18 @@ def shot(tmp_path):
     shadow.CreateShadowDistanceAttr(12.0)
     shadow.CreateShadowFalloffAttr(3.0)
     key.GetPrim().ApplyAPI("RelightBarzelLightAPI")
-    for name, value in {"relight:barzel:window:enable": True, "relight:barzel:window:width": 1.2,
-                        "relight:barzel:window:roundness": 0.5, "relight:barzel:barnDoor:top": 35.0,
-                        "relight:barzel:cookie:file": Sdf.AssetPath("gobo.png"),
-                        "relight:barzel:cookie:scale": Gf.Vec2f(2, 3), "relight:barzel:near:end": 1.0,
-                        "relight:barzel:far:start": 8.0, "relight:barzel:far:end": 9.0,
-                        "relight:lightGroup": "keys"}.items():
+    for name, value in {
+        "relight:barzel:window:enable": True,
+        "relight:barzel:window:width": 1.2,
+        "relight:barzel:window:roundness": 0.5,
+        "relight:barzel:barnDoor:top": 35.0,
+        "relight:barzel:cookie:file": Sdf.AssetPath("gobo.png"),
+        "relight:barzel:cookie:scale": Gf.Vec2f(2, 3),
+        "relight:barzel:near:end": 1.0,
+        "relight:barzel:far:start": 8.0,
+        "relight:barzel:far:end": 9.0,
+        "relight:lightGroup": "keys",
+    }.items():
         key.GetPrim().GetAttribute(name).Set(value)
 
     panel = UsdLux.RectLight.Define(stage, "/World/Panel")
@@ -104,7 +109,7 @@ def shot(tmp_path):
     dome.CreateTextureFileAttr(Sdf.AssetPath("sky.exr"))
     dome.CreateTextureFormatAttr(UsdLux.Tokens.latlong)
     UsdGeom.Xformable(dome).AddRotateZOp().Set(90.0)
-    UsdLux.DomeLight_1.Define(stage, "/SkyZ")   # poleAxis 'scene' on a Z-up stage
+    UsdLux.DomeLight_1.Define(stage, "/SkyZ")  # poleAxis 'scene' on a Z-up stage
     stage.Save()
     return stage
 
@@ -117,8 +122,9 @@ def test_reads_every_input(shot, tmp_path):
     assert key.radius == pytest.approx(0.3)
     assert key.color == (1.0, 0.5, 0.25) and key.normalize and key.enable_color_temperature
     assert (key.diffuse, key.specular, key.color_temperature) == (0.5, 2.0, 4000.0)
-    assert key.shaping == Shaping(focus=1.5, focus_tint=pytest.approx((0.1, 0.2, 0.3)), cone_angle=40.0,
-                                  cone_softness=pytest.approx(0.2))
+    assert key.shaping == Shaping(
+        focus=1.5, focus_tint=pytest.approx((0.1, 0.2, 0.3)), cone_angle=40.0, cone_softness=pytest.approx(0.2)
+    )
     assert (key.shadow.color, key.shadow.distance, key.shadow.falloff) == (pytest.approx((0.2, 0.1, 0.0)), 12.0, 3.0)
     assert key.barzel.barn_door_top == 35.0 and key.barzel.barn_door_left == 180.0 and key.barzel.window_enable
     assert key.barzel.cookie_file == str(tmp_path / "gobo.png") and key.barzel.cookie_scale == (2.0, 3.0)
@@ -151,7 +157,7 @@ def test_lights_layer_round_trip_and_composition_over_the_shot(shot, tmp_path):
     edited = [dataclasses.replace(light, intensity=light.intensity * 2, shaping=None) for light in lights]
     write_lights_layer(tmp_path / "edits.usda", edited)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["edits.usda", "gobo.png", "panel.exr", "shot.usda", "sky.exr"]
-    for light, back in zip(edited, read_lights_layer(tmp_path / "edits.usda")):
+    for light, back in zip(edited, read_lights_layer(tmp_path / "edits.usda"), strict=True):
         assert_same(light, back, light.path)
     # Composed as the strongest sublayer, the edits win and transforms stay put despite /World's xform.
     root = Sdf.Layer.CreateAnonymous(".usda")
@@ -196,19 +202,36 @@ def light_stage(kind=UsdLux.SphereLight):
     return stage, kind.Define(stage, "/L").GetPrim()
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda p: p.GetAttribute("inputs:intensity").Set(-1.0), r"^/L: inputs:intensity = -1\.0 must be finite and >= 0$"),
-    (lambda p: p.GetAttribute("inputs:radius").Set(float("nan")), r"^/L: inputs:radius = nan must be finite"),
-    (lambda p: p.GetAttribute("inputs:exposure").Set(float("inf")), r"^/L: inputs:exposure = inf must be finite$"),
-    (lambda p: p.GetAttribute("inputs:color").Set(Gf.Vec3f(-1, 0, 0)), r"^/L: inputs:color = .* >= 0$"),
-    (lambda p: p.GetAttribute("inputs:colorTemperature").Set(0.0), r"^/L: inputs:colorTemperature = 0\.0 .* > 0$"),
-    (lambda p: UsdLux.ShapingAPI.Apply(p).CreateShapingConeAngleAttr(-5.0), r"^/L: inputs:shaping:cone:angle = -5"),
-    (lambda p: (p.ApplyAPI("RelightBarzelLightAPI"), p.GetAttribute("relight:barzel:window:width").Set(0.0)),
-     r"^/L: relight:barzel:window:width = 0\.0 must be finite and > 0$"),
-    (lambda p: (p.ApplyAPI("RelightBarzelLightAPI"), p.GetAttribute("relight:barzel:near:start").Set(2.0),
-                p.GetAttribute("relight:barzel:near:end").Set(1.0)), r"^/L: relight:barzel:near:start must lie in"),
-    (lambda p: UsdGeom.Xformable(p).AddScaleOp().Set(Gf.Vec3f(1, 2, 1)), r"^/L: SphereLight needs a rotation and one"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (
+            lambda p: p.GetAttribute("inputs:intensity").Set(-1.0),
+            r"^/L: inputs:intensity = -1\.0 must be finite and >= 0$",
+        ),
+        (lambda p: p.GetAttribute("inputs:radius").Set(float("nan")), r"^/L: inputs:radius = nan must be finite"),
+        (lambda p: p.GetAttribute("inputs:exposure").Set(float("inf")), r"^/L: inputs:exposure = inf must be finite$"),
+        (lambda p: p.GetAttribute("inputs:color").Set(Gf.Vec3f(-1, 0, 0)), r"^/L: inputs:color = .* >= 0$"),
+        (lambda p: p.GetAttribute("inputs:colorTemperature").Set(0.0), r"^/L: inputs:colorTemperature = 0\.0 .* > 0$"),
+        (lambda p: UsdLux.ShapingAPI.Apply(p).CreateShapingConeAngleAttr(-5.0), r"^/L: inputs:shaping:cone:angle = -5"),
+        (
+            lambda p: (p.ApplyAPI("RelightBarzelLightAPI"), p.GetAttribute("relight:barzel:window:width").Set(0.0)),
+            r"^/L: relight:barzel:window:width = 0\.0 must be finite and > 0$",
+        ),
+        (
+            lambda p: (
+                p.ApplyAPI("RelightBarzelLightAPI"),
+                p.GetAttribute("relight:barzel:near:start").Set(2.0),
+                p.GetAttribute("relight:barzel:near:end").Set(1.0),
+            ),
+            r"^/L: relight:barzel:near:start must lie in",
+        ),
+        (
+            lambda p: UsdGeom.Xformable(p).AddScaleOp().Set(Gf.Vec3f(1, 2, 1)),
+            r"^/L: SphereLight needs a rotation and one",
+        ),
+    ],
+)
 def test_bad_values_raise_one_line_naming_prim_and_attribute(edit, message):
     stage, prim = light_stage()
     edit(prim)
@@ -233,12 +256,14 @@ def test_filters_and_portals_are_ignored_with_warnings():
     UsdLux.DomeLight(prim).CreatePortalsRel().AddTarget("/Window")
     warnings: list[str] = []
     assert [light.path for light in read_lights(stage, DEFAULT, warnings)] == ["/L"]
-    assert warnings == ["/L: light:filters are not supported; ignored",
-                        "/L: dome light portals are not supported; ignored"]
+    assert warnings == [
+        "/L: light:filters are not supported; ignored",
+        "/L: dome light portals are not supported; ignored",
+    ]
 
 
 def test_missing_image_raises():
-    stage, prim = light_stage(UsdLux.RectLight)
+    _stage, prim = light_stage(UsdLux.RectLight)
     UsdLux.RectLight(prim).CreateTextureFileAttr(Sdf.AssetPath("missing.exr"))
     with pytest.raises(ValueError, match=r"^/L: inputs:texture:file: image 'missing.exr' not found$"):
         read_light(prim)
@@ -246,7 +271,7 @@ def test_missing_image_raises():
 
 def test_unsupported_dome_format_raises(tmp_path):
     write_image(tmp_path / "probe.exr", np.ones((4, 4, 3), np.float32))
-    stage, prim = light_stage(UsdLux.DomeLight)
+    _stage, prim = light_stage(UsdLux.DomeLight)
     UsdLux.DomeLight(prim).CreateTextureFileAttr(Sdf.AssetPath(str(tmp_path / "probe.exr")))
     UsdLux.DomeLight(prim).CreateTextureFormatAttr(UsdLux.Tokens.angular)
     with pytest.raises(ValueError, match=r"^/L: inputs:texture:format 'angular' is not supported"):
@@ -261,5 +286,5 @@ def test_read_linear_rgb_grey_and_errors(tmp_path):
 
 
 def test_light_dataclass_defaults_match_the_usd_fallbacks():
-    stage, prim = light_stage(UsdLux.RectLight)
+    _stage, prim = light_stage(UsdLux.RectLight)
     assert_same(read_light(prim), Light("/L", LightKind.RECT, light_group="L"))

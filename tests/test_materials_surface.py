@@ -3,7 +3,13 @@
 import numpy as np
 import pytest
 
-from pipeline.scene.surface import evaluate_materials, orthonormal_tangent, shading_frame, tangent_about, triangle_tangents
+from pipeline.scene.surface import (
+    evaluate_materials,
+    orthonormal_tangent,
+    shading_frame,
+    tangent_about,
+    triangle_tangents,
+)
 from pipeline.scene.types import Material, MaterialInput, Texture
 
 

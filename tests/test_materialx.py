@@ -24,14 +24,24 @@ from pipeline.scene.materialx_graph import channel_mean, scaled
 from pipeline.scene.surface import evaluate_materials
 from pipeline.scene.textures import sample_texture, select_output
 from pipeline.scene.types import MaterialInput, Texture
+from relight_torch.direct.relighter import Relighter
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.metrics import psnr
-from relight_torch.direct.relighter import Relighter
 
 DATA = Path(__file__).parent / "data" / "materialx"
 SHOT = DATA / "shot.usda"
-LOOKS = ("Wood", "Gold", "Copper", "CarPaint", "OpenPbrCarPaint", "Pearl", "Aluminum", "Plastic",
-         "UsdStandardSurface", "UsdOpenPbr")
+LOOKS = (
+    "Wood",
+    "Gold",
+    "Copper",
+    "CarPaint",
+    "OpenPbrCarPaint",
+    "Pearl",
+    "Aluminum",
+    "Plastic",
+    "UsdStandardSurface",
+    "UsdOpenPbr",
+)
 
 # A wall bound to a material whose variant references a .mtlx document, and optionally a prim that
 # references geometry from another file.
@@ -124,11 +134,16 @@ def test_missing_mtlx_document_is_a_warning_naming_the_material_and_the_fallback
     assert "nowhere.mtlx not found" in message and "using grey 0.18 diffuse" in message
 
 
-@pytest.mark.parametrize("content, expected", [
-    ("<materialx version=\"1.39\"><standard_surface", "is not readable"),
-    ('<?xml version="1.0"?><materialx version="1.39"><surfacematerial name="Other" type="material"/></materialx>',
-     "has no material 'Gold' (it has: Other)"),
-])
+@pytest.mark.parametrize(
+    "content, expected",
+    [
+        ('<materialx version="1.39"><standard_surface', "is not readable"),
+        (
+            '<?xml version="1.0"?><materialx version="1.39"><surfacematerial name="Other" type="material"/></materialx>',
+            "has no material 'Gold' (it has: Other)",
+        ),
+    ],
+)
 def test_unreadable_mtlx_document_falls_back_to_grey(tmp_path, content, expected):
     (tmp_path / "broken.mtlx").write_text(content)
     scene = load_scene(_stage(tmp_path, "broken.mtlx"))
@@ -147,15 +162,29 @@ def test_missing_geometry_reference_stays_an_error(tmp_path):
 def test_cli_bakes_a_stage_whose_material_variant_references_mtlx(tmp_path, capsys):
     shutil.copy(DATA / "standard_surface_gold.mtlx", tmp_path)
     shot = _stage(tmp_path, "standard_surface_gold.mtlx")
-    status = main(["bake", str(shot), "--camera", "/World/Camera", "--out", str(tmp_path / "out"),
-                   "--width", "8", "--height", "6", "--method", "direct"])
+    status = main(
+        [
+            "bake",
+            str(shot),
+            "--camera",
+            "/World/Camera",
+            "--out",
+            str(tmp_path / "out"),
+            "--width",
+            "8",
+            "--height",
+            "6",
+            "--method",
+            "direct",
+        ]
+    )
     assert status == 0, capsys.readouterr().err
     assert (tmp_path / "out" / "shot.relight.usda").is_file()
 
 
 def test_material_prim_with_a_missing_usd_reference_is_a_warning(tmp_path):
     shot = _stage(tmp_path, "standard_surface_gold.mtlx")
-    reference = '\n            references = @./looks.usda@'
+    reference = "\n            references = @./looks.usda@"
     shot.write_text(shot.read_text().replace('def Material "Paint" (', 'def Material "Paint" (' + reference))
     shutil.copy(DATA / "standard_surface_gold.mtlx", tmp_path)
     scene = load_scene(shot)
@@ -184,8 +213,9 @@ def test_standard_surface_follows_materialx_translation_graph(scene):
     assert copper.clearcoat.value[0] == pytest.approx(coat_color.mean(), rel=1e-6)
     assert copper.clearcoat_roughness.value[0] == pytest.approx(0.2)
     carpaint = _by_path(scene, "CarPaint")  # base 0.5 scales base_color
-    np.testing.assert_allclose(carpaint.diffuse_color.value, 0.5 * np.array([0.1037792, 0.59212029, 0.85064936]),
-                               rtol=1e-6)
+    np.testing.assert_allclose(
+        carpaint.diffuse_color.value, 0.5 * np.array([0.1037792, 0.59212029, 0.85064936]), rtol=1e-6
+    )
     assert any("SR_carpaint" in message and "specular_anisotropy" in message for message in scene.warnings)
 
 
@@ -219,8 +249,9 @@ def test_image_nodes_become_textures_with_their_coordinates(scene):
     texture = open_pbr.diffuse_color.texture
     assert (texture.wrap_s, texture.wrap_t) == ("mirror", "repeat")
     raw = select_output(sample_texture(Texture(texture.file, texture.pixels, "mirror", "repeat"), uvs), "rgb")
-    np.testing.assert_allclose(evaluate_materials([open_pbr], np.zeros(3, int), uvs)["diffuse_color"], 0.8 * raw,
-                               rtol=1e-6)
+    np.testing.assert_allclose(
+        evaluate_materials([open_pbr], np.zeros(3, int), uvs)["diffuse_color"], 0.8 * raw, rtol=1e-6
+    )
 
 
 USD_UV_TEXTURE = """
@@ -291,21 +322,35 @@ def test_normalmap_node_gives_the_tangent_space_normal(tmp_path):
 
 def test_affine_arithmetic_on_textures_is_exact():
     rng = np.random.default_rng(3)
-    texture = Texture("image.exr", rng.random((5, 4, 3), dtype=np.float32), output="g",
-                      scale=np.array([1, 0.5, 1, 1], np.float32), bias=np.array([0, 0.1, 0, 0], np.float32))
+    texture = Texture(
+        "image.exr",
+        rng.random((5, 4, 3), dtype=np.float32),
+        output="g",
+        scale=np.array([1, 0.5, 1, 1], np.float32),
+        bias=np.array([0, 0.1, 0, 0], np.float32),
+    )
     uvs = rng.random((50, 2))
     grey = MaterialInput(np.array([0.3], np.float32), texture)
     samples = select_output(sample_texture(texture, uvs), "g")
     tinted = scaled(MaterialInput(np.full(3, 0.3, np.float32), texture), [0.2, 0.4, 0.8], [0.0, 0.1, 0.2])
-    np.testing.assert_allclose(select_output(sample_texture(tinted.texture, uvs), tinted.texture.output),
-                               samples * [0.2, 0.4, 0.8] + [0.0, 0.1, 0.2], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        select_output(sample_texture(tinted.texture, uvs), tinted.texture.output),
+        samples * [0.2, 0.4, 0.8] + [0.0, 0.1, 0.2],
+        rtol=1e-5,
+        atol=1e-6,
+    )
     scaled_grey = scaled(grey, 2.0, -0.5)
-    np.testing.assert_allclose(select_output(sample_texture(scaled_grey.texture, uvs), "g"), 2 * samples - 0.5,
-                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        select_output(sample_texture(scaled_grey.texture, uvs), "g"), 2 * samples - 0.5, rtol=1e-5, atol=1e-6
+    )
     colour = Texture("image.exr", texture.pixels)
     mean = channel_mean(MaterialInput(np.zeros(3, np.float32), colour))
-    np.testing.assert_allclose(select_output(sample_texture(mean.texture, uvs), mean.texture.output)[:, 0],
-                               sample_texture(colour, uvs)[:, :3].mean(axis=1), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        select_output(sample_texture(mean.texture, uvs), mean.texture.output)[:, 0],
+        sample_texture(colour, uvs)[:, :3].mean(axis=1),
+        rtol=1e-5,
+        atol=1e-6,
+    )
 
 
 def test_bake_inputs_include_the_mtlx_documents(scene):

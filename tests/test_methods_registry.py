@@ -51,6 +51,7 @@ def test_a_view_capability_needs_a_view_renderer():
 
 def test_bake_choices_and_option_groups_come_from_the_registry(capsys):
     from pipeline.cli import build_parser
+
     parser = build_parser()
     for name in METHOD_NAMES:
         args = parser.parse_args(["bake", "shot.usda", "--camera", "/World/Camera", "--out", "o", "--method", name])
@@ -83,8 +84,9 @@ def test_method_packages_import_no_sibling_method(name):
     """Each method's packages (`relight_torch.<name>`, `pipeline.bake.<name>`), every module
     imported in a fresh interpreter, load no other method's package but those it builds on."""
     forbidden = [other for other in METHOD_NAMES if other != name and other not in relight_method(name).builds_on]
-    result = subprocess.run([sys.executable, "-c", _ISOLATION, name, ",".join(forbidden)],
-                            capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [sys.executable, "-c", _ISOLATION, name, ",".join(forbidden)], capture_output=True, text=True, timeout=300
+    )
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout.splitlines()[-1]) == []
 
@@ -92,9 +94,21 @@ def test_method_packages_import_no_sibling_method(name):
 @pytest.mark.slow
 def test_isolation_check_sees_a_sibling_import():
     """The check above fails when a method package imports a sibling (here: cuts, made to)."""
-    result = subprocess.run([sys.executable, "-c", _ISOLATION.replace(
-        "import importlib, json, pkgutil, sys", "import importlib, json, pkgutil, sys\nimport relight_torch.cuts.open"),
-        "transfer", "cuts"], capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            _ISOLATION.replace(
+                "import importlib, json, pkgutil, sys",
+                "import importlib, json, pkgutil, sys\nimport relight_torch.cuts.open",
+            ),
+            "transfer",
+            "cuts",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode == 0, result.stderr
     assert "relight_torch.cuts.open" in json.loads(result.stdout.splitlines()[-1])
 
@@ -117,7 +131,7 @@ def test_every_relighter_satisfies_the_protocol(tmp_path, name):
         opened = open_cache(layer)
         assert isinstance(opened, CacheRelighter)
         assert type(opened) is type(entry.adapter.variants(layer, point, "cpu")[0].relighter)
-    relighter = entry.adapter.variants(layer, point, "cpu")[0].relighter   # a view set where one is needed
+    relighter = entry.adapter.variants(layer, point, "cpu")[0].relighter  # a view set where one is needed
     assert isinstance(relighter, CacheRelighter)
 
     lights = relighter.lights

@@ -23,20 +23,28 @@ from pipeline.cli import build_parser, main
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
+from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
+from relight_torch.direct.relighter import Relighter
 from relight_torch.io.exr import read_rgb_exr, write_rgb_exr
-from relight_torch.metrics import psnr
 from relight_torch.light_samples import fixed_light_samples
+from relight_torch.metrics import psnr
 from relight_torch.multiview.incident import group_images, incident_table, view_directions
 from relight_torch.multiview.relighter import MultiviewRelighter
 from relight_torch.multiview.views import camera_column, gather_gbuffer
 from relight_torch.parallel import torch_threads
-from relight_torch.direct.relighter import Relighter
-from relight_torch import open_cache
 
 WIDTH, HEIGHT = 64, 48
-SETTINGS = PlacementSettings(coverage=0.05, num_samples=4000, patience=10, max_resolution=128, min_resolution=32,
-                             grid_size=32, num_rays=16, max_secondary=8)
+SETTINGS = PlacementSettings(
+    coverage=0.05,
+    num_samples=4000,
+    patience=10,
+    max_resolution=128,
+    min_resolution=32,
+    grid_size=32,
+    num_rays=16,
+    max_secondary=8,
+)
 # Measured on the moved view below (64x48, 2x2 sub-samples): 44.0 dB with small holes filled and the
 # large ones left black, 44.2 dB with them baked on demand; 5.5 % of its sub-samples are holes,
 # mostly along silhouettes and in the blocks' shadowed corners. The shot camera's own view: 40.2 dB.
@@ -77,7 +85,7 @@ def _reference(scene, camera):
 
 
 def test_bake_records_caching_cameras_and_coverage(baked):
-    scene, _, layer = baked
+    _scene, _, layer = baked
     description = read_cache_layer(layer)
     parameters = description.parameters
     assert description.method == "multiview"
@@ -94,8 +102,11 @@ def test_bake_records_caching_cameras_and_coverage(baked):
     assert set(camera_column(table, "width")) <= {32.0, 64.0, 128.0}
     assert coverage_summary(layer).startswith(f"{parameters['numViews']} caching views")
     # Each caching view's EXR records its own size, so the generic payload checks of `relight info` pass.
-    assert all(p.shape == (camera_column(table, "height")[int(p.name[4:])], camera_column(table, "width")[int(p.name[4:])])
-               for p in description.payloads if p.name.startswith("view"))
+    assert all(
+        p.shape == (camera_column(table, "height")[int(p.name[4:])], camera_column(table, "width")[int(p.name[4:])])
+        for p in description.payloads
+        if p.name.startswith("view")
+    )
     assert main(["info", str(layer)]) == 0
 
 
@@ -114,8 +125,9 @@ def test_novel_view_matches_reference(baked, tmp_path):
     if values[0] < PSNR_FILLED or values[1] < PSNR_PATCHED:
         for label, image in (("filled", filled.image), ("patched", patched.image), ("reference", reference)):
             write_rgb_exr(tmp_path / f"{label}.exr", image)
-    assert values[0] >= PSNR_FILLED and values[1] >= max(PSNR_PATCHED, values[0] - 0.1), \
+    assert values[0] >= PSNR_FILLED and values[1] >= max(PSNR_PATCHED, values[0] - 0.1), (
         f"PSNR {values}; images in {tmp_path}"
+    )
     if report.num_large_holes:
         assert patched.patched_pixels > 0
 
@@ -152,8 +164,25 @@ def test_render_cli_camera_from_lights_layer_over_time(baked, tmp_path):
     scene, camera, layer = baked
     lights = _write_camera_layer(tmp_path / "novel.usda", camera, scene)
     out = tmp_path / "frame.exr"
-    assert main(["render", str(layer), "--camera", "/World/NovelCam", "--lights", lights,
-                 "--time", "1", "--time", "2", "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(layer),
+                "--camera",
+                "/World/NovelCam",
+                "--lights",
+                lights,
+                "--time",
+                "1",
+                "--time",
+                "2",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     first, second = (read_rgb_exr(tmp_path / f"frame.{t:04d}.exr") for t in (1, 2))
     assert first.shape == second.shape == (HEIGHT, WIDTH, 3)
     # At time 1 NovelCam is the shot camera: the same image as the Python API renders for it.
@@ -169,14 +198,38 @@ def test_render_cli_camera_from_lights_layer_over_time(baked, tmp_path):
 
 def test_render_cli_takes_a_camera_path_as_one_list_of_times():
     parse = build_parser().parse_args
-    assert parse(["render", "c.relight.usda", "--time", "1", "2", "--time", "3.5", "-o", "f.exr"]).time == [1.0, 2.0, 3.5]
+    assert parse(["render", "c.relight.usda", "--time", "1", "2", "--time", "3.5", "-o", "f.exr"]).time == [
+        1.0,
+        2.0,
+        3.5,
+    ]
     assert parse(["render", "c.relight.usda", "-o", "f.exr"]).time is None
 
 
 def test_bake_cli_refuses_an_empty_box(tmp_path):
     shot = SCENES["cornell_box"].write(tmp_path)
-    assert main(["bake", str(shot), "--camera", SCENES["cornell_box"].camera, "--method", "multiview",
-                 "--box", "0", "0", "0", "0", "1", "1", "-o", str(tmp_path / "out")]) == 2
+    assert (
+        main(
+            [
+                "bake",
+                str(shot),
+                "--camera",
+                SCENES["cornell_box"].camera,
+                "--method",
+                "multiview",
+                "--box",
+                "0",
+                "0",
+                "0",
+                "0",
+                "1",
+                "1",
+                "-o",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 2
+    )
     assert not (tmp_path / "out").exists() or not list((tmp_path / "out").glob("*.relight.usda"))
 
 
@@ -185,9 +238,12 @@ def _caching_view_gbuffer(views, k):
     rows = torch.nonzero(views.pool_view == k).squeeze(-1)
     height, width = (int(v) for v in views.sizes[k])
     pixel = views.pool_pixel[rows]
-    return dataclasses.replace(gather_gbuffer(views.pool, rows), image_size=(height, width),
-                               pixel_index=pixel[:, 1].long() * width + pixel[:, 0].long(),
-                               camera_position=views.centres[:, k].clone())
+    return dataclasses.replace(
+        gather_gbuffer(views.pool, rows),
+        image_size=(height, width),
+        pixel_index=pixel[:, 1].long() * width + pixel[:, 0].long(),
+        camera_position=views.centres[:, k].clone(),
+    )
 
 
 def test_cached_lighting_per_sample_equals_the_direct_relighter(baked):
@@ -202,16 +258,27 @@ def test_cached_lighting_per_sample_equals_the_direct_relighter(baked):
     for light in relighter.lights:
         samples = direct.num_light_samples(light)
         u = fixed_light_samples(gbuffer.num_samples, samples)
-        table, unshadowed = incident_table(light, gbuffer.position, gbuffer.geometric_normal, gbuffer.normal, u,
-                                           relighter.visibility, samples)
+        table, unshadowed = incident_table(
+            light, gbuffer.position, gbuffer.geometric_normal, gbuffer.normal, u, relighter.visibility, samples
+        )
         # The unshadowed sum (what edge detection divides by) is the table of the light without shadows.
-        unlit, _ = incident_table(dataclasses.replace(light, shadow=dataclasses.replace(light.shadow, enable=False)),
-                                  gbuffer.position, gbuffer.geometric_normal, gbuffer.normal, u, relighter.visibility, 1)
+        unlit, _ = incident_table(
+            dataclasses.replace(light, shadow=dataclasses.replace(light.shadow, enable=False)),
+            gbuffer.position,
+            gbuffer.geometric_normal,
+            gbuffer.normal,
+            u,
+            relighter.visibility,
+            1,
+        )
         torch.testing.assert_close(unshadowed, unlit[..., :3].sum((1, 2)))
         assert bool((table[..., :3].sum((1, 2)) <= unshadowed * (1 + 1e-5)).all())
         shadowed += int((table[..., :3].sum((1, 2)) < 0.5 * unshadowed).sum())
-        images = group_images(gbuffer.params, view_directions(gbuffer.wo_world(), gbuffer.normal,
-                                                              gbuffer.geometric_normal), table.permute(2, 1, 0))
+        images = group_images(
+            gbuffer.params,
+            view_directions(gbuffer.wo_world(), gbuffer.normal, gbuffer.geometric_normal),
+            table.permute(2, 1, 0),
+        )
         expected = direct.unit_images(light.path)
         assert float(expected.abs().max()) > 0
         torch.testing.assert_close(images, expected, rtol=1e-4, atol=1e-5 * float(expected.abs().max()))
@@ -248,8 +315,14 @@ def test_camera_move_traces_no_shadow_rays(baked):
     for shift in ((0.12, 0.06, -0.1), (-0.1, 0.0, -0.15)):
         image = renderer.render(_moved(camera, scene, shift)).image
         assert relighter.visibility.num_rays == rays and relighter.counters["lit_samples"] == lit
-        retraced = Relighter(relighter.relighter.gbuffer, relighter.visibility, relighter.supersampling,
-                             relighter.exposure_scale, relighter.settings, relighter.object_paths)
+        retraced = Relighter(
+            relighter.relighter.gbuffer,
+            relighter.visibility,
+            relighter.supersampling,
+            relighter.exposure_scale,
+            relighter.settings,
+            relighter.object_paths,
+        )
         retraced.set_lights(relighter.lights)
         expected = retraced.render().numpy()
         # The same estimator, sampled at the nearest caching pixel with one BRDF evaluation per light

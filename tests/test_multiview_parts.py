@@ -12,8 +12,13 @@ import torch
 from pxr import Usd
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
-from pipeline.bake.multiview.cameras import (CUBE_FORWARD, camera_from_row, camera_row, look_camera,
-                                             resolution_from_coverage)
+from pipeline.bake.multiview.cameras import (
+    CUBE_FORWARD,
+    camera_from_row,
+    camera_row,
+    look_camera,
+    resolution_from_coverage,
+)
 from pipeline.bake.multiview.placement import CUBE_UP
 from pipeline.bake.multiview.samples import SurfaceSamples, object_importance, sample_surfaces
 from pipeline.bake.multiview.spheres import maximal_spheres
@@ -22,13 +27,28 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scene.camera import project
 from pipeline.scenes import SCENES
 from pipeline.tracing import Tracer
-from relight_torch.multiview.correspondence import (MAX_SLOPE, RELATIVE_DEPTH_TOLERANCE, Correspondence, ViewPoints,
-                                                    correspondence_map)
+from relight_torch.multiview.correspondence import (
+    MAX_SLOPE,
+    RELATIVE_DEPTH_TOLERANCE,
+    Correspondence,
+    ViewPoints,
+    correspondence_map,
+)
 from relight_torch.multiview.holes import fill_small_holes
 from relight_torch.multiview.incident import group_images, view_directions
 from relight_torch.multiview.resample import bilinear_samples
-from relight_torch.multiview.views import (CONSTANT, PER_MATERIAL, PRIMARY, SAME_SURFACE_COS, SECONDARY, TEXTURED,
-                                           CachingViews, camera_column, column_kinds, world_from_camera)
+from relight_torch.multiview.views import (
+    CONSTANT,
+    PER_MATERIAL,
+    PRIMARY,
+    SAME_SURFACE_COS,
+    SECONDARY,
+    TEXTURED,
+    CachingViews,
+    camera_column,
+    column_kinds,
+    world_from_camera,
+)
 
 
 @pytest.fixture(scope="module")
@@ -44,9 +64,11 @@ def views(cornell):
     _, scene, tracer = cornell
     lo, hi = scene.bounds
     centre = (lo + hi) / 2
-    cameras = [look_camera("/C/0", centre, (0, 0, 1), (0, 1, 0), 90.0, 24, 1.0, 2000.0),
-               look_camera("/C/1", centre + [150, 100, -150], (-1, -1, 1), (0, 1, 0), 100.0, 32, 1.0, 2000.0),
-               look_camera("/C/2", centre + [-180, -120, 0], (1, -0.3, 0.5), (0, 1, 0), 60.0, 16, 1.0, 2000.0)]
+    cameras = [
+        look_camera("/C/0", centre, (0, 0, 1), (0, 1, 0), 90.0, 24, 1.0, 2000.0),
+        look_camera("/C/1", centre + [150, 100, -150], (-1, -1, 1), (0, 1, 0), 100.0, 32, 1.0, 2000.0),
+        look_camera("/C/2", centre + [-180, -120, 0], (1, -0.3, 0.5), (0, 1, 0), 60.0, 16, 1.0, 2000.0),
+    ]
     table = np.stack([camera_row(c, PRIMARY if i == 0 else SECONDARY, i) for i, c in enumerate(cameras)])
     gbuffers = [bake_deep_framebuffer(scene, c, 1, 1, tracer).gbuffer for c in cameras]
     return CachingViews.build(table, gbuffers), cameras
@@ -95,12 +117,14 @@ def test_a_cube_is_scored_through_the_face_a_point_lies_in(cornell):
     camera-by-camera maximum."""
     _, scene, tracer = cornell
     centre = (scene.bounds[0] + scene.bounds[1]) / 2
-    faces = [look_camera(f"/Cube/{f}", centre, CUBE_FORWARD[f], CUBE_UP[f], 90.0, 16, 1.0, 2000.0)
-             for f in (0, 1, 2, 4, 5)]
+    faces = [
+        look_camera(f"/Cube/{f}", centre, CUBE_FORWARD[f], CUBE_UP[f], 90.0, 16, 1.0, 2000.0) for f in (0, 1, 2, 4, 5)
+    ]
     single = look_camera("/C/1", centre + [150, 100, -150], (-1, -1, 1), (0, 1, 0), 100.0, 32, 1.0, 2000.0)
     table = np.stack([camera_row(c, PRIMARY, 0) for c in faces] + [camera_row(single, SECONDARY, 0)])
-    caching = CachingViews.build(table, [bake_deep_framebuffer(scene, c, 1, 1, tracer).gbuffer
-                                         for c in faces + [single]])
+    caching = CachingViews.build(
+        table, [bake_deep_framebuffer(scene, c, 1, 1, tracer).gbuffer for c in faces + [single]]
+    )
     assert caching.cubes.tolist() == [[0, 1, 2, -1, 3, 4]] and caching.singles.tolist() == [5]
     fast = _matches_slow_twin(caching, cornell, 300)
     assert len(set(fast.view[fast.covered].tolist())) >= 4  # several faces and the single camera chosen
@@ -113,8 +137,15 @@ def _grid_view(height, width, holes):
     rows[holes] = -1
     position = torch.stack([index % width, index // width, torch.zeros_like(index)], -1).float()
     normal = torch.tensor([[0.0, 0.0, 1.0]]).expand(height * width, 3)
-    view = ViewPoints((height, width), index, position, normal, torch.zeros(height * width, dtype=torch.int64),
-                      torch.ones(height * width), torch.tensor([0.0, 0.0, 10.0]))
+    view = ViewPoints(
+        (height, width),
+        index,
+        position,
+        normal,
+        torch.zeros(height * width, dtype=torch.int64),
+        torch.ones(height * width),
+        torch.tensor([0.0, 0.0, 10.0]),
+    )
     return view, rows
 
 
@@ -126,14 +157,20 @@ def test_small_holes_are_filled_from_neighbours_and_large_ones_reported(views):
     block = [r * width + c for r in range(1, 4) for c in range(6, 9)]
     view, rows = _grid_view(height, width, torch.tensor(single + pair + block))
     # Every pool row used here: on object 0 facing +z, except row 11 (another object).
-    pool = pool.__class__(**{**pool.__dict__, "object_id": torch.zeros(pool.num_samples, dtype=torch.int32),
-                             "geometric_normal": torch.tensor([[0.0, 0.0, 1.0]]).expand(pool.num_samples, 3)})
+    pool = pool.__class__(
+        **{
+            **pool.__dict__,
+            "object_id": torch.zeros(pool.num_samples, dtype=torch.int32),
+            "geometric_normal": torch.tensor([[0.0, 0.0, 1.0]]).expand(pool.num_samples, 3),
+        }
+    )
     pool.object_id[11] = 5
     filled, report = fill_small_holes(view, rows, pool)
     assert report.num_holes == 12 and report.num_large_holes == 1 and report.num_filled == 3
     assert sorted(report.large_pixel_index.tolist()) == block
-    assert int(filled[single[0]]) in {single[0] + d for d in (-width - 1, -width, -width + 1, -1, 1, width - 1, width,
-                                                          width + 1)}
+    assert int(filled[single[0]]) in {
+        single[0] + d for d in (-width - 1, -width, -width + 1, -1, 1, width - 1, width, width + 1)
+    }
     assert filled[single[0]] != 11 and (filled[block] == -1).all()
     assert report.hole_fraction_before == pytest.approx(12 / 80) and report.hole_fraction_after == pytest.approx(9 / 80)
 
@@ -146,8 +183,9 @@ def _cube_samples(count: int, rng) -> SurfaceSamples:
     position[np.arange(count), axis] = side
     normal = np.zeros((count, 3))
     normal[np.arange(count), axis] = 1 - 2 * side
-    return SurfaceSamples(position.astype(np.float32), normal.astype(np.float32), np.ones(count),
-                          np.zeros(count, np.int32))
+    return SurfaceSamples(
+        position.astype(np.float32), normal.astype(np.float32), np.ones(count), np.zeros(count, np.int32)
+    )
 
 
 def test_maximal_sphere_of_an_empty_cube_is_its_inscribed_sphere():
@@ -161,7 +199,7 @@ def test_maximal_sphere_of_an_empty_cube_is_its_inscribed_sphere():
 
 
 def test_importance_attribute_weights_the_samples(cornell, tmp_path):
-    shot, scene, _ = cornell
+    shot, _scene, _ = cornell
     layer = Usd.Stage.Open(str(shot))
     tall = layer.GetPrimAtPath("/World/Geometry/TallBlock")
     tall.ApplyAPI("RelightImportanceAPI")
@@ -182,18 +220,22 @@ def test_bilinear_resampling_is_exact_at_pixel_centres_and_blends_between(views)
     # Pool rows of view 0 (pixel-centred) whose right-hand neighbour is a sample of the same surface.
     rows = torch.nonzero(caching.pool_view == 0).squeeze(-1)
     centre = caching.pool_pixel[rows]
-    right = caching.pool_row[(centre[:, 1] - 0.5).long() * int(caching.sizes[0, 1]) + (centre[:, 0] + 0.5).long()
-                             .clamp(max=int(caching.sizes[0, 1]) - 1)]
-    ok = (right >= 0) & (pool.object_id[right.clamp(min=0)] == pool.object_id[rows]) & (
-        (pool.geometric_normal[right.clamp(min=0)] * pool.geometric_normal[rows]).sum(-1) > 0.99) & (
-        centre[:, 0] + 1 < int(caching.sizes[0, 1]))
+    right = caching.pool_row[
+        (centre[:, 1] - 0.5).long() * int(caching.sizes[0, 1])
+        + (centre[:, 0] + 0.5).long().clamp(max=int(caching.sizes[0, 1]) - 1)
+    ]
+    ok = (
+        (right >= 0)
+        & (pool.object_id[right.clamp(min=0)] == pool.object_id[rows])
+        & ((pool.geometric_normal[right.clamp(min=0)] * pool.geometric_normal[rows]).sum(-1) > 0.99)
+        & (centre[:, 0] + 1 < int(caching.sizes[0, 1]))
+    )
     rows, right, centre = rows[ok][:50], right[ok][:50], centre[ok][:50]
     assert rows.numel() == 50
     at_centre = bilinear_samples(caching, centre, rows, pool.geometric_normal[rows])
     torch.testing.assert_close(at_centre.params.diffuse_color, pool.params.diffuse_color[rows])
     torch.testing.assert_close(at_centre.normal, pool.normal[rows], atol=1e-5, rtol=1e-5)
-    between = bilinear_samples(caching, centre + torch.tensor([0.5, 0.0]), rows,
-                               pool.geometric_normal[rows])
+    between = bilinear_samples(caching, centre + torch.tensor([0.5, 0.0]), rows, pool.geometric_normal[rows])
     expected = 0.5 * (pool.params.diffuse_color[rows] + pool.params.diffuse_color[right])
     torch.testing.assert_close(between.params.diffuse_color, expected, atol=1e-5, rtol=1e-5)
 
@@ -203,17 +245,23 @@ def _block_taps(caching, view_index, pixel, object_id, normal):
     same surface as the points (object, geometric normal): a direct (slow) twin of the resampling
     taps, as (N, 4) pool rows (-1 where not kept) and bilinear weights renormalised over those kept."""
     taps, weights = [], []
-    for k, (x, y), obj, n in zip(view_index.tolist(), pixel.tolist(), object_id.tolist(), normal):
+    for k, (x, y), obj, n in zip(view_index.tolist(), pixel.tolist(), object_id.tolist(), normal, strict=True):
         height, width = (int(v) for v in caching.sizes[k])
         bx, by = int(np.floor(x - 0.5)), int(np.floor(y - 0.5))
         fx, fy = x - 0.5 - bx, y - 0.5 - by
         row_taps, row_weights = [], []
         for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
             cx, cy = bx + dx, by + dy
-            row = int(caching.pool_row[caching.image_offsets[k] + cy * width + cx]) if (
-                0 <= cx < width and 0 <= cy < height) else -1
-            same = row >= 0 and int(caching.pool.object_id[row]) == obj and float(
-                caching.pool.geometric_normal[row] @ n) > 0.7
+            row = (
+                int(caching.pool_row[caching.image_offsets[k] + cy * width + cx])
+                if (0 <= cx < width and 0 <= cy < height)
+                else -1
+            )
+            same = (
+                row >= 0
+                and int(caching.pool.object_id[row]) == obj
+                and float(caching.pool.geometric_normal[row] @ n) > 0.7
+            )
             row_taps.append(row if same else -1)
             row_weights.append((fx if dx else 1 - fx) * (fy if dy else 1 - fy) if same else 0.0)
         total = sum(row_weights)
@@ -235,7 +283,9 @@ def test_resampling_taps_from_the_neighbour_table_equal_the_pixel_block(cornell,
     pixel, rows, normal = found.pixel[pick], found.pool_row[pick], view.geometric_normal[pick]
     resampled = bilinear_samples(caching, pixel, rows, normal)
     taps, weights = _block_taps(caching, found.view[pick], pixel, view.object_id[pick], normal)
-    for got_taps, got_weights, want_taps, want_weights in zip(resampled.taps, resampled.weights, taps, weights):
+    for got_taps, got_weights, want_taps, want_weights in zip(
+        resampled.taps, resampled.weights, taps, weights, strict=True
+    ):
         used = want_weights > 0
         assert set(got_taps[got_weights > 0].tolist()) == set(want_taps[used].tolist())
         assert torch.allclose(got_weights.sort().values, want_weights.sort().values, atol=1e-5)
@@ -252,10 +302,11 @@ def test_material_columns_by_kind_and_frames_without_cached_tangents(views):
     rows = torch.arange(0, pool.num_samples, 7)
     bare = dataclasses.replace(caching, pool=dataclasses.replace(pool, tangent=torch.zeros_like(pool.tangent)))
     resampled = bilinear_samples(bare, caching.pool_pixel[rows], rows, pool.geometric_normal[rows])
-    frame = torch.stack([resampled.tangent, resampled.bitangent, resampled.normal], -2)     # (N, 3, 3)
+    frame = torch.stack([resampled.tangent, resampled.bitangent, resampled.normal], -2)  # (N, 3, 3)
     torch.testing.assert_close(frame @ frame.transpose(-1, -2), torch.eye(3).expand_as(frame), atol=1e-5, rtol=0)
-    torch.testing.assert_close(resampled.normal, torch.nn.functional.normalize(pool.normal[rows], dim=-1),
-                               atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        resampled.normal, torch.nn.functional.normalize(pool.normal[rows], dim=-1), atol=1e-5, rtol=0
+    )
     for name in ("diffuse_color", "roughness", "metallic"):
         torch.testing.assert_close(getattr(resampled.params, name), getattr(pool.params, name)[rows])
 
@@ -269,9 +320,13 @@ def test_one_group_shading_equals_the_general_path(views):
     generator = torch.Generator().manual_seed(3)
     normal = pool.geometric_normal[rows]
     wo = torch.nn.functional.normalize(torch.rand(rows.numel(), 3, generator=generator) - 0.5 + normal, dim=-1)
-    one = torch.cat([torch.rand(3, 1, rows.numel(), generator=generator),
-                     torch.randn(3, 1, rows.numel(), generator=generator) + normal.T[:, None],
-                     torch.full((1, 1, rows.numel()), 0.7)])
+    one = torch.cat(
+        [
+            torch.rand(3, 1, rows.numel(), generator=generator),
+            torch.randn(3, 1, rows.numel(), generator=generator) + normal.T[:, None],
+            torch.full((1, 1, rows.numel()), 0.7),
+        ]
+    )
     unlit = torch.cat([torch.zeros(3, 1, rows.numel()), normal.T[:, None], torch.full((1, 1, rows.numel()), 0.7)])
     args = (pool.params.index(rows), view_directions(wo, normal, normal))
     single = group_images(*args, one)
@@ -279,8 +334,9 @@ def test_one_group_shading_equals_the_general_path(views):
     torch.testing.assert_close(single, group_images(*args, torch.cat([one, unlit], 1)), rtol=1e-5, atol=1e-6)
 
 
-def _correspondence_loop(views: CachingViews, position: np.ndarray, normal: np.ndarray,
-                                 object_id: np.ndarray) -> Correspondence:
+def _correspondence_loop(
+    views: CachingViews, position: np.ndarray, normal: np.ndarray, object_id: np.ndarray
+) -> Correspondence:
     """`correspondence_map` written from the formula: a Python loop over points and cameras."""
     table = views.table
     world = world_from_camera(table)
@@ -294,7 +350,7 @@ def _correspondence_loop(views: CachingViews, position: np.ndarray, normal: np.n
     view = np.full(len(position), -1, np.int64)
     rows = np.full(len(position), -1, np.int64)
     scores = np.zeros(len(position), np.float32)
-    for i, (p, n) in enumerate(zip(np.asarray(position, np.float64), np.asarray(normal, np.float64))):
+    for i, (p, n) in enumerate(zip(np.asarray(position, np.float64), np.asarray(normal, np.float64), strict=True)):
         for k in range(len(table)):
             centre, axes = world[k][:3, 3], world[k][:3, :3]
             offset = centre - p

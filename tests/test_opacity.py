@@ -10,7 +10,7 @@ from scipy import stats
 
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.visibility.embree import MAX_TRANSPARENT_LAYERS, EmbreeCaster, ShadowLinkCasters
-from relight_torch.visibility.opacity import (OpacityMap, OpacityTable, cut_out, presence_random, ray_keys)
+from relight_torch.visibility.opacity import OpacityMap, OpacityTable, cut_out, presence_random
 from relight_torch.visibility.rays import RayVisibility
 from relight_torch.visibility.shadow_maps import ShadowMapVisibility
 
@@ -35,14 +35,18 @@ def half_texture(hole: str) -> torch.Tensor:
 
 
 def table(uvs: np.ndarray, triangles: list[int], opacity_map: OpacityMap) -> OpacityTable:
-    return OpacityTable(torch.tensor(triangles, dtype=torch.int64), torch.zeros(len(triangles), dtype=torch.int64),
-                        torch.from_numpy(uvs), (opacity_map,))
+    return OpacityTable(
+        torch.tensor(triangles, dtype=torch.int64),
+        torch.zeros(len(triangles), dtype=torch.int64),
+        torch.from_numpy(uvs),
+        (opacity_map,),
+    )
 
 
 def screen_over_floor(opacity_map: OpacityMap) -> tuple[np.ndarray, OpacityTable]:
     """A unit screen at z = 1 (triangles 0, 1, with `opacity_map`) over an opaque floor at z = 0 (2, 3)."""
     screen, uvs = quad(1.0)
-    floor, floor_uvs = quad(0.0, (-4.0, -4.0), (4.0, 4.0))
+    floor, _floor_uvs = quad(0.0, (-4.0, -4.0), (4.0, 4.0))
     return np.concatenate([screen, floor]), table(uvs, [0, 1], opacity_map)
 
 
@@ -78,8 +82,7 @@ def test_lookup_hand_values_and_orientation():
     # barycentrics (u1, u2) give uv (u1 + u2, u2).
     barycentrics = torch.tensor([[0.125 - 0.1, 0.1], [0.875 - 0.1, 0.1], [0.5 - 0.1, 0.1]])
     np.testing.assert_allclose(left.opacity(torch.zeros(3, dtype=torch.long), barycentrics), [0.0, 1.0, 0.5])
-    top = table(uvs, [0, 1], OpacityMap(1.0, texels=half_texture("top"), wrap_s="clamp", wrap_t="clamp",
-                                         threshold=0.5))
+    top = table(uvs, [0, 1], OpacityMap(1.0, texels=half_texture("top"), wrap_s="clamp", wrap_t="clamp", threshold=0.5))
     # Triangle 1: uv = u1 * (1, 1) + u2 * (0, 1): high v is the top of the image (the hole).
     barycentrics = torch.tensor([[0.1, 0.8], [0.1, 0.05]])
     np.testing.assert_array_equal(top.opacity(torch.ones(2, dtype=torch.long), barycentrics), [0.0, 1.0])
@@ -90,10 +93,15 @@ def test_lookup_hand_values_and_orientation():
 def test_table_arrays_round_trip_and_subset():
     _, uvs = quad(0.0)
     st = torch.tensor([[2.0, 0.0, 0.25], [0.0, 1.0, 0.0]], dtype=torch.float64)
-    original = OpacityTable(torch.tensor([3, 8]), torch.tensor([1, 0]), torch.from_numpy(uvs),
-                            (OpacityMap(0.4, mode="presence"),
-                             OpacityMap(1.0, 0.5, "transparent", half_texture("left"), "mirror", "black", 0.9, 0.05,
-                                        st)))
+    original = OpacityTable(
+        torch.tensor([3, 8]),
+        torch.tensor([1, 0]),
+        torch.from_numpy(uvs),
+        (
+            OpacityMap(0.4, mode="presence"),
+            OpacityMap(1.0, 0.5, "transparent", half_texture("left"), "mirror", "black", 0.9, 0.05, st),
+        ),
+    )
     restored = OpacityTable.from_arrays(original.to_arrays())
     triangles = torch.tensor([3, 3, 8, 8, 4])
     barycentrics = torch.rand(5, 2, generator=torch.Generator().manual_seed(1)) * 0.5
@@ -109,8 +117,9 @@ def test_table_arrays_round_trip_and_subset():
 
 @pytest.mark.parametrize("hole", ["left", "top"])
 def test_rays_pass_through_cut_out_holes(hole):
-    corners, opacity = screen_over_floor(OpacityMap(1.0, 0.5, texels=half_texture(hole), wrap_s="clamp",
-                                                    wrap_t="clamp"))
+    corners, opacity = screen_over_floor(
+        OpacityMap(1.0, 0.5, texels=half_texture(hole), wrap_s="clamp", wrap_t="clamp")
+    )
     caster = EmbreeCaster(corners, opacity=opacity)
     grid = (np.arange(16) + 0.5) / 16
     x, y = (a.ravel() for a in np.meshgrid(grid, grid))
@@ -142,7 +151,7 @@ def test_partial_opacity_is_stochastic_presence():
     hits = caster.intersect(origins, directions)
     counts = [np.count_nonzero(np.isclose(hits.distance, d, atol=1e-4)) for d in (1.0, 1.5, 2.0)]
     expected = [0.4, 0.4 * 0.6, 0.4 * 0.36]
-    for count, p in zip(counts + [np.count_nonzero(~hits.hit)], expected + [0.6**3]):
+    for count, p in zip(counts + [np.count_nonzero(~hits.hit)], expected + [0.6**3], strict=True):
         assert abs(count - p * num_rays) < 5 * np.sqrt(num_rays * p * (1 - p)), (counts, p)
     blocked = caster.occluded(origins, directions, np.full(num_rays, 10.0, np.float32))
     assert abs(blocked.mean() - (1 - 0.6**3)) < 5 * np.sqrt(0.216 * 0.784 / num_rays)
@@ -164,8 +173,9 @@ def test_pass_through_loop_is_bounded():
 
 
 def test_shadow_link_casters_keep_the_holes():
-    corners, opacity = screen_over_floor(OpacityMap(1.0, 0.5, texels=half_texture("left"), wrap_s="clamp",
-                                                    wrap_t="clamp"))
+    corners, opacity = screen_over_floor(
+        OpacityMap(1.0, 0.5, texels=half_texture("left"), wrap_s="clamp", wrap_t="clamp")
+    )
     links = ShadowLinkCasters(corners, np.array([0, 0, 1, 1]), ["/Screen", "/Floor"], 1e-4, opacity=opacity)
     caster = links(("/Screen",))
     origins = np.float32([[0.25, 0.5, 0.5], [0.75, 0.5, 0.5]])
@@ -177,11 +187,15 @@ def test_shadow_maps_agree_with_embree_through_holes():
     """A point light above a lattice-like screen: shadow-map and Embree visibility of floor points
     agree except within a texel of the holes' edges."""
     texels = torch.zeros(8, 8)
-    texels[::2, :] = 1.0           # horizontal bars: every other texel row
+    texels[::2, :] = 1.0  # horizontal bars: every other texel row
     corners, opacity = screen_over_floor(OpacityMap(1.0, 0.5, texels=texels, wrap_s="clamp", wrap_t="clamp"))
-    light = Light(path="/Light", kind=LightKind.SPHERE, radius=0.0,
-                  world_from_light=np.array([[1, 0, 0, 0.5], [0, 1, 0, 0.5], [0, 0, 1, 3.0], [0, 0, 0, 1]], float))
-    grid = (np.arange(64) + 0.5) / 64 * 1.6 - 0.2963   # no point exactly on a bar edge's shadow
+    light = Light(
+        path="/Light",
+        kind=LightKind.SPHERE,
+        radius=0.0,
+        world_from_light=np.array([[1, 0, 0, 0.5], [0, 1, 0, 0.5], [0, 0, 1, 3.0], [0, 0, 0, 1]], float),
+    )
+    grid = (np.arange(64) + 0.5) / 64 * 1.6 - 0.2963  # no point exactly on a bar edge's shadow
     x, y = (a.ravel() for a in np.meshgrid(grid, grid))
     points = torch.from_numpy(np.stack([x, y, np.zeros_like(x)], -1)).float()
     normals = torch.tensor([0.0, 0.0, 1.0]).expand_as(points)
@@ -193,7 +207,8 @@ def test_shadow_maps_agree_with_embree_through_holes():
     maps = ShadowMapVisibility(torch.from_numpy(corners), resolution=512, opacity=opacity)
     mapped = torch.isfinite(maps.occluder_distance(light, points, normals, directions, distances))
     solid = ShadowMapVisibility(torch.from_numpy(corners), resolution=512)
-    assert 0.3 < exact.float().mean() < 0.6            # the bars shadow about half the screen's footprint
+    assert 0.3 < exact.float().mean() < 0.6  # the bars shadow about half the screen's footprint
     assert (mapped != exact).float().mean() < 0.02
-    assert (torch.isfinite(solid.occluder_distance(light, points, normals, directions, distances)) != exact
-            ).float().mean() > 0.15
+    assert (
+        torch.isfinite(solid.occluder_distance(light, points, normals, directions, distances)) != exact
+    ).float().mean() > 0.15

@@ -36,8 +36,9 @@ def _camera(scene) -> Camera:
     world_from_camera = np.eye(4)
     world_from_camera[:3, 3] = [(low[0] + high[0]) / 2, (low[1] + high[1]) / 2, high[2] + 8.0]
     size = float(np.max(high - low))
-    return Camera("/Test/Camera", world_from_camera, 50.0, 50.0 * size / 8.0, 50.0 * size / 8.0, 0.0, 0.0,
-                  (0.1, 1000.0), 16, 16)
+    return Camera(
+        "/Test/Camera", world_from_camera, 50.0, 50.0 * size / 8.0, 50.0 * size / 8.0, 0.0, 0.0, (0.1, 1000.0), 16, 16
+    )
 
 
 @pytest.mark.parametrize("name", STAGES)
@@ -64,7 +65,7 @@ def test_opacity_thresholds_cut_the_texture_as_storm():
     alpha = read_image(str(DATA / "textureCutout.png"), "auto").pixels[..., 3]
     size = alpha.shape[0]
     centres = (np.arange(size) + 0.5) / size
-    s, t = np.meshgrid(centres, centres[::-1])          # row 0 of the image is the top: t = 1
+    s, t = np.meshgrid(centres, centres[::-1])  # row 0 of the image is the top: t = 1
     for k, threshold in enumerate((0.0, 0.1, 0.3, 0.5, 0.9, 1.0)):
         origins = np.stack([1.5 * k + s.ravel(), t.ravel(), np.ones(s.size)], -1).astype(np.float32)
         directions = np.broadcast_to(np.float32([0, 0, -1]), origins.shape).copy()

@@ -21,9 +21,9 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scene.types import MaterialInput
 from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import read_cache_layer
+from relight_torch.direct.relighter import open_relighter, shot_lights
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.metrics import psnr
-from relight_torch.direct.relighter import open_relighter, shot_lights
 from relight_torch.visibility.opacity import OPACITY_PAYLOADS
 
 pytestmark = pytest.mark.slow
@@ -42,8 +42,11 @@ def baked(tmp_path_factory):
 
 
 def _reference(scene):
-    return PathTracer(scene, ReferenceSettings(spp=SPP, max_bounces=0, seed=7)).render(
-        find_camera(scene, SCENES["leaves"].camera)).mean
+    return (
+        PathTracer(scene, ReferenceSettings(spp=SPP, max_bounces=0, seed=7))
+        .render(find_camera(scene, SCENES["leaves"].camera))
+        .mean
+    )
 
 
 def _check(image, reference, tmp_path, label) -> float:
@@ -75,9 +78,13 @@ def test_leaves_relit_match_the_reference(baked, tmp_path):
             figures[(shadows, edit)] = _check(image, reference, tmp_path, f"{shadows}.{edit}")
             if (shadows, edit) == ("embree", "shot"):
                 # The cut-outs matter: the same shot rendered with every surface opaque is far away.
-                opaque = dataclasses.replace(scene, materials=[
-                    material.replace(opacity=MaterialInput(np.ones(1, np.float32)), opacity_threshold=0.0)
-                    for material in scene.materials])
+                opaque = dataclasses.replace(
+                    scene,
+                    materials=[
+                        material.replace(opacity=MaterialInput(np.ones(1, np.float32)), opacity_threshold=0.0)
+                        for material in scene.materials
+                    ],
+                )
                 assert psnr(image, _reference(opaque)) < 25.0
     failing = {key: round(value, 2) for key, value in figures.items() if value < THRESHOLD_DB}
     assert not failing, f"PSNR below {THRESHOLD_DB} dB: {failing} (all: {figures}; images in {tmp_path})"

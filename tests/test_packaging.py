@@ -54,8 +54,18 @@ def test_the_wheel_holds_every_tracked_file_of_the_packages(tmp_path):
         if (REPO / name).is_file():
             (source / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(REPO / name, source / name)
-    command = [sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation",
-               "--wheel-dir", str(tmp_path / "dist"), str(source)]
+    command = [
+        sys.executable,
+        "-m",
+        "pip",
+        "wheel",
+        "--quiet",
+        "--no-deps",
+        "--no-build-isolation",
+        "--wheel-dir",
+        str(tmp_path / "dist"),
+        str(source),
+    ]
     subprocess.run(command, check=True, capture_output=True, text=True)
     (wheel,) = (tmp_path / "dist").glob("relight-*.whl")
     packaged = set(zipfile.ZipFile(wheel).namelist())
@@ -87,18 +97,28 @@ def test_relight_version_prints_the_installed_version():
 
 def _pyproject(tmp_path: Path, dependencies: list[str], extras: dict[str, list[str]]) -> Path:
     # JSON arrays of strings are TOML arrays.
-    lines = ["[project]", 'name = "relight"', f"dependencies = {json.dumps(dependencies)}",
-             "[project.optional-dependencies]", *(f"{name} = {json.dumps(values)}" for name, values in extras.items())]
+    lines = [
+        "[project]",
+        'name = "relight"',
+        f"dependencies = {json.dumps(dependencies)}",
+        "[project.optional-dependencies]",
+        *(f"{name} = {json.dumps(values)}" for name, values in extras.items()),
+    ]
     path = tmp_path / "pyproject.toml"
     path.write_text("\n".join(lines) + "\n")
     return path
 
 
 def test_declared_test_requirements_expand_the_projects_own_extras(tmp_path):
-    pyproject = _pyproject(tmp_path, ["numpy==2.4.6"], {
-        "distributed": ["dask==2026.8.0"], "lint": ["ruff==0.17.5"],
-        "test": ["relight[distributed]", "pytest==9.2.0", 'mitsuba==3.9.1; sys_platform == "nowhere"'],
-    })
+    pyproject = _pyproject(
+        tmp_path,
+        ["numpy==2.4.6"],
+        {
+            "distributed": ["dask==2026.8.0"],
+            "lint": ["ruff==0.17.5"],
+            "test": ["relight[distributed]", "pytest==9.2.0", 'mitsuba==3.9.1; sys_platform == "nowhere"'],
+        },
+    )
     names = [r.name for r in environment_support.declared_test_requirements(pyproject)]
     assert names == ["numpy", "pytest", "dask"]
 
@@ -119,9 +139,16 @@ def test_a_missing_wrong_or_unimportable_dependency_is_a_problem(monkeypatch):
 
 
 def test_import_names_come_from_the_installed_files():
-    names = {d: environment_support.import_name(d) for d in ("usd-core", "openexr", "pytest-xdist", "materialx", "torch")}
-    assert names == {"usd-core": "pxr", "openexr": "OpenEXR", "pytest-xdist": "xdist", "materialx": "MaterialX",
-                     "torch": "torch"}
+    names = {
+        d: environment_support.import_name(d) for d in ("usd-core", "openexr", "pytest-xdist", "materialx", "torch")
+    }
+    assert names == {
+        "usd-core": "pxr",
+        "openexr": "OpenEXR",
+        "pytest-xdist": "xdist",
+        "materialx": "MaterialX",
+        "torch": "torch",
+    }
 
 
 def test_a_broken_declared_dependency_stops_the_run(tmp_path):
@@ -132,8 +159,13 @@ def test_a_broken_declared_dependency_stops_the_run(tmp_path):
     shutil.copy2(REPO / "tests" / "conftest.py", tests)
     _pyproject(tmp_path, [], {"test": ["pytest==0.1"]})
     (tests / "test_nothing.py").write_text("def test_nothing():\n    pass\n")
-    result = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-q", str(tests)],
-                            cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-q", str(tests)],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert result.returncode == pytest.ExitCode.USAGE_ERROR, result.stdout + result.stderr
     assert "pytest==0.1 is declared in pyproject.toml but" in result.stderr
 

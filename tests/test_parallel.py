@@ -8,23 +8,26 @@ import threading
 
 import pytest
 import torch
-from cache_support import bake_bundled
 
-from relight_torch.parallel import in_worker, parallel_map, tile_threads, torch_threads
+from cache_support import bake_bundled
 from relight_torch.direct.relighter import RelightSettings, open_relighter
+from relight_torch.parallel import in_worker, parallel_map, tile_threads, torch_threads
 
 
 def test_parallel_map_keeps_order_on_workers_and_restores_torch_threads():
     before = torch.get_num_threads()
-    names = parallel_map(lambda item: (item, threading.current_thread().name, in_worker(), torch.get_num_threads()),
-                         list(range(6)), 2)
+    names = parallel_map(
+        lambda item: (item, threading.current_thread().name, in_worker(), torch.get_num_threads()), list(range(6)), 2
+    )
     assert [item for item, *_ in names] == list(range(6))
     assert all(name.startswith("relight") and worker and threads == 1 for _, name, worker, threads in names)
     assert torch.get_num_threads() == before and not in_worker()
     # Inside a worker nothing fans out again: the items run in turn on that worker.
     nested = parallel_map(lambda _: parallel_map(lambda _: threading.current_thread().name, [0, 1], 2), [0], 2)
     assert len(set(nested[0])) == 1
-    assert parallel_map(lambda item: threading.current_thread().name, [0, 1], 1) == [threading.current_thread().name] * 2
+    assert (
+        parallel_map(lambda item: threading.current_thread().name, [0, 1], 1) == [threading.current_thread().name] * 2
+    )
 
 
 def test_parallel_map_reraises_a_pieces_error():

@@ -16,8 +16,9 @@ def test_dask_bake_equals_the_local_bake(tmp_path, monkeypatch):
     shot = production_support.write_shot(tmp_path / "scene")
     local, remote = tmp_path / "local" / "out", tmp_path / "dask" / "out"  # same depth: same relative paths
     assert main(production_support.bake_arguments(shot, local)) == 0
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None, protocol="tcp") as cluster:
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None, protocol="tcp"
+    ) as cluster:
         assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
         with distributed.Client(cluster) as client:
             with distributed.get_task_stream(client) as tasks:  # collected when the block ends

@@ -22,8 +22,13 @@ CODE_VERSION = "test-resume"
 def _bake_killed_at(kill_at: str, arguments: list[str]) -> subprocess.CompletedProcess:
     # One pinned code version for all runs: the source digest would follow edits made meanwhile.
     environment = {**os.environ, "OMP_NUM_THREADS": "1", CODE_VERSION_VARIABLE: CODE_VERSION}
-    return subprocess.run([sys.executable, str(HELPER), kill_at, "--", *arguments], capture_output=True, text=True,
-                          env=environment, timeout=300)
+    return subprocess.run(
+        [sys.executable, str(HELPER), kill_at, "--", *arguments],
+        capture_output=True,
+        text=True,
+        env=environment,
+        timeout=300,
+    )
 
 
 def _chunks(directory: Path) -> list[Path]:

@@ -30,8 +30,10 @@ def squares(spec: ChunkSpec) -> dict[str, np.ndarray]:
 
 
 def _specs(scale: int = 1) -> list[ChunkSpec]:
-    return [ChunkSpec(SHOT, "squares", (("scale", scale),), start, stop, (("threads", 1),))
-            for start, stop in chunk_ranges(10, 4)]
+    return [
+        ChunkSpec(SHOT, "squares", (("scale", scale),), start, stop, (("threads", 1),))
+        for start, stop in chunk_ranges(10, 4)
+    ]
 
 
 def test_chunk_ranges_cover_the_work_once():
@@ -49,12 +51,12 @@ def test_valid_chunks_are_kept_and_bad_ones_recomputed(tmp_path):
     assert len(CALLS) == 3
 
     CALLS.clear()
-    paths[0].write_bytes(paths[0].read_bytes()[:-20])        # truncated (a hand edit, a bad disk)
-    paths[1].write_bytes(paths[2].read_bytes())              # another chunk's file
+    paths[0].write_bytes(paths[0].read_bytes()[:-20])  # truncated (a hand edit, a bad disk)
+    paths[1].write_bytes(paths[2].read_bytes())  # another chunk's file
     (tmp_path / ".squares-000000008-000000010.tmp-1.npz").write_bytes(b"half")  # a killed writer's temp
     speedier = [ChunkSpec(s.shot, s.name, s.parameters, s.start, s.stop, (("threads", 2),)) for s in _specs()]
     again = run_chunks(squares, speedier, tmp_path, progress=False)
-    assert sorted(CALLS) == [(0, 4), (4, 8)]                 # options are not part of a chunk's identity
+    assert sorted(CALLS) == [(0, 4), (4, 8)]  # options are not part of a chunk's identity
     assert np.concatenate([load_chunk(p)["values"] for p in again]).tolist() == [i * i for i in range(10)]
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
@@ -122,10 +124,12 @@ def test_transfer_rows_are_the_same_on_one_or_two_threads_and_resume(tmp_path, m
     shot = ShotSpec.of(scene, find_camera(scene, SCENES["cornell_box"].camera))
     baked = {}
     for threads in (1, 2):
-        settings = transfer.TransferSettings(num_gathers=16, rows_per_chunk=16, pairs_per_batch=5 * 16,
-                                             num_threads=threads)
-        baked[threads] = transfer.bake_rows(shot, transfer.F_PREFIX, 37, 6, 1, settings, tmp_path / str(threads),
-                                            progress=False).arrays()
+        settings = transfer.TransferSettings(
+            num_gathers=16, rows_per_chunk=16, pairs_per_batch=5 * 16, num_threads=threads
+        )
+        baked[threads] = transfer.bake_rows(
+            shot, transfer.F_PREFIX, 37, 6, 1, settings, tmp_path / str(threads), progress=False
+        ).arrays()
     assert baked[1].keys() == baked[2].keys()
     for name in baked[1]:
         np.testing.assert_array_equal(baked[1][name], baked[2][name])

@@ -18,8 +18,27 @@ TARGET_DB = 26.0
 def test_cuts_sized_for_a_target_record_their_choice_and_meet_it(tmp_path):
     bundled = SCENES["dome"]
     shot = bundled.write(tmp_path / "scene")
-    assert main(["bake", str(shot), "--camera", bundled.camera, "--width", "32", "--height", "24",
-                 "--method", "cuts", "--out", str(tmp_path / "sized"), "--quality", str(TARGET_DB)]) == 0
+    assert (
+        main(
+            [
+                "bake",
+                str(shot),
+                "--camera",
+                bundled.camera,
+                "--width",
+                "32",
+                "--height",
+                "24",
+                "--method",
+                "cuts",
+                "--out",
+                str(tmp_path / "sized"),
+                "--quality",
+                str(TARGET_DB),
+            ]
+        )
+        == 0
+    )
     layer = tmp_path / "sized" / "dome.relight.usda"
     parameters = read_cache_layer(layer).parameters
     choice = parse_params(parameters["qualityChoice"])
@@ -28,7 +47,10 @@ def test_cuts_sized_for_a_target_record_their_choice_and_meet_it(tmp_path):
 
     # An independent check: another seed, more spp, raw PSNR, at the chosen illumination cut size.
     scene = load_scene(shot, width=32, height=24)
-    reference = PathTracer(scene, ReferenceSettings(spp=256, max_bounces=0, seed=7)).render(
-        find_camera(scene, bundled.camera)).mean
+    reference = (
+        PathTracer(scene, ReferenceSettings(spp=256, max_bounces=0, seed=7))
+        .render(find_camera(scene, bundled.camera))
+        .mean
+    )
     relighter = open_cuts_relighter(layer, cuts_settings=CutsRelightSettings(max_cut=int(choice["cut"])))
     assert psnr(relighter.render().numpy(), reference) >= TARGET_DB

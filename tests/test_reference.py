@@ -37,15 +37,34 @@ def _plane_scene(material: Material, lights: list[Light], size: int = 8) -> Scen
     """A plane y = 0 facing +Y, under `lights`, seen straight down from (0, CAMERA_HEIGHT, 0)."""
     h = PLANE_HALF_SIZE
     corners = np.array([[[-h, 0, -h], [-h, 0, h], [h, 0, h]], [[-h, 0, -h], [h, 0, h], [h, 0, -h]]], np.float32)
-    geometry = Geometry(positions=corners, normals=np.broadcast_to(np.float32([0, 1, 0]), (2, 3, 3)).copy(),
-                        uvs=np.zeros((2, 3, 2), np.float32), material_ids=np.zeros(2, np.int32),
-                        object_ids=np.zeros(2, np.int32))
+    geometry = Geometry(
+        positions=corners,
+        normals=np.broadcast_to(np.float32([0, 1, 0]), (2, 3, 3)).copy(),
+        uvs=np.zeros((2, 3, 2), np.float32),
+        material_ids=np.zeros(2, np.int32),
+        object_ids=np.zeros(2, np.int32),
+    )
     aperture = 2.0 * 50.0 * math.tan(math.radians(FIELD_OF_VIEW_DEGREES) / 2.0)
-    camera = Camera(path="/Camera", world_from_camera=WORLD_FROM_LOOKING_DOWN, focal_length=50.0,
-                    horizontal_aperture=aperture, vertical_aperture=aperture, horizontal_aperture_offset=0.0,
-                    vertical_aperture_offset=0.0, clipping_range=(0.01, 1e6), width=size, height=size)
-    return Scene(source="<test>", geometry=geometry, objects=[SceneObject("/Plane", True)], materials=[material],
-                 lights=lights, cameras={camera.path: camera})
+    camera = Camera(
+        path="/Camera",
+        world_from_camera=WORLD_FROM_LOOKING_DOWN,
+        focal_length=50.0,
+        horizontal_aperture=aperture,
+        vertical_aperture=aperture,
+        horizontal_aperture_offset=0.0,
+        vertical_aperture_offset=0.0,
+        clipping_range=(0.01, 1e6),
+        width=size,
+        height=size,
+    )
+    return Scene(
+        source="<test>",
+        geometry=geometry,
+        objects=[SceneObject("/Plane", True)],
+        materials=[material],
+        lights=lights,
+        cameras={camera.path: camera},
+    )
 
 
 def _render(scene: Scene, **settings):
@@ -66,12 +85,18 @@ def test_sphere_light_over_diffuse_plane_gives_closed_form_irradiance():
     view and light both along the normal, Schlick F(E.h) < 1e-12 and the surface reflects
     diffuseColor / pi * E exactly. Direct light only."""
     albedo, radiance, radius, distance = 0.6, 40.0, 1.0, 10.0
-    material = Material(path="/Matte", diffuse_color=_constant(albedo, albedo / 2, albedo / 4),
-                        use_specular_workflow=True, specular_color=_constant(0, 0, 0), roughness=_constant(1.0))
+    material = Material(
+        path="/Matte",
+        diffuse_color=_constant(albedo, albedo / 2, albedo / 4),
+        use_specular_workflow=True,
+        specular_color=_constant(0, 0, 0),
+        roughness=_constant(1.0),
+    )
     world_from_light = np.eye(4)
     world_from_light[1, 3] = distance
-    light = Light(path="/Sphere", kind=LightKind.SPHERE, world_from_light=world_from_light, intensity=radiance,
-                  radius=radius)
+    light = Light(
+        path="/Sphere", kind=LightKind.SPHERE, world_from_light=world_from_light, intensity=radiance, radius=radius
+    )
     image = _render(_plane_scene(material, [light]), spp=64, max_bounces=0)
     irradiance = math.pi * radiance * (radius / distance) ** 2
     expected = np.array([albedo, albedo / 2, albedo / 4]) / math.pi * irradiance
@@ -99,12 +124,20 @@ def test_plane_under_uniform_dome_reflects_its_directional_albedo(max_bounces):
     material = Material(path="/Plastic", diffuse_color=_constant(0.8, 0.5, 0.2), roughness=_constant(0.3))
     dome = Light(path="/Dome", kind=LightKind.DOME, intensity=1.0)
     image = _render(_plane_scene(material, [dome]), spp=64, max_bounces=max_bounces)
-    params = PreviewSurfaceParams.from_numpy({
-        "diffuse_color": np.float32([[0.8, 0.5, 0.2]]), "emissive_color": np.zeros((1, 3), np.float32),
-        "specular_color": np.zeros((1, 3), np.float32), "metallic": np.zeros(1, np.float32),
-        "roughness": np.float32([0.3]), "clearcoat": np.zeros(1, np.float32),
-        "clearcoat_roughness": np.float32([0.01]), "ior": np.float32([1.5]), "opacity": np.ones(1, np.float32),
-        "use_specular_workflow": np.zeros(1, bool)}).to("cpu", torch.float64)
+    params = PreviewSurfaceParams.from_numpy(
+        {
+            "diffuse_color": np.float32([[0.8, 0.5, 0.2]]),
+            "emissive_color": np.zeros((1, 3), np.float32),
+            "specular_color": np.zeros((1, 3), np.float32),
+            "metallic": np.zeros(1, np.float32),
+            "roughness": np.float32([0.3]),
+            "clearcoat": np.zeros(1, np.float32),
+            "clearcoat_roughness": np.float32([0.01]),
+            "ior": np.float32([1.5]),
+            "opacity": np.ones(1, np.float32),
+            "use_specular_workflow": np.zeros(1, bool),
+        }
+    ).to("cpu", torch.float64)
     expected = _directional_albedo(params, torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64))
     _assert_mean_matches(image, expected, relative_floor=1e-3)
 
@@ -134,8 +167,10 @@ def test_variance_is_the_spread_of_independent_renders(cornell_box):
     the ratio of the two image-wide averages is 1 within its sampling error (~ sqrt(2 / K))."""
     _, scene, camera = cornell_box
     num_seeds = 24
-    renders = [PathTracer(scene, ReferenceSettings(spp=8, max_bounces=1, seed=seed)).render(camera)
-               for seed in range(num_seeds)]
+    renders = [
+        PathTracer(scene, ReferenceSettings(spp=8, max_bounces=1, seed=seed)).render(camera)
+        for seed in range(num_seeds)
+    ]
     scatter = np.var([r.mean for r in renders], axis=0, ddof=1)
     reported = np.mean([r.variance for r in renders], axis=0)
     assert np.all(np.isfinite(reported)) and np.all(reported >= 0)
@@ -146,8 +181,26 @@ def test_variance_is_the_spread_of_independent_renders(cornell_box):
 def test_cli_writes_an_exr_with_colour_and_variance(cornell_box, tmp_path):
     path, _, camera = cornell_box
     out = tmp_path / "reference.exr"
-    code = main(["reference", str(path), "--camera", camera.path, "-o", str(out), "--spp", "4",
-                 "--max-bounces", "1", "--width", "10", "--height", "8", "--seed", "2"])
+    code = main(
+        [
+            "reference",
+            str(path),
+            "--camera",
+            camera.path,
+            "-o",
+            str(out),
+            "--spp",
+            "4",
+            "--max-bounces",
+            "1",
+            "--width",
+            "10",
+            "--height",
+            "8",
+            "--seed",
+            "2",
+        ]
+    )
     assert code == 0
     channels, header = read_exr(out)
     assert set(channels) == {"R", "G", "B", "variance.R", "variance.G", "variance.B"}

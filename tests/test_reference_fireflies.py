@@ -37,12 +37,20 @@ WEIGHT_LIMIT = 3.0
 
 
 def _params(num: int, roughness: float, metallic: float) -> PreviewSurfaceParams:
-    one = PreviewSurfaceParams.from_numpy({
-        "diffuse_color": np.float32([[0.8, 0.7, 0.6]]), "emissive_color": np.zeros((1, 3), np.float32),
-        "specular_color": np.zeros((1, 3), np.float32), "metallic": np.float32([metallic]),
-        "roughness": np.float32([roughness]), "clearcoat": np.zeros(1, np.float32),
-        "clearcoat_roughness": np.float32([0.01]), "ior": np.float32([1.5]), "opacity": np.ones(1, np.float32),
-        "use_specular_workflow": np.zeros(1, bool)})
+    one = PreviewSurfaceParams.from_numpy(
+        {
+            "diffuse_color": np.float32([[0.8, 0.7, 0.6]]),
+            "emissive_color": np.zeros((1, 3), np.float32),
+            "specular_color": np.zeros((1, 3), np.float32),
+            "metallic": np.float32([metallic]),
+            "roughness": np.float32([roughness]),
+            "clearcoat": np.zeros(1, np.float32),
+            "clearcoat_roughness": np.float32([0.01]),
+            "ior": np.float32([1.5]),
+            "opacity": np.ones(1, np.float32),
+            "use_specular_workflow": np.zeros(1, bool),
+        }
+    )
     return one.index(torch.zeros(num, dtype=torch.long))
 
 
@@ -85,8 +93,9 @@ def test_no_pixel_exceeds_what_the_lights_deliver(lighting, tmp_path):
     legitimately approach it). The regression for the faults is the weight test above: at this
     size the dome case passed before the fix too (a larger normal-mapped stage read 2.8x the bound
     at 64 spp, four bounces)."""
-    spec = ShotSpec(lighting="latlong8" if lighting == "dome" else "sun", normal_map=True, roughness=0.01,
-                    width=40, height=30)
+    spec = ShotSpec(
+        lighting="latlong8" if lighting == "dome" else "sun", normal_map=True, roughness=0.01, width=40, height=30
+    )
     scene = load_scene(str(write_shot(tmp_path, spec)))
     camera = find_camera(scene, spec.camera)
     image = PathTracer(scene, ReferenceSettings(spp=48, max_bounces=2, seed=3)).render(camera)
@@ -94,8 +103,10 @@ def test_no_pixel_exceeds_what_the_lights_deliver(lighting, tmp_path):
     assert np.all(np.isfinite(image.mean))
     assert float(image.mean.mean()) > 0.01, "the stage is lit"
     # No slack from the pixels' own variance: a firefly inflates it as much as the mean.
-    assert float(image.mean.max()) <= bound, (f"pixel {np.unravel_index(image.mean.argmax(), image.mean.shape)} "
-                                              f"reads {image.mean.max():.3g} > bound {bound:.3g}")
+    assert float(image.mean.max()) <= bound, (
+        f"pixel {np.unravel_index(image.mean.argmax(), image.mean.shape)} "
+        f"reads {image.mean.max():.3g} > bound {bound:.3g}"
+    )
 
 
 def test_dome_pdf_is_exact_near_the_poles():
@@ -105,7 +116,7 @@ def test_dome_pdf_is_exact_near_the_poles():
     the exact density of the same float32 directions (angles from the vectors in float64), it now
     agrees to 1e-4."""
     texture = np.full((16, 32, 3), 0.01, np.float32)
-    texture[0] = 1.0          # the poles' rows hold most of the light, so most samples land there
+    texture[0] = 1.0  # the poles' rows hold most of the light, so most samples land there
     texture[-1] = 0.5
     sampler = dome_samplers.get(texture, torch.device("cpu"), torch.float32)
     u = torch.rand(200_000, 2, generator=torch.Generator().manual_seed(0))

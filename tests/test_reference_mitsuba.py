@@ -75,8 +75,9 @@ def _open_ceiling_above_lamp(scene: Scene) -> Scene:
     hx0, hz0, hx1, hz1 = hole_low[0], hole_low[2], hole_high[0], hole_high[2]
     frame = [(x0, z0, x1, hz0), (x0, hz1, x1, z1), (x0, hz0, hx0, hz1), (hx1, hz0, x1, hz1)]
     # (x, z) corners in this order wind each triangle to face down (-Y), into the box.
-    quads = np.array([[(a, y, b), (c, y, b), (c, y, d), (a, y, b), (c, y, d), (a, y, d)] for a, b, c, d in frame],
-                     np.float32).reshape(-1, 3, 3)
+    quads = np.array(
+        [[(a, y, b), (c, y, b), (c, y, d), (a, y, b), (c, y, d), (a, y, d)] for a, b, c, d in frame], np.float32
+    ).reshape(-1, 3, 3)
     num_new = quads.shape[0]
     first = np.flatnonzero(ceiling)[0]
 
@@ -89,7 +90,8 @@ def _open_ceiling_above_lamp(scene: Scene) -> Scene:
         normals=replaced(geometry.normals, np.broadcast_to([0.0, -1.0, 0.0], quads.shape)),
         uvs=replaced(geometry.uvs, np.zeros((num_new, 3, 2))),
         material_ids=replaced(geometry.material_ids, np.full(num_new, geometry.material_ids[first])),
-        object_ids=replaced(geometry.object_ids, np.full(num_new, geometry.object_ids[first])))
+        object_ids=replaced(geometry.object_ids, np.full(num_new, geometry.object_ids[first])),
+    )
     return dataclasses.replace(scene, geometry=geometry)
 
 
@@ -99,8 +101,11 @@ def _without_textures_and_shaped_lights(scene: Scene) -> Scene:
     with ShapingAPI (the spot) are dropped, as Mitsuba has no shaped sphere light."""
     materials = []
     for material in scene.materials:
-        changes = {name: MaterialInput(np.asarray(value.value)) for name, value in vars(material).items()
-                   if isinstance(value, MaterialInput) and value.texture is not None}
+        changes = {
+            name: MaterialInput(np.asarray(value.value))
+            for name, value in vars(material).items()
+            if isinstance(value, MaterialInput) and value.texture is not None
+        }
         if "normal" in changes:
             changes["normal"] = MaterialInput(np.array([0.0, 0.0, 1.0], np.float32))
         materials.append(material.replace(**changes))
@@ -115,8 +120,7 @@ def _check(scene: Scene, camera: Camera, max_bounces: int, spp: int, tmp_path) -
     comparison = compare(ours.mean, ours.variance, theirs, theirs_variance, keep)
     if not comparison.passed():
         _write_failure(tmp_path, ours.mean, theirs)
-        raise AssertionError(f"reference and Mitsuba disagree beyond their noise ({tmp_path}): "
-                             f"{comparison.describe()}")
+        raise AssertionError(f"reference and Mitsuba disagree beyond their noise ({tmp_path}): {comparison.describe()}")
     return comparison
 
 
@@ -151,8 +155,7 @@ def test_comparison_detects_a_two_percent_bias():
     theirs = truth + rng.normal(0.0, np.sqrt(variance))
     comparison = compare(ours, variance, theirs, variance, np.ones((32, 32), bool))
     assert np.all(comparison.z_global > Z_LIMIT), comparison.describe()
-    unbiased = compare(truth + rng.normal(0.0, np.sqrt(variance)), variance, theirs, variance,
-                        np.ones((32, 32), bool))
+    unbiased = compare(truth + rng.normal(0.0, np.sqrt(variance)), variance, theirs, variance, np.ones((32, 32), bool))
     assert np.all(np.abs(unbiased.z_global) < Z_LIMIT) and unbiased.mse_ratio < MSE_RATIO_LIMIT
     assert math.isfinite(unbiased.psnr)
 
@@ -161,8 +164,11 @@ def test_comparison_detects_a_two_percent_bias():
 def test_environment_light_matches_mitsuba(case, tmp_path):
     agreement = run_case(case, tmp_path / "shot")
     energies = "; ".join(f"{o.path.rsplit('/', 1)[-1]} {o.ratio:.4f} +- {o.sigma:.4f}" for o in agreement.objects)
-    bad_energy = [o for o in agreement.objects if abs(o.ratio - 1.0) > Z_LIMIT * o.sigma
-                  or (o.sigma <= ENERGY_LIMIT / 4 and abs(o.ratio - 1.0) > ENERGY_LIMIT)]
+    bad_energy = [
+        o
+        for o in agreement.objects
+        if abs(o.ratio - 1.0) > Z_LIMIT * o.sigma or (o.sigma <= ENERGY_LIMIT / 4 and abs(o.ratio - 1.0) > ENERGY_LIMIT)
+    ]
     if not agreement.comparison.passed() or bad_energy:
         _write_failure(tmp_path, agreement.ours, agreement.theirs)
         raise AssertionError(f"{case.name}: {agreement.comparison.describe()}; energy ratios {energies} ({tmp_path})")
@@ -189,7 +195,7 @@ def test_mitsuba_envmap_follows_the_usdlux_latlong_convention():
 
     for k, (row, col) in enumerate(texels):
         assert seen(directions[row, col]) == pytest.approx(k + 1.0)
-        assert seen(directions[row, width - 1 - col]) != pytest.approx(k + 1.0)   # mirrored
+        assert seen(directions[row, width - 1 - col]) != pytest.approx(k + 1.0)  # mirrored
 
 
 @pytest.mark.parametrize("change", ["mirrored", "shifted"])
@@ -212,10 +218,16 @@ def _leaves_for_mitsuba(scene: Scene) -> Scene:
     """The leaves scene reduced to what converts exactly: the leaves' and lattice's colour textures
     become their constant fallback (their binary alpha cut-outs stay), and the 1-degree sun a
     zero-angle one of the same irradiance (Mitsuba's 'directional')."""
-    materials = [material.replace(diffuse_color=MaterialInput(np.asarray(material.diffuse_color.value)))
-                 for material in scene.materials]
-    lights = [dataclasses.replace(light, angle=0.0, intensity=leaves_scene.SUN_IRRADIANCE)
-              if light.kind is LightKind.DISTANT else light for light in scene.lights]
+    materials = [
+        material.replace(diffuse_color=MaterialInput(np.asarray(material.diffuse_color.value)))
+        for material in scene.materials
+    ]
+    lights = [
+        dataclasses.replace(light, angle=0.0, intensity=leaves_scene.SUN_IRRADIANCE)
+        if light.kind is LightKind.DISTANT
+        else light
+        for light in scene.lights
+    ]
     return dataclasses.replace(scene, materials=materials, lights=lights)
 
 

@@ -17,8 +17,14 @@ EXPECTED_PASSES = {"colour": (0, 0, 0), "shaping": (0, 1, 0), "move": (1, 1, 0),
 
 @pytest.fixture(scope="module")
 def report(tmp_path_factory):
-    return run_benchmark("cornell_box", 16, 16, repeats=2, settings=RelightSettings(area_samples=4),
-                         work_dir=tmp_path_factory.mktemp("bench"))
+    return run_benchmark(
+        "cornell_box",
+        16,
+        16,
+        repeats=2,
+        settings=RelightSettings(area_samples=4),
+        work_dir=tmp_path_factory.mktemp("bench"),
+    )
 
 
 def test_each_edit_kind_recomputes_its_stage_only(report):

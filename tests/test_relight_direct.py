@@ -14,9 +14,9 @@ from pipeline.bake.direct.bake import bake_direct
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
+from relight_torch.direct.relighter import Relighter, shot_lights
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.metrics import psnr
-from relight_torch.direct.relighter import Relighter, shot_lights
 
 # scene -> (width, height, reference spp, PSNR threshold in dB). Thresholds are what the method
 # reaches at these sizes, measured (docs/ACCURACY.md): the Cornell box (41.7-44.5 dB with the rect

@@ -17,10 +17,10 @@ import torch
 from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
+from relight_torch.direct.relighter import Relighter, RelightSettings, auto_filter_radius, open_relighter
 from relight_torch.lights import polygon
 from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr
-from relight_torch.direct.relighter import Relighter, RelightSettings, auto_filter_radius, open_relighter
 from relight_torch.visibility.surface_filter import SurfaceFilter
 
 SIZE = 96
@@ -36,8 +36,13 @@ def baked(tmp_path_factory) -> Relighter:
 
 
 def render(baked: Relighter, lights, samples: int, radius: int = 0):
-    relighter = Relighter(baked.gbuffer, baked.visibility, baked.supersampling, baked.exposure_scale,
-                          RelightSettings(area_samples=samples, shadow_filter_radius=radius))
+    relighter = Relighter(
+        baked.gbuffer,
+        baked.visibility,
+        baked.supersampling,
+        baked.exposure_scale,
+        RelightSettings(area_samples=samples, shadow_filter_radius=radius),
+    )
     relighter.set_lights(lights)
     return relighter.render().numpy()
 
@@ -50,11 +55,14 @@ def plain(baked: Relighter, lights, samples: int, monkeypatch):
 
 # shaping -> (least PSNR of 4 samples with the ratio against the truth, least gain over plain
 # Monte Carlo with the same 4 samples); measured 43.6 / 7.3, 45.4 / 3.9, 43.4 / 3.4 dB.
-@pytest.mark.parametrize(("shaping", "min_db", "min_gain_db"), [
-    (None, 43.1, 6.5),
-    (Shaping(focus=4.0), 44.9, 3.4),
-    (Shaping(cone_angle=40.0, cone_softness=0.4), 42.9, 3.0),
-])
+@pytest.mark.parametrize(
+    ("shaping", "min_db", "min_gain_db"),
+    [
+        (None, 43.1, 6.5),
+        (Shaping(focus=4.0), 44.9, 3.4),
+        (Shaping(cone_angle=40.0, cone_softness=0.4), 42.9, 3.0),
+    ],
+)
 def test_few_samples_with_the_ratio_beat_plain_monte_carlo(baked, monkeypatch, shaping, min_db, min_gain_db):
     lights = [dataclasses.replace(light, shaping=shaping) for light in baked.lights]
     truth = plain(baked, lights, 256, monkeypatch)
@@ -85,29 +93,35 @@ def test_the_filter_stays_on_one_surface(baked):
 
 
 def test_the_automatic_filter_radius_follows_the_image_size():
-    assert [auto_filter_radius(size, 1) for size in ((48, 64), (160, 160), (239, 1000), (240, 320), (400, 400),
-                                                     (480, 640), (1080, 1920))] == [0, 0, 0, 2, 3, 4, 4]
+    assert [
+        auto_filter_radius(size, 1)
+        for size in ((48, 64), (160, 160), (239, 1000), (240, 320), (400, 400), (480, 640), (1080, 1920))
+    ] == [0, 0, 0, 2, 3, 4, 4]
     assert auto_filter_radius((960, 1280), 2) == 8  # sub-samples: the same 4 pixels
 
 
 def test_a_filtered_light_takes_one_sample_at_matte_points_and_all_at_glossy_ones(baked):
     def samples(gbuffer, **settings):
-        relighter = Relighter(gbuffer, baked.visibility, baked.supersampling, baked.exposure_scale,
-                              RelightSettings(**settings))
+        relighter = Relighter(
+            gbuffer, baked.visibility, baked.supersampling, baked.exposure_scale, RelightSettings(**settings)
+        )
         relighter.set_lights(baked.lights)
         return relighter.render_samples()
 
     # The Cornell box is matte: a filtered rect light takes `filtered_area_samples` everywhere.
-    assert torch.equal(samples(baked.gbuffer, shadow_filter_radius=1),
-                       samples(baked.gbuffer, shadow_filter_radius=1, area_samples=1))
+    assert torch.equal(
+        samples(baked.gbuffer, shadow_filter_radius=1), samples(baked.gbuffer, shadow_filter_radius=1, area_samples=1)
+    )
     # Make the floor and the boxes' tops glossy: they keep 16 samples, the rest takes 1. The filter
     # never mixes the two (other surfaces), so each part equals a render with one count everywhere.
     up = baked.gbuffer.normal[:, 1] > 0.99
     roughness = torch.where(up, 0.3, baked.gbuffer.params.roughness)
     shiny = dataclasses.replace(baked.gbuffer, params=dataclasses.replace(baked.gbuffer.params, roughness=roughness))
     mixed = samples(shiny, shadow_filter_radius=1)
-    torch.testing.assert_close(mixed[up], samples(shiny, shadow_filter_radius=1, filtered_area_samples=16)[up],
-                               rtol=1e-5, atol=1e-6)
-    torch.testing.assert_close(mixed[~up], samples(shiny, shadow_filter_radius=1, area_samples=1)[~up],
-                               rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(
+        mixed[up], samples(shiny, shadow_filter_radius=1, filtered_area_samples=16)[up], rtol=1e-5, atol=1e-6
+    )
+    torch.testing.assert_close(
+        mixed[~up], samples(shiny, shadow_filter_radius=1, area_samples=1)[~up], rtol=1e-5, atol=1e-6
+    )
     assert not torch.allclose(mixed[up], samples(shiny, shadow_filter_radius=1, area_samples=1)[up])

@@ -25,17 +25,19 @@ from pipeline.bake.direct.bake import bake_direct
 from pipeline.benchmarks.direct import checker_cookie, look_at
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
+from relight_torch.direct.relighter import Relighter, RelightSettings, colour_scale, open_relighter, unit_light
+from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light
 from relight_torch.lights.light import BarzelShaping, Light, LightKind, Shadow, Shaping
 from relight_torch.lights.polygon import analytic_ratio
 from relight_torch.lights.shadow import shadow_factor
-from relight_torch.light_samples import fixed_light_samples
 from relight_torch.math.frame import to_local
-from relight_torch.direct.relighter import Relighter, RelightSettings, colour_scale, open_relighter, unit_light
 from relight_torch.shading import reflected_radiance
 
 SIZE = 32
-SETTINGS = RelightSettings(area_samples=4, chunk_samples=1024, shadow_filter_radius=0)  # the per-sample twin: unfiltered
+SETTINGS = RelightSettings(
+    area_samples=4, chunk_samples=1024, shadow_filter_radius=0
+)  # the per-sample twin: unfiltered
 UP = np.array([0.0, 1.0, 0.0])
 
 
@@ -56,13 +58,26 @@ def new_relighter(baked: Relighter, lights: list[Light]) -> Relighter:
 
 
 def spot() -> Light:
-    return Light("/Test/Spot", LightKind.SPHERE, look_at(np.array([150.0, 420.0, 150.0]), np.array([300.0, 0.0, 300.0]), UP),
-                 intensity=2.0, radius=15.0, shaping=Shaping(focus=1.0, cone_angle=25.0, cone_softness=0.3))
+    return Light(
+        "/Test/Spot",
+        LightKind.SPHERE,
+        look_at(np.array([150.0, 420.0, 150.0]), np.array([300.0, 0.0, 300.0]), UP),
+        intensity=2.0,
+        radius=15.0,
+        shaping=Shaping(focus=1.0, cone_angle=25.0, cone_softness=0.3),
+    )
 
 
 def low_rect() -> Light:
-    return Light("/Test/LowRect", LightKind.RECT, look_at(np.array([400.0, 120.0, 200.0]), np.array([400.0, 0.0, 200.0]), UP),
-                 intensity=3.0, width=60.0, height=40.0, color=(1.0, 0.9, 0.8))
+    return Light(
+        "/Test/LowRect",
+        LightKind.RECT,
+        look_at(np.array([400.0, 120.0, 200.0]), np.array([400.0, 0.0, 200.0]), UP),
+        intensity=3.0,
+        width=60.0,
+        height=40.0,
+        color=(1.0, 0.9, 0.8),
+    )
 
 
 @pytest.fixture
@@ -96,8 +111,9 @@ COLOUR_EDITS = {
 }
 SHADING_EDITS = {
     "cone": lambda light: edited(light, shaping=dataclasses.replace(light.shaping, cone_angle=15.0)),
-    "focus": lambda light: edited(light, shaping=dataclasses.replace(light.shaping, focus=6.0,
-                                                                     focus_tint=(0.2, 0.1, 0.0))),
+    "focus": lambda light: edited(
+        light, shaping=dataclasses.replace(light.shaping, focus=6.0, focus_tint=(0.2, 0.1, 0.0))
+    ),
     "no_shaping": lambda light: edited(light, shaping=None),
     "cookie": lambda light: edited(light, barzel=BarzelShaping(cookie=checker_cookie(16, 4), cookie_scale=(0.6, 0.6))),
 }
@@ -153,9 +169,13 @@ def test_sequence_of_edits_matches_a_fresh_relighter(baked, relighter):
     """Edits to several lights in turn (the cached sum of the others is rebuilt as the edited
     light changes); a removed light leaves no trace."""
     before = dict(relighter.counters)
-    for path, edit in (("/Test/Spot", COLOUR_EDITS["color"]), ("/Test/LowRect", moved),
-                       ("/Test/Spot", SHADING_EDITS["cone"]), ("/Test/LowRect", COLOUR_EDITS["exposure"]),
-                       ("/Test/Spot", COLOUR_EDITS["intensity"])):
+    for path, edit in (
+        ("/Test/Spot", COLOUR_EDITS["color"]),
+        ("/Test/LowRect", moved),
+        ("/Test/Spot", SHADING_EDITS["cone"]),
+        ("/Test/LowRect", COLOUR_EDITS["exposure"]),
+        ("/Test/Spot", COLOUR_EDITS["intensity"]),
+    ):
         lights = apply_edit(relighter, path, edit)
         relighter.render()
     assert relighter.counters["visibility"] == before["visibility"] + 1
@@ -180,8 +200,9 @@ def slow_light_samples(relighter: Relighter, light: Light) -> torch.Tensor:
     g = relighter.gbuffer
     u = fixed_light_samples(g.num_samples, relighter.num_light_samples(light), SETTINGS.seed)
     sample = sample_light(light, g.position, u)
-    distance = relighter.visibility.occluder_distance(light, g.position, g.geometric_normal,
-                                                      sample.direction, sample.distance)
+    distance = relighter.visibility.occluder_distance(
+        light, g.position, g.geometric_normal, sample.direction, sample.distance
+    )
     facing = (sample.direction * g.geometric_normal[:, None]).sum(-1) > 0
     weight = sample.weight() * shadow_factor(light.shadow, torch.isfinite(distance), distance) * facing[..., None]
     wo_local = to_local(g.wo_world(), g.tangent, g.bitangent, g.normal)
@@ -189,8 +210,9 @@ def slow_light_samples(relighter: Relighter, light: Light) -> torch.Tensor:
     params = g.params.with_sample_axis()
     diffuse = reflected_radiance(params, wo_local[:, None], wi_local, weight, light.diffuse, 0.0).mean(dim=1)
     specular = reflected_radiance(params, wo_local[:, None], wi_local, weight, 0.0, light.specular).mean(dim=1)
-    estimate = (torch.isfinite(sample.distance) * facing * wi_local[..., 2].clamp_min(0.0)
-                * sample.inverse_pdf()).mean(dim=1)
+    estimate = (torch.isfinite(sample.distance) * facing * wi_local[..., 2].clamp_min(0.0) * sample.inverse_pdf()).mean(
+        dim=1
+    )
     ratio = analytic_ratio(light, g.position, g.normal, estimate)
     return (diffuse if ratio is None else diffuse * ratio[:, None]) + specular
 
@@ -199,8 +221,13 @@ def test_cached_transport_matches_per_sample_shading(relighter):
     """Shaped, cookied, shadow-coloured, lobe-weighted lights: the unshaped transport times the
     shaping factor equals shading the shaped light's samples directly."""
     rig = [
-        edited(spot(), diffuse=0.5, specular=2.0, shadow=Shadow(color=(0.2, 0.3, 0.0)),
-               barzel=BarzelShaping(cookie=checker_cookie(16, 4), cookie_scale=(0.6, 0.6))),
+        edited(
+            spot(),
+            diffuse=0.5,
+            specular=2.0,
+            shadow=Shadow(color=(0.2, 0.3, 0.0)),
+            barzel=BarzelShaping(cookie=checker_cookie(16, 4), cookie_scale=(0.6, 0.6)),
+        ),
         edited(low_rect(), exposure=1.0, shaping=Shaping(cone_angle=50.0, cone_softness=0.5)),
     ]
     relighter.set_lights(rig)

@@ -58,8 +58,7 @@ def test_referenced_planes_and_a_cube():
     # Six references to an inactive prototype quad (default scheme catmullClark: a planar cage is
     # refined once), translated 1.5 apart in x.
     assert scene.geometry.num_triangles == 6 * 8
-    minima = [scene.geometry.positions[scene.geometry.object_ids == i].reshape(-1, 3).min(0)[0]
-              for i in range(6)]
+    minima = [scene.geometry.positions[scene.geometry.object_ids == i].reshape(-1, 3).min(0)[0] for i in range(6)]
     np.testing.assert_allclose(minima, 1.5 * np.arange(6), atol=1e-6)
     assert len({int(i) for i in scene.geometry.material_ids}) == 6
     assert all(o.double_sided for o in scene.objects)

@@ -12,8 +12,14 @@ from pipeline.scene.camera import camera_rays, image_resolution, project, read_c
 DEFAULT = Usd.TimeCode.Default()
 
 
-def _stage_with_camera(focal=35.0, horizontal=36.0, vertical=24.0, rotate=(20.0, -30.0, 10.0),
-                       translate=(1.0, 2.0, 3.0), offsets=(0.0, 0.0)) -> Usd.Stage:
+def _stage_with_camera(
+    focal=35.0,
+    horizontal=36.0,
+    vertical=24.0,
+    rotate=(20.0, -30.0, 10.0),
+    translate=(1.0, 2.0, 3.0),
+    offsets=(0.0, 0.0),
+) -> Usd.Stage:
     stage = Usd.Stage.CreateInMemory()
     camera = UsdGeom.Camera.Define(stage, "/Cam")
     camera.AddTranslateOp().Set(Gf.Vec3d(*translate))
@@ -72,14 +78,14 @@ def test_corner_and_edge_rays_match_the_field_of_view():
     offsets[12, 0] = (0.0, 0.0)
     offsets[12, 35] = (1.0, 0.0)
     _, directions = camera_rays(camera, offsets)
-    fov = UsdGeom.Camera(stage.GetPrimAtPath("/Cam")).GetCamera(DEFAULT).GetFieldOfView(
-        Gf.Camera.FOVHorizontal)
+    fov = UsdGeom.Camera(stage.GetPrimAtPath("/Cam")).GetCamera(DEFAULT).GetFieldOfView(Gf.Camera.FOVHorizontal)
     assert np.degrees(_angle(directions[12, 0], directions[12, 35])) == pytest.approx(fov, rel=1e-5)
 
 
 def test_aperture_offset_shifts_the_principal_point():
-    stage = _stage_with_camera(focal=50.0, horizontal=20.0, vertical=20.0, rotate=(0, 0, 0),
-                               translate=(0, 0, 0), offsets=(5.0, -2.0))
+    stage = _stage_with_camera(
+        focal=50.0, horizontal=20.0, vertical=20.0, rotate=(0, 0, 0), translate=(0, 0, 0), offsets=(5.0, -2.0)
+    )
     camera = _camera(stage, 2, 2)
     offsets = np.full((2, 2, 2), 0.5)
     offsets[1, 1] = 0.0  # the image centre

@@ -102,8 +102,7 @@ def test_smooth_normals_unless_subdivision_scheme_is_none():
     np.testing.assert_allclose(normals[first], positions[first] / np.sqrt(3), atol=1e-6)
     # Flat: every corner carries its face's normal, which is the geometric one, outward.
     flat_normals = normals[~first]
-    np.testing.assert_allclose(flat_normals, np.repeat(_geometric_normals(geometry)[~first, None], 3, 1),
-                               atol=1e-6)
+    np.testing.assert_allclose(flat_normals, np.repeat(_geometric_normals(geometry)[~first, None], 3, 1), atol=1e-6)
     assert (np.einsum("tci,tci->tc", flat_normals, positions[~first]) > 0).all()
 
 
@@ -112,8 +111,7 @@ def test_smooth_normals_unless_subdivision_scheme_is_none():
 
 
 def _set_st(mesh: UsdGeom.Mesh, values, interpolation: str, indices=None) -> None:
-    primvar = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
-                                                      interpolation)
+    primvar = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, interpolation)
     primvar.Set(values)
     if indices is not None:
         primvar.SetIndices(Vt.IntArray(indices))
@@ -139,11 +137,13 @@ def test_st_primvar_each_interpolation(interpolation):
     values = np.stack((np.arange(size), 10.0 + np.arange(size)), -1).astype(np.float32)
     _set_st(mesh, Vt.Vec2fArray.FromNumpy(values), interpolation)
     geometry, _, _, _ = _read(stage)
-    lookup = {"constant": np.zeros_like(_CORNERS),
-              "uniform": np.repeat(_FACE_OF_TRIANGLE[:, None], 3, 1),
-              "vertex": _POINT_OF_CORNER[_CORNERS],
-              "varying": _POINT_OF_CORNER[_CORNERS],
-              "faceVarying": _CORNERS}[interpolation]
+    lookup = {
+        "constant": np.zeros_like(_CORNERS),
+        "uniform": np.repeat(_FACE_OF_TRIANGLE[:, None], 3, 1),
+        "vertex": _POINT_OF_CORNER[_CORNERS],
+        "varying": _POINT_OF_CORNER[_CORNERS],
+        "faceVarying": _CORNERS,
+    }[interpolation]
     np.testing.assert_array_equal(geometry.uvs, values[lookup])
 
 
@@ -171,8 +171,9 @@ def test_primvars_normals_win_over_the_normals_attribute():
     mesh.CreateNormalsAttr([(1, 0, 0)] * 4)
     mesh.SetNormalsInterpolation("vertex")
     tilted = np.array([0.0, 0.6, 0.8], np.float32)
-    UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("normals", Sdf.ValueTypeNames.Normal3fArray,
-                                            "uniform").Set([Gf.Vec3f(0.0, 0.6, 0.8)])
+    UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("normals", Sdf.ValueTypeNames.Normal3fArray, "uniform").Set(
+        [Gf.Vec3f(0.0, 0.6, 0.8)]
+    )
     geometry, _, _, _ = _read(stage)
     np.testing.assert_allclose(geometry.normals.reshape(-1, 3), [tilted] * 6, atol=1e-6)
 
@@ -230,7 +231,8 @@ def test_negative_scale_rewinds_so_geometric_and_shading_normals_agree():
     np.testing.assert_allclose(geometry.normals.reshape(-1, 3), [[0, 0, -1]] * 6, atol=1e-6)
     # Same corner set as the unmirrored quad (mirroring z = 0 changes no position).
     assert sorted(map(tuple, geometry.positions.reshape(-1, 3).tolist())) == sorted(
-        map(tuple, np.asarray(UNIT_SQUARE, np.float32)[[0, 2, 1, 0, 3, 2]].tolist()))
+        map(tuple, np.asarray(UNIT_SQUARE, np.float32)[[0, 2, 1, 0, 3, 2]].tolist())
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -272,9 +274,11 @@ def test_point_instancer_places_each_prototype_per_instance():
     instancer.DeactivateId(2)
     geometry, objects, _, _ = _read(stage)
     assert geometry.num_triangles == 2 * 2 + 12
-    assert [o.path for o in objects] == ["/World/PI[0]/World/PI/Prototypes/Quad",
-                                         "/World/PI[3]/World/PI/Prototypes/Quad",
-                                         "/World/PI[1]/World/PI/Prototypes/Cube"]
+    assert [o.path for o in objects] == [
+        "/World/PI[0]/World/PI/Prototypes/Quad",
+        "/World/PI[3]/World/PI/Prototypes/Quad",
+        "/World/PI[1]/World/PI/Prototypes/Cube",
+    ]
     for object_id, x, z in [(0, 1, 101), (1, 4, 101), (2, 2, 100)]:
         corners = geometry.positions[geometry.object_ids == object_id].reshape(-1, 3)
         centre = (corners.min(0) + corners.max(0)) / 2
@@ -300,14 +304,17 @@ _IMPLICIT_CASES = [
     ("Cylinder", {"radius": 1.0, "height": 3.0, "axis": "X"}, 2 * np.pi * 3 + 2 * np.pi, ("X", 1.5)),
     ("Cone", {"radius": 1.0, "height": 2.0, "axis": "Y"}, np.pi * np.sqrt(5) + np.pi, ("Y", 1.0)),
     ("Capsule", {"radius": 0.5, "height": 1.0, "axis": "Z"}, np.pi + np.pi, ("Z", 1.0)),
-    ("Cylinder_1", {"radiusBottom": 1.0, "radiusTop": 0.5, "height": 2.0, "axis": "Z"},
-     np.pi * 1.5 * np.sqrt(4.25) + np.pi * 1.25, ("Z", 1.0)),
+    (
+        "Cylinder_1",
+        {"radiusBottom": 1.0, "radiusTop": 0.5, "height": 2.0, "axis": "Z"},
+        np.pi * 1.5 * np.sqrt(4.25) + np.pi * 1.25,
+        ("Z", 1.0),
+    ),
     ("Plane", {"width": 2.0, "length": 3.0, "axis": "Y"}, 6.0, None),
 ]
 
 
-@pytest.mark.parametrize("type_name, attributes, area, spine", _IMPLICIT_CASES,
-                         ids=[c[0] for c in _IMPLICIT_CASES])
+@pytest.mark.parametrize("type_name, attributes, area, spine", _IMPLICIT_CASES, ids=[c[0] for c in _IMPLICIT_CASES])
 def test_implicit_gprims_area_normals_and_axis(type_name, attributes, area, spine):
     stage = Usd.Stage.CreateInMemory()
     _define(stage, type_name, **attributes)
@@ -407,7 +414,7 @@ def test_invalid_topology_is_skipped_with_a_warning():
     stage = Usd.Stage.CreateInMemory()
     _mesh(stage, "/Broken", UNIT_SQUARE, [4], [0, 1, 2, 9])
     _quad(stage, "/Fine")
-    geometry, objects, _, warnings = _read(stage)
+    _geometry, objects, _, warnings = _read(stage)
     assert [o.path for o in objects] == ["/Fine"]
     assert any("/Broken" in w for w in warnings)
 

@@ -46,8 +46,7 @@ def test_missing_file(tmp_path):
     assert "nowhere.usda" in _single_line(error)
 
 
-@pytest.mark.parametrize("name, content", [("garbage.usda", "this is not usd\n"),
-                                           ("image.png", "\x89PNG not a stage")])
+@pytest.mark.parametrize("name, content", [("garbage.usda", "this is not usd\n"), ("image.png", "\x89PNG not a stage")])
 def test_not_a_usd_file(tmp_path, name, content):
     path = tmp_path / name
     path.write_text(content)
@@ -101,10 +100,8 @@ def test_lights_layer_is_the_strongest_sublayer_and_keeps_the_shot_metadata(tmp_
     assert scene.source == str(shot.resolve())
 
 
-@pytest.mark.parametrize("start_time_code, time, expected_x", [(None, None, 0.0), (2.0, None, 1.0),
-                                                               (None, 1.5, 0.5)])
-def test_animated_points_read_at_the_first_frame_or_the_given_time(tmp_path, start_time_code, time,
-                                                                    expected_x):
+@pytest.mark.parametrize("start_time_code, time, expected_x", [(None, None, 0.0), (2.0, None, 1.0), (None, 1.5, 0.5)])
+def test_animated_points_read_at_the_first_frame_or_the_given_time(tmp_path, start_time_code, time, expected_x):
     path = _write_shot(tmp_path)
     stage = Usd.Stage.Open(str(path))
     points = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Quad")).GetPointsAttr()

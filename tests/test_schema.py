@@ -43,8 +43,11 @@ def test_schema_registry_knows_barzel_api_and_fallbacks():
     assert not registry.IsMultipleApplyAPISchema("RelightBarzelLightAPI")
     definition = registry.FindAppliedAPIPrimDefinition("RelightBarzelLightAPI")
     names = set(definition.GetPropertyNames())
-    assert names == set(BARZEL_FALLBACKS) | {"relight:barzel:cookie:file", "relight:barzel:cookie:scale",
-                                             "relight:barzel:cookie:offset"}
+    assert names == set(BARZEL_FALLBACKS) | {
+        "relight:barzel:cookie:file",
+        "relight:barzel:cookie:scale",
+        "relight:barzel:cookie:offset",
+    }
     for name, fallback in BARZEL_FALLBACKS.items():
         assert definition.GetAttributeFallbackValue(name) == fallback, name
     assert tuple(definition.GetAttributeFallbackValue("relight:barzel:cookie:scale")) == (1.0, 1.0)

@@ -40,8 +40,13 @@ def grid(centre, half_u, half_v, num_cells: int) -> np.ndarray:
     """(2 num_cells^2, 3, 3) float32 triangles of the same parallelogram cut into cells."""
     offsets = (2.0 * np.arange(num_cells) + 1.0) / num_cells - 1.0
     half_u, half_v = np.asarray(half_u, np.float64), np.asarray(half_v, np.float64)
-    return np.concatenate([quad(np.asarray(centre) + i * half_u + j * half_v, half_u / num_cells, half_v / num_cells)
-                           for i in offsets for j in offsets])
+    return np.concatenate(
+        [
+            quad(np.asarray(centre) + i * half_u + j * half_v, half_u / num_cells, half_v / num_cells)
+            for i in offsets
+            for j in offsets
+        ]
+    )
 
 
 def light_at(position, kind=LightKind.SPHERE, **fields) -> Light:
@@ -70,23 +75,35 @@ def scene():
     return np.concatenate([floor, square]), points, normals
 
 
-def agreement(light: Light, corners: np.ndarray, points: torch.Tensor, normals: torch.Tensor,
-              visibility: ShadowMapVisibility, num_samples: int = NUM_SAMPLES):
+def agreement(
+    light: Light,
+    corners: np.ndarray,
+    points: torch.Tensor,
+    normals: torch.Tensor,
+    visibility: ShadowMapVisibility,
+    num_samples: int = NUM_SAMPLES,
+):
     """(agreement away from the penumbra, agreement overall, occluded fraction by Embree, by the maps)."""
     samples = sample_light(light, points, fixed_light_samples(len(points), num_samples, seed=1))
-    reference = RayVisibility(EmbreeCaster(corners)).occluder_distance(light, points, normals, samples.direction,
-                                                                       samples.distance)
+    reference = RayVisibility(EmbreeCaster(corners)).occluder_distance(
+        light, points, normals, samples.direction, samples.distance
+    )
     device = visibility.occluders.device
-    found = visibility.occluder_distance(light, points.to(device), normals.to(device), samples.direction.to(device),
-                                         samples.distance.to(device)).cpu()
+    found = visibility.occluder_distance(
+        light, points.to(device), normals.to(device), samples.direction.to(device), samples.distance.to(device)
+    ).cpu()
     assert found.shape == reference.shape and found.dtype == samples.distance.dtype
     blocked, blocked_found = torch.isfinite(reference), torch.isfinite(found)
     facing = ((samples.direction * normals.unsqueeze(1)).sum(-1) > 0) & (samples.pdf > 0)
     fraction = blocked.float().mean(dim=1, keepdim=True)
     away = facing & ((fraction == 0) | (fraction == 1))
     same = blocked == blocked_found
-    return (same[away].float().mean().item(), same[facing].float().mean().item(),
-            blocked[facing].float().mean().item(), blocked_found[facing].float().mean().item())
+    return (
+        same[away].float().mean().item(),
+        same[facing].float().mean().item(),
+        blocked[facing].float().mean().item(),
+        blocked_found[facing].float().mean().item(),
+    )
 
 
 def test_ray_triangle_distance_hand_values():
@@ -136,8 +153,9 @@ def test_rasteriser_matches_brute_force_rays(kind, dense, monkeypatch):
     faces, rows, cols = torch.meshgrid(*(torch.arange(n) for n in fast.shape), indexing="ij")
     origins, directions = depth_map.texel_rays(faces.reshape(-1), rows.reshape(-1), cols.reshape(-1))
     num_texels = origins.shape[0]
-    every = ray_triangle_distance(origins.repeat_interleave(40, 0), directions.repeat_interleave(40, 0),
-                                  corners.repeat(num_texels, 1, 1))
+    every = ray_triangle_distance(
+        origins.repeat_interleave(40, 0), directions.repeat_interleave(40, 0), corners.repeat(num_texels, 1, 1)
+    )
     slow = every.reshape(num_texels, 40).amin(dim=1).reshape(fast.shape)
     assert torch.isfinite(slow).float().mean().item() > 0.05
     torch.testing.assert_close(fast, slow)
@@ -147,8 +165,12 @@ def test_one_sided_cube_maps_rasterise_the_front_only():
     """A cube map given a light's emitting side rasterises a window per face holding every texel
     facing it, equal there to the whole map, and leaves the rest (the back face: all of it) empty."""
     generator = torch.Generator().manual_seed(5)
-    corners = (torch.rand(40, 1, 3, generator=generator, dtype=torch.float64) * 6.0 - 3.0
-               + torch.rand(40, 3, 3, generator=generator, dtype=torch.float64) * 2.0 - 1.0)
+    corners = (
+        torch.rand(40, 1, 3, generator=generator, dtype=torch.float64) * 6.0
+        - 3.0
+        + torch.rand(40, 3, 3, generator=generator, dtype=torch.float64) * 2.0
+        - 1.0
+    )
     centre = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)
     front = torch.nn.functional.normalize(torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64), dim=0)
     whole, half = CubeMap(centre, 32), CubeMap(centre, 32, front=front)
@@ -193,8 +215,7 @@ def test_sphere_light_shadow_agrees_with_embree(scene, radius, num_samples, look
 def test_spot_light_uses_one_perspective_map(scene, dtype, device, lookup):
     corners, points, normals = scene
     light = light_at((0.5, 0.0, 3.0), kind=LightKind.DISK, radius=0.1, shaping=Shaping(cone_angle=40.0))
-    visibility = ShadowMapVisibility(torch.from_numpy(corners).to(device, dtype), resolution=RESOLUTION,
-                                     lookup=lookup)
+    visibility = ShadowMapVisibility(torch.from_numpy(corners).to(device, dtype), resolution=RESOLUTION, lookup=lookup)
     away, overall, blocked, _ = agreement(light, corners, points, normals, visibility)
     depth_map = visibility.depth_map(light)
     assert type(depth_map) is PinholeMaps and depth_map.num_faces == 1 and depth_map.depth.dtype == dtype
@@ -208,8 +229,7 @@ def test_spot_light_uses_one_perspective_map(scene, dtype, device, lookup):
 def test_distant_light_shadow_agrees_with_embree(scene, angle, num_samples, lookup):
     corners, points, normals = scene
     light = distant_light(25.0, angle)
-    visibility = ShadowMapVisibility(torch.from_numpy(corners), resolution=RESOLUTION, receivers=points,
-                                     lookup=lookup)
+    visibility = ShadowMapVisibility(torch.from_numpy(corners), resolution=RESOLUTION, receivers=points, lookup=lookup)
     away, overall, blocked, _ = agreement(light, corners, points, normals, visibility, num_samples)
     depth_map = visibility.depth_map(light, points)
     assert type(depth_map) is OrthoMap and visibility.num_builds == 1
@@ -248,9 +268,13 @@ def test_no_acne_on_lit_planes(tilt, lookup):
     points = uv[:, :1] * tangent + uv[:, 1:] * bitangent
     normals = normal.expand_as(points).contiguous()
     visibility = ShadowMapVisibility(torch.from_numpy(plane), resolution=32, lookup=lookup)
-    lights = [(light_at((0.5, 0.2, 3.0), radius=0.0), 1), (light_at((0.5, 0.2, 3.0), radius=0.5), NUM_SAMPLES),
-              # An area light whose centre is below the plane's horizon for part of the plane.
-              (light_at((-3.0, 0.2, 0.1), radius=0.5), NUM_SAMPLES), (distant_light(30.0, 10.0), NUM_SAMPLES)]
+    lights = [
+        (light_at((0.5, 0.2, 3.0), radius=0.0), 1),
+        (light_at((0.5, 0.2, 3.0), radius=0.5), NUM_SAMPLES),
+        # An area light whose centre is below the plane's horizon for part of the plane.
+        (light_at((-3.0, 0.2, 0.1), radius=0.5), NUM_SAMPLES),
+        (distant_light(30.0, 10.0), NUM_SAMPLES),
+    ]
     for light, num_samples in lights:
         samples = sample_light(light, points, fixed_light_samples(len(points), num_samples, seed=2))
         facing = ((samples.direction * normals.unsqueeze(1)).sum(-1) > 0) & (samples.pdf > 0)
@@ -305,12 +329,14 @@ def test_occluder_distance_is_the_distance_to_the_square(scene, lookup):
 def test_sample_reads_what_lookup_reads(scene):
     """`sample` (coordinates apart, no texel rays) reads lookup's texels for cube, spot and
     orthographic maps, and `texel_plane` places a plane where the texel rays meet it."""
-    corners, points, normals = scene
+    corners, points, _normals = scene
     occluders = torch.from_numpy(corners)
     visibility = ShadowMapVisibility(occluders, resolution=32, receivers=points)
-    lights = [light_at((0.2, 0.1, 3.0), radius=0.1),
-              light_at((0.5, 0.0, 3.0), kind=LightKind.DISK, radius=0.1, shaping=Shaping(cone_angle=40.0)),
-              distant_light(25.0, 4.0)]
+    lights = [
+        light_at((0.2, 0.1, 3.0), radius=0.1),
+        light_at((0.5, 0.0, 3.0), kind=LightKind.DISK, radius=0.1, shaping=Shaping(cone_angle=40.0)),
+        distant_light(25.0, 4.0),
+    ]
     generator = torch.Generator().manual_seed(3)
     queries = torch.rand(500, 3, generator=generator) * torch.tensor([6.0, 6.0, 2.0]) - torch.tensor([3.0, 3.0, 0.0])
     jitter = torch.rand(500, 2, generator=generator) - 0.5
@@ -343,13 +369,19 @@ def test_open_relighter_builds_maps_at_the_settings_resolution(tmp_path):
     from pipeline.bake.direct.bake import bake_direct
     from pipeline.scene import find_camera, load_scene
     from pipeline.scenes import SCENES
-    from relight_torch.metrics import psnr
     from relight_torch.direct.relighter import RelightSettings, open_relighter
+    from relight_torch.metrics import psnr
 
     shot = SCENES["cornell_box"].write(tmp_path / "scene")
     scene = load_scene(shot, width=16, height=16)
-    cache = bake_direct(scene, find_camera(scene, SCENES["cornell_box"].camera), tmp_path / "cache", "cornell_box",
-                        supersampling=1, texture_samples=1)
+    cache = bake_direct(
+        scene,
+        find_camera(scene, SCENES["cornell_box"].camera),
+        tmp_path / "cache",
+        "cornell_box",
+        supersampling=1,
+        texture_samples=1,
+    )
     settings = RelightSettings(area_samples=4, shadow_map_resolution=256, shadow_map_march_steps=8)
     mapped = open_relighter(cache, shadows="shadowmaps", settings=settings)
     assert (mapped.visibility.resolution, mapped.visibility.march_steps) == (256, 8)

@@ -15,7 +15,7 @@ from relight_torch.cache.layer import read_cache_layer
 def _series(ratio: float, first: float, terms: int) -> list[np.ndarray]:
     """Images with 1 ... `terms` bounces of a geometric series: bounce b adds first * ratio^(b-1)."""
     base = np.full((4, 4, 3), 0.3)
-    return [base + sum(first * ratio ** b for b in range(n)) * np.ones((4, 4, 3)) for n in range(1, terms + 1)]
+    return [base + sum(first * ratio**b for b in range(n)) * np.ones((4, 4, 3)) for n in range(1, terms + 1)]
 
 
 @pytest.mark.parametrize(("ratio", "terms"), [(0.1, 12), (0.5, 12), (0.8, 40)])
@@ -23,22 +23,23 @@ def test_bounces_stop_where_the_rest_is_below_the_target(ratio, terms):
     target_db = 35.0
     images = _series(ratio, 0.2, terms)
     bounces, tail_db, changes = choose_bounces(images, target_db)
-    truth_limit = images[0] + 0.2 * ratio / (1.0 - ratio)   # the whole series, to infinity
+    truth_limit = images[0] + 0.2 * ratio / (1.0 - ratio)  # the whole series, to infinity
     rest = truth_limit - images[bounces - 1]
-    assert float(np.mean(rest ** 2)) <= BOUNCE_TAIL_FRACTION * 10 ** (-target_db / 10) * 1.01
+    assert float(np.mean(rest**2)) <= BOUNCE_TAIL_FRACTION * 10 ** (-target_db / 10) * 1.01
     assert float(np.mean(rest)) <= ENERGY_FRACTION * float(np.mean(truth_limit)) * 1.01
-    if bounces > 1:   # one bounce fewer would not do
+    if bounces > 1:  # one bounce fewer would not do
         fewer = truth_limit - images[bounces - 2]
-        assert (float(np.mean(fewer ** 2)) > BOUNCE_TAIL_FRACTION * 10 ** (-target_db / 10)
-                or float(np.mean(fewer)) > ENERGY_FRACTION * float(np.mean(truth_limit)))
+        assert float(np.mean(fewer**2)) > BOUNCE_TAIL_FRACTION * 10 ** (-target_db / 10) or float(
+            np.mean(fewer)
+        ) > ENERGY_FRACTION * float(np.mean(truth_limit))
     assert len(changes) == terms - 1 and tail_db > target_db
 
 
 def test_a_series_cut_short_reports_its_rest():
     bounces, tail_db, _ = choose_bounces(_series(0.8, 0.2, 6), 35.0)
     assert bounces == 6
-    rest = 0.2 * 0.8 ** 6 / (1.0 - 0.8)   # the bounces after the sixth
-    assert tail_db == pytest.approx(10 * np.log10(1.0 / rest ** 2), abs=0.5)
+    rest = 0.2 * 0.8**6 / (1.0 - 0.8)  # the bounces after the sixth
+    assert tail_db == pytest.approx(10 * np.log10(1.0 / rest**2), abs=0.5)
 
 
 def test_more_bounces_for_a_slower_decay():
@@ -56,11 +57,28 @@ def test_reference_is_the_full_frame_by_default(capsys):
 def test_default_bake_is_the_shot_cache_and_records_its_choice(tmp_path, capsys):
     shot = SCENES["cornell_box"].write(tmp_path)
     out = tmp_path / "cache"
-    assert cli.main(["bake", str(shot), "--camera", SCENES["cornell_box"].camera, "--width", "24", "--height", "18",
-                     "--quality", "28", "--out", str(out)]) == 0
+    assert (
+        cli.main(
+            [
+                "bake",
+                str(shot),
+                "--camera",
+                SCENES["cornell_box"].camera,
+                "--width",
+                "24",
+                "--height",
+                "18",
+                "--quality",
+                "28",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     layer = out / "cornell_box.relight.usda"
     parameters = read_cache_layer(layer).parameters
-    assert parameters["shotComponents"] == "direct+transfer"     # the Cornell box's bounce light is not negligible
+    assert parameters["shotComponents"] == "direct+transfer"  # the Cornell box's bounce light is not negligible
     assert int(parameters["shotBounces"]) >= 2
     assert float(parameters["qualityMeasured"]) >= 28.0
     capsys.readouterr()

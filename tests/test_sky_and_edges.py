@@ -61,7 +61,7 @@ def _check_image(image: np.ndarray, case: str) -> None:
         assert not image.any(), f"{case}: light where there is only sky or a closed box"
     elif height > 1:
         assert not image[: height // 2 - 1].any(), f"{case}: light in the sky above the horizon"
-        assert image[height // 2 + 1:].sum() > 0, f"{case}: nothing lit below the horizon"
+        assert image[height // 2 + 1 :].sum() > 0, f"{case}: nothing lit below the horizon"
 
 
 def test_texture_filtering_of_rows_that_see_only_sky(shot):
@@ -78,16 +78,52 @@ def test_texture_filtering_of_rows_that_see_only_sky(shot):
 def test_bake_of_rows_that_see_only_sky(shot, tmp_path):
     """`relight bake` with texture samples 2 on a camera that sees only sky ends in a cache, not the
     issue's traceback."""
-    assert main(["bake", str(shot), "--camera", "/Shot/Cams/Sky", "--width", "32", "--height", "24",
-                 "--texture-samples", "2", "--out", str(tmp_path)]) == 0
+    assert (
+        main(
+            [
+                "bake",
+                str(shot),
+                "--camera",
+                "/Shot/Cams/Sky",
+                "--width",
+                "32",
+                "--height",
+                "24",
+                "--texture-samples",
+                "2",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
     assert (tmp_path / "exterior.relight.usda").is_file()
 
 
 def _bake(shot, out, case: str, method: str) -> Path:
     camera, width, height = CASES[case]
-    assert main(["bake", str(shot), "--camera", f"/Shot/Cams/{camera}", "--width", str(width), "--height",
-                 str(height), "--texture-samples", "2", "--method", method, "--out", str(out),
-                 *METHOD_OPTIONS[method]]) == 0
+    assert (
+        main(
+            [
+                "bake",
+                str(shot),
+                "--camera",
+                f"/Shot/Cams/{camera}",
+                "--width",
+                str(width),
+                "--height",
+                str(height),
+                "--texture-samples",
+                "2",
+                "--method",
+                method,
+                "--out",
+                str(out),
+                *METHOD_OPTIONS[method],
+            ]
+        )
+        == 0
+    )
     return out / "exterior.relight.usda"
 
 
@@ -119,8 +155,23 @@ def test_multiview_render(multiview_cache, tmp_path, case):
     """A multiview cache renders every case's camera and size (the new-view path)."""
     camera, width, height = CASES[case]
     out = tmp_path / "image.exr"
-    assert main(["render", str(multiview_cache), "--camera", f"/Shot/Cams/{camera}", "--width", str(width),
-                 "--height", str(height), "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(multiview_cache),
+                "--camera",
+                f"/Shot/Cams/{camera}",
+                "--width",
+                str(width),
+                "--height",
+                str(height),
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     image = _rgb(out)
     assert image.shape == (height, width, 3)
     _check_image(image, case)
@@ -138,8 +189,27 @@ def test_multiview_bake_of_only_sky(shot, tmp_path):
 def test_reference(shot, tmp_path, case):
     camera, width, height = CASES[case]
     out = tmp_path / "reference.exr"
-    assert main(["reference", str(shot), "--camera", f"/Shot/Cams/{camera}", "--width", str(width), "--height",
-                 str(height), "--spp", "1", "--max-bounces", "1", "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "reference",
+                str(shot),
+                "--camera",
+                f"/Shot/Cams/{camera}",
+                "--width",
+                str(width),
+                "--height",
+                str(height),
+                "--spp",
+                "1",
+                "--max-bounces",
+                "1",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     image = _rgb(out)
     assert image.shape == (height, width, 3)
     _check_image(image, case)

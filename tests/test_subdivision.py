@@ -31,12 +31,46 @@ def _cube_edges() -> np.ndarray:
 
 
 def _icosahedron():
-    t = (1 + 5 ** 0.5) / 2
-    points = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
-                       [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], np.float64)
-    faces = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
-             [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
-             [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
+    t = (1 + 5**0.5) / 2
+    points = np.array(
+        [
+            [-1, t, 0],
+            [1, t, 0],
+            [-1, -t, 0],
+            [1, -t, 0],
+            [0, -1, t],
+            [0, 1, t],
+            [0, -1, -t],
+            [0, 1, -t],
+            [t, 0, -1],
+            [t, 0, 1],
+            [-t, 0, -1],
+            [-t, 0, 1],
+        ],
+        np.float64,
+    )
+    faces = [
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ]
     return make_cage(points / np.linalg.norm(points[0]), [3] * 20, np.array(faces).ravel())
 
 
@@ -56,11 +90,11 @@ def _grid(size: int, heights: np.ndarray, triangles: bool = False, **kwargs):
 
 def _bspline_basis(t: np.ndarray) -> np.ndarray:
     """(N, 4) uniform cubic B-spline basis at t in [0, 1)."""
-    return np.stack(((1 - t) ** 3, 3 * t ** 3 - 6 * t ** 2 + 4, -3 * t ** 3 + 3 * t ** 2 + 3 * t + 1, t ** 3), -1) / 6
+    return np.stack(((1 - t) ** 3, 3 * t**3 - 6 * t**2 + 4, -3 * t**3 + 3 * t**2 + 3 * t + 1, t**3), -1) / 6
 
 
 def _bspline_derivative(t: np.ndarray) -> np.ndarray:
-    return np.stack((-3 * (1 - t) ** 2, 9 * t ** 2 - 12 * t, -9 * t ** 2 + 6 * t + 3, 3 * t ** 2), -1) / 6
+    return np.stack((-3 * (1 - t) ** 2, 9 * t**2 - 12 * t, -9 * t**2 + 6 * t + 3, 3 * t**2), -1) / 6
 
 
 def _bspline_surface(control: np.ndarray, u: np.ndarray, v: np.ndarray):
@@ -71,7 +105,7 @@ def _bspline_surface(control: np.ndarray, u: np.ndarray, v: np.ndarray):
     du, dv = _bspline_derivative(u - ku), _bspline_derivative(v - kv)
     rows = ku[:, None] - 1 + np.arange(4)
     cols = kv[:, None] - 1 + np.arange(4)
-    patch = control[rows[:, :, None], cols[:, None, :]]                    # (N, 4, 4)
+    patch = control[rows[:, :, None], cols[:, None, :]]  # (N, 4, 4)
     value = np.einsum("ni,nij,nj->n", bu, patch, bv)
     return value, np.einsum("ni,nij,nj->n", du, patch, bv), np.einsum("ni,nij,nj->n", bu, patch, dv)
 
@@ -96,7 +130,7 @@ def test_regular_patch_is_the_bicubic_bspline(levels):
     heights = rng.uniform(-0.5, 0.5, (7, 7))
     positions, normals = _vertices(refined_triangles(_grid(7, heights), "catmullClark", levels))
     inside = np.all((positions[:, :2] >= 2) & (positions[:, :2] <= 4), axis=1)
-    assert inside.sum() == (2 * 2 ** levels + 1) ** 2
+    assert inside.sum() == (2 * 2**levels + 1) ** 2
     u, v = positions[inside, 0], positions[inside, 1]
     value, d_du, d_dv = _bspline_surface(heights, np.minimum(u, 4 - 1e-12), np.minimum(v, 4 - 1e-12))
     np.testing.assert_allclose(positions[inside, 2], value, atol=1e-12)
@@ -161,7 +195,7 @@ def test_icosahedron_loop_surface_is_nearly_a_sphere():
     assert (radius.max() - radius.min()) / radius.mean() < 0.016
     cos_angle = np.sum(normals * positions / radius[:, None], axis=-1)
     assert cos_angle.min() > 0.995
-    assert len(result["positions"]) == triangle_count(np.full(20, 3), "loop", 4) == 20 * 4 ** 4
+    assert len(result["positions"]) == triangle_count(np.full(20, 3), "loop", 4) == 20 * 4**4
 
 
 def _stationarity(cage, scheme: str, levels: int) -> float:
@@ -171,7 +205,7 @@ def _stationarity(cage, scheme: str, levels: int) -> float:
         cage = step(cage, scheme)
     coarse, _ = limit_surface(cage, scheme)
     fine, _ = limit_surface(step(cage, scheme), scheme)
-    return float(np.abs(fine[:len(coarse)] - coarse).max())
+    return float(np.abs(fine[: len(coarse)] - coarse).max())
 
 
 def _pentagon_prism():
@@ -184,8 +218,19 @@ def _pentagon_prism():
     return make_cage(points, [len(f) for f in faces], np.concatenate(faces))
 
 
-@pytest.mark.parametrize("name", ["cube", "pentagon prism", "sharp loop", "grid edgeOnly", "grid edgeAndCorner",
-                                  "loop icosahedron", "loop grid", "corner"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "cube",
+        "pentagon prism",
+        "sharp loop",
+        "grid edgeOnly",
+        "grid edgeAndCorner",
+        "loop icosahedron",
+        "loop grid",
+        "corner",
+    ],
+)
 def test_limit_stencils_are_stationary(name):
     """Limit positions computed at level L and at L + 1 agree at every valence (3, 4, 5, 6),
     on boundaries, infinitely sharp creases and corners: the stencils are the true limit."""
@@ -195,8 +240,10 @@ def test_limit_stencils_are_stationary(name):
         "pentagon prism": (_pentagon_prism(), "catmullClark"),
         # A closed crease loop round one face (crease rule at its vertices; darts, one sharp edge
         # at a vertex, use the smooth mask as OpenSubdiv does and are not stationary).
-        "sharp loop": (_cube(crease_edges=[[4, 6], [6, 7], [7, 5], [5, 4]], crease_sharpness=np.full(4, 10.0)),
-                       "catmullClark"),
+        "sharp loop": (
+            _cube(crease_edges=[[4, 6], [6, 7], [7, 5], [5, 4]], crease_sharpness=np.full(4, 10.0)),
+            "catmullClark",
+        ),
         "grid edgeOnly": (_grid(5, heights, interpolate_boundary="edgeOnly"), "catmullClark"),
         "grid edgeAndCorner": (_grid(5, heights), "catmullClark"),
         "loop icosahedron": (_icosahedron(), "loop"),
@@ -210,8 +257,7 @@ def test_limit_stencils_are_stationary(name):
 def test_infinitely_sharp_cube_keeps_its_faces_and_hard_normals():
     """Every edge creased (sharpness >= 10 is infinite): the limit is the cube itself, and each
     corner's normal is its own face's (sectors stop at sharp edges)."""
-    result = refined_triangles(_cube(crease_edges=_cube_edges(), crease_sharpness=np.full(12, 10.0)),
-                               "catmullClark", 3)
+    result = refined_triangles(_cube(crease_edges=_cube_edges(), crease_sharpness=np.full(12, 10.0)), "catmullClark", 3)
     np.testing.assert_allclose(np.abs(result["positions"]).max(axis=-1), 1.0, atol=1e-12)
     p = result["positions"]
     face_normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
@@ -260,16 +306,25 @@ def test_invalid_arguments():
 def _camera(position, width=160, height=120, near=0.01) -> Camera:
     world_from_camera = np.eye(4)
     world_from_camera[:3, 3] = position  # looking down -Z
-    return Camera(path="/Cam", world_from_camera=world_from_camera, focal_length=50.0, horizontal_aperture=36.0,
-                  vertical_aperture=27.0, horizontal_aperture_offset=0.0, vertical_aperture_offset=0.0,
-                  clipping_range=(near, 1000.0), width=width, height=height)
+    return Camera(
+        path="/Cam",
+        world_from_camera=world_from_camera,
+        focal_length=50.0,
+        horizontal_aperture=36.0,
+        vertical_aperture=27.0,
+        horizontal_aperture_offset=0.0,
+        vertical_aperture_offset=0.0,
+        clipping_range=(near, 1000.0),
+        width=width,
+        height=height,
+    )
 
 
 def test_projected_length_bound_and_levels():
     """One unit edge facing a camera 10 units away (its nearest point possibly 9.5 away):
     f (1 + tan^2 corner) / 9.5 pixels."""
     views = dicing.views_from_cameras({"/Cam": _camera([0, 0, 10])})
-    focal = 50 / 36 * 160 * (1 + (18 ** 2 + 13.5 ** 2) / 50 ** 2)
+    focal = 50 / 36 * 160 * (1 + (18**2 + 13.5**2) / 50**2)
     length = dicing.max_projected_length(np.array([[-0.5, 0, 0]]), np.array([[0.5, 0, 0]]), np.eye(4)[None], views)
     assert length == pytest.approx(focal / 9.5)
     assert dicing.level_for_pixels(0.9) == 0
@@ -287,7 +342,7 @@ def test_nearest_placement_first_matches_every_placement():
     views = dicing.views_from_cameras({"/A": _camera([0, 0, 30]), "/B": _camera([5, 1, -25])})
     edges = _cube_edges()
     starts, ends = CUBE_POINTS[edges[:, 0]], CUBE_POINTS[edges[:, 1]]
-    brute = max(dicing.max_projected_length(starts, ends, placements[i:i + 1], views) for i in range(300))
+    brute = max(dicing.max_projected_length(starts, ends, placements[i : i + 1], views) for i in range(300))
     assert dicing.max_projected_length(starts, ends, placements, views) == pytest.approx(brute)
 
 
@@ -340,8 +395,7 @@ def test_usd_creases_and_corners_are_read():
         geometry, warnings, _ = _read(stage)
         assert not warnings
         level = round(np.log(geometry.num_triangles / 12) / np.log(4))
-        expected = refined_triangles(_cube(crease_edges=loop, crease_sharpness=np.full(4, 10.0)), "catmullClark",
-                                     level)
+        expected = refined_triangles(_cube(crease_edges=loop, crease_sharpness=np.full(4, 10.0)), "catmullClark", level)
         np.testing.assert_allclose(geometry.positions, expected["positions"], atol=1e-6)
 
     stage, mesh = cube_cage_stage()
@@ -398,11 +452,17 @@ def test_sphere_silhouette_within_half_a_pixel_of_the_limit():
     assert silhouette_error(camera, geometry.positions, reference) < 0.5
 
 
-@pytest.mark.parametrize("points, indices, message", [
-    ([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (np.nan, 0, 0)], [0, 1, 2, 3, 0, 1, 4],
-     "non-finite points cannot be subdivided"),
-    ([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)], [0, 1, 2, 3, 0, 0, 1], "repeated vertex cannot be subdivided"),
-])
+@pytest.mark.parametrize(
+    "points, indices, message",
+    [
+        (
+            [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (np.nan, 0, 0)],
+            [0, 1, 2, 3, 0, 1, 4],
+            "non-finite points cannot be subdivided",
+        ),
+        ([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)], [0, 1, 2, 3, 0, 0, 1], "repeated vertex cannot be subdivided"),
+    ],
+)
 def test_degenerate_cages_render_as_the_cage(points, indices, message):
     """A NaN point would spread over the refined surface and a repeated vertex makes a zero-length
     edge: such meshes render as their cage (its bad triangle dropped), with a warning."""

@@ -10,6 +10,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from relight_torch.relighter import open_relighter
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer, texel_density
 from pipeline.bake.direct import bake_direct
@@ -18,7 +19,6 @@ from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.io.exr import write_rgb_exr
-from relight_torch.relighter import open_relighter
 
 
 @pytest.mark.slow
@@ -38,8 +38,11 @@ def test_normal_mapped_floor_converges_to_the_pixel_average(tmp_path):
     error = np.mean(np.square(np.clip(image, 0, 1) - np.clip(reference.mean, 0, 1))[textured])
     floor_psnr = 10.0 * np.log10(1.0 / error)
     if floor_psnr < threshold:
-        for name, values in (("relit", image), ("reference", reference.mean),
-                             ("error", np.abs(image - reference.mean))):
+        for name, values in (
+            ("relit", image),
+            ("reference", reference.mean),
+            ("error", np.abs(image - reference.mean)),
+        ):
             write_rgb_exr(tmp_path / f"{name}.exr", values)
     assert floor_psnr >= threshold, f"textured pixels at {floor_psnr:.2f} dB; images under {tmp_path}"
 
@@ -82,5 +85,5 @@ def test_texel_density(tmp_path):
     shot = SCENES["glossy"].write(tmp_path)
     scene = load_scene(shot, width=8, height=8)
     density = texel_density(scene)
-    for material, value in zip(scene.materials, density):
+    for material, value in zip(scene.materials, density, strict=True):
         assert value == (512.0 if material.path.endswith("Bricks") else 0.0), material.path

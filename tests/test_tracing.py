@@ -4,9 +4,9 @@ brute-force Moller-Trumbore twin."""
 import numpy as np
 import pytest
 
-from relight_torch.visibility import embree
 from pipeline.scene.types import Geometry
 from pipeline.tracing import Tracer
+from relight_torch.visibility import embree
 
 
 def make_geometry(positions, normals=None, uvs=None, material_ids=None, object_ids=None) -> Geometry:
@@ -22,10 +22,12 @@ def make_geometry(positions, normals=None, uvs=None, material_ids=None, object_i
         positions=positions,
         normals=np.asarray(normals, np.float32),
         uvs=np.zeros((num_triangles, 3, 2), np.float32) if uvs is None else np.asarray(uvs, np.float32),
-        material_ids=(np.arange(num_triangles, dtype=np.int32) if material_ids is None
-                      else np.asarray(material_ids, np.int32)),
-        object_ids=(100 + np.arange(num_triangles, dtype=np.int32) if object_ids is None
-                    else np.asarray(object_ids, np.int32)),
+        material_ids=(
+            np.arange(num_triangles, dtype=np.int32) if material_ids is None else np.asarray(material_ids, np.int32)
+        ),
+        object_ids=(
+            100 + np.arange(num_triangles, dtype=np.int32) if object_ids is None else np.asarray(object_ids, np.int32)
+        ),
     )
 
 
@@ -63,8 +65,12 @@ def test_triangle_hit_attributes_match_hand_computed_values(triangle_tracer):
     np.testing.assert_allclose(hits.uv, [weights @ np.array(CORNER_UVS)], atol=1e-6)
     assert hits.material_id.tolist() == [3]
     assert hits.object_id.tolist() == [5]
-    for array, dtype in ((hits.distance, np.float32), (hits.triangle_id, np.int32),
-                         (hits.position, np.float32), (hits.material_id, np.int32)):
+    for array, dtype in (
+        (hits.distance, np.float32),
+        (hits.triangle_id, np.int32),
+        (hits.position, np.float32),
+        (hits.material_id, np.int32),
+    ):
         assert array.dtype == dtype
 
 
@@ -93,8 +99,7 @@ def test_shading_normal_falls_back_to_the_face_normal_where_corner_normals_cance
 
 def test_misses_hold_minus_one_inf_and_zeros(triangle_tracer):
     # Pointing away; passing beside the triangle; stopped by t_far before reaching it.
-    origins, directions = rays([[0.5, 0.25, 3], [3, 3, 3], [0.5, 0.25, 3]],
-                               [[0, 0, 1], [0, 0, -1], [0, 0, -1]])
+    origins, directions = rays([[0.5, 0.25, 3], [3, 3, 3], [0.5, 0.25, 3]], [[0, 0, 1], [0, 0, -1], [0, 0, -1]])
     hits = triangle_tracer.intersect(origins, directions, np.array([10, 10, 2.9], np.float32))
     assert not hits.hit.any()
     assert np.isinf(hits.distance).all()
@@ -130,12 +135,15 @@ def test_empty_batches_and_empty_geometry(triangle_tracer):
     assert empty.occluded(origins, directions, np.array([10], np.float32)).tolist() == [False]
 
 
-@pytest.mark.parametrize("origins, directions, t_far, message", [
-    (np.zeros((2, 3)), np.zeros((2, 3), np.float32), None, "origins must be float32"),
-    (np.zeros((2, 3), np.float32), np.zeros((3, 3), np.float32), None, "directions must be"),
-    (np.zeros((2, 4), np.float32), np.zeros((2, 4), np.float32), None, r"\(2, 4\)"),
-    (np.zeros((2, 3), np.float32), np.zeros((2, 3), np.float32), np.zeros(3, np.float32), "t_far must be"),
-])
+@pytest.mark.parametrize(
+    "origins, directions, t_far, message",
+    [
+        (np.zeros((2, 3)), np.zeros((2, 3), np.float32), None, "origins must be float32"),
+        (np.zeros((2, 3), np.float32), np.zeros((3, 3), np.float32), None, "directions must be"),
+        (np.zeros((2, 4), np.float32), np.zeros((2, 4), np.float32), None, r"\(2, 4\)"),
+        (np.zeros((2, 3), np.float32), np.zeros((2, 3), np.float32), np.zeros(3, np.float32), "t_far must be"),
+    ],
+)
 def test_bad_ray_arrays_raise_naming_the_shape(triangle_tracer, origins, directions, t_far, message):
     with pytest.raises(ValueError, match=message):
         triangle_tracer.intersect(origins, directions, t_far)
@@ -149,8 +157,15 @@ def test_occluded_requires_t_far(triangle_tracer):
 def test_bad_geometry_raises_naming_the_array():
     geometry = make_geometry([CORNERS])
     with pytest.raises(ValueError, match="Geometry.uvs"):
-        Tracer(Geometry(geometry.positions, geometry.normals, np.zeros((1, 3, 3), np.float32),
-                        geometry.material_ids, geometry.object_ids))
+        Tracer(
+            Geometry(
+                geometry.positions,
+                geometry.normals,
+                np.zeros((1, 3, 3), np.float32),
+                geometry.material_ids,
+                geometry.object_ids,
+            )
+        )
 
 
 # A unit cube, two counter-clockwise (seen from outside) triangles per face; material id = face.
@@ -310,7 +325,6 @@ def test_chunked_and_threaded_batches_match_one_call(monkeypatch):
     monkeypatch.setattr(embree, "MIN_THREAD_CHUNK_RAYS", 50)
     chunked = Tracer(make_geometry(corners), num_threads=3)
     hits = chunked.intersect(origins, directions)
-    for name in ("hit", "distance", "triangle_id", "barycentrics", "position", "shading_normal",
-                 "uv", "material_id"):
+    for name in ("hit", "distance", "triangle_id", "barycentrics", "position", "shading_normal", "uv", "material_id"):
         np.testing.assert_array_equal(getattr(hits, name), getattr(expected_hits, name))
     np.testing.assert_array_equal(chunked.occluded(origins, directions, t_far), expected_blocked)

@@ -56,8 +56,7 @@ def test_synthetic_camera_sees_mostly_terrain_and_shadow_rays_reach_the_light():
     tracer = Tracer(geometry)
     assert 0.5 < tracer.intersect(origins, directions).hit.mean() < 0.95
     light = tracing_bench.light_position(geometry)
-    shadow_origins, shadow_directions, t_far = tracing_bench.shadow_rays(tracer, origins, directions,
-                                                                         light)
+    shadow_origins, shadow_directions, t_far = tracing_bench.shadow_rays(tracer, origins, directions, light)
     # The origins sit epsilon off the surface and t_far stops epsilon short of the light.
     ends = shadow_origins + t_far[:, None] * shadow_directions
     assert np.linalg.norm(ends - light, axis=-1).max() < 2.01 * tracer.epsilon
@@ -105,10 +104,13 @@ def test_command_prints_the_table(capsys):
     assert "Tracer + attributes, 2 threads" in output
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--rays", "0"], "--rays must be at least 1"),
-    (["--camera", "/Cam"], "--camera needs --scene"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--rays", "0"], "--rays must be at least 1"),
+        (["--camera", "/Cam"], "--camera needs --scene"),
+    ],
+)
 def test_command_rejects_bad_options(argv, message):
     with pytest.raises(RelightError, match=message):
         run_command(argv)

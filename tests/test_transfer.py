@@ -11,9 +11,9 @@ import torch
 
 from pipeline.bake.gather_cloud import flatten_order, refine_triangles, split_budget, triangle_areas
 from pipeline.bake.transfer.rows import gather_transport
+from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.transfer.encoding import EncodedRows, decode, decode_rows, encode, encode_rows
-from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.transfer.haar import haar2d, inverse_haar2d, support_area
 from relight_torch.transfer.sparse import SparseRows, concatenate, cull, factor_colour, keep_top_k
 from relight_torch.visibility.embree import EmbreeCaster
@@ -41,7 +41,7 @@ def paper_haar(image: np.ndarray) -> np.ndarray:
 def test_haar_matches_the_papers_loop(device):
     images = torch.rand((2, 8, 8, 3), generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     fast = haar2d(images.to(device)).cpu()
-    for image, coefficients in zip(images.numpy(), fast.numpy()):
+    for image, coefficients in zip(images.numpy(), fast.numpy(), strict=True):
         np.testing.assert_allclose(coefficients, paper_haar(image), rtol=1e-12, atol=1e-14)
 
 
@@ -70,8 +70,12 @@ def test_support_area_by_hand():
 
 def _slow_top_k(coefficients: np.ndarray, k: int) -> list[set[int]]:
     side = coefficients.shape[1]
-    area = np.array([[(side * side if max(i, j) == 0 else (side // 2 ** int(math.log2(max(i, j)))) ** 2)
-                      for j in range(side)] for i in range(side)]).reshape(-1)
+    area = np.array(
+        [
+            [(side * side if max(i, j) == 0 else (side // 2 ** int(math.log2(max(i, j)))) ** 2) for j in range(side)]
+            for i in range(side)
+        ]
+    ).reshape(-1)
     kept = []
     for row in coefficients.reshape(coefficients.shape[0], side * side, -1):
         importance = np.abs(row).sum(-1) * area
@@ -96,8 +100,8 @@ def test_top_k_keeps_the_area_weighted_largest():
 
 def test_top_k_prefers_wide_support_over_magnitude():
     coefficients = torch.zeros(1, 4, 4, 1)
-    coefficients[0, 0, 1] = 0.1   # coarsest detail: 16 pixels, importance 1.6
-    coefficients[0, 2, 3] = 0.3   # finest detail: 4 pixels, importance 1.2
+    coefficients[0, 0, 1] = 0.1  # coarsest detail: 16 pixels, importance 1.6
+    coefficients[0, 2, 3] = 0.3  # finest detail: 4 pixels, importance 1.2
     rows = keep_top_k(coefficients, 1)
     assert rows.indices.tolist() == [1]
 
@@ -128,14 +132,17 @@ def test_colour_factored_product_matches_dense(device):
     generator = torch.Generator().manual_seed(7)
     scalars = torch.randn((5, 8, 8, 1), generator=generator, dtype=torch.float64)
     colour = torch.rand((5, 3), generator=generator, dtype=torch.float64)
-    rows = concatenate([dataclasses.replace(keep_top_k(scalars[:2], 9), row_colour=colour[:2]),
-                        dataclasses.replace(keep_top_k(scalars[2:], 30), row_colour=colour[2:])])
+    rows = concatenate(
+        [
+            dataclasses.replace(keep_top_k(scalars[:2], 9), row_colour=colour[:2]),
+            dataclasses.replace(keep_top_k(scalars[2:], 30), row_colour=colour[2:]),
+        ]
+    )
     rows.check()
     vector = torch.randn((64, 3), generator=generator, dtype=torch.float64)
     expected = torch.einsum("rgc,gc->rc", _dense_matrix(rows), vector)
     product = rows.to(device, torch.float64).matmul(vector.to(device))
     torch.testing.assert_close(product.cpu(), expected, rtol=1e-12, atol=1e-12)
-
 
 
 def test_concatenate_refuses_rows_with_and_without_colour():
@@ -145,6 +152,7 @@ def test_concatenate_refuses_rows_with_and_without_colour():
     for parts in ([keep_top_k(scalars[:2], 5), coloured], [coloured, keep_top_k(scalars[:2], 5)]):
         with pytest.raises(ValueError, match="row colour"):
             concatenate(parts)
+
 
 def test_factor_colour_is_exact_for_one_colour_and_optimal_otherwise():
     generator = torch.Generator().manual_seed(8)
@@ -195,7 +203,7 @@ def test_sparse_check_names_broken_invariants():
         SparseRows(values, torch.tensor([0, 1, 2], dtype=torch.int32), torch.tensor([0, 2]), 4).check()
 
 
-@pytest.mark.parametrize("encoding, relative_error", [("float16", 2.0 ** -11), ("uint8", 0.5 / 255)])
+@pytest.mark.parametrize("encoding, relative_error", [("float16", 2.0**-11), ("uint8", 0.5 / 255)])
 def test_encoding_error_is_bounded_per_row(encoding, relative_error):
     generator = torch.Generator().manual_seed(5)
     offsets = torch.tensor([0, 40, 40, 100])
@@ -247,16 +255,23 @@ def test_flatten_order_is_coherent():
 
 def _gathers(position, normal, area) -> GatherSamples:
     num = len(position)
-    return GatherSamples(position=torch.tensor(position), normal=torch.tensor(normal),
-                         albedo=torch.full((num, 3), 0.5), emission=torch.zeros(num, 3),
-                         area=torch.tensor(area))
+    return GatherSamples(
+        position=torch.tensor(position),
+        normal=torch.tensor(normal),
+        albedo=torch.full((num, 3), 0.5),
+        emission=torch.zeros(num, 3),
+        area=torch.tensor(area),
+    )
 
 
 def test_transport_term_is_the_clamped_disc_form_factor():
     # A receiver at the origin facing +z; gathers above it facing down, one behind a blocker. Area 0.5:
     # disc radius 0.40, so gathers beyond NEAR_RADII radii (2.4) take the clamped point term.
-    gathers = _gathers([[0.0, 0, 4], [3.0, 0, 2], [0, 0, -4], [0, 0, 8]],
-                       [[0.0, 0, -1], [0, 0, -1], [0, 0, 1], [0, 0, 1]], [0.5, 0.5, 0.5, 0.5])
+    gathers = _gathers(
+        [[0.0, 0, 4], [3.0, 0, 2], [0, 0, -4], [0, 0, 8]],
+        [[0.0, 0, -1], [0, 0, -1], [0, 0, 1], [0, 0, 1]],
+        [0.5, 0.5, 0.5, 0.5],
+    )
     blocker = np.array([[[1.0, -1, 1], [2.0, -1, 1], [1.5, 1, 1]]], np.float32)  # crosses the ray to (3, 0, 2)
     caster = EmbreeCaster(blocker)
     wi, weight = gather_transport(torch.zeros(1, 3), torch.tensor([[0.0, 0, 1]]), gathers, caster)
@@ -277,9 +292,10 @@ def test_near_gathers_integrate_their_disc(height_in_radii):
     radius_squared = area / math.pi
     height = height_in_radii * math.sqrt(radius_squared)
     gathers = _gathers([[0.0, 0, height], [0, 0, -9], [0, 0, -9], [0, 0, -9]], [[0.0, 0, -1]] * 4, [area] * 4)
-    _, weight = gather_transport(torch.zeros(1, 3), torch.tensor([[0.0, 0, 1]]), gathers,
-                                 EmbreeCaster(np.zeros((0, 3, 3), np.float32)))
-    exact = math.pi * radius_squared / (height ** 2 + radius_squared)
+    _, weight = gather_transport(
+        torch.zeros(1, 3), torch.tensor([[0.0, 0, 1]]), gathers, EmbreeCaster(np.zeros((0, 3, 3), np.float32))
+    )
+    exact = math.pi * radius_squared / (height**2 + radius_squared)
     assert weight[0, 0].item() == pytest.approx(exact, rel=0.05)
 
 
@@ -290,32 +306,36 @@ def test_near_gathers_at_a_corner_reach_the_receiver():
     area = 0.04
     gathers = _gathers([[0.0, 0.15, 0.0]] + [[0.0, -9, 0]] * 3, [[1.0, 0, 0]] * 4, [area] * 4)  # wall x = 0
     receiver = torch.tensor([[0.05, 0.0, 0.0]])
-    _, weight = gather_transport(receiver, torch.tensor([[0.0, 1.0, 0]]), gathers,
-                                 EmbreeCaster(np.zeros((0, 3, 3), np.float32)))
+    _, weight = gather_transport(
+        receiver, torch.tensor([[0.0, 1.0, 0]]), gathers, EmbreeCaster(np.zeros((0, 3, 3), np.float32))
+    )
     radius = math.sqrt(area / math.pi)
     side = torch.linspace(-radius, radius, 400, dtype=torch.float64)
     y, z = torch.meshgrid(side, side, indexing="ij")
-    inside = y ** 2 + z ** 2 <= radius ** 2
+    inside = y**2 + z**2 <= radius**2
     points = torch.stack((torch.zeros_like(y), 0.15 + y, z), -1)[inside & (0.15 + y > 0)]
     offset = points - receiver.double()
-    distance_squared = (offset ** 2).sum(-1)
+    distance_squared = (offset**2).sum(-1)
     cos_gather = -offset[:, 0] / distance_squared.sqrt()
     cos_receiver = offset[:, 1] / distance_squared.sqrt()
     cell = (2 * radius / 399) ** 2
     exact = float((cos_gather * cos_receiver / distance_squared).sum() * cell)
-    wi, _ = gather_transport(receiver, torch.tensor([[0.0, 1.0, 0]]), gathers,
-                             EmbreeCaster(np.zeros((0, 3, 3), np.float32)))
+    wi, _ = gather_transport(
+        receiver, torch.tensor([[0.0, 1.0, 0]]), gathers, EmbreeCaster(np.zeros((0, 3, 3), np.float32))
+    )
     assert weight[0, 0].item() * wi[0, 0, 1].item() == pytest.approx(exact, rel=0.1)
 
 
 def test_gather_radiance_under_a_point_light():
     # L = albedo / pi * I / d^2 for a gather facing a point light (normalized radius-0 sphere: I = intensity / 4).
-    gathers = _gathers([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 0]],
-                       [[0.0, 0, 1], [0, 0, 1], [0, 0, -1], [0, 0, 1]], [1.0] * 4)
+    gathers = _gathers(
+        [[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 0]], [[0.0, 0, 1], [0, 0, 1], [0, 0, -1], [0, 0, 1]], [1.0] * 4
+    )
     transform = np.eye(4)
     transform[:3, 3] = [0.0, 0.0, 2.0]
-    light = Light(path="/L", kind=LightKind.SPHERE, world_from_light=transform, radius=0.0, normalize=True,
-                  intensity=8.0)
+    light = Light(
+        path="/L", kind=LightKind.SPHERE, world_from_light=transform, radius=0.0, normalize=True, intensity=8.0
+    )
     visibility = RayVisibility(EmbreeCaster(np.zeros((0, 3, 3), np.float32)))
     radiance = gather_radiance(light, gathers, visibility, num_samples=1)
     intensity = 2.0

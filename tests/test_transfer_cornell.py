@@ -19,12 +19,12 @@ from pipeline.cli import main
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import cornell_box
+from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
+from relight_torch.direct.relighter import Relighter
 from relight_torch.io.exr import read_exr
 from relight_torch.lights.light import Light, LightKind, Shaping
 from relight_torch.metrics import psnr
-from relight_torch.direct.relighter import Relighter
-from relight_torch import open_cache
 from relight_torch.transfer.open import open_transfer_relighter
 from relight_torch.transfer.relighter import TransferRelighter
 from relight_torch.transfer.sparse import column_norms
@@ -40,10 +40,19 @@ def cornell(tmp_path_factory):
     scene = load_scene(path, width=SIZE, height=SIZE)
     camera = find_camera(scene, cornell_box.CAMERA)
     settings = TransferSettings(num_gathers=1024, num_coefficients=100, num_bounces=2, num_bounce_coefficients=40)
-    layer = bake_transfer(scene, camera, directory / "cache", "cornell", supersampling=1, texture_samples=1,
-                          settings=settings, progress=False)
-    references = {b: PathTracer(scene, ReferenceSettings(spp=256, max_bounces=b)).render(camera).mean
-                  for b in (0, 1, 2)}
+    layer = bake_transfer(
+        scene,
+        camera,
+        directory / "cache",
+        "cornell",
+        supersampling=1,
+        texture_samples=1,
+        settings=settings,
+        progress=False,
+    )
+    references = {
+        b: PathTracer(scene, ReferenceSettings(spp=256, max_bounces=b)).render(camera).mean for b in (0, 1, 2)
+    }
     return layer, references, scene, camera
 
 
@@ -90,8 +99,25 @@ def test_light_edits_recompute_only_what_they_touch(cornell):
 def test_direct_caches_still_open_as_direct(tmp_path):
     path = cornell_box.write(tmp_path)
     out = tmp_path / "direct"
-    assert main(["bake", str(path), "--camera", cornell_box.CAMERA, "--out", str(out), "--width", "8",
-                 "--height", "8", "--method", "direct"]) == 0
+    assert (
+        main(
+            [
+                "bake",
+                str(path),
+                "--camera",
+                cornell_box.CAMERA,
+                "--out",
+                str(out),
+                "--width",
+                "8",
+                "--height",
+                "8",
+                "--method",
+                "direct",
+            ]
+        )
+        == 0
+    )
     relighter = open_cache(out / "cornell_box.relight.usda")
     assert isinstance(relighter, Relighter)
     assert relighter.supersampling == 2  # the direct method's default (transfer's is 1: below)
@@ -100,9 +126,32 @@ def test_direct_caches_still_open_as_direct(tmp_path):
 def test_cli_bakes_and_renders_a_quantised_transfer_cache(tmp_path):
     path = cornell_box.write(tmp_path)
     out = tmp_path / "cache"
-    assert main(["bake", str(path), "--camera", cornell_box.CAMERA, "--out", str(out), "--width", "16",
-                 "--height", "16", "--method", "transfer", "--gathers", "256",
-                 "--coefficients", "30", "--quantize", "--indirect-scale", "2"]) == 0
+    assert (
+        main(
+            [
+                "bake",
+                str(path),
+                "--camera",
+                cornell_box.CAMERA,
+                "--out",
+                str(out),
+                "--width",
+                "16",
+                "--height",
+                "16",
+                "--method",
+                "transfer",
+                "--gathers",
+                "256",
+                "--coefficients",
+                "30",
+                "--quantize",
+                "--indirect-scale",
+                "2",
+            ]
+        )
+        == 0
+    )
     assert read_cache_layer(out / "cornell_box.relight.usda").supersampling == 1  # transfer's default
     assert not list(out.glob(".cornell_box.transfer-*"))  # the resumable chunks are cleaned up
     assert np.load(out / "cornell_box.viewPixels.npy").max() < 8 * 8
@@ -114,8 +163,10 @@ def test_cli_bakes_and_renders_a_quantised_transfer_cache(tmp_path):
     image = np.stack([channels[c] for c in ("R", "G", "B")], axis=-1)
     assert np.isfinite(image).all() and image.mean() > 0
     for bad in (["--gathers", "100"], ["--width", "16", "--height", "16", "--indirect-scale", "3"]):
-        assert main(["bake", str(path), "--camera", cornell_box.CAMERA, "--out", str(out), "--method", "transfer",
-                     *bad]) != 0
+        assert (
+            main(["bake", str(path), "--camera", cornell_box.CAMERA, "--out", str(out), "--method", "transfer", *bad])
+            != 0
+        )
 
 
 def _light_at(light: Light, kind: LightKind, position, emit_direction, **fields) -> Light:
@@ -140,10 +191,25 @@ def _light_at(light: Light, kind: LightKind, position, emit_direction, **fields)
 # gathers' sampled irradiance decides it). Bounds: the measured figures less ~1.5 dB, and the mean
 # ratio as measured +- ~0.15 (an improvement should move them).
 FAILURES = {
-    "lamp_at_wall": (dict(kind=LightKind.RECT, position=(278.0, 274.0, 549.2), emit_direction=(0.0, 0.0, 1.0)),
-                     17.5, 19.0, (0.8, 1.1)),
-    "narrow_spot": (dict(kind=LightKind.SPHERE, position=(278.0, 540.0, 280.0), emit_direction=(0.0, -1.0, 0.0),
-                         radius=5.0, intensity=4e4, shaping=Shaping(cone_angle=3.0)), 33.0, 36.5, (0.35, 0.65)),
+    "lamp_at_wall": (
+        dict(kind=LightKind.RECT, position=(278.0, 274.0, 549.2), emit_direction=(0.0, 0.0, 1.0)),
+        17.5,
+        19.0,
+        (0.8, 1.1),
+    ),
+    "narrow_spot": (
+        dict(
+            kind=LightKind.SPHERE,
+            position=(278.0, 540.0, 280.0),
+            emit_direction=(0.0, -1.0, 0.0),
+            radius=5.0,
+            intensity=4e4,
+            shaping=Shaping(cone_angle=3.0),
+        ),
+        33.0,
+        36.5,
+        (0.35, 0.65),
+    ),
 }
 
 
@@ -167,13 +233,25 @@ def test_one_gather_sample_adds_noise_that_the_final_gather_averages(cornell):
     layer, _, _, _ = cornell
     relighter = open_cache(layer)
     default = relighter.indirect_image().numpy()
-    sparse = TransferRelighter(relighter.direct, relighter.gathers, relighter.view_pixels, relighter.final_gather,
-                               relighter.bounce, relighter.num_bounces, gather_samples=1).indirect_image().numpy()
-    relative_rms = np.sqrt(np.mean((sparse - default) ** 2) / np.mean(default ** 2))
+    sparse = (
+        TransferRelighter(
+            relighter.direct,
+            relighter.gathers,
+            relighter.view_pixels,
+            relighter.final_gather,
+            relighter.bounce,
+            relighter.num_bounces,
+            gather_samples=1,
+        )
+        .indirect_image()
+        .numpy()
+    )
+    relative_rms = np.sqrt(np.mean((sparse - default) ** 2) / np.mean(default**2))
     assert 0.0 < relative_rms < 0.1
     with pytest.raises(ValueError, match="gather_samples"):
-        TransferRelighter(relighter.direct, relighter.gathers, relighter.view_pixels, relighter.final_gather,
-                          gather_samples=0)
+        TransferRelighter(
+            relighter.direct, relighter.gathers, relighter.view_pixels, relighter.final_gather, gather_samples=0
+        )
 
 
 def test_culling_weak_wavelet_lights_stays_within_its_bound(cornell):
@@ -197,18 +275,31 @@ def test_culling_weak_wavelet_lights_stays_within_its_bound(cornell):
 def test_reduced_resolution_indirect_is_upsampled_along_edges(cornell, tmp_path):
     _, references, scene, camera = cornell
     settings = TransferSettings(num_gathers=1024, num_coefficients=100, indirect_scale=2)
-    layer = bake_transfer(scene, camera, tmp_path, "cornell", supersampling=1, texture_samples=1, settings=settings,
-                          progress=False)
+    layer = bake_transfer(
+        scene, camera, tmp_path, "cornell", supersampling=1, texture_samples=1, settings=settings, progress=False
+    )
     relighter = open_transfer_relighter(layer)
     assert relighter.final_gather.num_rows <= (SIZE // 2) ** 2 and relighter.upsampler is not None
     reference = references[1] - references[0]
     indirect = relighter.indirect_image().numpy()
     assert np.isfinite(indirect).all()
-    plain = TransferRelighter(relighter.direct, relighter.gathers, relighter.view_pixels, relighter.final_gather,
-                              upsampler=edge_aware_upsampler(
-                                  relighter.direct.gbuffer, 1, 2, relighter.view_pixels,
-                                  *(torch.from_numpy(np.load(tmp_path / f"cornell.view{name}.npy"))
-                                    for name in ("Position", "Normal", "ObjectId")), guided=False))
+    plain = TransferRelighter(
+        relighter.direct,
+        relighter.gathers,
+        relighter.view_pixels,
+        relighter.final_gather,
+        upsampler=edge_aware_upsampler(
+            relighter.direct.gbuffer,
+            1,
+            2,
+            relighter.view_pixels,
+            *(
+                torch.from_numpy(np.load(tmp_path / f"cornell.view{name}.npy"))
+                for name in ("Position", "Normal", "ObjectId")
+            ),
+            guided=False,
+        ),
+    )
     # Measured when written (32 x 32, 1,024 gathers, k = 100, F for 16 x 16): 37.9 dB, and 36.3 dB
     # with a plain tent filter that blends across edges.
     assert psnr(indirect, reference) >= 37.0
@@ -216,5 +307,6 @@ def test_reduced_resolution_indirect_is_upsampled_along_edges(cornell, tmp_path)
     # The light-group AOVs (direct and upsampled indirect per group) still sum to the beauty.
     groups = relighter.light_group_images()
     assert sorted(groups) == ["CeilingLight_direct", "CeilingLight_indirect"]
-    np.testing.assert_allclose((sum(groups.values()) + relighter.emission_image()).numpy(),
-                               relighter.render().numpy(), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(
+        (sum(groups.values()) + relighter.emission_image()).numpy(), relighter.render().numpy(), rtol=1e-5, atol=1e-7
+    )

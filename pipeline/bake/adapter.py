@@ -55,8 +55,17 @@ class MethodAdapter(Protocol):
 
     def bounces(self, point: dict[str, object]) -> int: ...
 
-    def bake(self, scene: Scene, camera: Camera, directory: Path, stem: str, point: dict[str, object],
-             supersampling: int, texture_samples: int, time_code: float | None = None) -> Path: ...
+    def bake(
+        self,
+        scene: Scene,
+        camera: Camera,
+        directory: Path,
+        stem: str,
+        point: dict[str, object],
+        supersampling: int,
+        texture_samples: int,
+        time_code: float | None = None,
+    ) -> Path: ...
 
     def variants(self, layer: Path, point: dict[str, object], device: str) -> list[Variant]: ...
 

@@ -65,8 +65,14 @@ def grid_rays(camera: Camera, n: int, rows: tuple[int, int] | None = None) -> tu
     return origins.reshape(-1, 3), directions.reshape(-1, 3)
 
 
-def bake_deep_framebuffer(scene: Scene, camera: Camera, supersampling: int = 1, texture_samples: int = 2,
-                          tracer: Tracer | None = None, rows: tuple[int, int] | None = None) -> DeepFramebuffer:
+def bake_deep_framebuffer(
+    scene: Scene,
+    camera: Camera,
+    supersampling: int = 1,
+    texture_samples: int = 2,
+    tracer: Tracer | None = None,
+    rows: tuple[int, int] | None = None,
+) -> DeepFramebuffer:
     """Trace the camera's sub-sample rays and record the visible surfaces.
 
     Textures and normal maps are filtered over each sub-sample's footprint so that the relit pixel
@@ -104,7 +110,8 @@ def bake_deep_framebuffer(scene: Scene, camera: Camera, supersampling: int = 1, 
     params, normal, tangent, bitangent = points.params, points.normal, points.tangent, points.bitangent
     if texture_samples > 1:
         params, normal, tangent, bitangent = _filter_materials(
-            scene, tracer, tangents, camera, s, texture_samples, (first, last), band_index, points)
+            scene, tracer, tangents, camera, s, texture_samples, (first, last), band_index, points
+        )
     pixel_index = band_index + first * s * width * s
     camera_position = camera.world_from_camera[:3, 3]
     forward = -camera.world_from_camera[:3, 2] / np.linalg.norm(camera.world_from_camera[:3, 2])
@@ -112,10 +119,16 @@ def bake_deep_framebuffer(scene: Scene, camera: Camera, supersampling: int = 1, 
     gbuffer = GBuffer.from_numpy(
         image_size=(height * s, width * s),
         pixel_index=pixel_index,
-        position=points.position, normal=normal, tangent=tangent,
-        bitangent=bitangent, geometric_normal=points.geometric_normal,
-        params=params, material_id=points.material_id, object_id=points.object_id,
-        depth=depth.astype(np.float32), camera_position=camera_position,
+        position=points.position,
+        normal=normal,
+        tangent=tangent,
+        bitangent=bitangent,
+        geometric_normal=points.geometric_normal,
+        params=params,
+        material_id=points.material_id,
+        object_id=points.object_id,
+        depth=depth.astype(np.float32),
+        camera_position=camera_position,
     )
     return DeepFramebuffer(gbuffer=gbuffer, camera=camera, supersampling=s, num_back_facing=num_back_facing)
 
@@ -149,8 +162,17 @@ VARIATION = 0.01
 exceeds this, or the spread 1 - |mean normal| of their normals exceeds a tenth of it."""
 
 
-def _filter_materials(scene: Scene, tracer: Tracer, tangents: np.ndarray, camera: Camera, s: int, t: int,
-                      rows: tuple[int, int], pixel_index: np.ndarray, centre: ShadingPoints):
+def _filter_materials(
+    scene: Scene,
+    tracer: Tracer,
+    tangents: np.ndarray,
+    camera: Camera,
+    s: int,
+    t: int,
+    rows: tuple[int, int],
+    pixel_index: np.ndarray,
+    centre: ShadingPoints,
+):
     """Average material parameters and shading normals of t x t rays per covered sub-sample,
     adaptively: `PROBE_SAMPLES` per side first, t only where those differ (textured or normal-mapped
     surfaces; a constant material on a smooth surface is already converged).
@@ -164,11 +186,14 @@ def _filter_materials(scene: Scene, tracer: Tracer, tangents: np.ndarray, camera
     """
     probe = min(t, PROBE_SAMPLES)
     filtered, normal, spread_length, varies = _average_samples(
-        scene, tracer, tangents, camera, s, probe, rows, pixel_index, centre, None)
+        scene, tracer, tangents, camera, s, probe, rows, pixel_index, centre, None
+    )
     if t > probe and varies.any():
         fine = _average_samples(scene, tracer, tangents, camera, s, t, rows, pixel_index, centre, varies)
-        filtered = {name: np.where(varies.reshape((-1,) + (1,) * (value.ndim - 1)), fine[0][name], value)
-                    for name, value in filtered.items()}
+        filtered = {
+            name: np.where(varies.reshape((-1,) + (1,) * (value.ndim - 1)), fine[0][name], value)
+            for name, value in filtered.items()
+        }
         normal = np.where(varies[:, None], fine[1], normal)
         spread_length = np.where(varies, fine[2], spread_length)
     _fold_normal_spread(filtered, spread_length)
@@ -178,9 +203,18 @@ def _filter_materials(scene: Scene, tracer: Tracer, tangents: np.ndarray, camera
     return PreviewSurfaceParams.from_numpy(filtered), normal, tangent.astype(np.float32), bitangent
 
 
-def _average_samples(scene: Scene, tracer: Tracer, tangents: np.ndarray, camera: Camera, s: int, t: int,
-                     rows: tuple[int, int], pixel_index: np.ndarray, centre: ShadingPoints,
-                     selected: np.ndarray | None):
+def _average_samples(
+    scene: Scene,
+    tracer: Tracer,
+    tangents: np.ndarray,
+    camera: Camera,
+    s: int,
+    t: int,
+    rows: tuple[int, int],
+    pixel_index: np.ndarray,
+    centre: ShadingPoints,
+    selected: np.ndarray | None,
+):
     """Trace t x t rays per covered sub-sample (only the `selected` (N,) ones where given) and
     average what the rays that see the centre's object hit.
 
@@ -258,6 +292,6 @@ def texel_density(scene: Scene) -> np.ndarray:
         for field in dataclasses.fields(material):
             texture = getattr(getattr(material, field.name), "texture", None)
             if texture is not None:
-                stretch = np.linalg.norm(texture.st_from_uv[:2, :2], 2)   # largest singular value
+                stretch = np.linalg.norm(texture.st_from_uv[:2, :2], 2)  # largest singular value
                 density[index] = max(density[index], max(texture.pixels.shape[:2]) * stretch)
     return density

@@ -42,7 +42,9 @@ def triangle_areas(corners: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=-1)
 
 
-def refine_triangles(corners: np.ndarray, uvs: np.ndarray, max_area: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def refine_triangles(
+    corners: np.ndarray, uvs: np.ndarray, max_area: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Halve triangles along their longest edge until none is larger than `max_area`.
 
     Args:
@@ -64,15 +66,19 @@ def refine_triangles(corners: np.ndarray, uvs: np.ndarray, max_area: float) -> t
         c = np.take_along_axis(c, roll[:, :, None], axis=1)
         u = np.take_along_axis(u, roll[:, :, None], axis=1)
         mid_c, mid_u = 0.5 * (c[:, 0] + c[:, 1]), 0.5 * (u[:, 0] + u[:, 1])
-        corners = np.concatenate([corners[~big], np.stack([c[:, 0], mid_c, c[:, 2]], 1),
-                                  np.stack([mid_c, c[:, 1], c[:, 2]], 1)])
-        uvs = np.concatenate([uvs[~big], np.stack([u[:, 0], mid_u, u[:, 2]], 1), np.stack([mid_u, u[:, 1], u[:, 2]], 1)])
+        corners = np.concatenate(
+            [corners[~big], np.stack([c[:, 0], mid_c, c[:, 2]], 1), np.stack([mid_c, c[:, 1], c[:, 2]], 1)]
+        )
+        uvs = np.concatenate(
+            [uvs[~big], np.stack([u[:, 0], mid_u, u[:, 2]], 1), np.stack([mid_u, u[:, 1], u[:, 2]], 1)]
+        )
         parent = np.concatenate([parent[~big], parent[big], parent[big]])
     return corners, uvs, parent
 
 
-def split_budget(centroids: np.ndarray, areas: np.ndarray, num_samples: int,
-                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def split_budget(
+    centroids: np.ndarray, areas: np.ndarray, num_samples: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Listing 9-1's recursion: which triangle each sample lands on, and the area it stands for.
 
     Args:
@@ -104,9 +110,11 @@ def split_budget(centroids: np.ndarray, areas: np.ndarray, num_samples: int,
         left_budget = np.clip((budget * left_area / group_area).astype(np.int64), 1, np.maximum(budget - 1, 1))
         # Each active group becomes (left, right); inactive groups stay as they are.
         start, count, budget, group_area = (
-            _interleave(active, start, start, start + left), _interleave(active, count, left, count - left),
+            _interleave(active, start, start, start + left),
+            _interleave(active, count, left, count - left),
             _interleave(active, budget, left_budget, budget - left_budget),
-            _interleave(active, group_area, left_area, group_area - left_area))
+            _interleave(active, group_area, left_area, group_area - left_area),
+        )
     cumulative = np.cumsum(areas[order])
     before_group = cumulative[start] - areas[order][start]
     # One-sample groups: an area-weighted random triangle; one-triangle groups: all their samples on it.
@@ -140,7 +148,7 @@ def flatten_order(position: np.ndarray, normal: np.ndarray, diagonal: float) -> 
     """
     num = position.shape[0]
     side = math.isqrt(num)
-    num_levels = 2 * int(round(math.log2(side))) if side > 1 else 0
+    num_levels = 2 * round(math.log2(side)) if side > 1 else 0
     features = np.concatenate([POSITION_WEIGHT * position / diagonal, normal], axis=1).astype(np.float64)
     morton = np.arange(num)
     for level in range(num_levels):
@@ -182,8 +190,9 @@ def create_gathers(scene: Scene, num_gathers: int, seed: int = 0) -> GatherSampl
     keep = areas > 0
     if not keep.any():
         raise ValueError("the scene has no surface area to place gathers on")
-    corners, uvs, parent = refine_triangles(geometry.positions[keep].astype(np.float64), geometry.uvs[keep],
-                                            areas.sum() / num_gathers)
+    corners, uvs, parent = refine_triangles(
+        geometry.positions[keep].astype(np.float64), geometry.uvs[keep], areas.sum() / num_gathers
+    )
     parent = np.flatnonzero(keep)[parent]
     rng = np.random.default_rng(seed)
     triangle, sample_area = split_budget(corners.mean(axis=1), triangle_areas(corners), num_gathers, rng)
@@ -203,8 +212,18 @@ def create_gathers(scene: Scene, num_gathers: int, seed: int = 0) -> GatherSampl
     points = geometry.positions.reshape(-1, 3)
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
     order = flatten_order(position, normal, diagonal)
-    columns = {"position": position, "normal": normal, "albedo": diffuse_albedo(params).numpy(),
-               "emission": values["emissive_color"], "area": sample_area}
+    columns = {
+        "position": position,
+        "normal": normal,
+        "albedo": diffuse_albedo(params).numpy(),
+        "emission": values["emissive_color"],
+        "area": sample_area,
+    }
     object_id = torch.from_numpy(geometry.object_ids[parent[triangle]][order].astype(np.int64))
-    return GatherSamples(**{name: torch.from_numpy(np.ascontiguousarray(np.asarray(a)[order], np.float32))
-                            for name, a in columns.items()}, object_id=object_id)
+    return GatherSamples(
+        **{
+            name: torch.from_numpy(np.ascontiguousarray(np.asarray(a)[order], np.float32))
+            for name, a in columns.items()
+        },
+        object_id=object_id,
+    )

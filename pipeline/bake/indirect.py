@@ -20,8 +20,8 @@ from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
 from pipeline.bake.direct.bake import direct_payloads, prepare_output, shot_tracer, write_npy
 from pipeline.bake.scheduler import ShotSpec, chunk_folder, load_shot, per_process
 from pipeline.scene.types import Camera, Scene
-from relight_torch.gbuffer import GBuffer
 from relight_torch.cache.layer import CacheDescription, Payload, content_hash, write_cache_layer
+from relight_torch.gbuffer import GBuffer
 
 
 @dataclass(frozen=True)
@@ -56,21 +56,37 @@ class IndirectBake:
 
     def finish(self, payloads: list[Payload]) -> Path:
         """Write the cache layer with the method's payloads, drop the chunks; the layer's path."""
-        write_cache_layer(self.layer_path, dataclasses.replace(
-            self.description, method=self.method, parameters=self.parameters, content_hash=self.content_hash,
-            payloads=self.description.payloads + tuple(payloads)))
+        write_cache_layer(
+            self.layer_path,
+            dataclasses.replace(
+                self.description,
+                method=self.method,
+                parameters=self.parameters,
+                content_hash=self.content_hash,
+                payloads=self.description.payloads + tuple(payloads),
+            ),
+        )
         shutil.rmtree(self.chunk_dir, ignore_errors=True)
         shutil.rmtree(self.direct_chunk_dir, ignore_errors=True)
         return self.layer_path
 
 
-def start_indirect_bake(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, method: str,
-                        method_parameters: dict, supersampling: int, texture_samples: int,
-                        time_code: float | None) -> IndirectBake:
+def start_indirect_bake(
+    scene: Scene,
+    camera: Camera,
+    out_dir: str | Path,
+    stem: str,
+    method: str,
+    method_parameters: dict,
+    supersampling: int,
+    texture_samples: int,
+    time_code: float | None,
+) -> IndirectBake:
     """Write the direct payloads (no layer yet) and name the chunk folder of an indirect method."""
     out_dir, layer_path = prepare_output(out_dir, stem, supersampling, texture_samples)
-    description, direct_chunk_dir = direct_payloads(scene, camera, out_dir, stem, supersampling, texture_samples,
-                                                    time_code)
+    description, direct_chunk_dir = direct_payloads(
+        scene, camera, out_dir, stem, supersampling, texture_samples, time_code
+    )
     parameters = {**description.parameters, **method_parameters}
     digest = content_hash(description.inputs, parameters, description.code_version)
     chunk_dir = chunk_folder(out_dir, stem, method, digest)

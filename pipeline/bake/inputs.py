@@ -20,7 +20,6 @@ from pxr import Ar
 
 import pipeline
 import relight_torch
-
 from pipeline.scene.types import Scene
 from relight_torch.cache.layer import content_hash, file_sha256, read_cache_layer, write_cache_layer
 from relight_torch.cache.status import cache_status
@@ -104,9 +103,14 @@ def record_request(layer_path: Path, digest: str) -> None:
     recomputed so that it still covers every recorded parameter."""
     description = read_cache_layer(layer_path)
     parameters = {**description.parameters, REQUEST_PARAMETER: digest}
-    write_cache_layer(layer_path, dataclasses.replace(
-        description, parameters=parameters,
-        content_hash=content_hash(description.inputs, parameters, description.code_version)))
+    write_cache_layer(
+        layer_path,
+        dataclasses.replace(
+            description,
+            parameters=parameters,
+            content_hash=content_hash(description.inputs, parameters, description.code_version),
+        ),
+    )
 
 
 def identify_bake(scene: Scene, parameters: dict, time_code: float | None) -> tuple[dict, dict[str, str], str]:

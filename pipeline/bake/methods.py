@@ -61,12 +61,13 @@ class BakeMethod:
     default_supersampling: int = 2
     quality_fixed: Callable[[argparse.Namespace], dict[str, object]] | None = None
     report: Callable[[Path], str] | None = None
-    render_views: Callable[[CacheRelighter, argparse.Namespace, "Callable | None"], None] | None = None
+    render_views: Callable[[CacheRelighter, argparse.Namespace, Callable | None], None] | None = None
 
     def __post_init__(self) -> None:
         if (self.render_views is not None) != self.relight.needs_view:
-            raise ValueError(f"method {self.name!r}: render_views must be given exactly when its relighter "
-                             f"needs a view")
+            raise ValueError(
+                f"method {self.name!r}: render_views must be given exactly when its relighter needs a view"
+            )
         if self.adapter.name != self.name:
             raise ValueError(f"method {self.name!r}: its adapter is named {self.adapter.name!r}")
 

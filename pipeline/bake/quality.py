@@ -50,6 +50,7 @@ NOISE_HEADROOM_DB = 10.0
 MAX_REFERENCE_SPP = 4096
 START_SPP = 32
 
+
 @dataclass(frozen=True)
 class Candidate:
     """One pilot measurement: the full-size point, its pilot PSNR (noise-corrected) and cache bytes."""
@@ -113,8 +114,9 @@ def corrected_psnr(image: np.ndarray, reference: ReferenceImage) -> tuple[float,
     return psnr_from_mse(max(raw - noise, 0.1 * noise, 1e-12)), psnr_from_mse(raw)
 
 
-def reference_for(scene: Scene, camera: Camera, bounces: int, target_db: float,
-                  headroom_db: float = NOISE_HEADROOM_DB) -> ReferenceImage:
+def reference_for(
+    scene: Scene, camera: Camera, bounces: int, target_db: float, headroom_db: float = NOISE_HEADROOM_DB
+) -> ReferenceImage:
     """The path tracer's image at START_SPP, re-rendered once with more spp if its noise floor is
     less than `headroom_db` above `target_db` (at most MAX_REFERENCE_SPP)."""
     spp = START_SPP
@@ -127,9 +129,18 @@ def reference_for(scene: Scene, camera: Camera, bounces: int, target_db: float,
         spp = min(MAX_REFERENCE_SPP, math.ceil(spp * 10 ** ((wanted - floor_db) / 10) * 1.1))
 
 
-def _measure(adapter: MethodAdapter, scene: Scene, camera: Camera, directory: Path, stem: str,
-             point: dict[str, object], reference: ReferenceImage, supersampling: int, texture_samples: int,
-             time_code: float | None) -> list[tuple[dict[str, object], float, float, float, float, Path]]:
+def _measure(
+    adapter: MethodAdapter,
+    scene: Scene,
+    camera: Camera,
+    directory: Path,
+    stem: str,
+    point: dict[str, object],
+    reference: ReferenceImage,
+    supersampling: int,
+    texture_samples: int,
+    time_code: float | None,
+) -> list[tuple[dict[str, object], float, float, float, float, Path]]:
     """Bake `point` into `directory`; per variant (parameters, corrected PSNR, raw PSNR, energy ratio
     mean(image) / mean(reference), cache bytes, layer)."""
     directory.mkdir(parents=True, exist_ok=True)
@@ -148,12 +159,23 @@ def _variant_point(ladder_point: dict[str, object], parameters: dict[str, object
     return {key: (int(parameters[key]) if isinstance(value, tuple) else value) for key, value in ladder_point.items()}
 
 
-def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, method: str, target_db: float,
-                     supersampling: int = 2, texture_samples: int = 2, time_code: float | None = None,
-                     fixed: dict[str, object] | None = None, pilot_side: int = 64,
-                     margin_db: float = 0.5, reference_bounces: int | None = None,
-                     ladder: list[dict[str, object]] | None = None,
-                     measure_headroom_db: float = NOISE_HEADROOM_DB) -> QualityResult:
+def bake_for_quality(
+    scene: Scene,
+    camera: Camera,
+    out_dir: str | Path,
+    stem: str,
+    method: str,
+    target_db: float,
+    supersampling: int = 2,
+    texture_samples: int = 2,
+    time_code: float | None = None,
+    fixed: dict[str, object] | None = None,
+    pilot_side: int = 64,
+    margin_db: float = 0.5,
+    reference_bounces: int | None = None,
+    ladder: list[dict[str, object]] | None = None,
+    measure_headroom_db: float = NOISE_HEADROOM_DB,
+) -> QualityResult:
     """Bake `method` sized to reach `target_db` PSNR on the shot (see the module doc).
 
     Args:
@@ -192,14 +214,30 @@ def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: st
             index, step = next(steps, (None, None))
             if step is None:
                 best = max(candidates, key=lambda c: c.psnr_db)
-                raise RelightError(f"bake --quality {target_db:g}: no {method} size reaches it on the pilot "
-                                   f"(best {best.psnr_db:.1f} dB with {best.point})")
-            measured = _measure(adapter, pilot_scene, pilot_camera, pilot_dir / f"step-{index}", stem,
-                                step, pilot_reference, supersampling, texture_samples, time_code)
-            new = [Candidate(_variant_point(step, parameters), corrected, num_bytes)
-                   for parameters, corrected, _, _, num_bytes, _ in measured]
+                raise RelightError(
+                    f"bake --quality {target_db:g}: no {method} size reaches it on the pilot "
+                    f"(best {best.psnr_db:.1f} dB with {best.point})"
+                )
+            measured = _measure(
+                adapter,
+                pilot_scene,
+                pilot_camera,
+                pilot_dir / f"step-{index}",
+                stem,
+                step,
+                pilot_reference,
+                supersampling,
+                texture_samples,
+                time_code,
+            )
+            new = [
+                Candidate(_variant_point(step, parameters), corrected, num_bytes)
+                for parameters, corrected, _, _, num_bytes, _ in measured
+            ]
             for candidate in new:
-                log.info("quality pilot %s: %.2f dB, %d bytes", candidate.point, candidate.psnr_db, candidate.cache_bytes)
+                log.info(
+                    "quality pilot %s: %.2f dB, %d bytes", candidate.point, candidate.psnr_db, candidate.cache_bytes
+                )
             candidates.extend(new)
             passing = [c for c in new if c.psnr_db >= threshold]
         return min(passing, key=lambda c: c.cache_bytes)
@@ -209,8 +247,9 @@ def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: st
         full_reference = reference_for(scene, camera, bounces, target_db, measure_headroom_db)
         for attempt in range(2):
             point = chosen.point
-            ((_, measured_db, raw_db, energy_ratio, _, layer),) = _measure(adapter, scene, camera, out_dir, stem, point,
-                                                              full_reference, supersampling, texture_samples, time_code)
+            ((_, measured_db, raw_db, energy_ratio, _, layer),) = _measure(
+                adapter, scene, camera, out_dir, stem, point, full_reference, supersampling, texture_samples, time_code
+            )
             log.info("quality: %s measured %.2f dB at full size (pilot %.2f dB)", point, measured_db, chosen.psnr_db)
             if measured_db >= target_db or attempt == 1:
                 break
@@ -222,26 +261,56 @@ def bake_for_quality(scene: Scene, camera: Camera, out_dir: str | Path, stem: st
     if measured_db < target_db:
         log.warning("bake --quality %g: %s measured %.2f dB at full size after a retry", target_db, point, measured_db)
     reference_spp = round(full_reference.num_paths / (camera.width * camera.height))
-    _record(layer, point, target_db, chosen.psnr_db, measured_db, raw_db, energy_ratio, reference_spp,
-            (width, height))
-    return QualityResult(layer, point, chosen.psnr_db, measured_db, raw_db, energy_ratio, reference_spp,
-                         (width, height), tuple(candidates))
+    _record(layer, point, target_db, chosen.psnr_db, measured_db, raw_db, energy_ratio, reference_spp, (width, height))
+    return QualityResult(
+        layer,
+        point,
+        chosen.psnr_db,
+        measured_db,
+        raw_db,
+        energy_ratio,
+        reference_spp,
+        (width, height),
+        tuple(candidates),
+    )
 
 
-def _record(layer: Path, point: dict[str, object], target_db: float, predicted_db: float, measured_db: float,
-            raw_db: float, energy_ratio: float, reference_spp: int, pilot: tuple[int, int]) -> None:
+def _record(
+    layer: Path,
+    point: dict[str, object],
+    target_db: float,
+    predicted_db: float,
+    measured_db: float,
+    raw_db: float,
+    energy_ratio: float,
+    reference_spp: int,
+    pilot: tuple[int, int],
+) -> None:
     """Add the quality parameters to the cache layer."""
-    add_parameters(layer, {"qualityChoice": format_params(point), "qualityTarget": float(target_db),
-                           "qualityPredicted": float(predicted_db), "qualityMeasured": float(measured_db),
-                           "qualityRawPsnr": float(raw_db), "qualityEnergyRatio": round(energy_ratio, 4),
-                           "qualityReferenceSpp": int(reference_spp),
-                           "qualityPilot": f"{pilot[0]}x{pilot[1]}"})
+    add_parameters(
+        layer,
+        {
+            "qualityChoice": format_params(point),
+            "qualityTarget": float(target_db),
+            "qualityPredicted": float(predicted_db),
+            "qualityMeasured": float(measured_db),
+            "qualityRawPsnr": float(raw_db),
+            "qualityEnergyRatio": round(energy_ratio, 4),
+            "qualityReferenceSpp": int(reference_spp),
+            "qualityPilot": f"{pilot[0]}x{pilot[1]}",
+        },
+    )
 
 
 def add_parameters(layer: Path, added: dict[str, object]) -> None:
     """Add entries to a cache layer's parameters and re-hash them into its content hash."""
     description = read_cache_layer(layer)
     parameters = {**description.parameters, **added}
-    write_cache_layer(layer, dataclasses.replace(
-        description, parameters=parameters,
-        content_hash=content_hash(description.inputs, parameters, description.code_version)))
+    write_cache_layer(
+        layer,
+        dataclasses.replace(
+            description,
+            parameters=parameters,
+            content_hash=content_hash(description.inputs, parameters, description.code_version),
+        ),
+    )

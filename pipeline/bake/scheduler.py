@@ -57,11 +57,11 @@ import logging
 import os
 import shutil
 import zipfile
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -97,12 +97,17 @@ class ShotSpec:
     lights_layer: str | None = None
 
     @staticmethod
-    def of(scene: Scene, camera: Camera, time_code: float | None = None,
-           lights_layer: str | None = None) -> "ShotSpec":
+    def of(scene: Scene, camera: Camera, time_code: float | None = None, lights_layer: str | None = None) -> ShotSpec:
         """The spec of `scene` (read by `load_scene(scene.source, time=time_code, width=, height=)`),
         remembered so `load_shot` in this process returns `scene` itself instead of reading it again."""
-        shot = ShotSpec(str(scene.source), camera.path, camera.width, camera.height,
-                        None if time_code is None else float(time_code), lights_layer)
+        shot = ShotSpec(
+            str(scene.source),
+            camera.path,
+            camera.width,
+            camera.height,
+            None if time_code is None else float(time_code),
+            lights_layer,
+        )
         remember_shot(shot, scene)
         return shot
 
@@ -159,7 +164,7 @@ class Scheduler:
 
 
 _SCHEDULER: contextvars.ContextVar[Scheduler] = contextvars.ContextVar("relight_scheduler", default=Scheduler())
-_POOLS: contextvars.ContextVar["_Pools | None"] = contextvars.ContextVar("relight_pools", default=None)
+_POOLS: contextvars.ContextVar[_Pools | None] = contextvars.ContextVar("relight_pools", default=None)
 _THREADS: contextvars.ContextVar[int | None] = contextvars.ContextVar("relight_chunk_threads", default=None)
 
 
@@ -209,8 +214,7 @@ def per_process(function: Callable) -> Callable:
 
 @per_process
 def _read_shot(shot: ShotSpec) -> Scene:
-    return load_scene(shot.shot, time=shot.time, lights_layer=shot.lights_layer, width=shot.width,
-                      height=shot.height)
+    return load_scene(shot.shot, time=shot.time, lights_layer=shot.lights_layer, width=shot.width, height=shot.height)
 
 
 _REMEMBERED: dict[ShotSpec, Scene] = {}
@@ -276,8 +280,9 @@ def chunk_folder(out_dir: str | os.PathLike, stem: str, work: str, digest: str) 
     return folder
 
 
-def run_chunk(compute: Callable[[ChunkSpec], dict[str, np.ndarray]], spec: ChunkSpec, chunk_dir: str,
-              threads: int | None = None) -> str:
+def run_chunk(
+    compute: Callable[[ChunkSpec], dict[str, np.ndarray]], spec: ChunkSpec, chunk_dir: str, threads: int | None = None
+) -> str:
     """Compute one chunk and write it atomically into `chunk_dir`; the file's path. Runs on workers."""
     token = _THREADS.set(threads)
     try:
@@ -287,15 +292,19 @@ def run_chunk(compute: Callable[[ChunkSpec], dict[str, np.ndarray]], spec: Chunk
     path = Path(chunk_dir) / spec.file_name
     if SPEC_KEY in arrays:
         raise ValueError(f"chunk arrays may not be named {SPEC_KEY}")
-    with atomic_path(path) as temp:
-        with open(temp, "wb") as handle:
-            np.savez(handle, **arrays, **{SPEC_KEY: np.array(spec_digest(spec))})
+    with atomic_path(path) as temp, open(temp, "wb") as handle:
+        np.savez(handle, **arrays, **{SPEC_KEY: np.array(spec_digest(spec))})
     return str(path)
 
 
-def run_chunks(compute: Callable[[ChunkSpec], dict[str, np.ndarray]], specs: Sequence[ChunkSpec],
-               chunk_dir: str | os.PathLike, label: str = "chunks", unit: str = "items",
-               progress: bool | None = None) -> list[Path]:
+def run_chunks(
+    compute: Callable[[ChunkSpec], dict[str, np.ndarray]],
+    specs: Sequence[ChunkSpec],
+    chunk_dir: str | os.PathLike,
+    label: str = "chunks",
+    unit: str = "items",
+    progress: bool | None = None,
+) -> list[Path]:
     """Make sure every chunk of `specs` has a valid file in `chunk_dir`; their paths, in order.
 
     Valid chunk files already there are kept; invalid ones are recomputed. The rest run on the
@@ -314,7 +323,9 @@ def run_chunks(compute: Callable[[ChunkSpec], dict[str, np.ndarray]], specs: Seq
     remove_temp_files(chunk_dir)  # of a killed run: no worker of this bake has started yet
     digests = [spec_digest(spec) for spec in specs]
     paths = [chunk_dir / spec.file_name for spec in specs]
-    pending = [i for i, (path, digest) in enumerate(zip(paths, digests)) if not chunk_is_valid(path, digest)]
+    pending = [
+        i for i, (path, digest) in enumerate(zip(paths, digests, strict=True)) if not chunk_is_valid(path, digest)
+    ]
     scheduler = current()
     total = sum(spec.stop - spec.start for spec in specs)
     done = total - sum(specs[i].stop - specs[i].start for i in pending)
@@ -324,15 +335,18 @@ def run_chunks(compute: Callable[[ChunkSpec], dict[str, np.ndarray]], specs: Seq
         update(done, total)
         for i in _submit(compute, [specs[i] for i in pending], chunk_dir, scheduler, pending):
             if not chunk_is_valid(paths[i], digests[i], read_members=False):
-                raise RelightError(f"{paths[i]}: chunk {specs[i].name} [{specs[i].start}, {specs[i].stop}) "
-                                   f"came back missing or invalid (does the worker see {chunk_dir}?)")
+                raise RelightError(
+                    f"{paths[i]}: chunk {specs[i].name} [{specs[i].start}, {specs[i].stop}) "
+                    f"came back missing or invalid (does the worker see {chunk_dir}?)"
+                )
             done += specs[i].stop - specs[i].start
             update(done, total)
     return paths
 
 
-def _submit(compute: Callable, specs: list[ChunkSpec], chunk_dir: Path, scheduler: Scheduler,
-            indices: list[int]) -> Iterator[int]:
+def _submit(
+    compute: Callable, specs: list[ChunkSpec], chunk_dir: Path, scheduler: Scheduler, indices: list[int]
+) -> Iterator[int]:
     """Run `specs` where `scheduler` says; yield each finished one's index (from `indices`)."""
     if not specs:
         return
@@ -341,15 +355,17 @@ def _submit(compute: Callable, specs: list[ChunkSpec], chunk_dir: Path, schedule
         return
     workers = scheduler.workers or 1
     if workers <= 1 or len(specs) == 1:
-        for spec, index in zip(specs, indices):
+        for spec, index in zip(specs, indices, strict=True):
             run_chunk(compute, spec, str(chunk_dir))
             yield index
         return
     threads = max(1, available_cpus() // workers)
     with contextlib.ExitStack() as stack:
         pool = _local_pool(workers, _POOLS.get() or _Pools(stack, {}))
-        futures = {pool.submit(run_chunk, compute, spec, str(chunk_dir), threads): index
-                   for spec, index in zip(specs, indices)}
+        futures = {
+            pool.submit(run_chunk, compute, spec, str(chunk_dir), threads): index
+            for spec, index in zip(specs, indices, strict=True)
+        }
         try:
             for future in as_completed(futures):
                 future.result()
@@ -377,29 +393,35 @@ def _local_pool(workers: int, pools: _Pools) -> ProcessPoolExecutor:
     return pools.by_size[workers]
 
 
-def _submit_dask(compute: Callable, specs: list[ChunkSpec], chunk_dir: Path, scheduler: Scheduler,
-                 indices: list[int]) -> Iterator[int]:
+def _submit_dask(
+    compute: Callable, specs: list[ChunkSpec], chunk_dir: Path, scheduler: Scheduler, indices: list[int]
+) -> Iterator[int]:
     """Run `specs` on a Dask cluster, one task per chunk (one thread each)."""
     try:
         import distributed
     except ImportError:
-        raise RelightError("a Dask scheduler needs the 'distributed' extra "
-                           "(pip install relight[distributed])") from None
+        raise RelightError(
+            "a Dask scheduler needs the 'distributed' extra (pip install relight[distributed])"
+        ) from None
     with contextlib.ExitStack() as stack:
         client = scheduler.client
         if client is None:
             address = None if scheduler.address == "dask" else scheduler.address
             if address is None and not _configured_address():
-                raise RelightError("--scheduler dask: Dask's configuration names no scheduler-address "
-                                   "(set DASK_SCHEDULER_ADDRESS or pass tcp://HOST:PORT)")
+                raise RelightError(
+                    "--scheduler dask: Dask's configuration names no scheduler-address "
+                    "(set DASK_SCHEDULER_ADDRESS or pass tcp://HOST:PORT)"
+                )
             try:
                 client = stack.enter_context(distributed.Client(address or _configured_address(), timeout="30s"))
             except (OSError, TimeoutError) as error:
-                raise RelightError(f"Dask scheduler {address or _configured_address()}: cannot connect "
-                                   f"({str(error).splitlines()[0]})") from None
-        futures = client.map(run_chunk, [compute] * len(specs), specs, [str(chunk_dir)] * len(specs),
-                             [1] * len(specs), pure=False)
-        where = dict(zip((f.key for f in futures), indices))
+                raise RelightError(
+                    f"Dask scheduler {address or _configured_address()}: cannot connect ({str(error).splitlines()[0]})"
+                ) from None
+        futures = client.map(
+            run_chunk, [compute] * len(specs), specs, [str(chunk_dir)] * len(specs), [1] * len(specs), pure=False
+        )
+        where = dict(zip((f.key for f in futures), indices, strict=True))
         try:
             for future in distributed.as_completed(futures):
                 future.result()

@@ -21,6 +21,7 @@ a peak of 1) and the quality figures of `bake_for_quality`.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import shutil
 from dataclasses import dataclass
@@ -28,14 +29,21 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.bake.quality import (QualityResult, add_parameters, bake_for_quality, corrected_psnr, pilot_size,
-                                   reference_for, resized)
 from pipeline.bake.methods import bake_method
+from pipeline.bake.quality import (
+    QualityResult,
+    add_parameters,
+    bake_for_quality,
+    corrected_psnr,
+    pilot_size,
+    reference_for,
+    resized,
+)
 from pipeline.bake.transfer.bake import TransferSettings
 from pipeline.reference.path_tracer import FULL_FRAME_BOUNCES
 from pipeline.scene.types import Camera, Scene
-from relight_torch.metrics import psnr_from_mse
 from relight_torch import open_cache
+from relight_torch.metrics import psnr_from_mse
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +53,8 @@ BOUNCE_TAIL_FRACTION = 0.25
 """The bounces left out may add at most this fraction of the target's MSE."""
 TRANSFER_LADDER: list[dict[str, object]] = [
     {"supersampling": 2, "gathers": gathers, "coefficients": (50, 100, 200, 400), "bounceCoefficients": 1024}
-    for gathers in (1024, 4096, 16384)]
+    for gathers in (1024, 4096, 16384)
+]
 """The transfer sizes the shot tries, cheapest first. Supersampling 2: the pilot's edges alias at 1 (its pixels
 are several of the full frame's); M keeps 1,024 coefficients per row, as its few rows (one per gather) cost
 little and the chapter's 40 lose light at every bounce."""
@@ -92,34 +101,50 @@ def choose_bounces(images: list[np.ndarray], target_db: float) -> tuple[int, flo
         (bounces, PSNR (peak 1) of the estimated rest, PSNR of the change each bounce 2 ... N made).
     """
     budget = BOUNCE_TAIL_FRACTION * 10.0 ** (-target_db / 10.0)
-    changes = [after - before for before, after in zip(images, images[1:])]
-    rms = [float(np.sqrt(np.mean(change ** 2))) for change in changes]
+    changes = [after - before for before, after in itertools.pairwise(images)]
+    rms = [float(np.sqrt(np.mean(change**2))) for change in changes]
     ratio = min(rms[-1] / rms[-2], 0.99) if len(rms) > 1 and rms[-2] > 0 else 0.0
     beyond = changes[-1] * (ratio / (1.0 - ratio))
     change_db = tuple(psnr_from_mse(max(r * r, 1e-20)) for r in rms)
     rests = [images[-1] - image + beyond for image in images]
-    rest_mse = [float(np.mean(rest ** 2)) for rest in rests]
+    rest_mse = [float(np.mean(rest**2)) for rest in rests]
     energy = ENERGY_FRACTION * float(np.mean(images[-1] + beyond))
-    bounces = next((n for n, (mse, rest) in enumerate(zip(rest_mse, rests), start=1)
-                    if mse <= budget and float(np.mean(rest)) <= energy), len(images))
+    bounces = next(
+        (
+            n
+            for n, (mse, rest) in enumerate(zip(rest_mse, rests, strict=True), start=1)
+            if mse <= budget and float(np.mean(rest)) <= energy
+        ),
+        len(images),
+    )
     return bounces, psnr_from_mse(max(rest_mse[bounces - 1], 1e-20)), change_db
 
 
-def choose_components(scene: Scene, camera: Camera, work: Path, stem: str, target_db: float,
-                      texture_samples: int, time_code: float | None, pilot_side: int) -> ShotChoice:
+def choose_components(
+    scene: Scene,
+    camera: Camera,
+    work: Path,
+    stem: str,
+    target_db: float,
+    texture_samples: int,
+    time_code: float | None,
+    pilot_side: int,
+) -> ShotChoice:
     """Measure the pilot: direct alone, then the transfer series bounce by bounce."""
     width, height = pilot_size(camera.width, camera.height, pilot_side)
     pilot_scene, pilot_camera = resized(scene, camera, width, height)
     reference = reference_for(pilot_scene, pilot_camera, FULL_FRAME_BOUNCES, target_db + PILOT_MARGIN_DB)
-    direct_layer = bake_method("direct").bake(pilot_scene, pilot_camera, work / "direct", stem, 2, texture_samples,
-                                              time_code, None)
+    direct_layer = bake_method("direct").bake(
+        pilot_scene, pilot_camera, work / "direct", stem, 2, texture_samples, time_code, None
+    )
     direct_db, _ = corrected_psnr(open_cache(direct_layer).render().numpy(), reference)
     log.info("shot pilot %dx%d: direct alone %.2f dB against the full frame", width, height, direct_db)
     if direct_db >= target_db + PILOT_MARGIN_DB:
         return ShotChoice("direct", 0, direct_db, float("inf"), ())
     settings = TransferSettings(num_bounces=MAX_BOUNCES, num_coefficients=200, num_bounce_coefficients=1024)
-    layer = bake_method("transfer").bake(pilot_scene, pilot_camera, work / "transfer", stem, 1, texture_samples,
-                                         time_code, settings)
+    layer = bake_method("transfer").bake(
+        pilot_scene, pilot_camera, work / "transfer", stem, 1, texture_samples, time_code, settings
+    )
     relighter = open_cache(layer)
     images = []
     for bounces in range(1, MAX_BOUNCES + 1):
@@ -128,16 +153,31 @@ def choose_components(scene: Scene, camera: Camera, work: Path, stem: str, targe
         images.append(relighter.render().numpy())
     bounces, tail_db, change_db = choose_bounces(images, target_db)
     if bounces == MAX_BOUNCES:
-        log.warning("shot: %d bounces leave light out (the rest estimated at %.1f dB against a %g dB target)",
-                    bounces, tail_db, target_db)
-    log.info("shot pilot: %d bounces (rest estimated at %.1f dB; changes %s)", bounces, tail_db,
-             ", ".join(f"{db:.1f}" for db in change_db))
+        log.warning(
+            "shot: %d bounces leave light out (the rest estimated at %.1f dB against a %g dB target)",
+            bounces,
+            tail_db,
+            target_db,
+        )
+    log.info(
+        "shot pilot: %d bounces (rest estimated at %.1f dB; changes %s)",
+        bounces,
+        tail_db,
+        ", ".join(f"{db:.1f}" for db in change_db),
+    )
     return ShotChoice("direct+transfer", bounces, direct_db, tail_db, change_db)
 
 
-def bake_shot(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, target_db: float = DEFAULT_TARGET_DB,
-              texture_samples: int = 2, time_code: float | None = None,
-              pilot_side: int = 64) -> tuple[ShotChoice, QualityResult]:
+def bake_shot(
+    scene: Scene,
+    camera: Camera,
+    out_dir: str | Path,
+    stem: str,
+    target_db: float = DEFAULT_TARGET_DB,
+    texture_samples: int = 2,
+    time_code: float | None = None,
+    pilot_side: int = 64,
+) -> tuple[ShotChoice, QualityResult]:
     """Bake the shot cache of `scene` seen by `camera` for `target_db` against the full frame.
 
     Returns:
@@ -156,15 +196,35 @@ def bake_shot(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, targ
         method, fixed, ladder = "direct", None, None
     else:
         method, fixed, ladder = "transfer", {"bounces": choice.bounces}, TRANSFER_LADDER
-    result = bake_for_quality(scene, camera, out_dir, stem, method, target_db, 1, texture_samples, time_code,
-                              fixed=fixed, pilot_side=pilot_side, reference_bounces=FULL_FRAME_BOUNCES,
-                              ladder=ladder, measure_headroom_db=MEASURE_HEADROOM_DB)
+    result = bake_for_quality(
+        scene,
+        camera,
+        out_dir,
+        stem,
+        method,
+        target_db,
+        1,
+        texture_samples,
+        time_code,
+        fixed=fixed,
+        pilot_side=pilot_side,
+        reference_bounces=FULL_FRAME_BOUNCES,
+        ladder=ladder,
+        measure_headroom_db=MEASURE_HEADROOM_DB,
+    )
     _record(result.layer, choice)
     return choice, result
 
 
 def _record(layer: Path, choice: ShotChoice) -> None:
     """Add the shot's choice to the cache layer's parameters."""
-    add_parameters(layer, {"shotComponents": choice.components, "shotBounces": choice.bounces,
-                           "shotDirectDb": round(choice.direct_db, 2), "shotBounceTailDb": round(choice.tail_db, 2),
-                           "shotBounceChangesDb": ", ".join(f"{db:.1f}" for db in choice.bounce_change_db)})
+    add_parameters(
+        layer,
+        {
+            "shotComponents": choice.components,
+            "shotBounces": choice.bounces,
+            "shotDirectDb": round(choice.direct_db, 2),
+            "shotBounceTailDb": round(choice.tail_db, 2),
+            "shotBounceChangesDb": ", ".join(f"{db:.1f}" for db in choice.bounce_change_db),
+        },
+    )

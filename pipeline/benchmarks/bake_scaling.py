@@ -37,8 +37,11 @@ def time_bakes(size: int, mode: str) -> tuple[float, float]:
         if mode.startswith("dask"):
             import distributed
 
-            cluster = stack.enter_context(distributed.LocalCluster(
-                n_workers=int(mode[4:]), threads_per_worker=1, host="127.0.0.1", dashboard_address=None))
+            cluster = stack.enter_context(
+                distributed.LocalCluster(
+                    n_workers=int(mode[4:]), threads_per_worker=1, host="127.0.0.1", dashboard_address=None
+                )
+            )
             chosen = scheduler.Scheduler(address=cluster.scheduler_address, progress=False)
         else:
             chosen = scheduler.Scheduler(workers=int(mode[4:]) if mode.startswith("pool") else None, progress=False)
@@ -57,8 +60,11 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     for mode in args.modes:
         transfer, gather = time_bakes(args.size, mode)
-        print(f"{args.size}x{args.size} {mode}: transfer {transfer:.1f} s, gather {gather:.1f} s, "
-              f"total {transfer + gather:.1f} s", flush=True)
+        print(
+            f"{args.size}x{args.size} {mode}: transfer {transfer:.1f} s, gather {gather:.1f} s, "
+            f"total {transfer + gather:.1f} s",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

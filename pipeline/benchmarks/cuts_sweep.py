@@ -46,8 +46,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
 from pipeline.bake.adapter import cache_bytes
+from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
 from pipeline.benchmarks.bench.measure import device_name, moved, relight_ms
 from pipeline.benchmarks.bench.references import References
 from pipeline.benchmarks.reuse import reusable_bake
@@ -58,9 +58,9 @@ from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.cuts.open import open_cuts_relighter
 from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
+from relight_torch.direct.relighter import shot_lights
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch.direct.relighter import shot_lights
 
 
 def rotated(light: Light, degrees: float) -> Light:
@@ -108,9 +108,16 @@ def edit_timings(relighter: CutsRelighter, repeats: int) -> dict[str, tuple[floa
     return timings
 
 
-def cut_rows(relighter: CutsRelighter, layer: Path, scene_name: str, args: argparse.Namespace,
-             parameters: dict[str, object], bake_s: float, expected: dict | None,
-             layers: dict[str, Path | None]) -> list[SweepRow]:
+def cut_rows(
+    relighter: CutsRelighter,
+    layer: Path,
+    scene_name: str,
+    args: argparse.Namespace,
+    parameters: dict[str, object],
+    bake_s: float,
+    expected: dict | None,
+    layers: dict[str, Path | None],
+) -> list[SweepRow]:
     """Rows of one bake, one per (cut size, light edit)."""
     description = read_cache_layer(layer)
     num_bytes = float(cache_bytes(layer))
@@ -123,19 +130,42 @@ def cut_rows(relighter: CutsRelighter, layer: Path, scene_name: str, args: argpa
             relighter.set_lights(shot_lights(description, lights_layer))
             image = relighter.render().cpu().numpy()
             stats = dict(relighter.stats)
-            params = {**parameters, "cut": cut_size, "vis": f"{mean_vis:.1f}",
-                      "inputs": f"{stats['inputs'] / num_samples:.1f}", "merged": f"{stats['merged'] / num_samples:.1f}",
-                      "dark": f"{stats['dark'] / num_samples:.1f}"}
+            params = {
+                **parameters,
+                "cut": cut_size,
+                "vis": f"{mean_vis:.1f}",
+                "inputs": f"{stats['inputs'] / num_samples:.1f}",
+                "merged": f"{stats['merged'] / num_samples:.1f}",
+                "dark": f"{stats['dark'] / num_samples:.1f}",
+            }
             if args.timing:
-                if args.compiled:    # one round of every edit first: compiles the variants they use
+                if args.compiled:  # one round of every edit first: compiles the variants they use
                     start = time.process_time()
                     edit_timings(relighter, 1)
                     params["warmup_cpu_s"] = f"{time.process_time() - start:.1f}"
                 for kind, (wall, cpu, evaluated) in edit_timings(relighter, args.repeats).items():
-                    row = SweepRow("cuts", scene_name, args.width, args.height, kind, format_params(
-                        {**params, "cpu_ms": f"{cpu:.1f}", "evaluated": f"{evaluated:.1f}",
-                         "kept_mb": f"{relighter.kept_bytes() / 2**20:.0f}"}), NAN, NAN, NAN,
-                        num_bytes, bake_s, wall, device_name("cpu"))
+                    row = SweepRow(
+                        "cuts",
+                        scene_name,
+                        args.width,
+                        args.height,
+                        kind,
+                        format_params(
+                            {
+                                **params,
+                                "cpu_ms": f"{cpu:.1f}",
+                                "evaluated": f"{evaluated:.1f}",
+                                "kept_mb": f"{relighter.kept_bytes() / 2**20:.0f}",
+                            }
+                        ),
+                        NAN,
+                        NAN,
+                        NAN,
+                        num_bytes,
+                        bake_s,
+                        wall,
+                        device_name("cpu"),
+                    )
                     print(csv_line(row), file=sys.stderr, flush=True)
                     rows.append(row)
                 continue
@@ -144,18 +174,37 @@ def cut_rows(relighter: CutsRelighter, layer: Path, scene_name: str, args: argpa
             quality = (NAN, NAN, NAN)
             if expected is not None:
                 full, indirect = expected[edit]
-                quality = (psnr(image, full), NAN if indirect is None else
-                           psnr(relighter.indirect_image().cpu().numpy(), indirect), rel_mse(image, full))
-            row = SweepRow("cuts", scene_name, args.width, args.height, edit, params, *quality,
-                           num_bytes, bake_s, timing, device_name("cpu"))
-            print(f"{row.method},{row.scene},{row.light_edit},{row.params},psnr={row.psnr_db:.2f},"
-                  f"bytes={num_bytes:.0f},bake_s={bake_s:.1f},relight_ms={timing:.1f}", file=sys.stderr, flush=True)
+                quality = (
+                    psnr(image, full),
+                    NAN if indirect is None else psnr(relighter.indirect_image().cpu().numpy(), indirect),
+                    rel_mse(image, full),
+                )
+            row = SweepRow(
+                "cuts",
+                scene_name,
+                args.width,
+                args.height,
+                edit,
+                params,
+                *quality,
+                num_bytes,
+                bake_s,
+                timing,
+                device_name("cpu"),
+            )
+            print(
+                f"{row.method},{row.scene},{row.light_edit},{row.params},psnr={row.psnr_db:.2f},"
+                f"bytes={num_bytes:.0f},bake_s={bake_s:.1f},relight_ms={timing:.1f}",
+                file=sys.stderr,
+                flush=True,
+            )
             rows.append(row)
     return rows
 
 
-def cost_rows(bakes: list[tuple[CutsRelighter, Path, dict[str, object], float]], scene_name: str,
-              args: argparse.Namespace) -> list[SweepRow]:
+def cost_rows(
+    bakes: list[tuple[CutsRelighter, Path, dict[str, object], float]], scene_name: str, args: argparse.Namespace
+) -> list[SweepRow]:
     """One row per bake (first cut size, the shot's lights), relight_ms timed round-robin: the
     cuts' light with every merged entry evaluated (`cut_samples` of copies of the lights, so that
     no kept columns serve: as after an edit that changes the whole illumination cut); params add
@@ -166,20 +215,41 @@ def cost_rows(bakes: list[tuple[CutsRelighter, Path, dict[str, object], float]],
         relighter.set_settings(CutsRelightSettings(max_cut=cut_size, compiled=args.compiled))
         relighter.render()
     for _ in range(args.repeats):
-        for watch, (relighter, _, _, _) in zip(watches, bakes):
+        for watch, (relighter, _, _, _) in zip(watches, bakes, strict=True):
             with watch.section():
                 relighter.cut_samples([dataclasses.replace(light) for light in relighter.lights])  # not the kept lights
     rows = []
-    for watch, (relighter, layer, parameters, bake_s) in zip(watches, bakes):
+    for watch, (relighter, layer, parameters, bake_s) in zip(watches, bakes, strict=True):
         num_samples = relighter.cuts.sample_vertices.shape[0]
         wall_ms, cpu_ms = watch.median_ms()
-        params = format_params({**parameters, "cut": cut_size, "cpu_ms": f"{cpu_ms:.1f}",
-                                "vis": f"{float(relighter.cuts.visibility.sizes().double().mean()):.1f}",
-                                "inputs": f"{relighter.stats['inputs'] / num_samples:.1f}",
-                                "merged": f"{relighter.stats['merged'] / num_samples:.1f}",
-                                "dark": f"{relighter.stats['dark'] / num_samples:.1f}"})
-        rows.append(SweepRow("cuts", scene_name, args.width, args.height, "shot", params, NAN, NAN, NAN,
-                             float(cache_bytes(layer)), bake_s, wall_ms, device_name("cpu")))
+        params = format_params(
+            {
+                **parameters,
+                "cut": cut_size,
+                "cpu_ms": f"{cpu_ms:.1f}",
+                "vis": f"{float(relighter.cuts.visibility.sizes().double().mean()):.1f}",
+                "inputs": f"{relighter.stats['inputs'] / num_samples:.1f}",
+                "merged": f"{relighter.stats['merged'] / num_samples:.1f}",
+                "dark": f"{relighter.stats['dark'] / num_samples:.1f}",
+            }
+        )
+        rows.append(
+            SweepRow(
+                "cuts",
+                scene_name,
+                args.width,
+                args.height,
+                "shot",
+                params,
+                NAN,
+                NAN,
+                NAN,
+                float(cache_bytes(layer)),
+                bake_s,
+                wall_ms,
+                device_name("cpu"),
+            )
+        )
         print(csv_line(rows[-1]), file=sys.stderr, flush=True)
     return rows
 
@@ -191,27 +261,46 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[Sw
     layers = {"shot": None} if args.timing else light_edit_layers(name, directory)
     bounces = int(args.mode == "indirect")
     refs = References(shot, bundled.camera, args.width, args.height, layers, args.spp, directory / "references")
-    expected = None if args.timing else {
-        edit: (refs.full(edit, bounces), refs.indirect(edit, bounces) if bounces else None) for edit in layers}
+    expected = (
+        None
+        if args.timing
+        else {edit: (refs.full(edit, bounces), refs.indirect(edit, bounces) if bounces else None) for edit in layers}
+    )
     scene = load_scene(shot, width=args.width, height=args.height)
     camera = find_camera(scene, bundled.camera)
     rows, bakes = [], []
     for num_lights, sigma, beta in itertools.product(args.lights, args.sigmas, args.betas):
-        settings = CutsSettings(mode=args.mode, num_lights=num_lights, sigma=sigma, lattice_edge=args.lattice_edge,
-                                beta=beta)
+        settings = CutsSettings(
+            mode=args.mode, num_lights=num_lights, sigma=sigma, lattice_edge=args.lattice_edge, beta=beta
+        )
         cache_dir = directory / f"cache-{num_lights}-{sigma}-{beta}"
-        layer = reusable_bake(cache_dir / f"{name}.relight.usda", "cuts", (args.width, args.height),
-                              args.supersampling, {**settings.parameters(), "textureSamples": args.texture_samples}
-                              ) if args.reuse else None
+        layer = (
+            reusable_bake(
+                cache_dir / f"{name}.relight.usda",
+                "cuts",
+                (args.width, args.height),
+                args.supersampling,
+                {**settings.parameters(), "textureSamples": args.texture_samples},
+            )
+            if args.reuse
+            else None
+        )
         bake_s = NAN
         if layer is None:
             start = time.perf_counter()
-            layer = bake_cuts(scene, camera, cache_dir, name, args.supersampling, args.texture_samples,
-                              settings=settings)
+            layer = bake_cuts(
+                scene, camera, cache_dir, name, args.supersampling, args.texture_samples, settings=settings
+            )
             bake_s = time.perf_counter() - start
         relighter = open_cuts_relighter(layer)
-        parameters = {"mode": settings.mode, "lights": num_lights, "sigma": sigma, "beta": beta,
-                      "latticeEdge": f"{args.lattice_edge:.4g}", "supersampling": args.supersampling}
+        parameters = {
+            "mode": settings.mode,
+            "lights": num_lights,
+            "sigma": sigma,
+            "beta": beta,
+            "latticeEdge": f"{args.lattice_edge:.4g}",
+            "supersampling": args.supersampling,
+        }
         if args.cost:
             bakes.append((relighter, layer, parameters, bake_s))
         else:
@@ -235,13 +324,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spp", type=int, default=256)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--timing", action="store_true", help="relight the shot's lights only, no references")
-    parser.add_argument("--compiled", action="store_true",
-                        help="CutsRelightSettings(compiled=True): the BRDF blocks through torch.compile")
+    parser.add_argument(
+        "--compiled",
+        action="store_true",
+        help="CutsRelightSettings(compiled=True): the BRDF blocks through torch.compile",
+    )
     parser.add_argument("--cost", action="store_true", help="time the bakes round-robin (implies --timing)")
     parser.add_argument("--out", type=Path, help="working directory (default: a temporary one)")
-    parser.add_argument("--reuse", action="store_true",
-                        help="relight the caches an earlier run baked in --out with the same size and bake "
-                             "parameters instead of baking again (bake_s NaN)")
+    parser.add_argument(
+        "--reuse",
+        action="store_true",
+        help="relight the caches an earlier run baked in --out with the same size and bake "
+        "parameters instead of baking again (bake_s NaN)",
+    )
     parser.add_argument("--csv", type=Path, help="write the rows here (default: stdout)")
     args = parser.parse_args(argv)
     args.timing |= args.cost

@@ -45,10 +45,10 @@ from pipeline.bake.direct.bake import bake_direct
 from pipeline.benchmarks.stopwatch import Stopwatch
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
+from relight_torch.direct.relighter import Relighter, RelightSettings, open_relighter
 from relight_torch.io.atomic import write_text_atomic
 from relight_torch.lights.light import BarzelShaping, Light, LightKind, Shaping
 from relight_torch.metrics import psnr
-from relight_torch.direct.relighter import Relighter, RelightSettings, open_relighter
 
 RIG_SIZES = (1, 4, 16)
 # The rig the single-light edits are timed on.
@@ -121,26 +121,47 @@ def generated_light(index: int, num_lights: int, centre: np.ndarray, diagonal: f
     side = side / np.linalg.norm(side)
     other = np.cross(up, side)
     azimuth = 2.399963 * index  # golden angle: well spread for any count
-    position = centre + diagonal * (RING_RADIUS * (math.cos(azimuth) * side + math.sin(azimuth) * other)
-                                    + RING_HEIGHT * up)
+    position = centre + diagonal * (
+        RING_RADIUS * (math.cos(azimuth) * side + math.sin(azimuth) * other) + RING_HEIGHT * up
+    )
     world_from_light = look_at(position, centre, up)
     distance2 = float(np.sum((position - centre) ** 2))
     illuminance = TARGET_ILLUMINANCE / num_lights
     path = f"/Bench/Light{index}"
     kind = index % 3
     if kind == 0:
-        return Light(path, LightKind.SPHERE, world_from_light, intensity=4.0 * distance2 * illuminance,
-                     normalize=True, radius=SPHERE_RADIUS * diagonal)
+        return Light(
+            path,
+            LightKind.SPHERE,
+            world_from_light,
+            intensity=4.0 * distance2 * illuminance,
+            normalize=True,
+            radius=SPHERE_RADIUS * diagonal,
+        )
     if kind == 1:
-        return Light(path, LightKind.RECT, world_from_light, intensity=distance2 * illuminance, normalize=True,
-                     width=RECT_SIDE * diagonal, height=RECT_SIDE * diagonal)
-    return Light(path, LightKind.SPHERE, world_from_light, intensity=8.0 * distance2 * illuminance,
-                 normalize=True, radius=SPOT_RADIUS * diagonal,
-                 shaping=Shaping(focus=2.0, cone_angle=30.0, cone_softness=0.2))
+        return Light(
+            path,
+            LightKind.RECT,
+            world_from_light,
+            intensity=distance2 * illuminance,
+            normalize=True,
+            width=RECT_SIDE * diagonal,
+            height=RECT_SIDE * diagonal,
+        )
+    return Light(
+        path,
+        LightKind.SPHERE,
+        world_from_light,
+        intensity=8.0 * distance2 * illuminance,
+        normalize=True,
+        radius=SPOT_RADIUS * diagonal,
+        shaping=Shaping(focus=2.0, cone_angle=30.0, cone_softness=0.2),
+    )
 
 
-def bench_rig(shot_lights: list[Light], num_lights: int, centre: np.ndarray, diagonal: float,
-              up: np.ndarray) -> list[Light]:
+def bench_rig(
+    shot_lights: list[Light], num_lights: int, centre: np.ndarray, diagonal: float, up: np.ndarray
+) -> list[Light]:
     """The shot's first lights, then generated ones, `num_lights` in all."""
     rig = list(shot_lights[:num_lights])
     rig += [generated_light(i, num_lights, centre, diagonal, up) for i in range(len(rig), num_lights)]
@@ -157,8 +178,9 @@ EDIT_KINDS = {
 }
 
 
-def time_edits(relighter: Relighter, edit: Callable[[int], None],
-               repeats: int) -> tuple[list[float], list[float], float, float, float]:
+def time_edits(
+    relighter: Relighter, edit: Callable[[int], None], repeats: int
+) -> tuple[list[float], list[float], float, float, float]:
     """Wall and process CPU times (ms) of `repeats` calls of edit(k) + render, after one untimed
     warm-up call.
 
@@ -182,8 +204,9 @@ def time_edits(relighter: Relighter, edit: Callable[[int], None],
 
 def _row(case: str, relighter: Relighter, edit: Callable[[int], None], repeats: int) -> Row:
     times, cpu_times, *passes = time_edits(relighter, edit, repeats)
-    return Row(case, len(relighter.lights), float(np.median(times)), float(np.min(times)),
-               float(np.median(cpu_times)), *passes)
+    return Row(
+        case, len(relighter.lights), float(np.median(times)), float(np.min(times)), float(np.median(cpu_times)), *passes
+    )
 
 
 def _replacer(relighter: Relighter, light: Light, change: Callable[[Light, int], Light]) -> Callable[[int], None]:
@@ -196,19 +219,26 @@ def _moved(light: Light, step: float) -> Callable[[Light, int], Light]:
         matrix = original.world_from_light.copy()
         matrix[0, 3] += step * (1 - 2 * parity)
         return dataclasses.replace(original, world_from_light=matrix)
+
     return change
 
 
 def _reshaped(original: Light, parity: int) -> Light:
     shaping = original.shaping or Shaping()
-    return dataclasses.replace(original, shaping=dataclasses.replace(
-        shaping, cone_angle=shaping.cone_angle * (0.9 if parity else 1.1), focus=shaping.focus + 0.5 * parity))
+    return dataclasses.replace(
+        original,
+        shaping=dataclasses.replace(
+            shaping, cone_angle=shaping.cone_angle * (0.9 if parity else 1.1), focus=shaping.focus + 0.5 * parity
+        ),
+    )
 
 
 def _cookie_moved(cookie: np.ndarray) -> Callable[[Light, int], Light]:
     def change(original: Light, parity: int) -> Light:
-        return dataclasses.replace(original, barzel=BarzelShaping(cookie=cookie, cookie_scale=(0.5, 0.5),
-                                                                  cookie_offset=(0.05 * parity, 0.0)))
+        return dataclasses.replace(
+            original, barzel=BarzelShaping(cookie=cookie, cookie_scale=(0.5, 0.5), cookie_offset=(0.05 * parity, 0.0))
+        )
+
     return change
 
 
@@ -222,7 +252,10 @@ def _relinked(relighter: Relighter, light: Light) -> Callable[[int], None]:
 
     def edit(k: int) -> None:
         skipped = k % len(paths)
-        relighter.set_light(dataclasses.replace(light, light_link=tuple(p for i, p in enumerate(paths) if i != skipped)))
+        relighter.set_light(
+            dataclasses.replace(light, light_link=tuple(p for i, p in enumerate(paths) if i != skipped))
+        )
+
     return edit
 
 
@@ -233,9 +266,17 @@ def checker_cookie(size: int = 64, cells: int = 8) -> np.ndarray:
     return np.repeat(board[..., None], 3, axis=-1)
 
 
-def run_benchmark(scene_name: str = "glossy", width: int = 640, height: int = 480, supersampling: int = 1,
-                  device: str = "cpu", repeats: int = 9, settings: RelightSettings = RelightSettings(),
-                  accuracy: bool = False, work_dir: Path | None = None) -> Report:
+def run_benchmark(
+    scene_name: str = "glossy",
+    width: int = 640,
+    height: int = 480,
+    supersampling: int = 1,
+    device: str = "cpu",
+    repeats: int = 9,
+    settings: RelightSettings = RelightSettings(),
+    accuracy: bool = False,
+    work_dir: Path | None = None,
+) -> Report:
     """Bake `scene_name` and time every case of the module doc.
 
     Args:
@@ -259,12 +300,21 @@ def run_benchmark(scene_name: str = "glossy", width: int = 640, height: int = 48
         cache_bytes = sum(path.stat().st_size for path in layer.parent.iterdir() if path.is_file())
         rows, rig_bytes = _timed_rows(relighter, up, repeats)
         context = [
-            ("scene", f"{scene_name}, {width}x{height}, supersampling {supersampling}, "
-                      f"{relighter.gbuffer.num_samples} shading points"),
+            (
+                "scene",
+                f"{scene_name}, {width}x{height}, supersampling {supersampling}, "
+                f"{relighter.gbuffer.num_samples} shading points",
+            ),
             ("device", _device_name(device)),
-            ("settings", f"area_samples {settings.area_samples}, full_sampling_angle "
-                         f"{settings.full_sampling_angle} deg, min_area_samples {settings.min_area_samples}"),
-            ("samples per light (edit rig)", ", ".join(str(relighter.num_light_samples(light)) for light in relighter.lights)),
+            (
+                "settings",
+                f"area_samples {settings.area_samples}, full_sampling_angle "
+                f"{settings.full_sampling_angle} deg, min_area_samples {settings.min_area_samples}",
+            ),
+            (
+                "samples per light (edit rig)",
+                ", ".join(str(relighter.num_light_samples(light)) for light in relighter.lights),
+            ),
             ("bake cache on disk", f"{cache_bytes} bytes"),
             ("relighter caches, 16-light rig", f"{rig_bytes} bytes"),
             ("peak numpy memory (bake + open + first render)", f"{numpy_peak} bytes"),
@@ -273,7 +323,9 @@ def run_benchmark(scene_name: str = "glossy", width: int = 640, height: int = 48
         if device.startswith("cuda"):
             context.append(("peak CUDA memory", f"{torch.cuda.max_memory_allocated()} bytes"))
         if accuracy:
-            context.append(("PSNR vs full sampling (edit rig)", f"{_accuracy(layer, relighter, device, settings):.2f} dB"))
+            context.append(
+                ("PSNR vs full sampling (edit rig)", f"{_accuracy(layer, relighter, device, settings):.2f} dB")
+            )
     return Report(tuple(rows), tuple(context))
 
 
@@ -297,8 +349,9 @@ def _timed_rows(relighter: Relighter, up: np.ndarray, repeats: int) -> tuple[lis
         rows.append(_row("re-shade", relighter, lambda k: relighter.invalidate(), repeats))
         rig_bytes = relighter.cache_bytes()
     relighter.set_lights(bench_rig(shot, EDIT_RIG_SIZE, centre, diagonal, up))
-    rows.append(_row("rebuild (visibility + shading)", relighter,
-                     lambda k: relighter.invalidate(visibility=True), repeats))
+    rows.append(
+        _row("rebuild (visibility + shading)", relighter, lambda k: relighter.invalidate(visibility=True), repeats)
+    )
     lights = relighter.lights
     spot = next((light for light in lights if light.shaping is not None), lights[-1])
     edits = (
@@ -331,8 +384,12 @@ def _device_name(device: str) -> str:
 def _aligned(cells: list[tuple[str, ...]]) -> list[str]:
     """Rows of cells as aligned lines (first column left, the others right), a rule under the header."""
     widths = [max(len(row[i]) for row in cells) for i in range(len(cells[0]))]
-    lines = ["  ".join(cell.ljust(w) if i == 0 else cell.rjust(w) for i, (cell, w) in enumerate(zip(row, widths)))
-             for row in cells]
+    lines = [
+        "  ".join(
+            cell.ljust(w) if i == 0 else cell.rjust(w) for i, (cell, w) in enumerate(zip(row, widths, strict=True))
+        )
+        for row in cells
+    ]
     lines.insert(1, "-" * len(lines[0]))
     return lines
 
@@ -352,16 +409,30 @@ def _recomputed(row: Row) -> str:
 def format_table(report: Report) -> str:
     """The rows as an aligned text table, the context lines, then the table of edit kinds."""
     header = ("case", "lights", "median ms", "min ms", "cpu ms", "visibility", "shading", "masks")
-    cells = [header] + [(r.case, str(r.num_lights), f"{r.median_ms:.2f}", f"{r.min_ms:.2f}", f"{r.cpu_ms:.2f}",
-                         f"{r.visibility_passes:.3g}", f"{r.shading_passes:.3g}", f"{r.mask_passes:.3g}")
-                        for r in report.rows]
+    cells = [header] + [
+        (
+            r.case,
+            str(r.num_lights),
+            f"{r.median_ms:.2f}",
+            f"{r.min_ms:.2f}",
+            f"{r.cpu_ms:.2f}",
+            f"{r.visibility_passes:.3g}",
+            f"{r.shading_passes:.3g}",
+            f"{r.mask_passes:.3g}",
+        )
+        for r in report.rows
+    ]
     lines = _aligned(cells) + [f"{name}: {value}" for name, value in report.context]
     kinds = edit_kind_rows(report)
     if kinds:
         lines += ["", f"edit kinds (one light of the {kinds[0][1].num_lights}-light rig):"]
-        lines += _aligned([("edit", "median ms", "min ms", "cpu ms", "recomputed")] + [
-            (kind, f"{row.median_ms:.2f}", f"{row.min_ms:.2f}", f"{row.cpu_ms:.2f}", _recomputed(row))
-            for kind, row in kinds])
+        lines += _aligned(
+            [("edit", "median ms", "min ms", "cpu ms", "recomputed")]
+            + [
+                (kind, f"{row.median_ms:.2f}", f"{row.min_ms:.2f}", f"{row.cpu_ms:.2f}", _recomputed(row))
+                for kind, row in kinds
+            ]
+        )
     return "\n".join(lines)
 
 

@@ -22,8 +22,8 @@ from pipeline.bake.direct.bake import bake_direct
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
-from relight_torch.metrics import psnr, rel_mse
 from relight_torch.direct.relighter import open_relighter, shot_lights
+from relight_torch.metrics import psnr, rel_mse
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,21 +42,31 @@ def main(argv: list[str] | None = None) -> int:
     shot = bundled.write(directory)
     edits = light_edit_layers(args.scene, directory)
     scene = load_scene(shot, width=args.width, height=args.height)
-    cache = bake_direct(scene, find_camera(scene, bundled.camera), directory / "cache", args.scene,
-                        args.supersampling, args.texture_samples)
+    cache = bake_direct(
+        scene,
+        find_camera(scene, bundled.camera),
+        directory / "cache",
+        args.scene,
+        args.supersampling,
+        args.texture_samples,
+    )
     relighters = {shadows: open_relighter(cache, shadows=shadows) for shadows in args.shadows}
     print("scene,edit,width,height,supersampling,texture_samples,shadows,spp,psnr_db,rel_mse,reference_noise_psnr_db")
     for edit, layer in edits.items():
         reference_scene = load_scene(shot, lights_layer=layer, width=args.width, height=args.height)
         reference = PathTracer(reference_scene, ReferenceSettings(spp=args.spp, max_bounces=0)).render(
-            find_camera(reference_scene, bundled.camera))
+            find_camera(reference_scene, bundled.camera)
+        )
         noise = 10 * np.log10(1.0 / max(float(np.mean(reference.variance)), 1e-20))
         for shadows, relighter in relighters.items():
             relighter.set_lights(shot_lights(relighter.description, layer))
             image = relighter.render().cpu().numpy()
-            print(f"{args.scene},{edit},{args.width},{args.height},{args.supersampling},{args.texture_samples},"
-                  f"{shadows},{args.spp},{psnr(image, reference.mean):.2f},{rel_mse(image, reference.mean):.3g},"
-                  f"{noise:.1f}", flush=True)
+            print(
+                f"{args.scene},{edit},{args.width},{args.height},{args.supersampling},{args.texture_samples},"
+                f"{shadows},{args.spp},{psnr(image, reference.mean):.2f},{rel_mse(image, reference.mean):.3g},"
+                f"{noise:.1f}",
+                flush=True,
+            )
     return 0
 
 

@@ -38,8 +38,13 @@ def run_tests(profile: str, workers: int) -> tuple[list[dict], str, float]:
         tally = Path(temp) / "tally.jsonl"
         environment = {**os.environ, "HYPOTHESIS_PROFILE": profile, "RELIGHT_FAULT_TALLY": str(tally)}
         start = time.perf_counter()
-        result = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", str(workers),
-                                 *TESTS], cwd=ROOT, env=environment, capture_output=True, text=True)
+        result = subprocess.run(
+            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", str(workers), *TESTS],
+            cwd=ROOT,
+            env=environment,
+            capture_output=True,
+            text=True,
+        )
         seconds = time.perf_counter() - start
         summary = [line for line in result.stdout.splitlines() if " passed" in line or " failed" in line]
         records = [json.loads(line) for line in tally.read_text().splitlines()] if tally.exists() else []
@@ -54,12 +59,16 @@ def fuzz_table(records: list[dict]) -> list[str]:
             key = (record["test"], record["method"], record.get("damage", ""))
             counts[key + ("examples",)] += 1
             counts[key + ("refused" if record["refused"] else "rendered",)] += 1
-    rows = ["| Input | Method | Damage | Examples | Refused (one line) | Rendered (finite) |",
-            "|---|---|---|---|---|---|"]
+    rows = [
+        "| Input | Method | Damage | Examples | Refused (one line) | Rendered (finite) |",
+        "|---|---|---|---|---|---|",
+    ]
     for test, method, damage in sorted({key[:3] for key in counts}):
         key = (test, method, damage)
-        rows.append(f"| {test} | {method} | {damage or '-'} | {counts[key + ('examples',)]} | "
-                    f"{counts[key + ('refused',)]} | {counts[key + ('rendered',)]} |")
+        rows.append(
+            f"| {test} | {method} | {damage or '-'} | {counts[key + ('examples',)]} | "
+            f"{counts[key + ('refused',)]} | {counts[key + ('rendered',)]} |"
+        )
     return rows
 
 
@@ -68,27 +77,37 @@ def fault_table(records: list[dict]) -> list[str]:
     rows = ["| Fault | Method | Tried | Outcome |", "|---|---|---|---|"]
     for record in records:
         if record["test"].startswith("disk full"):
-            rows.append(f"| {record['test']} (file-size limit) | {record['method']} | 1 | one line, exit 2, nothing "
-                        f"left behind{'; the re-run bakes the same bytes' if 'bake' in record['test'] else ''} |")
+            rows.append(
+                f"| {record['test']} (file-size limit) | {record['method']} | 1 | one line, exit 2, nothing "
+                f"left behind{'; the re-run bakes the same bytes' if 'bake' in record['test'] else ''} |"
+            )
         elif "kills" in record:
-            rows.append(f"| SIGKILL at random moments of a bake | {record['method']} | {record['kills']} kill "
-                        f"point{'s' if record['kills'] > 1 else ''} ({record['landed']} landed before the bake "
-                        f"ended) | re-run equals the uninterrupted bake (same tree hash) |")
+            rows.append(
+                f"| SIGKILL at random moments of a bake | {record['method']} | {record['kills']} kill "
+                f"point{'s' if record['kills'] > 1 else ''} ({record['landed']} landed before the bake "
+                f"ended) | re-run equals the uninterrupted bake (same tree hash) |"
+            )
         elif record["test"] == "readers during a re-bake":
-            rows.append(f"| renders while a re-bake replaces the cache | {record['method']} | "
-                        f"{record['old'] + record['new'] + record['refused']} renders | {record['old']} old image, "
-                        f"{record['new']} new image, {record['refused']} refused in one line, none mixed |")
+            rows.append(
+                f"| renders while a re-bake replaces the cache | {record['method']} | "
+                f"{record['old'] + record['new'] + record['refused']} renders | {record['old']} old image, "
+                f"{record['new']} new image, {record['refused']} refused in one line, none mixed |"
+            )
     return rows
 
 
 def session_table(reports: dict[str, SessionReport], edits: int) -> list[str]:
     """Markdown rows of the long sessions."""
-    rows = ["| Method | Edits | RSS at start | RSS at end | Growth after the first 10 % | "
-            "Largest checkpoint difference |", "|---|---|---|---|---|---|"]
+    rows = [
+        "| Method | Edits | RSS at start | RSS at end | Growth after the first 10 % | Largest checkpoint difference |",
+        "|---|---|---|---|---|---|",
+    ]
     for method, report in reports.items():
-        rows.append(f"| {method} | {edits} | {report.rss[0][1] / 2 ** 20:.1f} MiB | "
-                    f"{report.rss[-1][1] / 2 ** 20:.1f} MiB | {100 * report.growth_after(0.1):+.2f} % | "
-                    f"{max(report.checkpoint_errors):.1e} |")
+        rows.append(
+            f"| {method} | {edits} | {report.rss[0][1] / 2**20:.1f} MiB | "
+            f"{report.rss[-1][1] / 2**20:.1f} MiB | {100 * report.growth_after(0.1):+.2f} % | "
+            f"{max(report.checkpoint_errors):.1e} |"
+        )
     return rows
 
 
@@ -103,10 +122,20 @@ def main(argv: list[str] | None = None) -> int:
     records, summary, seconds = run_tests(args.profile, args.workers)
     reports = run_sessions(args.edits)
     sessions = session_table(reports, args.edits)
-    lines = [START, "",
-             f"Measured by `python -m pipeline.benchmarks.fault_figures --profile {args.profile} --edits {args.edits}` "
-             f"({len(METHODS)} methods; pytest: {summary} in {seconds:.0f} s).", "",
-             *fuzz_table(records), "", *fault_table(records), "", *sessions, "", END]
+    lines = [
+        START,
+        "",
+        f"Measured by `python -m pipeline.benchmarks.fault_figures --profile {args.profile} --edits {args.edits}` "
+        f"({len(METHODS)} methods; pytest: {summary} in {seconds:.0f} s).",
+        "",
+        *fuzz_table(records),
+        "",
+        *fault_table(records),
+        "",
+        *sessions,
+        "",
+        END,
+    ]
     text = "\n".join(lines)
     print(text)
     if args.curve:

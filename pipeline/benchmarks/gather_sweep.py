@@ -38,23 +38,24 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from pipeline.bake.gather.bake import GatherSettings, bake_gather
-from pipeline.benchmarks.rows import COLUMNS, SweepRow, csv_line, format_params, write_csv
 from pipeline.bake.adapter import cache_bytes
+from pipeline.bake.gather.bake import GatherSettings, bake_gather
 from pipeline.benchmarks.bench.measure import moved, relight_ms
 from pipeline.benchmarks.bench.references import References
+from pipeline.benchmarks.rows import COLUMNS, SweepRow, csv_line, format_params, write_csv
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import read_cache_layer
+from relight_torch.direct.relighter import RelightSettings, shot_lights
 from relight_torch.gather.open import open_gather_relighter
 from relight_torch.gather.relighter import DEFAULT_GATHER_SAMPLES, GatherRelighter
 from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch.direct.relighter import RelightSettings, shot_lights
 
 
-def _median_ms(relighter: GatherRelighter, edits: list, repeats: int,
-               clock: Callable[[], float]) -> tuple[float, float]:
+def _median_ms(
+    relighter: GatherRelighter, edits: list, repeats: int, clock: Callable[[], float]
+) -> tuple[float, float]:
     """Median ms of `set_light(edit)` + `render()` over `repeats` edits cycled from `edits`, and of
     its indirect part alone (`render()` is the direct image plus `indirect_image()`, timed apart:
     the direct part builds the light's shadow maps, which the gathers then share)."""
@@ -71,8 +72,9 @@ def _median_ms(relighter: GatherRelighter, edits: list, repeats: int,
     return statistics.median(full), statistics.median(indirect)
 
 
-def edit_timings(relighter: GatherRelighter, repeats: int = 5,
-                 clock: Callable[[], float] = time.perf_counter) -> dict[str, tuple[float, float]]:
+def edit_timings(
+    relighter: GatherRelighter, repeats: int = 5, clock: Callable[[], float] = time.perf_counter
+) -> dict[str, tuple[float, float]]:
     """Median ms of a full re-render (direct + indirect), and of its indirect part, after each kind
     of edit of the first light.
 
@@ -86,10 +88,18 @@ def edit_timings(relighter: GatherRelighter, repeats: int = 5,
     relighter.render()
     shaping = light.shaping or Shaping()
     timings = {
-        "colour": _median_ms(relighter, [dataclasses.replace(light, intensity=light.intensity * f, color=(1.0, f, 0.5))
-                                         for f in (0.5, 0.75)], repeats, clock),
-        "shaping": _median_ms(relighter, [dataclasses.replace(light, shaping=dataclasses.replace(shaping, focus=f))
-                                          for f in (1.0, 2.0)], repeats, clock),
+        "colour": _median_ms(
+            relighter,
+            [dataclasses.replace(light, intensity=light.intensity * f, color=(1.0, f, 0.5)) for f in (0.5, 0.75)],
+            repeats,
+            clock,
+        ),
+        "shaping": _median_ms(
+            relighter,
+            [dataclasses.replace(light, shaping=dataclasses.replace(shaping, focus=f)) for f in (1.0, 2.0)],
+            repeats,
+            clock,
+        ),
         "move": _median_ms(relighter, [moved(light, 0.01 * (1 + i % 2)) for i in range(repeats)], repeats, clock),
     }
     relighter.set_lights(lights)
@@ -100,14 +110,26 @@ def _bake(name: str, args: argparse.Namespace, directory: Path, settings: Gather
     bundled = SCENES[name]
     scene = load_scene(directory / f"{name}.usda", width=args.width, height=args.height)
     start = time.perf_counter()
-    layer = bake_gather(scene, find_camera(scene, bundled.camera), directory / "cache", name, args.supersampling,
-                        args.texture_samples, settings=settings, progress=False)
+    layer = bake_gather(
+        scene,
+        find_camera(scene, bundled.camera),
+        directory / "cache",
+        name,
+        args.supersampling,
+        args.texture_samples,
+        settings=settings,
+        progress=False,
+    )
     return layer, time.perf_counter() - start
 
 
 def _settings(args: argparse.Namespace, clusters: int, representatives: int, point_cells: int) -> GatherSettings:
-    return GatherSettings(num_directions=args.directions, num_clusters=clusters,
-                          num_representatives=representatives or None, point_cells=point_cells)
+    return GatherSettings(
+        num_directions=args.directions,
+        num_clusters=clusters,
+        num_representatives=representatives or None,
+        point_cells=point_cells,
+    )
 
 
 def _relight_settings(args: argparse.Namespace) -> RelightSettings:
@@ -118,28 +140,48 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> list[Sw
     """The sweep's rows of one scene (printed as CSV lines as they are measured)."""
     shot = SCENES[name].write(directory)
     layers = light_edit_layers(name, directory)
-    expected = References(shot, SCENES[name].camera, args.width, args.height, layers, args.spp,
-                          directory / "references")
+    expected = References(
+        shot, SCENES[name].camera, args.width, args.height, layers, args.spp, directory / "references"
+    )
     rows = []
-    for clusters, representatives, point_cells in itertools.product(args.clusters, args.representatives,
-                                                                     args.point_cells):
+    for clusters, representatives, point_cells in itertools.product(
+        args.clusters, args.representatives, args.point_cells
+    ):
         settings = _settings(args, clusters, representatives, point_cells)
         layer, bake_s = _bake(name, args, directory, settings)
         num_bytes = cache_bytes(layer)
         for gather_samples in args.gather_samples:
-            relighter = open_gather_relighter(layer, shadows=args.shadows, settings=_relight_settings(args),
-                                              gather_samples=gather_samples)
-            params = format_params({**settings.parameters(), "gatherSamples": gather_samples,
-                                    "numRepresentatives": sum(s.num_representatives for s in relighter.sets.values()),
-                                    "surfacePoints": relighter.points.num_points, "shadows": args.shadows})
+            relighter = open_gather_relighter(
+                layer, shadows=args.shadows, settings=_relight_settings(args), gather_samples=gather_samples
+            )
+            params = format_params(
+                {
+                    **settings.parameters(),
+                    "gatherSamples": gather_samples,
+                    "numRepresentatives": sum(s.num_representatives for s in relighter.sets.values()),
+                    "surfacePoints": relighter.points.num_points,
+                    "shadows": args.shadows,
+                }
+            )
             move_ms = relight_ms(relighter, args.repeats)
             for edit, layer_path in layers.items():
                 relighter.set_lights(shot_lights(relighter.direct.description, layer_path))
                 image, indirect = relighter.render().numpy(), relighter.indirect_image().numpy()
                 full = expected.full(edit, 1)
-                row = SweepRow("gather", name, args.width, args.height, edit, params, psnr(image, full),
-                               psnr(indirect, expected.indirect(edit, 1)), rel_mse(image, full), num_bytes,
-                               bake_s, move_ms)
+                row = SweepRow(
+                    "gather",
+                    name,
+                    args.width,
+                    args.height,
+                    edit,
+                    params,
+                    psnr(image, full),
+                    psnr(indirect, expected.indirect(edit, 1)),
+                    rel_mse(image, full),
+                    num_bytes,
+                    bake_s,
+                    move_ms,
+                )
                 print(csv_line(row), flush=True)
                 rows.append(row)
     return rows
@@ -155,26 +197,40 @@ def time_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
     peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     description = read_cache_layer(layer)
     params = format_params({key: description.parameters[key] for key in settings.parameters()})
-    print(f"{name} {args.width}x{args.height} {params}: bake {bake_s:.1f} s, peak RSS {peak_mib:.0f} MiB, "
-          f"cache {cache_bytes(layer) / 2**20:.1f} MiB", flush=True)
+    print(
+        f"{name} {args.width}x{args.height} {params}: bake {bake_s:.1f} s, peak RSS {peak_mib:.0f} MiB, "
+        f"cache {cache_bytes(layer) / 2**20:.1f} MiB",
+        flush=True,
+    )
     for shadows, gather_samples in itertools.product(("embree", "shadowmaps"), args.gather_samples):
-        relighter = open_gather_relighter(layer, shadows=shadows, settings=_relight_settings(args),
-                                          gather_samples=gather_samples)
+        relighter = open_gather_relighter(
+            layer, shadows=shadows, settings=_relight_settings(args), gather_samples=gather_samples
+        )
         sizes = {n: (s.num_representatives, s.num_gathers) for n, s in relighter.sets.items()}
         relighter.render()
         maps = getattr(relighter.direct.visibility, "seconds", None)
         before = dict(maps or {})
         timings = edit_timings(relighter, args.repeats, time.process_time if args.cpu_time else time.perf_counter)
         # Only the moves query the visibility (colour and shaping edits re-use their answers).
-        split = "" if maps is None else ", shadow maps per move: " + ", ".join(
-            f"{kind} {1e3 * (maps[kind] - before.get(kind, 0.0)) / args.repeats:.0f} ms CPU"
-            for kind in ("build", "lookup"))
-        print(f"  {shadows}, {gather_samples} gather samples: "
-              + ", ".join(f"{kind} {full:.0f} ms (indirect {indirect:.0f} ms)"
-                          for kind, (full, indirect) in timings.items())
-              + f" (median of {args.repeats}, {'CPU' if args.cpu_time else 'wall'} time; sets (reps, entries) "
-              f"{sizes}, {relighter.points.num_points} surface points, {relighter.cache_bytes / 2**20:.1f} MiB in memory)"
-              + split, flush=True)
+        split = (
+            ""
+            if maps is None
+            else ", shadow maps per move: "
+            + ", ".join(
+                f"{kind} {1e3 * (maps[kind] - before.get(kind, 0.0)) / args.repeats:.0f} ms CPU"
+                for kind in ("build", "lookup")
+            )
+        )
+        print(
+            f"  {shadows}, {gather_samples} gather samples: "
+            + ", ".join(
+                f"{kind} {full:.0f} ms (indirect {indirect:.0f} ms)" for kind, (full, indirect) in timings.items()
+            )
+            + f" (median of {args.repeats}, {'CPU' if args.cpu_time else 'wall'} time; sets (reps, entries) "
+            f"{sizes}, {relighter.points.num_points} surface points, {relighter.cache_bytes / 2**20:.1f} MiB in memory)"
+            + split,
+            flush=True,
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -192,12 +248,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--supersampling", type=int, default=1)
     parser.add_argument("--texture-samples", type=int, default=1)
     parser.add_argument("--shadows", default="embree", choices=("embree", "shadowmaps"))
-    parser.add_argument("--shadow-map-resolution", type=int, default=RelightSettings().shadow_map_resolution,
-                        help="texels per side of each shadow-map face (RelightSettings)")
+    parser.add_argument(
+        "--shadow-map-resolution",
+        type=int,
+        default=RelightSettings().shadow_map_resolution,
+        help="texels per side of each shadow-map face (RelightSettings)",
+    )
     parser.add_argument("--repeats", type=int, default=5, help="timed edits per median")
     parser.add_argument("--timing", action="store_true", help="edit timings of one cache per scene, no PSNR")
-    parser.add_argument("--cpu-time", action="store_true",
-                        help="--timing in this process's CPU time (run with OMP_NUM_THREADS=1 on a loaded machine)")
+    parser.add_argument(
+        "--cpu-time",
+        action="store_true",
+        help="--timing in this process's CPU time (run with OMP_NUM_THREADS=1 on a loaded machine)",
+    )
     parser.add_argument("--reuse", action="store_true", help="--timing: relight OUT's cache if there is one")
     parser.add_argument("--out", help="directory for the scenes and caches (default: a temporary one)")
     parser.add_argument("--csv", help="also write the rows to this CSV file")

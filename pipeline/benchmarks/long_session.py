@@ -28,12 +28,12 @@ import torch
 from pipeline.bake.multiview.frames import read_view_camera
 from pipeline.bake.multiview.view import view_points
 from pipeline.benchmarks.tiny_caches import METHODS, bake_tiny
+from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.cache.load import load_npy
 from relight_torch.io.atomic import write_text_atomic
 from relight_torch.lights.light import Light, LightKind, Shadow, Shaping
 from relight_torch.lights.linking import decode_paths
-from relight_torch import open_cache
 
 EDIT_KINDS = ("intensity", "colour", "move", "resize", "shaping", "link", "shadow", "add", "remove")
 MAX_LIGHTS = 6
@@ -53,9 +53,12 @@ def open_session(layer: Path):
     if description.method == "multiview":
         width, height = description.resolution
         camera = read_view_camera(description.source, None, description.camera_path, None, width, height)
-        relighter.set_view(view_points(relighter.caster, relighter.occluder_objects, camera,
-                                       relighter.supersampling, relighter.corner_normals),
-                           exposure_scale=camera.exposure_scale)
+        relighter.set_view(
+            view_points(
+                relighter.caster, relighter.occluder_objects, camera, relighter.supersampling, relighter.corner_normals
+            ),
+            exposure_scale=camera.exposure_scale,
+        )
     return relighter
 
 
@@ -84,8 +87,15 @@ def new_light(rig: Rig, rng: random.Random) -> Light:
     matrix[:3, 3] = rig.centre + (np.array([rng.random() for _ in range(3)]) - 0.5) * 0.5 * rig.size
     kind = rng.choice([LightKind.SPHERE, LightKind.RECT, LightKind.DISK])
     scale = 0.05 * float(rig.size.max())
-    return Light(path=f"/Session/Light{rig.added}", kind=kind, world_from_light=matrix,
-                 intensity=rng.uniform(1.0, 50.0) / scale ** 2 * 1e3, radius=scale, width=scale, height=scale)
+    return Light(
+        path=f"/Session/Light{rig.added}",
+        kind=kind,
+        world_from_light=matrix,
+        intensity=rng.uniform(1.0, 50.0) / scale**2 * 1e3,
+        radius=scale,
+        width=scale,
+        height=scale,
+    )
 
 
 def random_edit(rig: Rig, rng: random.Random, kind: str) -> tuple[str, Light | None]:
@@ -114,12 +124,16 @@ def random_edit(rig: Rig, rng: random.Random, kind: str) -> tuple[str, Light | N
         light = dataclasses.replace(light, world_from_light=matrix)
     elif kind == "resize":
         factor = rng.uniform(0.7, 1.4)
-        light = dataclasses.replace(light, radius=light.radius * factor, width=light.width * factor,
-                                    height=light.height * factor)
+        light = dataclasses.replace(
+            light, radius=light.radius * factor, width=light.width * factor, height=light.height * factor
+        )
     elif kind == "shaping":
-        light = dataclasses.replace(light, shaping=Shaping(cone_angle=rng.uniform(20.0, 90.0),
-                                                           cone_softness=rng.uniform(0.0, 1.0),
-                                                           focus=rng.uniform(0.0, 4.0)))
+        light = dataclasses.replace(
+            light,
+            shaping=Shaping(
+                cone_angle=rng.uniform(20.0, 90.0), cone_softness=rng.uniform(0.0, 1.0), focus=rng.uniform(0.0, 4.0)
+            ),
+        )
     elif kind == "link":
         linked = tuple(p for p in rig.objects if rng.random() < 0.7)
         light = dataclasses.replace(light, light_link=None if rng.random() < 0.3 else linked)
@@ -152,8 +166,9 @@ class SessionReport:
         return (self.rss[-1][1] - start) / start
 
 
-def run_session(layer: Path, num_edits: int, num_checkpoints: int = 4, num_rss_samples: int = 50,
-                seed: int = 0) -> SessionReport:
+def run_session(
+    layer: Path, num_edits: int, num_checkpoints: int = 4, num_rss_samples: int = 50, seed: int = 0
+) -> SessionReport:
     """`num_edits` random edits (each followed by a render) on one relighter of `layer`.
 
     Args:
@@ -195,14 +210,16 @@ def run_session(layer: Path, num_edits: int, num_checkpoints: int = 4, num_rss_s
 def run_sessions(num_edits: int, methods: tuple[str, ...] = METHODS, seed: int = 0) -> dict[str, SessionReport]:
     """`run_session` on a tiny cache of each method (baked into a temporary folder)."""
     with tempfile.TemporaryDirectory(prefix="long-session-") as temp:
-        return {method: run_session(layer, num_edits, seed=seed)
-                for method, layer in bake_tiny(Path(temp), methods).items()}
+        return {
+            method: run_session(layer, num_edits, seed=seed) for method, layer in bake_tiny(Path(temp), methods).items()
+        }
 
 
 def curve_csv(reports: dict[str, SessionReport]) -> str:
     """The memory curves as CSV: method, edit, rss_bytes."""
-    rows = ["method,edit,rss_bytes"] + [f"{method},{edit},{rss}" for method, report in reports.items()
-                                         for edit, rss in report.rss]
+    rows = ["method,edit,rss_bytes"] + [
+        f"{method},{edit},{rss}" for method, report in reports.items() for edit, rss in report.rss
+    ]
     return "\n".join(rows) + "\n"
 
 
@@ -216,10 +233,12 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     reports = run_sessions(args.edits, tuple(args.methods), args.seed)
     for method, report in reports.items():
-        print(f"{method}: {args.edits} edits, RSS {report.rss[0][1] / 2 ** 20:.1f} -> "
-              f"{report.rss[-1][1] / 2 ** 20:.1f} MiB, growth after the first 10 %: "
-              f"{100 * report.growth_after(0.1):+.2f} %, largest checkpoint difference "
-              f"{max(report.checkpoint_errors):.2e} of the image's peak")
+        print(
+            f"{method}: {args.edits} edits, RSS {report.rss[0][1] / 2**20:.1f} -> "
+            f"{report.rss[-1][1] / 2**20:.1f} MiB, growth after the first 10 %: "
+            f"{100 * report.growth_after(0.1):+.2f} %, largest checkpoint difference "
+            f"{max(report.checkpoint_errors):.2e} of the image's peak"
+        )
     if args.out:
         write_text_atomic(args.out, curve_csv(reports))
     return 0

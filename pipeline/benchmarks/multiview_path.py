@@ -43,12 +43,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipeline.bake.adapter import cache_bytes
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
 from pipeline.bake.multiview.bake import bake_multiview
 from pipeline.bake.multiview.frames import FrameRenderer
 from pipeline.bake.multiview.placement import PlacementSettings
 from pipeline.bake.multiview.view import view_points
-from pipeline.bake.adapter import cache_bytes
 from pipeline.benchmarks.bench.measure import relight_ms
 from pipeline.benchmarks.reuse import reusable_bake
 from pipeline.benchmarks.rows import SweepRow, format_params, write_csv
@@ -59,15 +59,31 @@ from pipeline.scene.types import Camera, Scene
 from pipeline.scenes import SCENES
 from pipeline.tracing import Tracer
 from relight_torch.cache.layer import read_cache_layer
+from relight_torch.direct.relighter import Relighter, RelightSettings
 from relight_torch.io.atomic import atomic_path, write_text_atomic
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.multiview.relighter import open_multiview_relighter
-from relight_torch.direct.relighter import Relighter, RelightSettings
 
-TABLE_COLUMNS = ("scene", "coverage", "view", "psnr_db", "psnr_covered_db", "psnr_direct_db", "rel_mse",
-                 "hole_fraction_before",
-                 "hole_fraction_after", "large_holes", "rays_ms", "correspondence_ms", "rerender_ms",
-                 "rays_cpu_ms", "correspondence_cpu_ms", "rerender_cpu_ms", "rerender_rays", "light_edit_ms")
+TABLE_COLUMNS = (
+    "scene",
+    "coverage",
+    "view",
+    "psnr_db",
+    "psnr_covered_db",
+    "psnr_direct_db",
+    "rel_mse",
+    "hole_fraction_before",
+    "hole_fraction_after",
+    "large_holes",
+    "rays_ms",
+    "correspondence_ms",
+    "rerender_ms",
+    "rays_cpu_ms",
+    "correspondence_cpu_ms",
+    "rerender_cpu_ms",
+    "rerender_rays",
+    "light_edit_ms",
+)
 
 
 def camera_path(scene: Scene, camera: Camera, num_views: int, yaw_degrees: float) -> list[Camera]:
@@ -85,11 +101,12 @@ def camera_path(scene: Scene, camera: Camera, num_views: int, yaw_degrees: float
         angle = np.radians(yaw_degrees * t)
         c, s = np.cos(angle), np.sin(angle)
         k = np.array([[0, -up[2], up[1]], [up[2], 0, -up[0]], [-up[1], up[0], 0]])
-        rotation = np.eye(3) + s * k + (1 - c) * (k @ k)                        # Rodrigues, about `up`
+        rotation = np.eye(3) + s * k + (1 - c) * (k @ k)  # Rodrigues, about `up`
         matrix = camera.world_from_camera.copy()
         matrix[:3, :3] = rotation @ matrix[:3, :3]
-        matrix[:3, 3] = pivot + rotation @ (origin - pivot) + up * 0.05 * float(np.max(hi - lo)) * np.sin(np.pi * i
-                                                                                                        / num_views)
+        matrix[:3, 3] = (
+            pivot + rotation @ (origin - pivot) + up * 0.05 * float(np.max(hi - lo)) * np.sin(np.pi * i / num_views)
+        )
         cameras.append(dataclasses.replace(camera, world_from_camera=matrix, path=f"{camera.path}.path{i}"))
     return cameras
 
@@ -106,13 +123,17 @@ def _ms(function, repeats: int) -> tuple[float, float]:
     return watch.median_ms()
 
 
-def measure_view(scene: Scene, relighter, renderer: FrameRenderer, camera: Camera, reference: np.ndarray | None,
-                 repeats: int) -> dict[str, float]:
+def measure_view(
+    scene: Scene, relighter, renderer: FrameRenderer, camera: Camera, reference: np.ndarray | None, repeats: int
+) -> dict[str, float]:
     """One path view: accuracy against `reference` (None: none) and timings (repeats 0: none)."""
     frame = renderer.render(camera)
     report = frame.report
-    row = {"hole_fraction_before": report.hole_fraction_before, "hole_fraction_after": report.hole_fraction_after,
-           "large_holes": report.num_large_holes}
+    row = {
+        "hole_fraction_before": report.hole_fraction_before,
+        "hole_fraction_after": report.hole_fraction_after,
+        "large_holes": report.num_large_holes,
+    }
     if reference is not None:
         s = relighter.supersampling
         height, width = camera.height, camera.width
@@ -121,19 +142,29 @@ def measure_view(scene: Scene, relighter, renderer: FrameRenderer, camera: Camer
         empty = torch.ones(height * s * width * s)
         empty[view_points(relighter.caster, relighter.occluder_objects, camera, s).pixel_index] = 0.0
         complete = ((found + empty).reshape(height, s, width, s).amin(dim=(1, 3)) > 0).numpy()
-        own = Relighter(bake_deep_framebuffer(scene, camera, s).gbuffer, relighter.visibility, s,
-                        camera.exposure_scale, relighter.settings, relighter.object_paths)
+        own = Relighter(
+            bake_deep_framebuffer(scene, camera, s).gbuffer,
+            relighter.visibility,
+            s,
+            camera.exposure_scale,
+            relighter.settings,
+            relighter.object_paths,
+        )
         own.set_lights(relighter.lights)
-        row |= {"psnr_db": psnr(frame.image, reference), "rel_mse": rel_mse(frame.image, reference),
-                "psnr_covered_db": psnr(frame.image[complete], reference[complete]),
-                "psnr_direct_db": psnr(own.render().numpy(), reference)}
+        row |= {
+            "psnr_db": psnr(frame.image, reference),
+            "rel_mse": rel_mse(frame.image, reference),
+            "psnr_covered_db": psnr(frame.image[complete], reference[complete]),
+            "psnr_direct_db": psnr(own.render().numpy(), reference),
+        }
     if repeats < 1:
         return row
     state = {}
 
     def rays():
-        state["view"] = view_points(relighter.caster, relighter.occluder_objects, camera, relighter.supersampling,
-                                    relighter.corner_normals)
+        state["view"] = view_points(
+            relighter.caster, relighter.occluder_objects, camera, relighter.supersampling, relighter.corner_normals
+        )
 
     def correspondence():
         relighter.set_view(state["view"], exposure_scale=camera.exposure_scale)
@@ -155,9 +186,8 @@ def cached_reference(tracer: PathTracer, camera: Camera, path: Path) -> np.ndarr
     if path.is_file():
         return np.load(path, allow_pickle=False)
     image = tracer.render(camera).mean
-    with atomic_path(path) as temp:
-        with open(temp, "wb") as handle:
-            np.save(handle, image, allow_pickle=False)
+    with atomic_path(path) as temp, open(temp, "wb") as handle:
+        np.save(handle, image, allow_pickle=False)
     return image
 
 
@@ -170,52 +200,89 @@ def run_scene(name: str, args: argparse.Namespace, out: Path) -> tuple[list[Swee
     if not args.no_reference:
         tracer = PathTracer(scene, ReferenceSettings(spp=args.spp, max_bounces=0, seed=11))
         stem = f"{args.width}x{args.height}-spp{args.spp}-yaw{args.yaw:g}-of{args.views}"
-        references = [cached_reference(tracer, view, out / name / f"reference{i}-{stem}.npy")
-                      for i, view in enumerate(path)]
+        references = [
+            cached_reference(tracer, view, out / name / f"reference{i}-{stem}.npy") for i, view in enumerate(path)
+        ]
     rows, table = [], []
     for coverage in args.coverage:
         settings = PlacementSettings(coverage=coverage, max_resolution=args.caching_resolution)
         start = time.perf_counter()
         folder = out / name / f"coverage{coverage:g}"
-        layer = reusable_bake(folder / f"{name}.relight.usda", "multiview", (args.width, args.height),
-                              args.supersampling, {"maxResolution": args.caching_resolution, "coverage": coverage}
-                              ) if args.reuse_bake else None
+        layer = (
+            reusable_bake(
+                folder / f"{name}.relight.usda",
+                "multiview",
+                (args.width, args.height),
+                args.supersampling,
+                {"maxResolution": args.caching_resolution, "coverage": coverage},
+            )
+            if args.reuse_bake
+            else None
+        )
         bake_s = float("nan")
         if layer is None:
             layer = bake_multiview(scene, camera, folder, name, args.supersampling, settings=settings)
             bake_s = time.perf_counter() - start
         parameters = read_cache_layer(layer).parameters
-        relighter = open_multiview_relighter(layer, settings=RelightSettings(area_samples=args.area_samples),
-                                             sample_groups=args.sample_groups, blend_lighting=args.blend_lighting,
-                                             edge_contrast=args.edge_contrast, near_field=args.near_field)
+        relighter = open_multiview_relighter(
+            layer,
+            settings=RelightSettings(area_samples=args.area_samples),
+            sample_groups=args.sample_groups,
+            blend_lighting=args.blend_lighting,
+            edge_contrast=args.edge_contrast,
+            near_field=args.near_field,
+        )
         relighter.caster.num_threads = args.threads  # the shadow rays' caster too
         renderer = FrameRenderer(relighter, fill_holes=args.fill_holes)
         start = time.perf_counter()
         relighter.prepare_lighting()
-        print(f"{name} coverage {coverage:g}: lighting of {relighter.views.pool.num_samples} caching samples traced "
-              f"in {time.perf_counter() - start:.1f} s ({relighter.lighting_bytes() / 1e6:.0f} MB)", file=sys.stderr)
+        print(
+            f"{name} coverage {coverage:g}: lighting of {relighter.views.pool.num_samples} caching samples traced "
+            f"in {time.perf_counter() - start:.1f} s ({relighter.lighting_bytes() / 1e6:.0f} MB)",
+            file=sys.stderr,
+        )
         views = []
-        for i, (view, reference) in enumerate(zip(path, references)):
+        for i, (view, reference) in enumerate(zip(path, references, strict=True)):
             measured = measure_view(scene, relighter, renderer, view, reference, args.repeats)
             views.append(measured)
             table.append({"scene": name, "coverage": coverage, "view": i} | measured)
-            print(f"{name} coverage {coverage:g} view {i}: " + " ".join(
-                f"{k}={v:.4g}" for k, v in measured.items()), file=sys.stderr)
+            print(
+                f"{name} coverage {coverage:g} view {i}: " + " ".join(f"{k}={v:.4g}" for k, v in measured.items()),
+                file=sys.stderr,
+            )
         mean = {key: float(np.mean([v[key] for v in views])) for key in ("psnr_db", "rel_mse") if key in views[0]}
-        rows.append(SweepRow(
-            method="multiview", scene=name, width=args.width, height=args.height, light_edit="shot",
-            params=format_params({"coverage": coverage, "cameras": parameters["numViews"],
-                                  "primary": parameters["numPrimary"], "secondary": parameters["numSecondary"],
-                                  "uncovered": round(parameters["uncoveredFraction"], 4),
-                                  "maxResolution": args.caching_resolution, "views": args.views,
-                                  "supersampling": args.supersampling, "fillHoles": int(args.fill_holes),
-                                  "areaSamples": args.area_samples, "sampleGroups": args.sample_groups,
-                                  "blendLighting": int(args.blend_lighting),
-                                  "edgeContrast": "none" if args.edge_contrast is None else args.edge_contrast,
-                                  "nearField": "none" if args.near_field is None else args.near_field}),
-            psnr_db=mean.get("psnr_db", float("nan")), rel_mse=mean.get("rel_mse", float("nan")),
-            cache_bytes=float(cache_bytes(layer)), bake_s=bake_s,
-            relight_ms=float(np.median([v.get("light_edit_ms", float("nan")) for v in views]))))
+        rows.append(
+            SweepRow(
+                method="multiview",
+                scene=name,
+                width=args.width,
+                height=args.height,
+                light_edit="shot",
+                params=format_params(
+                    {
+                        "coverage": coverage,
+                        "cameras": parameters["numViews"],
+                        "primary": parameters["numPrimary"],
+                        "secondary": parameters["numSecondary"],
+                        "uncovered": round(parameters["uncoveredFraction"], 4),
+                        "maxResolution": args.caching_resolution,
+                        "views": args.views,
+                        "supersampling": args.supersampling,
+                        "fillHoles": int(args.fill_holes),
+                        "areaSamples": args.area_samples,
+                        "sampleGroups": args.sample_groups,
+                        "blendLighting": int(args.blend_lighting),
+                        "edgeContrast": "none" if args.edge_contrast is None else args.edge_contrast,
+                        "nearField": "none" if args.near_field is None else args.near_field,
+                    }
+                ),
+                psnr_db=mean.get("psnr_db", float("nan")),
+                rel_mse=mean.get("rel_mse", float("nan")),
+                cache_bytes=float(cache_bytes(layer)),
+                bake_s=bake_s,
+                relight_ms=float(np.median([v.get("light_edit_ms", float("nan")) for v in views])),
+            )
+        )
     return rows, table
 
 
@@ -230,25 +297,47 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--caching-resolution", type=int, default=512)
     parser.add_argument("--supersampling", type=int, default=1)
     parser.add_argument("--spp", type=int, default=16, help="reference samples per pixel (default 16)")
-    parser.add_argument("--area-samples", type=int, default=RelightSettings().area_samples,
-                        help="relighter samples per area light and point (default: the relighter's)")
-    parser.add_argument("--sample-groups", type=int, default=1,
-                        help="light-sample groups whose BRDF a view evaluates together (default 1)")
-    parser.add_argument("--blend-lighting", action="store_true",
-                        help="blend the cached lighting of the four caching pixels (default: the nearest)")
-    parser.add_argument("--edge-contrast", type=lambda v: None if v == "none" else float(v), default=0.8,
-                        help="trace a light again at view points on its edges in the caching images "
-                             "(contrast of the caching taps' fractions of the light reaching them, and of "
-                             "their unshadowed light; default 0.8; 'none': a camera move traces nothing)")
-    parser.add_argument("--near-field", type=lambda v: None if v == "none" else float(v), default=0.1,
-                        help="trace a light again at view points farther from their caching sample than this "
-                             "fraction of their distance to the light (default 0.1; 'none': never)")
+    parser.add_argument(
+        "--area-samples",
+        type=int,
+        default=RelightSettings().area_samples,
+        help="relighter samples per area light and point (default: the relighter's)",
+    )
+    parser.add_argument(
+        "--sample-groups",
+        type=int,
+        default=1,
+        help="light-sample groups whose BRDF a view evaluates together (default 1)",
+    )
+    parser.add_argument(
+        "--blend-lighting",
+        action="store_true",
+        help="blend the cached lighting of the four caching pixels (default: the nearest)",
+    )
+    parser.add_argument(
+        "--edge-contrast",
+        type=lambda v: None if v == "none" else float(v),
+        default=0.8,
+        help="trace a light again at view points on its edges in the caching images "
+        "(contrast of the caching taps' fractions of the light reaching them, and of "
+        "their unshadowed light; default 0.8; 'none': a camera move traces nothing)",
+    )
+    parser.add_argument(
+        "--near-field",
+        type=lambda v: None if v == "none" else float(v),
+        default=0.1,
+        help="trace a light again at view points farther from their caching sample than this "
+        "fraction of their distance to the light (default 0.1; 'none': never)",
+    )
     parser.add_argument("--threads", type=int, default=2, help="torch and Embree threads (default 2)")
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per median; 0: no timings")
     parser.add_argument("--fill-holes", action="store_true", help="bake large holes on demand")
     parser.add_argument("--no-reference", action="store_true", help="timings only")
-    parser.add_argument("--reuse-bake", action="store_true",
-                        help="open the cache an earlier run baked in OUT with the same settings (bake_s NaN)")
+    parser.add_argument(
+        "--reuse-bake",
+        action="store_true",
+        help="open the cache an earlier run baked in OUT with the same settings (bake_s NaN)",
+    )
     parser.add_argument("--out", type=Path, default=Path("multiview_path"))
     parser.add_argument("--csv", type=Path, help="shared sweep CSV (default OUT/multiview.csv)")
     parser.add_argument("--table", type=Path, help="per-view CSV (default OUT/multiview_views.csv)")

@@ -54,10 +54,19 @@ def measure(cache: str, memory_budget: float | None, repeats: int) -> dict[str, 
     height, width = relighter.gbuffer.image_size
     move_wall, move_cpu = moves.median_ms()
     colour_wall, colour_cpu = colours.median_ms()
-    return {"sub_samples": relighter.gbuffer.num_samples, "sub_image": f"{width}x{height}",
-            "lights": len(relighter.lights), "open_s": opened, "first_frame_s": first,
-            "move_ms": move_wall, "move_cpu_ms": move_cpu, "colour_ms": colour_wall, "colour_cpu_ms": colour_cpu,
-            "cache_mb": relighter.cache_bytes() / 1e6, "peak_rss_gb": peak_rss_bytes() / 1e9}
+    return {
+        "sub_samples": relighter.gbuffer.num_samples,
+        "sub_image": f"{width}x{height}",
+        "lights": len(relighter.lights),
+        "open_s": opened,
+        "first_frame_s": first,
+        "move_ms": move_wall,
+        "move_cpu_ms": move_cpu,
+        "colour_ms": colour_wall,
+        "colour_cpu_ms": colour_cpu,
+        "cache_mb": relighter.cache_bytes() / 1e6,
+        "peak_rss_gb": peak_rss_bytes() / 1e9,
+    }
 
 
 def main() -> None:

@@ -19,7 +19,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.bake.adapter import format_params, parse_params
+from pipeline.bake.adapter import parse_params
 from relight_torch.io.atomic import write_text_atomic
 
 NAN = float("nan")
@@ -98,7 +98,7 @@ def read_csv(path: str | Path) -> list[SweepRow]:
         header = tuple(next(reader))
         if header != COLUMNS:
             raise ValueError(f"{path}: header {header} differs from the sweep columns {COLUMNS}")
-        return [_row({name: cell for name, cell in zip(COLUMNS, cells)}) for cells in reader if cells]
+        return [_row({name: cell for name, cell in zip(COLUMNS, cells, strict=True)}) for cells in reader if cells]
 
 
 def _row(cells: Mapping[str, object]) -> SweepRow:
@@ -111,11 +111,15 @@ def _row(cells: Mapping[str, object]) -> SweepRow:
 
 def write_json(rows: Iterable[SweepRow], path: str | Path, context: Mapping[str, object] | None = None) -> None:
     """{"columns": [...], "context": {...}, "rows": [{column: value}]} atomically; NaN as null."""
+
     def plain(value: object) -> object:
         return None if isinstance(value, float) and not math.isfinite(value) else value
 
-    document = {"columns": list(COLUMNS), "context": dict(context or {}),
-                "rows": [{name: plain(getattr(row, name)) for name in COLUMNS} for row in rows]}
+    document = {
+        "columns": list(COLUMNS),
+        "context": dict(context or {}),
+        "rows": [{name: plain(getattr(row, name)) for name in COLUMNS} for row in rows],
+    }
     write_text_atomic(path, json.dumps(document, indent=1) + "\n")
 
 

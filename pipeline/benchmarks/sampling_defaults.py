@@ -22,8 +22,8 @@ from pathlib import Path
 from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
-from relight_torch.metrics import psnr
 from relight_torch.direct.relighter import RelightSettings, open_relighter
+from relight_torch.metrics import psnr
 
 SETTINGS = {
     "defaults": RelightSettings(),
@@ -45,18 +45,21 @@ def main(argv: list[str] | None = None) -> int:
         directory = args.out or Path(scratch)
         bundled = SCENES[args.scene]
         scene = load_scene(bundled.write(directory / "scene"), width=args.width, height=args.height)
-        layer = bake_direct(scene, find_camera(scene, bundled.camera), directory / "cache", args.scene,
-                            args.supersampling, 1)
-        truth = open_relighter(layer, settings=RelightSettings(shadow_filter_radius=0,
-                                                               area_samples=args.truth_samples)).render()
+        layer = bake_direct(
+            scene, find_camera(scene, bundled.camera), directory / "cache", args.scene, args.supersampling, 1
+        )
+        truth = open_relighter(
+            layer, settings=RelightSettings(shadow_filter_radius=0, area_samples=args.truth_samples)
+        ).render()
         print("setting,filter_radius,psnr_db,first_render_cpu_s")
         for name, settings in SETTINGS.items():
             relighter = open_relighter(layer, settings=settings)
             start = time.process_time()
             image = relighter.render()
             seconds = time.process_time() - start
-            print(f"{name},{relighter.filter_radius},{psnr(image.numpy(), truth.numpy()):.2f},{seconds:.2f}",
-                  flush=True)
+            print(
+                f"{name},{relighter.filter_radius},{psnr(image.numpy(), truth.numpy()):.2f},{seconds:.2f}", flush=True
+            )
     return 0
 
 

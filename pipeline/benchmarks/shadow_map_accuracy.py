@@ -26,10 +26,10 @@ import torch
 from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
+from relight_torch.direct.relighter import RelightSettings, open_relighter, shot_lights, unit_light
 from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light
 from relight_torch.metrics import psnr
-from relight_torch.direct.relighter import RelightSettings, open_relighter, shot_lights, unit_light
 from relight_torch.visibility.shadow_maps import LOOKUPS
 
 
@@ -48,22 +48,34 @@ def main(argv: list[str] | None = None) -> int:
     bundled = SCENES[args.scene]
     shot = bundled.write(directory)
     scene = load_scene(shot, width=args.width, height=args.height)
-    cache = bake_direct(scene, find_camera(scene, bundled.camera), directory / "cache", args.scene,
-                        args.supersampling, texture_samples=1)
+    cache = bake_direct(
+        scene,
+        find_camera(scene, bundled.camera),
+        directory / "cache",
+        args.scene,
+        args.supersampling,
+        texture_samples=1,
+    )
     traced = open_relighter(cache)
     g = traced.gbuffer
-    print("scene,edit,width,height,resolution,lookup,sample_agreement,visible_rmse,visible_bias,psnr_vs_embree_db,"
-          "build_ms,lookup_ms")
+    print(
+        "scene,edit,width,height,resolution,lookup,sample_agreement,visible_rmse,visible_bias,psnr_vs_embree_db,"
+        "build_ms,lookup_ms"
+    )
     for edit, layer in {"shot": None, **light_edit_layers(args.scene, directory)}.items():
         lights = shot_lights(traced.description, layer)
         traced.set_lights(lights)
         expected = traced.render().numpy()
         light = dataclasses.replace(unit_light(lights[0]), shaping=None, barzel=None)
-        u = fixed_light_samples(g.num_samples, traced.num_light_samples(light), traced.settings.seed, g.device,
-                                g.position.dtype)
+        u = fixed_light_samples(
+            g.num_samples, traced.num_light_samples(light), traced.settings.seed, g.device, g.position.dtype
+        )
         samples = sample_light(light, g.position, u)
-        live = ((samples.direction * g.geometric_normal.unsqueeze(1)).sum(-1) > 0) & (samples.pdf > 0) \
+        live = (
+            ((samples.direction * g.geometric_normal.unsqueeze(1)).sum(-1) > 0)
+            & (samples.pdf > 0)
             & torch.isfinite(samples.distance)
+        )
         kept = live.any(-1)
         query = (light, g.position[kept], g.geometric_normal[kept], samples.direction[kept], samples.distance[kept])
         weight = live[kept].to(g.position.dtype)
@@ -71,8 +83,9 @@ def main(argv: list[str] | None = None) -> int:
         visible = ((~blocked) * weight).sum(-1) / weight.sum(-1)
         for resolution in args.resolutions:
             for lookup in args.lookups:
-                mapped = open_relighter(cache, shadows="shadowmaps",
-                                        settings=RelightSettings(shadow_map_resolution=resolution))
+                mapped = open_relighter(
+                    cache, shadows="shadowmaps", settings=RelightSettings(shadow_map_resolution=resolution)
+                )
                 mapped.visibility.lookup = lookup
                 start = time.process_time()
                 mapped.visibility.depth_map(light)
@@ -83,10 +96,12 @@ def main(argv: list[str] | None = None) -> int:
                 error = ((~found) * weight).sum(-1) / weight.sum(-1) - visible
                 mapped.set_lights(lights)
                 agreement = float(((found == blocked) * weight).sum() / weight.sum())
-                print(f"{args.scene},{edit},{args.width},{args.height},{resolution},{lookup},{agreement:.4f},"
-                      f"{float(error.square().mean().sqrt()):.4f},{float(error.mean()):+.4f},"
-                      f"{psnr(mapped.render().numpy(), expected):.2f},{1e3 * build:.0f},{1e3 * lookups:.0f}",
-                      flush=True)
+                print(
+                    f"{args.scene},{edit},{args.width},{args.height},{resolution},{lookup},{agreement:.4f},"
+                    f"{float(error.square().mean().sqrt()):.4f},{float(error.mean()):+.4f},"
+                    f"{psnr(mapped.render().numpy(), expected):.2f},{1e3 * build:.0f},{1e3 * lookups:.0f}",
+                    flush=True,
+                )
     return 0
 
 

@@ -24,21 +24,21 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.bake.shot import DEFAULT_TARGET_DB, bake_shot
 from pipeline.bake.adapter import cache_bytes
 from pipeline.bake.methods import bake_method
+from pipeline.bake.shot import DEFAULT_TARGET_DB, bake_shot
 from pipeline.benchmarks.bench.measure import machine_description, moved
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
 from pipeline.scenes.lights import NEW_LIGHT_PATH, new_sphere_layer
 from pipeline.tracing_bench import median_seconds
+from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
+from relight_torch.direct.relighter import shot_lights
 from relight_torch.io.atomic import write_text_atomic
 from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch import open_cache
-from relight_torch.direct.relighter import shot_lights
 
 REFERENCE_BOUNCES = 8
 
@@ -56,8 +56,9 @@ class EditRow:
     indirect_energy_ratio: float
 
 
-def _reference(scene_path: Path, camera: str, width: int, height: int, layer: Path | None, bounces: int, spp: int,
-               directory: Path) -> np.ndarray:
+def _reference(
+    scene_path: Path, camera: str, width: int, height: int, layer: Path | None, bounces: int, spp: int, directory: Path
+) -> np.ndarray:
     """The path tracer's (H, W, 3) image, kept as .npy in `directory` between runs."""
     path = directory / f"reference-{'shot' if layer is None else layer.stem}-{bounces}-{spp}.npy"
     if not path.exists():
@@ -67,8 +68,16 @@ def _reference(scene_path: Path, camera: str, width: int, height: int, layer: Pa
     return np.load(path)
 
 
-def accuracy_rows(name: str, layer: Path, scene_path: Path, edits: dict[str, Path | None], width: int, height: int,
-                  spp: int, directory: Path) -> list[EditRow]:
+def accuracy_rows(
+    name: str,
+    layer: Path,
+    scene_path: Path,
+    edits: dict[str, Path | None],
+    width: int,
+    height: int,
+    spp: int,
+    directory: Path,
+) -> list[EditRow]:
     """One EditRow per edit of the shot cache `layer` (see the module doc)."""
     camera = SCENES[name].camera
     description = read_cache_layer(layer)
@@ -82,9 +91,17 @@ def accuracy_rows(name: str, layer: Path, scene_path: Path, edits: dict[str, Pat
         full = _reference(scene_path, camera, width, height, lights_layer, REFERENCE_BOUNCES, spp, directory)
         zero = _reference(scene_path, camera, width, height, lights_layer, 0, spp, directory)
         reference_indirect = full - zero
-        rows.append(EditRow(name, edit, psnr(image, full), rel_mse(image, full), float(image.mean() / full.mean()),
-                            rel_mse(indirect, reference_indirect),
-                            float(indirect.mean() / max(float(reference_indirect.mean()), 1e-12))))
+        rows.append(
+            EditRow(
+                name,
+                edit,
+                psnr(image, full),
+                rel_mse(image, full),
+                float(image.mean() / full.mean()),
+                rel_mse(indirect, reference_indirect),
+                float(indirect.mean() / max(float(reference_indirect.mean()), 1e-12)),
+            )
+        )
     return rows
 
 
@@ -96,13 +113,14 @@ def edit_timings(layer: Path, edits: dict[str, Path | None], repeats: int) -> di
     relighter.set_lights(lights)
     relighter.render()
     first = lights[0]
-    added = [light for light in shot_lights(description, edits["new_light"]) if light.path == NEW_LIGHT_PATH][0]
+    added = next(light for light in shot_lights(description, edits["new_light"]) if light.path == NEW_LIGHT_PATH)
     toggles = iter(range(1 << 30))
 
     def timed(edit) -> float:
         def run() -> None:
             edit(next(toggles) % 2)
             relighter.render()
+
         return 1e3 * median_seconds(run, repeats)
 
     colours = (first, dataclasses.replace(first, color=(first.color[0], 0.8 * first.color[1], 0.6 * first.color[2])))
@@ -128,8 +146,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timing-size", type=int, nargs=2, metavar=("W", "H"))
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--work", type=Path, help="where bakes and references go, kept between runs "
-                                                 "(default: a temporary directory, removed)")
+    parser.add_argument(
+        "--work",
+        type=Path,
+        help="where bakes and references go, kept between runs (default: a temporary directory, removed)",
+    )
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.work is None:
@@ -145,7 +166,8 @@ def _run(args: argparse.Namespace, work: Path) -> int:
     for name in args.scenes:
         scene_path = SCENES[name].write(work)
         edits = light_edit_layers(name, work) | {
-            "new_light": new_sphere_layer(scene_path, SCENES[name].camera, work / f"{name}.lights.new_light.usda")}
+            "new_light": new_sphere_layer(scene_path, SCENES[name].camera, work / f"{name}.lights.new_light.usda")
+        }
         scene = load_scene(scene_path, width=args.width, height=args.height)
         camera = find_camera(scene, SCENES[name].camera)
         start = time.perf_counter()
@@ -157,8 +179,9 @@ def _run(args: argparse.Namespace, work: Path) -> int:
             big = load_scene(scene_path, width=args.timing_size[0], height=args.timing_size[1])
             big_camera = find_camera(big, SCENES[name].camera)
             method = "direct" if choice.components == "direct" else "transfer"
-            big_layer = bake_method(method).adapter.bake(big, big_camera, work / f"{name}-timing", name,
-                                                        result.point, 1, 2)
+            big_layer = bake_method(method).adapter.bake(
+                big, big_camera, work / f"{name}-timing", name, result.point, 1, 2
+            )
             timings = edit_timings(big_layer, edits, args.repeats)
         choices.append((name, choice, result, bake_s, cache_bytes(result.layer), timings))
     _write(args, rows, choices)
@@ -172,26 +195,45 @@ def _write(args: argparse.Namespace, rows: list[EditRow], choices: list) -> None
         writer = csv.writer(handle)
         writer.writerow(fields)
         writer.writerows([[getattr(row, f) for f in fields] for row in rows])
-    command = (f"python -m pipeline.benchmarks.shot_accuracy {' '.join(args.scenes)} --width {args.width} "
-               f"--height {args.height} --spp {args.spp} --quality {args.quality:g}"
-               + (f" --timing-size {args.timing_size[0]} {args.timing_size[1]}" if args.timing_size else "")
-               + f" --repeats {args.repeats} --out {args.out}")
-    lines = ["# The shot cache against the full frame", "", f"Generated by `{command}`.", "",
-             f"Accuracy at {args.width}x{args.height} against the path tracer ({REFERENCE_BOUNCES} bounces, "
-             f"{args.spp} spp); the indirect part is the relit frame less its direct component against the "
-             "full reference less the direct-only one.", "",
-             "| scene | edit | PSNR dB | relMSE | energy ratio | indirect relMSE | indirect energy ratio |",
-             "|---|---|---|---|---|---|---|"]
-    lines += [f"| {r.scene} | {r.edit} | {r.psnr_db:.2f} | {r.rel_mse:.4f} | {r.energy_ratio:.3f} | "
-              f"{r.indirect_rel_mse:.4f} | {r.indirect_energy_ratio:.3f} |" for r in rows]
-    lines += ["", "| scene | components | bounces | sizes | pilot dB | measured dB | energy ratio | bake s | cache MB |"
-              + (" ms per edit at {}x{} ({}) |".format(*args.timing_size, ", ".join(choices[0][5])) if args.timing_size
-                 else ""),
-              "|---|---|---|---|---|---|---|---|---|" + ("---|" if args.timing_size else "")]
+    command = (
+        f"python -m pipeline.benchmarks.shot_accuracy {' '.join(args.scenes)} --width {args.width} "
+        f"--height {args.height} --spp {args.spp} --quality {args.quality:g}"
+        + (f" --timing-size {args.timing_size[0]} {args.timing_size[1]}" if args.timing_size else "")
+        + f" --repeats {args.repeats} --out {args.out}"
+    )
+    lines = [
+        "# The shot cache against the full frame",
+        "",
+        f"Generated by `{command}`.",
+        "",
+        f"Accuracy at {args.width}x{args.height} against the path tracer ({REFERENCE_BOUNCES} bounces, "
+        f"{args.spp} spp); the indirect part is the relit frame less its direct component against the "
+        "full reference less the direct-only one.",
+        "",
+        "| scene | edit | PSNR dB | relMSE | energy ratio | indirect relMSE | indirect energy ratio |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    lines += [
+        f"| {r.scene} | {r.edit} | {r.psnr_db:.2f} | {r.rel_mse:.4f} | {r.energy_ratio:.3f} | "
+        f"{r.indirect_rel_mse:.4f} | {r.indirect_energy_ratio:.3f} |"
+        for r in rows
+    ]
+    lines += [
+        "",
+        "| scene | components | bounces | sizes | pilot dB | measured dB | energy ratio | bake s | cache MB |"
+        + (
+            " ms per edit at {}x{} ({}) |".format(*args.timing_size, ", ".join(choices[0][5]))
+            if args.timing_size
+            else ""
+        ),
+        "|---|---|---|---|---|---|---|---|---|" + ("---|" if args.timing_size else ""),
+    ]
     for name, choice, result, bake_s, num_bytes, timings in choices:
-        lines.append(f"| {name} | {choice.components} | {choice.bounces} | {result.point} | {result.predicted_db:.1f} | "
-                     f"{result.measured_db:.1f} | {result.energy_ratio:.3f} | {bake_s:.0f} | {num_bytes / 1e6:.1f} |"
-                     + (" " + " / ".join(f"{ms:.0f}" for ms in timings.values()) + " |" if timings else ""))
+        lines.append(
+            f"| {name} | {choice.components} | {choice.bounces} | {result.point} | {result.predicted_db:.1f} | "
+            f"{result.measured_db:.1f} | {result.energy_ratio:.3f} | {bake_s:.0f} | {num_bytes / 1e6:.1f} |"
+            + (" " + " / ".join(f"{ms:.0f}" for ms in timings.values()) + " |" if timings else "")
+        )
     lines += ["", f"Machine: {machine_description()}; {datetime.date.today().isoformat()}."]
     write_text_atomic(args.out / "summary.md", "\n".join(lines) + "\n")
 

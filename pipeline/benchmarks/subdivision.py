@@ -31,8 +31,9 @@ CUBE_FACES = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [
 """The cube [-1, 1]^3: point k = (x, y, z) with k = 4 x' + 2 y' + z' over {0, 1}; faces outward."""
 
 
-def cube_cage_stage(scheme: str = "catmullClark", left_handed: bool = False,
-                    camera_distance: float = 3.0) -> tuple[Usd.Stage, UsdGeom.Mesh]:
+def cube_cage_stage(
+    scheme: str = "catmullClark", left_handed: bool = False, camera_distance: float = 3.0
+) -> tuple[Usd.Stage, UsdGeom.Mesh]:
     """An in-memory stage: the cube cage as a subdivision mesh `/Cube` and a camera `/Cam` on +Z
     looking at it (50 mm focal length, 36 x 27 mm aperture)."""
     stage = Usd.Stage.CreateInMemory()
@@ -85,9 +86,11 @@ def sphere_row(width: int, height: int, repeats: int) -> str:
     limit = refined_triangles(make_cage(CUBE_POINTS, [4] * 6, CUBE_FACES.ravel()), "catmullClark", level + 2)
     error = silhouette_error(camera, geometry.positions, limit["positions"])
     wall, cpu = stopwatch.median_ms()
-    return (f"sphere (cube cage) {width}x{height}: level {level}, {geometry.num_triangles:,} triangles, "
-            f"read {wall / 1e3:.2f} s wall / {cpu / 1e3:.2f} s CPU (median of {repeats}), "
-            f"silhouette within {error:.3f} px of the limit")
+    return (
+        f"sphere (cube cage) {width}x{height}: level {level}, {geometry.num_triangles:,} triangles, "
+        f"read {wall / 1e3:.2f} s wall / {cpu / 1e3:.2f} s CPU (median of {repeats}), "
+        f"silhouette within {error:.3f} px of the limit"
+    )
 
 
 def shot_row(shot: str, width: int, height: int, repeats: int) -> str:
@@ -97,8 +100,10 @@ def shot_row(shot: str, width: int, height: int, repeats: int) -> str:
             scene = load_scene(shot, width=width, height=height)
     wall, cpu = stopwatch.median_ms()
     notes = [w for w in scene.warnings if "subdivision" in w]
-    return (f"{shot} {width}x{height}: {scene.geometry.num_triangles:,} triangles, load {wall / 1e3:.2f} s wall / "
-            f"{cpu / 1e3:.2f} s CPU (median of {repeats}){'; ' + '; '.join(notes) if notes else ''}")
+    return (
+        f"{shot} {width}x{height}: {scene.geometry.num_triangles:,} triangles, load {wall / 1e3:.2f} s wall / "
+        f"{cpu / 1e3:.2f} s CPU (median of {repeats}){'; ' + '; '.join(notes) if notes else ''}"
+    )
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from relight_torch.relighter import open_relighter, shot_lights
 
 from pipeline.bake.deep_framebuffer import grid_rays, texel_density
 from pipeline.bake.direct import bake_direct
@@ -34,7 +35,6 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scene.types import Camera, Scene
 from pipeline.scenes import SCENES, light_edit_layers
 from pipeline.tracing import Tracer
-from relight_torch.relighter import open_relighter, shot_lights
 
 CLASSES = ("edge", "textured", "plain")
 CLASS_GRID = 4
@@ -50,7 +50,7 @@ def pixel_classes(scene: Scene, camera: Camera) -> np.ndarray:
     height, width, n = camera.height, camera.width, CLASS_GRID
     per_pixel = object_id.reshape(height, n, width, n).transpose(0, 2, 1, 3).reshape(height, width, n * n)
     edge = np.any(per_pixel != per_pixel[..., :1], axis=-1)
-    textured_materials = np.append(texel_density(scene) > 0, False)           # -1: no hit
+    textured_materials = np.append(texel_density(scene) > 0, False)  # -1: no hit
     material = material_id.reshape(height, n, width, n)[:, 0, :, 0]
     return np.where(edge, 0, np.where(textured_materials[material], 1, 2))
 
@@ -83,7 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     for edit, layer in edits.items():
         reference_scene = load_scene(shot, lights_layer=layer, width=args.width, height=args.height)
         references[edit] = PathTracer(reference_scene, ReferenceSettings(spp=args.spp, max_bounces=0)).render(
-            find_camera(reference_scene, bundled.camera))
+            find_camera(reference_scene, bundled.camera)
+        )
     print("scene,variant,edit,class,pixels,error_share,psnr_db,noise_share,bake_s,cache_bytes")
     for variant in args.variants:
         s, t = (int(v) for v in variant.split(":"))
@@ -105,9 +106,12 @@ def main(argv: list[str] | None = None) -> int:
             for k, name in [(-1, "all")] + list(enumerate(CLASSES)):
                 mask = np.ones_like(classes, bool) if k < 0 else classes == k
                 mse = float(error[mask].mean()) if mask.any() else 0.0
-                print(f"{args.scene},{s}:{t},{edit},{name},{int(mask.sum())},{error[mask].sum() / total:.3f},"
-                      f"{10 * np.log10(1.0 / max(mse, 1e-20)):.2f},{noise[mask].sum() / total:.3f},"
-                      f"{bake_s:.1f},{size}", flush=True)
+                print(
+                    f"{args.scene},{s}:{t},{edit},{name},{int(mask.sum())},{error[mask].sum() / total:.3f},"
+                    f"{10 * np.log10(1.0 / max(mse, 1e-20)):.2f},{noise[mask].sum() / total:.3f},"
+                    f"{bake_s:.1f},{size}",
+                    flush=True,
+                )
     return 0
 
 

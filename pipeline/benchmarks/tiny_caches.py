@@ -26,8 +26,18 @@ METHODS = tuple(METHOD_OPTIONS)
 
 def bake_arguments(shot: Path, out: Path, method: str) -> list[str]:
     """`relight bake` arguments of the tiny bake of `method`."""
-    return ["bake", str(shot), "--camera", SCENES[SCENE].camera, "--out", str(out), "--method", method,
-            *COMMON_OPTIONS, *METHOD_OPTIONS[method]]
+    return [
+        "bake",
+        str(shot),
+        "--camera",
+        SCENES[SCENE].camera,
+        "--out",
+        str(out),
+        "--method",
+        method,
+        *COMMON_OPTIONS,
+        *METHOD_OPTIONS[method],
+    ]
 
 
 def quiet_main(arguments: list[str]) -> tuple[int, str]:

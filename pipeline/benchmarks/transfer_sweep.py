@@ -36,17 +36,17 @@ from pathlib import Path
 import torch
 
 from pipeline.bake.direct.bake import bake_direct
-from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
 from pipeline.bake.gather_cloud import create_gathers
+from pipeline.bake.transfer.adapter import culled_variants
+from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
 from pipeline.benchmarks.bench.measure import relight_ms
 from pipeline.benchmarks.bench.references import References
-from pipeline.bake.transfer.adapter import culled_variants
 from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, format_params
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import CacheDescription
-from relight_torch.metrics import psnr, rel_mse
 from relight_torch.direct.relighter import open_relighter, shot_lights
+from relight_torch.metrics import psnr, rel_mse
 from relight_torch.transfer.open import open_transfer_relighter
 from relight_torch.transfer.relighter import GATHER_SAMPLES, TransferRelighter
 from relight_torch.transfer.sparse import SparseRows
@@ -62,13 +62,19 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
     scene = load_scene(shot, width=args.width, height=args.height)
     camera = find_camera(scene, bundled.camera)
     for num_gathers in args.gathers:
-        settings = TransferSettings(num_gathers=num_gathers, num_coefficients=max(args.coefficients),
-                                    num_bounces=args.bounces, encoding="uint8" if args.quantize else "float16",
-                                    factor_colour=not args.rgb, indirect_scale=args.indirect_scale)
+        settings = TransferSettings(
+            num_gathers=num_gathers,
+            num_coefficients=max(args.coefficients),
+            num_bounces=args.bounces,
+            encoding="uint8" if args.quantize else "float16",
+            factor_colour=not args.rgb,
+            indirect_scale=args.indirect_scale,
+        )
         cache = directory / f"cache-{num_gathers}"
         start = time.perf_counter()
-        layer = bake_transfer(scene, camera, cache, name, args.supersampling, args.texture_samples,
-                              settings=settings, progress=False)
+        layer = bake_transfer(
+            scene, camera, cache, name, args.supersampling, args.texture_samples, settings=settings, progress=False
+        )
         bake_s = time.perf_counter() - start
         relighter = open_transfer_relighter(layer, shadows=args.shadows)
         description = relighter.direct.description
@@ -79,9 +85,25 @@ def sweep_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
                 image, indirect = point.render().numpy(), point.indirect_image().numpy()
                 full, reference_indirect = expected[edit]
                 timing = relight_ms(point) if edit == "shot" else NAN
-                print(csv_line(SweepRow("transfer", name, args.width, args.height, edit, params, psnr(image, full),
-                                        psnr(indirect, reference_indirect), rel_mse(image, full),
-                                        variant.cache_bytes, bake_s, timing)), flush=True)
+                print(
+                    csv_line(
+                        SweepRow(
+                            "transfer",
+                            name,
+                            args.width,
+                            args.height,
+                            edit,
+                            params,
+                            psnr(image, full),
+                            psnr(indirect, reference_indirect),
+                            rel_mse(image, full),
+                            variant.cache_bytes,
+                            bake_s,
+                            timing,
+                        )
+                    ),
+                    flush=True,
+                )
 
 
 def synthetic_rows(num_rows: int, num_columns: int, num_kept: int, factored: bool, seed: int = 0) -> SparseRows:
@@ -102,8 +124,9 @@ def time_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
     bundled = SCENES[name]
     shot = bundled.write(directory)
     scene = load_scene(shot, width=args.width, height=args.height)
-    layer = bake_direct(scene, find_camera(scene, bundled.camera), directory / "cache", name, args.supersampling,
-                        args.texture_samples)
+    layer = bake_direct(
+        scene, find_camera(scene, bundled.camera), directory / "cache", name, args.supersampling, args.texture_samples
+    )
     direct = open_relighter(layer, shadows=args.shadows)
     view_pixels = torch.arange(args.width * args.height)
     for num_gathers in args.gathers:
@@ -112,11 +135,29 @@ def time_scene(name: str, args: argparse.Namespace, directory: Path) -> None:
             rows = synthetic_rows(view_pixels.shape[0], num_gathers, max(args.coefficients), factored)
             relighter = TransferRelighter(direct, gathers, view_pixels, rows.to("cpu", torch.float32))
             relighter.render()
-            params = format_params({"gathers": num_gathers, "coefficients": max(args.coefficients),
-                                    "rowColour": int(factored), "synthetic": 1})
-            print(csv_line(SweepRow("transfer", name, args.width, args.height, "shot", params,
-                                    cache_bytes=rows.num_bytes, relight_ms=relight_ms(relighter, repeats=7))),
-                  flush=True)
+            params = format_params(
+                {
+                    "gathers": num_gathers,
+                    "coefficients": max(args.coefficients),
+                    "rowColour": int(factored),
+                    "synthetic": 1,
+                }
+            )
+            print(
+                csv_line(
+                    SweepRow(
+                        "transfer",
+                        name,
+                        args.width,
+                        args.height,
+                        "shot",
+                        params,
+                        cache_bytes=rows.num_bytes,
+                        relight_ms=relight_ms(relighter, repeats=7),
+                    )
+                ),
+                flush=True,
+            )
 
 
 def _transfer_parameters(description: CacheDescription) -> dict[str, object]:
@@ -131,14 +172,30 @@ def time_caches(args: argparse.Namespace) -> None:
         relighter.gather_samples = args.gather_samples
         description = relighter.direct.description
         height, width = (size // relighter.direct.supersampling for size in relighter.direct.gbuffer.image_size)
-        parameters = {**_transfer_parameters(description), "cull": args.cull, "gatherSamples": args.gather_samples,
-                      "threads": torch.get_num_threads()}
+        parameters = {
+            **_transfer_parameters(description),
+            "cull": args.cull,
+            "gatherSamples": args.gather_samples,
+            "threads": torch.get_num_threads(),
+        }
         cache_bytes = sum(p.num_bytes for p in description.payloads)
         relighter.render()
         for part, method in (("total", "render"), ("indirect", "indirect_image")):
-            print(csv_line(SweepRow("transfer", Path(description.source).stem, width, height, "shot",
-                                    format_params({**parameters, "part": part}), cache_bytes=cache_bytes,
-                                    relight_ms=relight_ms(relighter, repeats=7, part=method))), flush=True)
+            print(
+                csv_line(
+                    SweepRow(
+                        "transfer",
+                        Path(description.source).stem,
+                        width,
+                        height,
+                        "shot",
+                        format_params({**parameters, "part": part}),
+                        cache_bytes=cache_bytes,
+                        relight_ms=relight_ms(relighter, repeats=7, part=method),
+                    )
+                ),
+                flush=True,
+            )
 
 
 def accuracy_caches(args: argparse.Namespace) -> None:
@@ -148,14 +205,38 @@ def accuracy_caches(args: argparse.Namespace) -> None:
         relighter = open_transfer_relighter(layer, shadows=args.shadows, cull_tolerance=args.cull)
         description = relighter.direct.description
         width, height = description.resolution
-        refs = References(Path(description.source), description.camera_path, width, height, {"shot": None}, args.spp,
-                          Path(layer).parent / "references")
-        full, reference_indirect = refs.full("shot", relighter.num_bounces), refs.indirect("shot", relighter.num_bounces)
+        refs = References(
+            Path(description.source),
+            description.camera_path,
+            width,
+            height,
+            {"shot": None},
+            args.spp,
+            Path(layer).parent / "references",
+        )
+        full, reference_indirect = (
+            refs.full("shot", relighter.num_bounces),
+            refs.indirect("shot", relighter.num_bounces),
+        )
         image, indirect = relighter.render().numpy(), relighter.indirect_image().numpy()
         params = format_params({**_transfer_parameters(description), "cull": args.cull, "spp": args.spp})
-        print(csv_line(SweepRow("transfer", Path(description.source).stem, width, height, "shot", params,
-                                psnr(image, full), psnr(indirect, reference_indirect), rel_mse(image, full),
-                                sum(p.num_bytes for p in description.payloads))), flush=True)
+        print(
+            csv_line(
+                SweepRow(
+                    "transfer",
+                    Path(description.source).stem,
+                    width,
+                    height,
+                    "shot",
+                    params,
+                    psnr(image, full),
+                    psnr(indirect, reference_indirect),
+                    rel_mse(image, full),
+                    sum(p.num_bytes for p in description.payloads),
+                )
+            ),
+            flush=True,
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -172,15 +253,28 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shadows", default="embree", choices=("embree", "shadowmaps"))
     parser.add_argument("--quantize", action="store_true", help="8-bit coefficients")
     parser.add_argument("--rgb", action="store_true", help="RGB coefficients instead of one colour per row")
-    parser.add_argument("--indirect-scale", type=int,
-                        help="F for an image this many times smaller per side (default: sized from the image)")
+    parser.add_argument(
+        "--indirect-scale",
+        type=int,
+        help="F for an image this many times smaller per side (default: sized from the image)",
+    )
     parser.add_argument("--timing", action="store_true", help="relight_ms only, synthetic F rows")
-    parser.add_argument("--cache", nargs="+", metavar="LAYER",
-                        help="baked transfer caches: their accuracy against the reference at their size (--spp), "
-                             "or with --timing their relight times")
-    parser.add_argument("--cull", type=float, default=0.0, help="with --cache: culling tolerance of weak wavelet lights")
-    parser.add_argument("--gather-samples", type=int, default=GATHER_SAMPLES,
-                        help=f"with --cache: light samples per gather (default {GATHER_SAMPLES})")
+    parser.add_argument(
+        "--cache",
+        nargs="+",
+        metavar="LAYER",
+        help="baked transfer caches: their accuracy against the reference at their size (--spp), "
+        "or with --timing their relight times",
+    )
+    parser.add_argument(
+        "--cull", type=float, default=0.0, help="with --cache: culling tolerance of weak wavelet lights"
+    )
+    parser.add_argument(
+        "--gather-samples",
+        type=int,
+        default=GATHER_SAMPLES,
+        help=f"with --cache: light samples per gather (default {GATHER_SAMPLES})",
+    )
     parser.add_argument("--out", help="directory for the scenes and caches (default: a temporary one)")
     args = parser.parse_args(argv)
     directory = Path(args.out or tempfile.mkdtemp(prefix="relight-transfer-sweep-"))

@@ -17,28 +17,49 @@ from pipeline.scenes import SCENES
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
-        "bench", help="run every relighting method's sweep against the reference; CSV, JSON and charts",
+        "bench",
+        help="run every relighting method's sweep against the reference; CSV, JSON and charts",
         description="Bake each method's parameter sweep on the bundled scenes, relight under the example "
-                    "light edits, compare with the reference path tracer at the matching bounce count and "
-                    "write OUT/bench.csv, OUT/bench.json, OUT/summary.txt (each method's best speed-up over "
-                    "the path tracer at equal PSNR), OUT/speed_accuracy.png and OUT/params_<method>.png. "
-                    "References are cached in OUT/references and re-used by a later run into OUT.")
+        "light edits, compare with the reference path tracer at the matching bounce count and "
+        "write OUT/bench.csv, OUT/bench.json, OUT/summary.txt (each method's best speed-up over "
+        "the path tracer at equal PSNR), OUT/speed_accuracy.png and OUT/params_<method>.png. "
+        "References are cached in OUT/references and re-used by a later run into OUT.",
+    )
     parser.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
-    parser.add_argument("--quick", action="store_true",
-                        help="small grids on the Cornell box at 24x24 (seconds; what the tests run)")
-    parser.add_argument("--scenes", nargs="+", choices=sorted(SCENES), metavar="SCENE",
-                        help="bundled scenes (default: all; --quick: cornell_box)")
+    parser.add_argument(
+        "--quick", action="store_true", help="small grids on the Cornell box at 24x24 (seconds; what the tests run)"
+    )
+    parser.add_argument(
+        "--scenes",
+        nargs="+",
+        choices=sorted(SCENES),
+        metavar="SCENE",
+        help="bundled scenes (default: all; --quick: cornell_box)",
+    )
     methods = list(bake_methods())
-    parser.add_argument("--methods", nargs="+", choices=methods, metavar="METHOD",
-                        help=f"methods to run (default: all of {', '.join(methods)})")
-    parser.add_argument("--edits", nargs="+", metavar="EDIT",
-                        help="example light edits to relight under besides the shot's lights (default: all)")
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        choices=methods,
+        metavar="METHOD",
+        help=f"methods to run (default: all of {', '.join(methods)})",
+    )
+    parser.add_argument(
+        "--edits",
+        nargs="+",
+        metavar="EDIT",
+        help="example light edits to relight under besides the shot's lights (default: all)",
+    )
     parser.add_argument("--width", type=int, metavar="W", help="image width (default 160; --quick 24)")
     parser.add_argument("--height", type=int, metavar="H", help="image height (default 120; --quick 24)")
     parser.add_argument("--spp", type=int, metavar="N", help="reference samples per pixel (default 256; --quick 32)")
-    parser.add_argument("--curve-spp", type=int, nargs="+", metavar="N",
-                        help="spp of the path-tracer renders fitted for the comparison rows (default 1 2 4 8 16; "
-                             "--quick 1 4)")
+    parser.add_argument(
+        "--curve-spp",
+        type=int,
+        nargs="+",
+        metavar="N",
+        help="spp of the path-tracer renders fitted for the comparison rows (default 1 2 4 8 16; --quick 1 4)",
+    )
     parser.add_argument("--repeats", type=int, metavar="N", help="timed light moves per relight time (default 7)")
     add_device_option(parser)
     parser.set_defaults(run=run)
@@ -51,9 +72,17 @@ def run(args: argparse.Namespace) -> int:
             raise RelightError(f"--{option} must be at least 1, got {value}")
     if args.device == "cuda" and not torch.cuda.is_available():
         raise RelightError("--device cuda: CUDA is not available on this machine")
-    overrides = {key: value for key, value in (("width", args.width), ("height", args.height), ("spp", args.spp),
-                                               ("repeats", args.repeats), ("device", args.device))
-                 if value is not None}
+    overrides = {
+        key: value
+        for key, value in (
+            ("width", args.width),
+            ("height", args.height),
+            ("spp", args.spp),
+            ("repeats", args.repeats),
+            ("device", args.device),
+        )
+        if value is not None
+    }
     if args.scenes:
         overrides["scenes"] = tuple(args.scenes)
     if args.methods:
@@ -65,8 +94,9 @@ def run(args: argparse.Namespace) -> int:
             raise RelightError(f"--curve-spp must be at least 1, got {args.curve_spp}")
         overrides["curve_spp"] = tuple(args.curve_spp)
     out = Path(args.out)
-    config = (BenchConfig.quick_run(out, **overrides) if args.quick
-              else dataclasses.replace(BenchConfig(out), **overrides))
+    config = (
+        BenchConfig.quick_run(out, **overrides) if args.quick else dataclasses.replace(BenchConfig(out), **overrides)
+    )
     result = run_bench(config, log=lambda line: print(line, flush=True))
     print((out / "summary.txt").read_text(), end="")
     for path in result.files:

@@ -8,23 +8,32 @@ import argparse
 def add_camera_options(parser: argparse.ArgumentParser, required: bool = True) -> None:
     """--camera PRIM, --width W, --height H, --time T."""
     group = parser.add_argument_group("camera")
-    group.add_argument("--camera", required=required, metavar="PRIM",
-                       help="camera prim path in the stage, e.g. /World/Camera")
-    group.add_argument("--width", type=int, metavar="W",
-                       help="image width in pixels (default: the stage's RenderSettings, else 640)")
-    group.add_argument("--height", type=int, metavar="H",
-                       help="image height in pixels (default: the stage's RenderSettings, else 480)")
-    group.add_argument("--time", type=float, default=None, metavar="T",
-                       help="USD time code to read (default: the default time)")
+    group.add_argument(
+        "--camera", required=required, metavar="PRIM", help="camera prim path in the stage, e.g. /World/Camera"
+    )
+    group.add_argument(
+        "--width", type=int, metavar="W", help="image width in pixels (default: the stage's RenderSettings, else 640)"
+    )
+    group.add_argument(
+        "--height", type=int, metavar="H", help="image height in pixels (default: the stage's RenderSettings, else 480)"
+    )
+    group.add_argument(
+        "--time", type=float, default=None, metavar="T", help="USD time code to read (default: the default time)"
+    )
 
 
 def add_lights_option(parser: argparse.ArgumentParser) -> None:
     """--lights LAYER: a USD layer of light edits composed as the strongest sublayer."""
-    parser.add_argument("--lights", metavar="LAYER",
-                        help="USD layer of light edits, composed as the strongest sublayer over the shot")
+    parser.add_argument(
+        "--lights", metavar="LAYER", help="USD layer of light edits, composed as the strongest sublayer over the shot"
+    )
 
 
 def add_device_option(parser: argparse.ArgumentParser) -> None:
     """--device cpu|cuda."""
-    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
-                        help="torch device for the relighting kernels (default: cpu)")
+    parser.add_argument(
+        "--device",
+        default="cpu",
+        choices=("cpu", "cuda"),
+        help="torch device for the relighting kernels (default: cpu)",
+    )

@@ -28,11 +28,13 @@ from relight_torch.stage import open_stage
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
-        "info", help="describe a USD stage as the baker reads it, or check a cache layer",
+        "info",
+        help="describe a USD stage as the baker reads it, or check a cache layer",
         description="For a stage: print the triangle, object, material, light and camera counts, with "
-                    "light types, camera paths and the walker's warnings. For a cache layer written by "
-                    "`relight bake`: print its provenance, method, parameters and payload files with their "
-                    "sizes, and whether it is valid, stale or corrupt (exit status 1 unless valid).")
+        "light types, camera paths and the walker's warnings. For a cache layer written by "
+        "`relight bake`: print its provenance, method, parameters and payload files with their "
+        "sizes, and whether it is valid, stale or corrupt (exit status 1 unless valid).",
+    )
     parser.add_argument("scene", metavar="SCENE", help="USD stage (.usda, .usdc, .usdz) or cache layer (.relight.usda)")
     add_camera_options(parser, required=False)
     add_lights_option(parser)
@@ -58,14 +60,18 @@ def _exr_lines(status: PayloadStatus) -> list[str]:
         for name, dtype in header.channels.items():
             by_type.setdefault(PIXEL_TYPE_NAMES[dtype], []).append(name)
         raw = header.width * header.height * sum(dtype.itemsize for dtype in header.channels.values())
-        lines.append(f"      {header.width}x{header.height}, {len(header.channels)} channels, "
-                     f"{header.compression} compression, "
-                     f"{raw / status.num_bytes:.1f}x smaller than raw ({_bytes(raw)})")
+        lines.append(
+            f"      {header.width}x{header.height}, {len(header.channels)} channels, "
+            f"{header.compression} compression, "
+            f"{raw / status.num_bytes:.1f}x smaller than raw ({_bytes(raw)})"
+        )
         lines += [f"      {kind}: {' '.join(names)}" for kind, names in sorted(by_type.items())]
     constants = status.payload.constants
     if constants:
-        lines.append("      constant (not stored): "
-                     + ", ".join(f"{name} = {value:g}" for name, value in sorted(constants.items())))
+        lines.append(
+            "      constant (not stored): "
+            + ", ".join(f"{name} = {value:g}" for name, value in sorted(constants.items()))
+        )
     return lines
 
 
@@ -91,11 +97,14 @@ def _describe_cache(status: CacheStatus) -> list[str]:
     for payload_status in status.payloads:
         payload = payload_status.payload
         found = "missing" if payload_status.num_bytes is None else _bytes(payload_status.num_bytes)
-        what = (f"{payload.dtype}{list(payload.shape)}" if payload.format == "npy"
-                else f"{len(payload.channels)} channels")
-        lines.append(f"    {payload.name}: {payload.file}, {payload.format}, {found} "
-                     f"({payload.num_bytes} bytes recorded), {what}, "
-                     f"{'ok' if payload_status.problem is None else 'BAD'}")
+        what = (
+            f"{payload.dtype}{list(payload.shape)}" if payload.format == "npy" else f"{len(payload.channels)} channels"
+        )
+        lines.append(
+            f"    {payload.name}: {payload.file}, {payload.format}, {found} "
+            f"({payload.num_bytes} bytes recorded), {what}, "
+            f"{'ok' if payload_status.problem is None else 'BAD'}"
+        )
         if payload.format == "exr":
             lines += _exr_lines(payload_status)
     problems = [p.problem for p in status.payloads if p.problem]
@@ -119,27 +128,37 @@ def _describe_scene(scene: Scene) -> list[str]:
         low, high = scene.bounds
         lines.insert(2, f"  bounds: {low.round(4).tolist()} .. {high.round(4).tolist()}")
     kinds = Counter(light.kind.value for light in scene.lights)
-    lines.append(f"  lights: {len(scene.lights)}"
-                 + (f" ({', '.join(f'{n} {k}' for k, n in sorted(kinds.items()))})" if kinds else ""))
+    lines.append(
+        f"  lights: {len(scene.lights)}"
+        + (f" ({', '.join(f'{n} {k}' for k, n in sorted(kinds.items()))})" if kinds else "")
+    )
     lines += [f"    {light.path}  {light.kind.value}" for light in scene.lights]
     lines.append(f"  cameras: {len(scene.cameras)}")
-    lines += [f"    {path}  {camera.width}x{camera.height}, focal length {camera.focal_length:g}, "
-              f"aperture {camera.horizontal_aperture:g} x {camera.vertical_aperture:g}"
-              for path, camera in sorted(scene.cameras.items())]
+    lines += [
+        f"    {path}  {camera.width}x{camera.height}, focal length {camera.focal_length:g}, "
+        f"aperture {camera.horizontal_aperture:g} x {camera.vertical_aperture:g}"
+        for path, camera in sorted(scene.cameras.items())
+    ]
     lines.append(f"  warnings: {len(scene.warnings)}")
     lines += [f"    {message}" for message in scene.warnings]
     return lines
 
 
-def _read(path: str | Path, lights_layer: str | Path | None, time: float | None,
-          width: int | None, height: int | None) -> Scene:
+def _read(
+    path: str | Path, lights_layer: str | Path | None, time: float | None, width: int | None, height: int | None
+) -> Scene:
     """The scene of a stage, without `load_scene`'s requirement of geometry."""
-    return read_scene(open_stage(path, lights_layer), str(Path(path).resolve()), time=time,
-                      width=width, height=height)
+    return read_scene(open_stage(path, lights_layer), str(Path(path).resolve()), time=time, width=width, height=height)
 
 
-def describe_stage(path: str | Path, *, lights_layer: str | Path | None = None, time: float | None = None,
-                   width: int | None = None, height: int | None = None) -> str:
+def describe_stage(
+    path: str | Path,
+    *,
+    lights_layer: str | Path | None = None,
+    time: float | None = None,
+    width: int | None = None,
+    height: int | None = None,
+) -> str:
     """A multi-line description of any stage as the walker reads it (empty stages included).
 
     Args:
@@ -154,8 +173,9 @@ def describe_stage(path: str | Path, *, lights_layer: str | Path | None = None, 
 
 def run(args: argparse.Namespace) -> int:
     if is_cache_layer(args.scene):
-        given = [f"--{name}" for name in ("camera", "lights", "time", "width", "height")
-                 if getattr(args, name) is not None]
+        given = [
+            f"--{name}" for name in ("camera", "lights", "time", "width", "height") if getattr(args, name) is not None
+        ]
         if given:
             raise RelightError(f"{args.scene} is a cache layer: stage options ({', '.join(given)}) do not apply")
         status = cache_status(args.scene)
@@ -170,6 +190,8 @@ def run(args: argparse.Namespace) -> int:
     if args.camera is not None:
         find_camera(scene, args.camera)
     print("\n".join(_describe_scene(scene)))
-    print(f"  import: {seconds:.2f} s, peak {peak_bytes / 2**20:.1f} MiB allocated by Python and numpy "
-          f"(tracemalloc; USD's own C++ memory not counted)")
+    print(
+        f"  import: {seconds:.2f} s, peak {peak_bytes / 2**20:.1f} MiB allocated by Python and numpy "
+        f"(tracemalloc; USD's own C++ memory not counted)"
+    )
     return 0

@@ -10,46 +10,70 @@ import numpy as np
 from pipeline.bake.methods import bake_method, bake_methods
 from pipeline.commands.common import add_device_option, add_lights_option
 from pipeline.errors import RelightError
+from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
+from relight_torch.direct.relighter import MEMORY_BUDGET_FRACTION, RelightSettings
 from relight_torch.io.exr import exr_layer_names, write_rgb_exr
 from relight_torch.io.preview import write_png
-from relight_torch import open_cache
-from relight_torch.direct.relighter import MEMORY_BUDGET_FRACTION, RelightSettings
 
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
-        "render", help="relight a baked cache",
+        "render",
+        help="relight a baked cache",
         description="Relight CACHE (a <stem>.relight.usda) with the shot's lights, with LAYER's light "
-                    "edits composed over them, and write a linear float EXR (R, G, B). With --aov lightgroups "
-                    "the EXR also holds one layer <group>.R/G/B per light group (relight:lightGroup, default "
-                    "the light's name; <group>_direct and <group>_indirect for methods with indirect light) "
-                    "and an 'emission' layer when surfaces emit; the layers sum to R, G, B.")
+        "edits composed over them, and write a linear float EXR (R, G, B). With --aov lightgroups "
+        "the EXR also holds one layer <group>.R/G/B per light group (relight:lightGroup, default "
+        "the light's name; <group>_direct and <group>_indirect for methods with indirect light) "
+        "and an 'emission' layer when surfaces emit; the layers sum to R, G, B.",
+    )
     parser.add_argument("cache", metavar="CACHE", help="cache layer written by `relight bake`")
     add_lights_option(parser)
     add_device_option(parser)
     parser.add_argument("-o", "--out", required=True, metavar="OUT.exr", help="output EXR")
     parser.add_argument("--png", metavar="OUT.png", help="also write an 8-bit sRGB preview")
-    parser.add_argument("--shadows", default="embree", choices=("embree", "shadowmaps"),
-                        help="exact Embree shadow rays (CPU) or torch shadow maps (default: embree)")
-    parser.add_argument("--memory-budget", type=float, metavar="GB",
-                        help="memory the relighter's per-light caches may keep, in GB (default: "
-                             f"{MEMORY_BUDGET_FRACTION:.3g} of this machine's memory); less keeps fewer lights' "
-                             "transports and unit images in half precision")
-    parser.add_argument("--aov", action="append", default=[], choices=("lightgroups",),
-                        help="extra EXR layers: 'lightgroups' (one per light group)")
+    parser.add_argument(
+        "--shadows",
+        default="embree",
+        choices=("embree", "shadowmaps"),
+        help="exact Embree shadow rays (CPU) or torch shadow maps (default: embree)",
+    )
+    parser.add_argument(
+        "--memory-budget",
+        type=float,
+        metavar="GB",
+        help="memory the relighter's per-light caches may keep, in GB (default: "
+        f"{MEMORY_BUDGET_FRACTION:.3g} of this machine's memory); less keeps fewer lights' "
+        "transports and unit images in half precision",
+    )
+    parser.add_argument(
+        "--aov",
+        action="append",
+        default=[],
+        choices=("lightgroups",),
+        help="extra EXR layers: 'lightgroups' (one per light group)",
+    )
     moving = ", ".join(name for name, method in bake_methods().items() if method.render_views is not None)
     view = parser.add_argument_group(f"moving camera ({moving} caches)")
-    view.add_argument("--camera", metavar="PRIM",
-                      help="render from this camera prim, in the shot or in the --lights layer (default: the "
-                           "cache's camera)")
-    view.add_argument("--time", type=float, nargs="+", action="extend", metavar="T",
-                      help="time codes to read the camera at, one frame each: a camera path "
-                           "(--time 1 2 3, or --time repeated; OUT gets .<T> per frame)")
+    view.add_argument(
+        "--camera",
+        metavar="PRIM",
+        help="render from this camera prim, in the shot or in the --lights layer (default: the cache's camera)",
+    )
+    view.add_argument(
+        "--time",
+        type=float,
+        nargs="+",
+        action="extend",
+        metavar="T",
+        help="time codes to read the camera at, one frame each: a camera path "
+        "(--time 1 2 3, or --time repeated; OUT gets .<T> per frame)",
+    )
     view.add_argument("--width", type=int, metavar="W", help="image width (default: the cache's)")
     view.add_argument("--height", type=int, metavar="H", help="image height (default: the cache's)")
-    view.add_argument("--fill-holes", action="store_true",
-                      help="bake the surfaces no caching camera saw, on demand (loads the shot)")
+    view.add_argument(
+        "--fill-holes", action="store_true", help="bake the surfaces no caching camera saw, on demand (loads the shot)"
+    )
     parser.set_defaults(run=run)
 
 
@@ -60,24 +84,30 @@ def run(args: argparse.Namespace) -> int:
         return run_views(args, start, method.render_views)
     if args.camera:
         moving = " or ".join(f"--method {name}" for name, other in bake_methods().items() if other.render_views)
-        raise RelightError(f"--camera: {args.cache} is a {method.name!r} cache, baked for its camera only; bake it "
-                           f"with {moving} to move the camera")
-    relighter = open_cache(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights,
-                           settings=relight_settings(args))
+        raise RelightError(
+            f"--camera: {args.cache} is a {method.name!r} cache, baked for its camera only; bake it "
+            f"with {moving} to move the camera"
+        )
+    relighter = open_cache(
+        args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights, settings=relight_settings(args)
+    )
     image = relighter.render().cpu().numpy()
     write_rgb_exr(args.out, image, light_group_layers(relighter) if "lightgroups" in args.aov else None)
     if args.png:
         write_png(args.png, image)
-    print(f"{args.out}: {image.shape[1]}x{image.shape[0]}, {len(relighter.lights)} lights, "
-          f"{time.perf_counter() - start:.2f} s including load")
+    print(
+        f"{args.out}: {image.shape[1]}x{image.shape[0]}, {len(relighter.lights)} lights, "
+        f"{time.perf_counter() - start:.2f} s including load"
+    )
     return 0
 
 
 def run_views(args: argparse.Namespace, start: float, render_views) -> int:
     """`relight render` of a cache whose relighter needs a view: its method's `render_views` writes
     one frame per --time from --camera (or the cache's camera)."""
-    relighter = open_cache(args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights,
-                           settings=relight_settings(args))
+    relighter = open_cache(
+        args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights, settings=relight_settings(args)
+    )
     render_views(relighter, args, light_group_layers if "lightgroups" in args.aov else None)
     print(f"{time.perf_counter() - start:.2f} s including load")
     return 0
@@ -103,4 +133,4 @@ def light_group_layers(relighter) -> dict[str, np.ndarray]:
     emission = relighter.emission_image().cpu().numpy()
     if emission.any():
         images = {"emission": emission} | images
-    return dict(zip(exr_layer_names(list(images)), images.values()))
+    return dict(zip(exr_layer_names(list(images)), images.values(), strict=True))

@@ -11,18 +11,26 @@ from pipeline.scenes import SCENES, write_light_edits
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
-        "scenes", help="list or write the bundled test/demo scenes",
+        "scenes",
+        help="list or write the bundled test/demo scenes",
         description="The project's bundled scenes (Cornell box, glossy materials, a large set), "
-                    "authored as USD by scripts in pipeline/scenes.")
+        "authored as USD by scripts in pipeline/scenes.",
+    )
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     actions.add_parser("list", help="print each scene's name, camera prim and description")
     write = actions.add_parser(
-        "write", help="write scenes as DIR/<name>.usda (+ textures/, + example light edits)",
+        "write",
+        help="write scenes as DIR/<name>.usda (+ textures/, + example light edits)",
         description="Write the bundled scenes into DIR as <name>.usda with textures under DIR/textures "
-                    "and example light-edit layers <name>.lights.<edit>.usda for --lights.")
+        "and example light-edit layers <name>.lights.<edit>.usda for --lights.",
+    )
     write.add_argument("directory", metavar="DIR", help="output directory (created if missing)")
-    write.add_argument("--name", choices=sorted(SCENES), metavar="NAME",
-                       help=f"write only this scene ({', '.join(SCENES)}; default: all)")
+    write.add_argument(
+        "--name",
+        choices=sorted(SCENES),
+        metavar="NAME",
+        help=f"write only this scene ({', '.join(SCENES)}; default: all)",
+    )
     parser.set_defaults(run=run)
 
 

@@ -22,18 +22,35 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "trace-bench",
         help="benchmark the ray tracer against raw embreex",
         description="Time closest-hit and occlusion queries of pipeline.tracing.Tracer against "
-                    "raw embreex calls on the same rays, and print rays/s and their ratio.",
+        "raw embreex calls on the same rays, and print rays/s and their ratio.",
     )
-    parser.add_argument("--triangles", type=int, default=200_000, metavar="N",
-                        help="triangles of the synthetic heightfield (default: 200000)")
-    parser.add_argument("--rays", type=int, default=1_000_000, metavar="N",
-                        help="camera rays per call (default: 1000000); --width/--height override it")
-    parser.add_argument("--repeats", type=int, default=5, metavar="K",
-                        help="timed runs per row, the median is reported (default: 5)")
-    parser.add_argument("--threads", type=int, default=None, metavar="K",
-                        help="threads of the multi-threaded rows (default: all usable CPUs)")
-    parser.add_argument("--scene", metavar="PATH",
-                        help="trace this USD stage instead of the synthetic heightfield (needs --camera)")
+    parser.add_argument(
+        "--triangles",
+        type=int,
+        default=200_000,
+        metavar="N",
+        help="triangles of the synthetic heightfield (default: 200000)",
+    )
+    parser.add_argument(
+        "--rays",
+        type=int,
+        default=1_000_000,
+        metavar="N",
+        help="camera rays per call (default: 1000000); --width/--height override it",
+    )
+    parser.add_argument(
+        "--repeats", type=int, default=5, metavar="K", help="timed runs per row, the median is reported (default: 5)"
+    )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        metavar="K",
+        help="threads of the multi-threaded rows (default: all usable CPUs)",
+    )
+    parser.add_argument(
+        "--scene", metavar="PATH", help="trace this USD stage instead of the synthetic heightfield (needs --camera)"
+    )
     add_camera_options(parser, required=False)
     parser.set_defaults(run=run)
 
@@ -53,8 +70,7 @@ def run(args: argparse.Namespace) -> int:
         geometry, origins, directions = _scene_rays(args)
         source = f"{args.scene} through {args.camera}"
     print(f"scene: {source}; {geometry.num_triangles} triangles, {len(origins)} camera rays")
-    timings = tracing_bench.run_benchmark(geometry, origins, directions, repeats=args.repeats,
-                                          num_threads=args.threads)
+    timings = tracing_bench.run_benchmark(geometry, origins, directions, repeats=args.repeats, num_threads=args.threads)
     print(tracing_bench.format_table(timings))
     return 0
 
@@ -73,8 +89,10 @@ def _scene_rays(args: argparse.Namespace) -> tuple[Geometry, np.ndarray, np.ndar
         raise RelightError("--scene needs --camera PRIM")
     scene = load_scene(args.scene, time=args.time, width=args.width, height=args.height)
     if args.camera not in scene.cameras:
-        raise RelightError(f"--camera {args.camera}: no such camera in {args.scene} "
-                           f"(cameras: {', '.join(sorted(scene.cameras)) or 'none'})")
+        raise RelightError(
+            f"--camera {args.camera}: no such camera in {args.scene} "
+            f"(cameras: {', '.join(sorted(scene.cameras)) or 'none'})"
+        )
     camera = scene.cameras[args.camera]
     if args.width is None or args.height is None:
         aspect = camera.width / camera.height

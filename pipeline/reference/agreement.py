@@ -54,17 +54,23 @@ class Comparison:
     rel_mse: float
 
     def passed(self) -> bool:
-        return bool(np.abs(self.z_global).max() <= Z_LIMIT and self.chi2_per_dof <= self.chi2_limit_per_dof
-                    and self.mse_ratio <= MSE_RATIO_LIMIT)
+        return bool(
+            np.abs(self.z_global).max() <= Z_LIMIT
+            and self.chi2_per_dof <= self.chi2_limit_per_dof
+            and self.mse_ratio <= MSE_RATIO_LIMIT
+        )
 
     def describe(self) -> str:
-        return (f"z per channel {np.round(self.z_global, 2).tolist()}, block chi2/dof {self.chi2_per_dof:.3f} "
-                f"(limit {self.chi2_limit_per_dof:.3f}), mean(d^2)/mean(var) {self.mse_ratio:.3f}, "
-                f"PSNR {self.psnr:.1f} dB, relMSE {self.rel_mse:.2e}")
+        return (
+            f"z per channel {np.round(self.z_global, 2).tolist()}, block chi2/dof {self.chi2_per_dof:.3f} "
+            f"(limit {self.chi2_limit_per_dof:.3f}), mean(d^2)/mean(var) {self.mse_ratio:.3f}, "
+            f"PSNR {self.psnr:.1f} dB, relMSE {self.rel_mse:.2e}"
+        )
 
 
-def compare(ours: np.ndarray, ours_variance: np.ndarray, theirs: np.ndarray, theirs_variance: np.ndarray,
-            keep: np.ndarray) -> Comparison:
+def compare(
+    ours: np.ndarray, ours_variance: np.ndarray, theirs: np.ndarray, theirs_variance: np.ndarray, keep: np.ndarray
+) -> Comparison:
     """Statistics of ours - theirs over the kept (H, W) pixels (H, W multiples of BLOCK)."""
     height, width, _ = ours.shape
     keep3 = np.broadcast_to(keep[..., None], ours.shape)
@@ -82,10 +88,14 @@ def compare(ours: np.ndarray, ours_variance: np.ndarray, theirs: np.ndarray, the
         raise AssertionError("a block is noiseless in both renders yet they differ")
     chi2 = float(np.sum(block_difference[lit] ** 2 / block_variance[lit]))
     dof = int(lit.sum())
-    return Comparison(z_global=z_global, chi2_per_dof=chi2 / dof,
-                      chi2_limit_per_dof=float(stats.chi2.ppf(1.0 - CHI2_ALPHA, dof)) / dof,
-                      mse_ratio=float(np.mean(difference**2) / np.mean(variance)),
-                      psnr=psnr(ours[keep], theirs[keep]), rel_mse=rel_mse(ours[keep], theirs[keep]))
+    return Comparison(
+        z_global=z_global,
+        chi2_per_dof=chi2 / dof,
+        chi2_limit_per_dof=float(stats.chi2.ppf(1.0 - CHI2_ALPHA, dof)) / dof,
+        mse_ratio=float(np.mean(difference**2) / np.mean(variance)),
+        psnr=psnr(ours[keep], theirs[keep]),
+        rel_mse=rel_mse(ours[keep], theirs[keep]),
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,8 +146,12 @@ def render_mitsuba(scene: Scene, camera: Camera, max_bounces: int, spp: int) -> 
     """(mean, variance of the mean), each (H, W, 3) float64, from NUM_MITSUBA_SEEDS Mitsuba renders."""
     from pipeline.reference import mitsuba_scene  # Mitsuba is a test dependency
 
-    runs = np.stack([mitsuba_scene.render(scene, camera, max_bounces, max(1, spp // NUM_MITSUBA_SEEDS), seed=seed)
-                     for seed in range(NUM_MITSUBA_SEEDS)]).astype(np.float64)
+    runs = np.stack(
+        [
+            mitsuba_scene.render(scene, camera, max_bounces, max(1, spp // NUM_MITSUBA_SEEDS), seed=seed)
+            for seed in range(NUM_MITSUBA_SEEDS)
+        ]
+    ).astype(np.float64)
     return runs.mean(axis=0), runs.var(axis=0, ddof=1) / NUM_MITSUBA_SEEDS
 
 
@@ -174,6 +188,7 @@ def run_case(case: Case, directory: Path, spp: int | None = None, seed: int = 7)
         mask = (ids == paths.index(path)) & keep
         ours_sum, theirs_sum = float(ours.mean[mask].sum()), float(theirs[mask].sum())
         variance = float(ours.variance[mask].sum()) / theirs_sum**2 + float(theirs_variance[mask].sum()) * (
-            ours_sum**2 / theirs_sum**4)
+            ours_sum**2 / theirs_sum**4
+        )
         energies.append(ObjectEnergy(path, int(mask.sum()), ours_sum / theirs_sum, float(np.sqrt(variance))))
     return Agreement(case, spp, comparison, tuple(energies), ours.mean, theirs, ours.seconds)

@@ -25,9 +25,12 @@ def measure(tracer: PathTracer, camera: Camera) -> dict[str, float]:
     cpu_start = time.process_time()
     image = tracer.render(camera)
     cpu_seconds = time.process_time() - cpu_start
-    return {"seconds": image.seconds, "paths_per_second": image.num_paths / image.seconds,
-            "samples_per_second": image.num_vertices / image.seconds,
-            "cpu_us_per_path": cpu_seconds / image.num_paths * 1e6}
+    return {
+        "seconds": image.seconds,
+        "paths_per_second": image.num_paths / image.seconds,
+        "samples_per_second": image.num_vertices / image.seconds,
+        "cpu_us_per_path": cpu_seconds / image.num_paths * 1e6,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,11 +47,13 @@ def main(argv: list[str] | None = None) -> int:
         settings = ReferenceSettings(spp=args.spp, max_bounces=max_bounces, num_workers=args.workers)
         tracer = PathTracer(scene, settings)
         figures = measure(tracer, camera)
-        print(f"cornell_box {args.size}x{args.size} {args.spp} spp {label} (max bounces {max_bounces}), "
-              f"{tracer.num_workers} workers: {figures['seconds']:.2f} s, "
-              f"{figures['paths_per_second'] / 1e6:.3f} M paths/s, "
-              f"{figures['samples_per_second'] / 1e6:.3f} M samples/s, "
-              f"{figures['cpu_us_per_path']:.2f} CPU us/path")
+        print(
+            f"cornell_box {args.size}x{args.size} {args.spp} spp {label} (max bounces {max_bounces}), "
+            f"{tracer.num_workers} workers: {figures['seconds']:.2f} s, "
+            f"{figures['paths_per_second'] / 1e6:.3f} M paths/s, "
+            f"{figures['samples_per_second'] / 1e6:.3f} M samples/s, "
+            f"{figures['cpu_us_per_path']:.2f} CPU us/path"
+        )
     return 0
 
 

@@ -102,8 +102,10 @@ class StormPreviewSurface(mi.BSDF):
         self.ggx = mi.MicrofacetDistribution(mi.MicrofacetType.GGX, self.alpha, True)
         self.diffuse_probability = 0.5 if max(self.diffuse) > 0 else 0.0
         self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide
-        self.m_components = [mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide,
-                             mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide]
+        self.m_components = [
+            mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide,
+            mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide,
+        ]
 
     @staticmethod
     def _lobe(alpha: float, cos_l: float, cos_e: float, cos_h: float) -> float:
@@ -127,9 +129,11 @@ class StormPreviewSurface(mi.BSDF):
         e_dot_h = ex * hx + ey * hy + ez * hz
         fresnel = max(0.0, 1.0 - e_dot_h) ** 5
         lobe = self._lobe(self.alpha, lz, ez, hz)
-        coat = self.clearcoat * (self.coat_f0 + (1.0 - self.coat_f0) * fresnel) * self._lobe(self.coat_alpha, lz, ez, hz)
+        coat = (
+            self.clearcoat * (self.coat_f0 + (1.0 - self.coat_f0) * fresnel) * self._lobe(self.coat_alpha, lz, ez, hz)
+        )
         value = []
-        for diffuse, f0, f90 in zip(self.diffuse, self.f0, self.f90):
+        for diffuse, f0, f90 in zip(self.diffuse, self.f0, self.f90, strict=True):
             specular_f = f0 + (f90 - f0) * fresnel
             value.append((diffuse / math.pi * (1.0 - specular_f) + specular_f * lobe + coat) * lz)
         h = mi.Vector3f(hx, hy, hz)
@@ -177,20 +181,39 @@ _use_variant()
 def _material_bsdf(material: Material) -> dict:
     """Two-sided Storm BSDF dict of an untextured material (a textured opacity allowed), inside
     Mitsuba's 'mask' where it is not opaque (`_opacity`)."""
-    textured = [name for name in ("diffuse_color", "specular_color", "metallic", "roughness", "clearcoat",
-                                  "clearcoat_roughness", "ior", "normal", "emissive_color")
-                if getattr(material, name).texture is not None]
+    textured = [
+        name
+        for name in (
+            "diffuse_color",
+            "specular_color",
+            "metallic",
+            "roughness",
+            "clearcoat",
+            "clearcoat_roughness",
+            "ior",
+            "normal",
+            "emissive_color",
+        )
+        if getattr(material, name).texture is not None
+    ]
     if textured:
         raise ValueError(f"{material.path}: textured inputs {textured} are not converted")
     if float(material.emissive_color.value.max()) > 0:
         raise ValueError(f"{material.path}: emissive materials are not converted")
-    scalar = {name: float(getattr(material, name).value[0])
-              for name in ("metallic", "roughness", "clearcoat", "clearcoat_roughness", "ior")}
-    surface = {"type": "twosided", "material": {
-        "type": "storm_preview_surface",
-        "diffuse_color": [float(v) for v in material.diffuse_color.value],
-        "specular_color": [float(v) for v in material.specular_color.value],
-        "use_specular_workflow": bool(material.use_specular_workflow), **scalar}}
+    scalar = {
+        name: float(getattr(material, name).value[0])
+        for name in ("metallic", "roughness", "clearcoat", "clearcoat_roughness", "ior")
+    }
+    surface = {
+        "type": "twosided",
+        "material": {
+            "type": "storm_preview_surface",
+            "diffuse_color": [float(v) for v in material.diffuse_color.value],
+            "specular_color": [float(v) for v in material.specular_color.value],
+            "use_specular_workflow": bool(material.use_specular_workflow),
+            **scalar,
+        },
+    }
     opacity = _opacity(material)
     return surface if opacity is None else {"type": "mask", "opacity": opacity, "material": surface}
 
@@ -218,8 +241,13 @@ def _opacity(material: Material) -> float | dict | None:
     if texture.wrap_s != texture.wrap_t or texture.wrap_s not in wrap:
         raise ValueError(f"{material.path}: wrap modes {texture.wrap_s}, {texture.wrap_t} are not converted")
     data = np.ascontiguousarray((alpha >= threshold).astype(np.float32)[..., None])
-    return {"type": "bitmap", "bitmap": mi.Bitmap(data), "raw": True, "filter_type": "nearest",
-            "wrap_mode": wrap[texture.wrap_s]}
+    return {
+        "type": "bitmap",
+        "bitmap": mi.Bitmap(data),
+        "raw": True,
+        "filter_type": "nearest",
+        "wrap_mode": wrap[texture.wrap_s],
+    }
 
 
 def _meshes(scene: Scene) -> dict:
@@ -230,11 +258,19 @@ def _meshes(scene: Scene) -> dict:
         rows = geometry.material_ids == material_id
         num_triangles = int(rows.sum())
         textured = scene.materials[material_id].opacity.texture is not None
-        mesh = mi.Mesh(f"material_{material_id}", 3 * num_triangles, num_triangles, has_vertex_normals=True,
-                       has_vertex_texcoords=textured)
+        mesh = mi.Mesh(
+            f"material_{material_id}",
+            3 * num_triangles,
+            num_triangles,
+            has_vertex_normals=True,
+            has_vertex_texcoords=textured,
+        )
         params = mi.traverse(mesh)
-        buffers = {"vertex_positions": geometry.positions[rows], "vertex_normals": geometry.normals[rows],
-                   "faces": np.arange(3 * num_triangles, dtype=np.uint32)}
+        buffers = {
+            "vertex_positions": geometry.positions[rows],
+            "vertex_normals": geometry.normals[rows],
+            "faces": np.arange(3 * num_triangles, dtype=np.uint32),
+        }
         if textured:
             buffers["vertex_texcoords"] = geometry.uvs[rows]
         for name, values in buffers.items():
@@ -251,14 +287,17 @@ ENVMAP_UPSAMPLING = 32
 def light_radiance(light: Light) -> np.ndarray:
     """(3,) UsdLux radiance, written from the schema doc: intensity 2^exposure color [/ area]
     (times the texture, for a dome)."""
-    unsupported = {"texture": light.texture is not None and light.kind is not LightKind.DOME,
-                   "shaping": light.shaping is not None,
-                   "colorTemperature": light.enable_color_temperature, "barzel": light.barzel is not None,
-                   "diffuse/specular": light.diffuse != 1.0 or light.specular != 1.0}
+    unsupported = {
+        "texture": light.texture is not None and light.kind is not LightKind.DOME,
+        "shaping": light.shaping is not None,
+        "colorTemperature": light.enable_color_temperature,
+        "barzel": light.barzel is not None,
+        "diffuse/specular": light.diffuse != 1.0 or light.specular != 1.0,
+    }
     if any(unsupported.values()):
         raise ValueError(f"{light.path}: {[k for k, v in unsupported.items() if v]} not converted")
     radiance = light.intensity * 2.0**light.exposure * np.asarray(light.color, np.float64)
-    if light.normalize and light.kind is not LightKind.DOME:    # the dome's sizeFactor is 1
+    if light.normalize and light.kind is not LightKind.DOME:  # the dome's sizeFactor is 1
         linear = light.world_from_light[:3, :3]
         if light.kind is LightKind.RECT:
             area = light.width * light.height * np.linalg.norm(np.cross(linear[:, 0], linear[:, 1]))
@@ -277,11 +316,15 @@ def _dome_emitter(light: Light) -> dict:
         return {"type": "constant", "radiance": {"type": "rgb", "value": radiance.tolist()}}
     linear = light.world_from_light[:3, :3]
     rotation = np.eye(4)
-    rotation[:3, :3] = linear / np.linalg.norm(linear, axis=0)      # directions ignore the scale
-    pixels = np.repeat(np.repeat(light.texture * radiance.astype(np.float32), ENVMAP_UPSAMPLING, axis=0),
-                       ENVMAP_UPSAMPLING, axis=1)
-    return {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(pixels, np.float32)),
-            "to_world": mi.ScalarTransform4f(rotation.tolist())}
+    rotation[:3, :3] = linear / np.linalg.norm(linear, axis=0)  # directions ignore the scale
+    pixels = np.repeat(
+        np.repeat(light.texture * radiance.astype(np.float32), ENVMAP_UPSAMPLING, axis=0), ENVMAP_UPSAMPLING, axis=1
+    )
+    return {
+        "type": "envmap",
+        "bitmap": mi.Bitmap(np.ascontiguousarray(pixels, np.float32)),
+        "to_world": mi.ScalarTransform4f(rotation.tolist()),
+    }
 
 
 def _emitter(light: Light) -> dict:
@@ -294,17 +337,28 @@ def _emitter(light: Light) -> dict:
         # Mitsuba's rectangle spans [-1, 1]^2 and emits along +Z: scale it, then turn +Z to -Z.
         light_from_rectangle = np.diag([0.5 * light.width, -0.5 * light.height, -1.0, 1.0])
         to_world = light.world_from_light @ light_from_rectangle
-        return {"type": "rectangle", "to_world": mi.ScalarTransform4f(to_world.tolist()), "emitter": emitter,
-                "bsdf": black}
+        return {
+            "type": "rectangle",
+            "to_world": mi.ScalarTransform4f(to_world.tolist()),
+            "emitter": emitter,
+            "bsdf": black,
+        }
     if light.kind is LightKind.SPHERE and light.radius > 0:
         to_world = light.world_from_light @ np.diag([light.radius, light.radius, light.radius, 1.0])
-        return {"type": "sphere", "to_world": mi.ScalarTransform4f(to_world.tolist()), "emitter": emitter,
-                "bsdf": black}
+        return {
+            "type": "sphere",
+            "to_world": mi.ScalarTransform4f(to_world.tolist()),
+            "emitter": emitter,
+            "bsdf": black,
+        }
     if light.kind is LightKind.DISTANT and light.angle == 0.0:
         # A zero-angle DistantLight is a delta light whose irradiance is its radiance (UsdLux).
         direction = -light.world_from_light[:3, 2] / np.linalg.norm(light.world_from_light[:3, 2])
-        return {"type": "directional", "direction": direction.tolist(),
-                "irradiance": {"type": "rgb", "value": light_radiance(light).tolist()}}
+        return {
+            "type": "directional",
+            "direction": direction.tolist(),
+            "irradiance": {"type": "rgb", "value": light_radiance(light).tolist()},
+        }
     raise ValueError(f"{light.path}: {light.kind.value} is not converted")
 
 
@@ -316,12 +370,21 @@ def _sensor(camera: Camera, spp: int, seed: int) -> dict:
     fov = math.degrees(2.0 * math.atan(0.5 * camera.horizontal_aperture / camera.focal_length))
     to_world = camera.world_from_camera @ np.diag([-1.0, 1.0, -1.0, 1.0])
     return {
-        "type": "perspective", "fov": fov, "fov_axis": "x",
-        "near_clip": float(camera.clipping_range[0]), "far_clip": float(camera.clipping_range[1]),
+        "type": "perspective",
+        "fov": fov,
+        "fov_axis": "x",
+        "near_clip": float(camera.clipping_range[0]),
+        "far_clip": float(camera.clipping_range[1]),
         "to_world": mi.ScalarTransform4f(to_world.tolist()),
         "sampler": {"type": "independent", "sample_count": spp, "seed": seed},
-        "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
-                 "rfilter": {"type": "box"}, "pixel_format": "rgb", "component_format": "float32"},
+        "film": {
+            "type": "hdrfilm",
+            "width": camera.width,
+            "height": camera.height,
+            "rfilter": {"type": "box"},
+            "pixel_format": "rgb",
+            "component_format": "float32",
+        },
     }
 
 
@@ -338,10 +401,11 @@ def scene_dict(scene: Scene, camera: Camera, max_bounces: int, spp: int, seed: i
         raise ValueError(f"{camera.path}: camera exposure is not converted")
     # 'volpath' carries shadow rays through masks (null BSDFs); 'path' stops them at any surface.
     masked = any(_opacity(scene.materials[index]) is not None for index in np.unique(scene.geometry.material_ids))
-    result = {"type": "scene",
-              "integrator": {"type": "volpath" if masked else "path", "max_depth": max_bounces + 2,
-                             "hide_emitters": True},
-              "sensor": _sensor(camera, spp, seed)}
+    result = {
+        "type": "scene",
+        "integrator": {"type": "volpath" if masked else "path", "max_depth": max_bounces + 2, "hide_emitters": True},
+        "sensor": _sensor(camera, spp, seed),
+    }
     result.update(_meshes(scene))
     for index, light in enumerate(scene.lights):
         result[f"light_{index}"] = _emitter(light)

@@ -120,8 +120,13 @@ class _Vertex:
     @staticmethod
     def of(points: ShadingPoints) -> _Vertex:
         frame = tuple(torch.from_numpy(a) for a in (points.tangent, points.bitangent, points.normal))
-        return _Vertex(points, frame, to_local(torch.from_numpy(points.wo_world), *frame),
-                       torch.from_numpy(points.position), torch.from_numpy(points.geometric_normal))
+        return _Vertex(
+            points,
+            frame,
+            to_local(torch.from_numpy(points.wo_world), *frame),
+            torch.from_numpy(points.position),
+            torch.from_numpy(points.geometric_normal),
+        )
 
 
 def _power_heuristic(pdf_a: torch.Tensor, pdf_b: torch.Tensor) -> torch.Tensor:
@@ -144,11 +149,19 @@ class PathTracer:
         self.area_lights = [light for light in scene.lights if not is_delta_light(light)]
         object_paths = [obj.path for obj in scene.objects]
         # Per light with a light link: (num_objects,) float32, 1 for the objects it lights.
-        self.light_link_masks = {light.path: torch.from_numpy(linked_objects(object_paths, light.light_link)).float()
-                                 for light in scene.lights if light.light_link is not None}
-        self.shadow_link_casters = ShadowLinkCasters(self.tracer.corners, scene.geometry.object_ids, object_paths,
-                                                     self.tracer.epsilon, self.tracer.num_threads,
-                                                     self.tracer.opacity)
+        self.light_link_masks = {
+            light.path: torch.from_numpy(linked_objects(object_paths, light.light_link)).float()
+            for light in scene.lights
+            if light.light_link is not None
+        }
+        self.shadow_link_casters = ShadowLinkCasters(
+            self.tracer.corners,
+            scene.geometry.object_ids,
+            object_paths,
+            self.tracer.epsilon,
+            self.tracer.num_threads,
+            self.tracer.opacity,
+        )
 
     def render(self, camera: Camera, progress=None) -> ReferenceImage:
         """Render `camera`'s image. `progress(done_paths, total_paths)` is called after each batch."""
@@ -178,7 +191,7 @@ class PathTracer:
             # Batches are summed in order (the image does not depend on scheduling), a window of
             # num_workers at a time so that memory stays bounded.
             for window in range(0, len(batches), self.num_workers):
-                for radiance, batch_vertices in pool.map(trace_batch, batches[window:window + self.num_workers]):
+                for radiance, batch_vertices in pool.map(trace_batch, batches[window : window + self.num_workers]):
                     num_vertices += batch_vertices
                     total_sum += radiance.sum(axis=0)
                     total_sq += np.einsum("pnc,pnc->nc", radiance, radiance)
@@ -196,24 +209,29 @@ class PathTracer:
             num_vertices=num_vertices,
         )
 
-    def _trace(self, origins: np.ndarray, directions: np.ndarray,
-               rng: np.random.Generator) -> tuple[torch.Tensor, int]:
+    def _trace(self, origins: np.ndarray, directions: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, int]:
         """(radiance (N, 3) float32 carried back along N camera rays, surface vertices shaded)."""
         num_paths = origins.shape[0]
         num_vertices = 0
         radiance = torch.zeros((num_paths, 3))
         throughput = torch.ones((num_paths, 3))
-        path = torch.arange(num_paths)          # which path each live ray belongs to
-        bsdf_pdf = torch.zeros(num_paths)       # pdf of the direction just sampled (solid angle)
+        path = torch.arange(num_paths)  # which path each live ray belongs to
+        bsdf_pdf = torch.zeros(num_paths)  # pdf of the direction just sampled (solid angle)
         previous_points = torch.from_numpy(origins)
         previous_objects = torch.zeros(num_paths, dtype=torch.int64)  # unused at depth 0
         for depth in range(self.settings.max_bounces + 2):
             if depth == self.settings.max_bounces + 1 and not self.area_lights:
-                break   # the last segment only looks for lights that BSDF rays can hit
+                break  # the last segment only looks for lights that BSDF rays can hit
             hits = self.tracer.intersect(origins, directions)
             if depth > 0 and self.area_lights:
-                emitted = self._emitters_hit(previous_points, torch.from_numpy(directions),
-                                             torch.from_numpy(hits.distance), bsdf_pdf, previous_objects, origins)
+                emitted = self._emitters_hit(
+                    previous_points,
+                    torch.from_numpy(directions),
+                    torch.from_numpy(hits.distance),
+                    bsdf_pdf,
+                    previous_objects,
+                    origins,
+                )
                 radiance.index_add_(0, path, throughput * emitted)
             if depth == self.settings.max_bounces + 1:
                 break
@@ -236,14 +254,22 @@ class PathTracer:
             previous_points = vertex.position[survive]
             previous_objects = torch.from_numpy(vertex.points.object_id).long()[survive]
             directions = wi_world[survive].numpy()
-            origins = self.tracer.offset_origins(previous_points.numpy(), vertex.points.geometric_normal[survive.numpy()],
-                                                 directions)
+            origins = self.tracer.offset_origins(
+                previous_points.numpy(), vertex.points.geometric_normal[survive.numpy()], directions
+            )
             if path.numel() == 0:
                 break
         return radiance, num_vertices
 
-    def _emitters_hit(self, points: torch.Tensor, directions: torch.Tensor, surface_distance: torch.Tensor,
-                      bsdf_pdf: torch.Tensor, objects: torch.Tensor, origins: np.ndarray) -> torch.Tensor:
+    def _emitters_hit(
+        self,
+        points: torch.Tensor,
+        directions: torch.Tensor,
+        surface_distance: torch.Tensor,
+        bsdf_pdf: torch.Tensor,
+        objects: torch.Tensor,
+        origins: np.ndarray,
+    ) -> torch.Tensor:
         """Light (N, 3) seen along BSDF-sampled rays, MIS-weighted against next-event estimation.
 
         Every light met before the surface counts: lights do not occlude one another, exactly as
@@ -284,17 +310,21 @@ class PathTracer:
             idx_numpy = idx.numpy()
             direction = direction[idx]
             shadow_distance = sample.distance[idx, 0].numpy()
-            origins = self.tracer.offset_origins(points.position[idx_numpy], points.geometric_normal[idx_numpy],
-                                                 direction.numpy())
-            t_far = np.where(np.isfinite(shadow_distance),
-                             shadow_distance * (1.0 - 1e-4) - self.tracer.epsilon, np.inf).astype(np.float32)
+            origins = self.tracer.offset_origins(
+                points.position[idx_numpy], points.geometric_normal[idx_numpy], direction.numpy()
+            )
+            t_far = np.where(
+                np.isfinite(shadow_distance), shadow_distance * (1.0 - 1e-4) - self.tracer.epsilon, np.inf
+            ).astype(np.float32)
             caster = self.tracer if light.shadow_link is None else self.shadow_link_casters(light.shadow_link)
             visible = torch.from_numpy(~caster.occluded(origins, direction.numpy(), t_far))
             wi_local = to_local(direction, *(f[idx] for f in vertex.frame))
             wo_local = vertex.wo_local[idx]
             params = points.params.index(idx)
             contribution = reflected_radiance(params, wo_local, wi_local, arriving[idx], light.diffuse, light.specular)
-            scale = visible.float() * self._linked(light, torch.from_numpy(points.object_id[idx_numpy]).long()) / pdf[idx]
+            scale = (
+                visible.float() * self._linked(light, torch.from_numpy(points.object_id[idx_numpy]).long()) / pdf[idx]
+            )
             if not sample.is_delta:
                 scale = scale * _power_heuristic(pdf[idx], preview_surface.pdf(params, wo_local, wi_local))
             total.index_add_(0, idx, contribution * scale[:, None])

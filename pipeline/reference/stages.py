@@ -42,8 +42,12 @@ SUN_RADIANCE = 200.0
 SUN_RADIUS_DEGREES = 7.0
 CONSTANT_RADIANCE = 0.5
 DISTANT_RADIANCE = 2e4
-OBJECTS = ("/World/Geometry/Floor", "/World/Geometry/DiffuseBall", "/World/Geometry/GlossyBall",
-           "/World/Geometry/GlossyBlock")
+OBJECTS = (
+    "/World/Geometry/Floor",
+    "/World/Geometry/DiffuseBall",
+    "/World/Geometry/GlossyBall",
+    "/World/Geometry/GlossyBlock",
+)
 
 
 @dataclass(frozen=True)
@@ -84,8 +88,10 @@ def usd_latlong_directions(height: int, width: int) -> np.ndarray:
     u = (np.arange(width) + 0.5) / width
     theta = v[:, None] * math.pi
     longitude = (0.5 - u[None, :]) * 2.0 * math.pi
-    return np.stack(np.broadcast_arrays(np.sin(theta) * np.sin(longitude), np.cos(theta),
-                                        np.sin(theta) * np.cos(longitude)), axis=-1)
+    return np.stack(
+        np.broadcast_arrays(np.sin(theta) * np.sin(longitude), np.cos(theta), np.sin(theta) * np.cos(longitude)),
+        axis=-1,
+    )
 
 
 def sky_texture(height: int = SKY_SIZE[0], width: int = SKY_SIZE[1]) -> np.ndarray:
@@ -108,7 +114,7 @@ def dome_world_from_light() -> np.ndarray:
     y = np.array([[math.cos(ry), 0, math.sin(ry)], [0, 1, 0], [-math.sin(ry), 0, math.cos(ry)]])
     z = np.array([[math.cos(rz), -math.sin(rz), 0], [math.sin(rz), math.cos(rz), 0], [0, 0, 1]])
     matrix = np.eye(4)
-    matrix[:3, :3] = z @ y @ x          # rotateXYZ: X first
+    matrix[:3, :3] = z @ y @ x  # rotateXYZ: X first
     return matrix
 
 
@@ -128,11 +134,15 @@ def write_shot(directory: Path, spec: ShotSpec) -> Path:
     (directory / "textures").mkdir(parents=True, exist_ok=True)
     stage = authoring.create_stage(1.0, f"Reference check shot: {spec}.")
     floor = authoring.define_mesh(stage, OBJECTS[0], meshes.plane(8.0, 8.0, st_repeat=8.0))
-    ball = authoring.define_mesh(stage, OBJECTS[1], meshes.transformed(
-        meshes.uv_sphere(0.6, 24, 12), _translation(-1.0, 0.6, 0.3)))
+    ball = authoring.define_mesh(
+        stage, OBJECTS[1], meshes.transformed(meshes.uv_sphere(0.6, 24, 12), _translation(-1.0, 0.6, 0.3))
+    )
     smooth = meshes.transformed(meshes.uv_sphere(0.55, 16, 8), _translation(0.45, 0.55, 0.6))
-    glossy_ball = authoring.define_mesh(stage, OBJECTS[2], meshes.MeshData(
-        smooth.points, smooth.face_vertex_counts, smooth.face_vertex_indices, None, smooth.st))
+    glossy_ball = authoring.define_mesh(
+        stage,
+        OBJECTS[2],
+        meshes.MeshData(smooth.points, smooth.face_vertex_counts, smooth.face_vertex_indices, None, smooth.st),
+    )
     glossy_ball.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.catmullClark)
     block = authoring.define_mesh(stage, OBJECTS[3], meshes.box((0.9, 0.7, 0.9), (1.2, 0.35, -0.9)))
     looks = {
@@ -144,14 +154,28 @@ def write_shot(directory: Path, spec: ShotSpec) -> Path:
     normal_file = "./textures/normals.png"
     if spec.normal_map:
         write_png(directory / "textures" / "normals.png", _normal_map(), color_space="Raw")
-    for prim, (name, inputs) in zip((floor, ball, glossy_ball, block), looks.items()):
+    for prim, (name, inputs) in zip((floor, ball, glossy_ball, block), looks.items(), strict=True):
         material, shader = authoring.define_preview_material(stage, name, **inputs)
         if spec.normal_map and name != "Diffuse":
-            authoring.connect_texture(material, shader, "normal", normal_file, source_color_space="raw",
-                                      scale=(2, 2, 2, 1), bias=(-1, -1, -1, 0))
+            authoring.connect_texture(
+                material,
+                shader,
+                "normal",
+                normal_file,
+                source_color_space="raw",
+                scale=(2, 2, 2, 1),
+                bias=(-1, -1, -1, 0),
+            )
         authoring.bind_material(prim.GetPrim(), material)
-    camera = authoring.define_camera(stage, CAMERA, (0.3, 1.7, 3.9), (0.15, 0.45, -0.1), focal_length_mm=35.0,
-                                     aperture_mm=(36.0, 27.0), clipping_range=(0.1, 1000.0))
+    camera = authoring.define_camera(
+        stage,
+        CAMERA,
+        (0.3, 1.7, 3.9),
+        (0.15, 0.45, -0.1),
+        focal_length_mm=35.0,
+        aperture_mm=(36.0, 27.0),
+        clipping_range=(0.1, 1000.0),
+    )
     authoring.define_render_settings(stage, camera, (spec.width, spec.height))
     _define_lights(stage, directory, spec.lighting)
     return authoring.save_stage(stage, directory / f"shot_{spec.lighting}.usda")

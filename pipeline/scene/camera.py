@@ -40,8 +40,7 @@ def _render_settings(stage: Usd.Stage) -> UsdRender.Settings | None:
     return None
 
 
-def image_resolution(stage: Usd.Stage, width: int | None = None,
-                     height: int | None = None) -> tuple[int, int]:
+def image_resolution(stage: Usd.Stage, width: int | None = None, height: int | None = None) -> tuple[int, int]:
     """(width, height) in pixels: explicit values, else the render settings, else 640 x 480.
 
     Raises:
@@ -52,7 +51,7 @@ def image_resolution(stage: Usd.Stage, width: int | None = None,
     if settings is not None:
         default_width, default_height = settings.GetResolutionAttr().Get()
     size = (default_width if width is None else width, default_height if height is None else height)
-    for name, value in zip(("width", "height"), size):
+    for name, value in zip(("width", "height"), size, strict=True):
         if int(value) != value or value <= 0:
             raise RelightError(f"image {name} must be a positive integer, got {value}")
     return int(size[0]), int(size[1])
@@ -78,8 +77,13 @@ def read_camera(camera: UsdGeom.Camera, time: Usd.TimeCode, width: int, height: 
     )
 
 
-def read_cameras(stage: Usd.Stage, time: Usd.TimeCode, width: int | None = None,
-                 height: int | None = None, warnings: list[str] | None = None) -> dict[str, Camera]:
+def read_cameras(
+    stage: Usd.Stage,
+    time: Usd.TimeCode,
+    width: int | None = None,
+    height: int | None = None,
+    warnings: list[str] | None = None,
+) -> dict[str, Camera]:
     """Every perspective camera of the stage, keyed by prim path.
 
     Orthographic cameras are skipped with a warning (the renderers are pinhole only).
@@ -109,8 +113,9 @@ def _film_from_pixel(camera: Camera, x: np.ndarray, y: np.ndarray) -> tuple[np.n
     return x_film, y_film
 
 
-def camera_rays(camera: Camera, pixel_offsets: np.ndarray | None = None,
-                rows: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def camera_rays(
+    camera: Camera, pixel_offsets: np.ndarray | None = None, rows: tuple[int, int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """One primary ray per pixel.
 
     Args:

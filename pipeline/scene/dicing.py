@@ -68,10 +68,14 @@ def views_from_cameras(cameras: dict[str, Camera]) -> list[View]:
         focal_pixels = camera.focal_length / camera.horizontal_aperture * camera.width
         half_x = camera.horizontal_aperture / 2 + abs(camera.horizontal_aperture_offset)
         half_y = camera.vertical_aperture / 2 + abs(camera.vertical_aperture_offset)
-        tan_corner2 = (half_x ** 2 + half_y ** 2) / camera.focal_length ** 2
-        views.append(View(position=np.asarray(camera.world_from_camera[:3, 3], np.float64),
-                          focal_pixels=focal_pixels * (1.0 + tan_corner2),
-                          near=max(camera.clipping_range[0], 0.0)))
+        tan_corner2 = (half_x**2 + half_y**2) / camera.focal_length**2
+        views.append(
+            View(
+                position=np.asarray(camera.world_from_camera[:3, 3], np.float64),
+                focal_pixels=focal_pixels * (1.0 + tan_corner2),
+                near=max(camera.clipping_range[0], 0.0),
+            )
+        )
     return views
 
 
@@ -81,8 +85,9 @@ def _scales(world_from_local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return singular[:, 0], singular[:, -1]
 
 
-def max_projected_length(starts: np.ndarray, ends: np.ndarray, world_from_local: np.ndarray,
-                         views: list[View]) -> float:
+def max_projected_length(
+    starts: np.ndarray, ends: np.ndarray, world_from_local: np.ndarray, views: list[View]
+) -> float:
     """Largest projected length in pixels of any segment at any placement seen by any view.
 
     Args:
@@ -91,9 +96,9 @@ def max_projected_length(starts: np.ndarray, ends: np.ndarray, world_from_local:
     """
     if len(starts) == 0 or len(world_from_local) == 0:
         return 0.0
-    midpoints = (starts + ends) / 2                                        # (E, 3)
+    midpoints = (starts + ends) / 2  # (E, 3)
     half_lengths = np.linalg.norm(ends - starts, axis=-1) / 2
-    positions = np.stack([v.position for v in views])                      # (C, 3)
+    positions = np.stack([v.position for v in views])  # (C, 3)
     focal = np.array([v.focal_pixels for v in views])
     near = np.maximum(np.array([v.near for v in views]), 1e-12 * max(1.0, float(np.abs(positions).max())))
     s_max, s_min = _scales(world_from_local)
@@ -111,16 +116,16 @@ def max_projected_length(starts: np.ndarray, ends: np.ndarray, world_from_local:
     radius = float((np.linalg.norm(midpoints - center, axis=-1) + half_lengths).max())
     all_rows = np.arange(len(world_from_local))
     bound_distance = np.maximum(np.linalg.norm(cameras_local - center, axis=-1) - radius, 0.0)  # (I, C)
-    bound = pixels(bound_distance, 2 * float(half_lengths.max()), all_rows).max(axis=-1)       # (I,)
+    bound = pixels(bound_distance, 2 * float(half_lengths.max()), all_rows).max(axis=-1)  # (I,)
 
     best = 0.0
     order = np.argsort(-bound)
     chunk = max(1, _CHUNK_ELEMENTS // (len(starts) * len(views)))
     for first in range(0, len(order), chunk):
-        rows = order[first:first + chunk]
+        rows = order[first : first + chunk]
         if bound[rows[0]] <= best:
             break  # no remaining placement can have a longer projected segment
-        offsets = midpoints[None, :, None, :] - cameras_local[rows, None, :, :]     # (k, E, C, 3)
+        offsets = midpoints[None, :, None, :] - cameras_local[rows, None, :, :]  # (k, E, C, 3)
         distance = np.maximum(np.linalg.norm(offsets, axis=-1) - half_lengths[None, :, None], 0.0)
         best = max(best, float(pixels(distance, 2 * half_lengths[None, :, None], rows).max()))
     return best

@@ -84,8 +84,9 @@ class _Walker:
             return _matrix(self.xform_cache.GetLocalToWorldTransform(prim))
         return _matrix(self.xform_cache.ComputeRelativeTransform(prim, prototype_root)[0])
 
-    def walk(self, root: Usd.Prim, world_from_base: np.ndarray, base_paths: list[str],
-             prototype_root: Usd.Prim | None = None) -> Iterator[_Placement]:
+    def walk(
+        self, root: Usd.Prim, world_from_base: np.ndarray, base_paths: list[str], prototype_root: Usd.Prim | None = None
+    ) -> Iterator[_Placement]:
         """Yield the gprim placements under `root`.
 
         Args:
@@ -101,14 +102,14 @@ class _Walker:
                 prims.PruneChildren()
                 if self._rendered(prim, prototype_root):
                     world_from_instancer = world_from_base @ self._base_from_prim(prim, prototype_root)
-                    yield from self._instances(UsdGeom.PointInstancer(prim), world_from_instancer,
-                                               base_paths)
+                    yield from self._instances(UsdGeom.PointInstancer(prim), world_from_instancer, base_paths)
             elif (prim.IsA(UsdGeom.Mesh) or is_implicit(prim)) and self._rendered(prim, prototype_root):
                 world_from_local = world_from_base @ self._base_from_prim(prim, prototype_root)
                 yield _Placement(prim, world_from_local, [f"{b}{prim.GetPath()}" for b in base_paths])
 
-    def _instances(self, instancer: UsdGeom.PointInstancer, world_from_instancer: np.ndarray,
-                   base_paths: list[str]) -> Iterator[_Placement]:
+    def _instances(
+        self, instancer: UsdGeom.PointInstancer, world_from_instancer: np.ndarray, base_paths: list[str]
+    ) -> Iterator[_Placement]:
         """Yield the placements of every prototype of a PointInstancer (I outer placements)."""
         path = instancer.GetPath()
         transforms = instancer.ComputeInstanceTransformsAtTime(self.time, self.time)
@@ -117,8 +118,7 @@ class _Walker:
         instance_ids = np.nonzero(mask)[0] if mask.size else np.arange(proto_indices.size)
         if transforms is None or len(transforms) != instance_ids.size:
             # USD computes no transforms at all when the arrays disagree or an index is invalid.
-            warn(f"point instancer {path}: positions, protoIndices and prototypes do not match; "
-                 "skipped", self.warnings)
+            warn(f"point instancer {path}: positions, protoIndices and prototypes do not match; skipped", self.warnings)
             return
         instancer_from_instance = np.array(transforms, np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)
         proto_indices = proto_indices[instance_ids]
@@ -129,8 +129,9 @@ class _Walker:
             prototype = stage.GetPrimAtPath(target)
             if selected.size == 0 or not prototype:
                 continue
-            world_from_prototype = (world_from_instancer[:, None]
-                                    @ instancer_from_instance[selected][None]).reshape(-1, 4, 4)
+            world_from_prototype = (world_from_instancer[:, None] @ instancer_from_instance[selected][None]).reshape(
+                -1, 4, 4
+            )
             paths = [f"{b}{path}[{i}]" for b in base_paths for i in instance_ids[selected]]
             yield from self.walk(prototype, world_from_prototype, paths, prototype_root=prototype)
 
@@ -145,14 +146,17 @@ def _place(surface: Surface, world_from_local: np.ndarray):
     rotation = world_from_local[:, :3, :3]
     num_triangles = surface.num_triangles
     # (I, T*3, 3) batched matrix products: one GEMM per placement (einsum was 5x slower).
-    positions = (surface.positions.reshape(1, -1, 3).astype(np.float64) @ rotation.transpose(0, 2, 1)
-                 + world_from_local[:, None, :3, 3]).reshape(-1, num_triangles, 3, 3)
+    positions = (
+        surface.positions.reshape(1, -1, 3).astype(np.float64) @ rotation.transpose(0, 2, 1)
+        + world_from_local[:, None, :3, 3]
+    ).reshape(-1, num_triangles, 3, 3)
     det = np.linalg.det(rotation)
     invertible = np.abs(det) > 0
     normal_from_local = np.zeros_like(rotation)
     normal_from_local[invertible] = np.linalg.inv(rotation[invertible]).transpose(0, 2, 1)
-    normals = (surface.normals.reshape(1, -1, 3).astype(np.float64)
-               @ normal_from_local.transpose(0, 2, 1)).reshape(-1, num_triangles, 3, 3)
+    normals = (surface.normals.reshape(1, -1, 3).astype(np.float64) @ normal_from_local.transpose(0, 2, 1)).reshape(
+        -1, num_triangles, 3, 3
+    )
     uvs = np.broadcast_to(surface.uvs, positions.shape[:3] + (2,))
     mirrored = det < 0
     winding = [0, 2, 1]
@@ -175,8 +179,7 @@ def _finish_triangles(positions: np.ndarray, normals: np.ndarray, uvs: np.ndarra
     with np.errstate(invalid="ignore", over="ignore"):
         twice_area = np.linalg.norm(cross, axis=-1)
         longest_edge2 = np.max(np.sum((positions - np.roll(positions, 1, axis=1)) ** 2, -1), -1)
-        keep = np.isfinite(positions).all(axis=(1, 2)) & (
-            twice_area > _DEGENERATE_RELATIVE_AREA * longest_edge2)
+        keep = np.isfinite(positions).all(axis=(1, 2)) & (twice_area > _DEGENERATE_RELATIVE_AREA * longest_edge2)
     face_normal = cross[keep] / twice_area[keep, None]
     normals = np.where(np.isfinite(normals[keep]), normals[keep], 0.0)
     length = np.linalg.norm(normals, axis=-1, keepdims=True)
@@ -201,8 +204,9 @@ def _bound_material(prim: Usd.Prim) -> UsdShade.Material | None:
     return material if material else None
 
 
-def _face_material_ids(prim: Usd.Prim, num_faces: int, display_color: np.ndarray | None, library,
-                       time: Usd.TimeCode, warnings: list[str]) -> np.ndarray:
+def _face_material_ids(
+    prim: Usd.Prim, num_faces: int, display_color: np.ndarray | None, library, time: Usd.TimeCode, warnings: list[str]
+) -> np.ndarray:
     """(F,) int32 material id of each authored face: the gprim's binding, then its
     `materialBind` GeomSubsets."""
     path = str(prim.GetPath())
@@ -212,15 +216,15 @@ def _face_material_ids(prim: Usd.Prim, num_faces: int, display_color: np.ndarray
     for subset in UsdShade.MaterialBindingAPI(prim).GetMaterialBindSubsets():
         faces = np.asarray(subset.GetIndicesAttr().Get(time) or [], np.int64)
         if faces.size and (faces.min() < 0 or faces.max() >= num_faces):
-            warn(f"GeomSubset {subset.GetPath()}: face indices outside the mesh's {num_faces} "
-                 "faces; ignored", warnings)
+            warn(f"GeomSubset {subset.GetPath()}: face indices outside the mesh's {num_faces} faces; ignored", warnings)
             continue
         ids[faces] = library.id_for(_bound_material(subset.GetPrim()), display_color, path)
     return ids
 
 
-def _soup_part(surface: Surface, material_ids: np.ndarray, world_from_local: np.ndarray,
-               first_object_id: int) -> tuple[int, tuple[np.ndarray, ...]]:
+def _soup_part(
+    surface: Surface, material_ids: np.ndarray, world_from_local: np.ndarray, first_object_id: int
+) -> tuple[int, tuple[np.ndarray, ...]]:
     """One gprim's triangles at all its I placements (object ids first_object_id + i).
 
     Args:
@@ -232,8 +236,9 @@ def _soup_part(surface: Surface, material_ids: np.ndarray, world_from_local: np.
     """
     num_placements = len(world_from_local)
     keep, positions, normals, uvs = _finish_triangles(*_place(surface, world_from_local))
-    object_ids = np.repeat(np.arange(first_object_id, first_object_id + num_placements, dtype=np.int32),
-                           surface.num_triangles)
+    object_ids = np.repeat(
+        np.arange(first_object_id, first_object_id + num_placements, dtype=np.int32), surface.num_triangles
+    )
     part = (positions, normals, uvs, np.tile(material_ids, num_placements)[keep], object_ids[keep])
     return int((~keep).sum()), part
 
@@ -263,13 +268,17 @@ class _Surfaces:
                 if level > 0:
                     return refinement.surface(level)
         if (key, level) not in self._surfaces:
-            self._surfaces[key, level] = (mesh_surface(UsdGeom.Mesh(prim), self.time, self.warnings)
-                                          if prim.IsA(UsdGeom.Mesh) else implicit_surface(prim, self.time))
+            self._surfaces[key, level] = (
+                mesh_surface(UsdGeom.Mesh(prim), self.time, self.warnings)
+                if prim.IsA(UsdGeom.Mesh)
+                else implicit_surface(prim, self.time)
+            )
         return self._surfaces[key, level]
 
 
-def read_geometry(stage: Usd.Stage, time: Usd.TimeCode, library, warnings: list[str],
-                  cameras: dict[str, Camera] | None = None) -> tuple[Geometry, list[SceneObject]]:
+def read_geometry(
+    stage: Usd.Stage, time: Usd.TimeCode, library, warnings: list[str], cameras: dict[str, Camera] | None = None
+) -> tuple[Geometry, list[SceneObject]]:
     """The stage's rendered gprims as one world-space triangle soup.
 
     Args:
@@ -301,8 +310,9 @@ def read_geometry(stage: Usd.Stage, time: Usd.TimeCode, library, warnings: list[
         if averaged and key not in averaged_keys:  # once per surface, not per instance
             averaged_keys.add(key)
             warn(f"{prim.GetPath()}: per-{averaged} displayColor averaged to one colour", warnings)
-        material_ids = _face_material_ids(prim, surface.num_faces, display_color, library, time,
-                                          warnings)[surface.face_ids]
+        material_ids = _face_material_ids(prim, surface.num_faces, display_color, library, time, warnings)[
+            surface.face_ids
+        ]
         num_dropped, part = _soup_part(surface, material_ids, placement.world_from_local, len(objects))
         if num_dropped:
             dropped.setdefault(key, [str(prim.GetPath()), 0])[1] += num_dropped
@@ -316,9 +326,14 @@ def read_geometry(stage: Usd.Stage, time: Usd.TimeCode, library, warnings: list[
 
 def _concatenate(parts: list[tuple[np.ndarray, ...]]) -> Geometry:
     if not parts:
-        return Geometry(positions=np.zeros((0, 3, 3), np.float32),
-                        normals=np.zeros((0, 3, 3), np.float32), uvs=np.zeros((0, 3, 2), np.float32),
-                        material_ids=np.zeros(0, np.int32), object_ids=np.zeros(0, np.int32))
-    positions, normals, uvs, material_ids, object_ids = (np.concatenate(a) for a in zip(*parts))
-    return Geometry(positions=positions, normals=normals, uvs=uvs,
-                    material_ids=material_ids.astype(np.int32), object_ids=object_ids)
+        return Geometry(
+            positions=np.zeros((0, 3, 3), np.float32),
+            normals=np.zeros((0, 3, 3), np.float32),
+            uvs=np.zeros((0, 3, 2), np.float32),
+            material_ids=np.zeros(0, np.int32),
+            object_ids=np.zeros(0, np.int32),
+        )
+    positions, normals, uvs, material_ids, object_ids = (np.concatenate(a) for a in zip(*parts, strict=True))
+    return Geometry(
+        positions=positions, normals=normals, uvs=uvs, material_ids=material_ids.astype(np.int32), object_ids=object_ids
+    )

@@ -11,12 +11,13 @@ from pipeline.scene.camera import read_cameras
 from pipeline.scene.geometry import read_geometry
 from pipeline.scene.lights import read_lights
 from pipeline.scene.materials import MaterialLibrary
-from relight_torch.stage import check_composition, defining_layer, open_stage, time_code
 from pipeline.scene.types import Camera, Scene
+from relight_torch.stage import check_composition, defining_layer, open_stage, time_code
 
 
-def read_scene(stage: Usd.Stage, source: str, *, time: float | None = None,
-               width: int | None = None, height: int | None = None) -> Scene:
+def read_scene(
+    stage: Usd.Stage, source: str, *, time: float | None = None, width: int | None = None, height: int | None = None
+) -> Scene:
     """Everything the renderers need from an open stage; the geometry may be empty.
 
     Args:
@@ -45,8 +46,14 @@ def read_scene(stage: Usd.Stage, source: str, *, time: float | None = None,
     )
 
 
-def load_scene(path: str | Path, *, time: float | None = None, lights_layer: str | Path | None = None,
-               width: int | None = None, height: int | None = None) -> Scene:
+def load_scene(
+    path: str | Path,
+    *,
+    time: float | None = None,
+    lights_layer: str | Path | None = None,
+    width: int | None = None,
+    height: int | None = None,
+) -> Scene:
     """Open a shot and read it into a `Scene`.
 
     Args:

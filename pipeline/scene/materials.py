@@ -157,8 +157,9 @@ class MaterialLibrary:
     def _surface_shader(self, material: UsdShade.Material) -> UsdShade.Shader | None:
         """The universal surface shader if it is one we read, else the MaterialX ('mtlx') one."""
         universal = material.ComputeSurfaceSource()[0]
-        if universal and (universal.GetShaderId() == "UsdPreviewSurface"
-                          or universal.GetShaderId() in materialx.SURFACE_IDS):
+        if universal and (
+            universal.GetShaderId() == "UsdPreviewSurface" or universal.GetShaderId() in materialx.SURFACE_IDS
+        ):
             return universal
         mtlx = material.ComputeSurfaceSource("mtlx")[0]
         return mtlx if mtlx else (universal or None)
@@ -210,8 +211,9 @@ class MaterialLibrary:
         """The material a `.mtlx` reference brings in; grey 0.18 diffuse (warned) if it cannot be read."""
         path = str(material.GetPath())
         try:
-            return materialx.document_material(path, material.GetPrim().GetName(), file, target, self._images,
-                                               self._warn)
+            return materialx.document_material(
+                path, material.GetPrim().GetName(), file, target, self._images, self._warn
+            )
         except RelightError as error:
             self._warn(f"material {path}: {error}; using grey 0.18 diffuse")
             return Material(path, documents=(file,))

@@ -59,30 +59,57 @@ SURFACE_IDS = frozenset(SURFACE_NODEDEFS.values())
 
 # Inputs UsdPreviewSurface cannot express: (name, value at which it has no effect).
 _STANDARD_SURFACE_DROPPED = (
-    ("transmission", 0.0), ("sheen", 0.0), ("thin_film_thickness", 0.0), ("specular_anisotropy", 0.0),
-    ("coat_anisotropy", 0.0), ("diffuse_roughness", 0.0), ("coat_affect_color", 0.0),
-    ("coat_affect_roughness", 0.0), ("thin_walled", False),
+    ("transmission", 0.0),
+    ("sheen", 0.0),
+    ("thin_film_thickness", 0.0),
+    ("specular_anisotropy", 0.0),
+    ("coat_anisotropy", 0.0),
+    ("diffuse_roughness", 0.0),
+    ("coat_affect_color", 0.0),
+    ("coat_affect_roughness", 0.0),
+    ("thin_walled", False),
 )
 _OPEN_PBR_DROPPED = (
-    ("transmission_weight", 0.0), ("fuzz_weight", 0.0), ("thin_film_weight", 0.0),
-    ("specular_roughness_anisotropy", 0.0), ("coat_roughness_anisotropy", 0.0), ("base_diffuse_roughness", 0.0),
+    ("transmission_weight", 0.0),
+    ("fuzz_weight", 0.0),
+    ("thin_film_weight", 0.0),
+    ("specular_roughness_anisotropy", 0.0),
+    ("coat_roughness_anisotropy", 0.0),
+    ("base_diffuse_roughness", 0.0),
     ("geometry_thin_walled", False),
 )
 # Standard Surface input names of the OpenPBR inputs the mapping uses (MaterialX's translation graph).
 _OPEN_PBR_NAMES = {
-    "base": "base_weight", "base_color": "base_color", "metalness": "base_metalness",
-    "specular": "specular_weight", "specular_color": "specular_color", "specular_roughness": "specular_roughness",
-    "specular_IOR": "specular_ior", "subsurface": "subsurface_weight", "subsurface_color": "subsurface_color",
-    "coat": "coat_weight", "coat_color": "coat_color", "coat_roughness": "coat_roughness", "coat_IOR": "coat_ior",
-    "emission": "emission_luminance", "emission_color": "emission_color", "opacity": "geometry_opacity",
+    "base": "base_weight",
+    "base_color": "base_color",
+    "metalness": "base_metalness",
+    "specular": "specular_weight",
+    "specular_color": "specular_color",
+    "specular_roughness": "specular_roughness",
+    "specular_IOR": "specular_ior",
+    "subsurface": "subsurface_weight",
+    "subsurface_color": "subsurface_color",
+    "coat": "coat_weight",
+    "coat_color": "coat_color",
+    "coat_roughness": "coat_roughness",
+    "coat_IOR": "coat_ior",
+    "emission": "emission_luminance",
+    "emission_color": "emission_color",
+    "opacity": "geometry_opacity",
     "normal": "geometry_normal",
 }
 _STANDARD_SURFACE_NAMES = {name: name for name in _OPEN_PBR_NAMES}
 _PREVIEW_INPUTS = {
-    "diffuseColor": ("diffuse_color", 3), "emissiveColor": ("emissive_color", 3),
-    "specularColor": ("specular_color", 3), "metallic": ("metallic", 1), "roughness": ("roughness", 1),
-    "clearcoat": ("clearcoat", 1), "clearcoatRoughness": ("clearcoat_roughness", 1), "opacity": ("opacity", 1),
-    "ior": ("ior", 1), "normal": ("normal", 3),
+    "diffuseColor": ("diffuse_color", 3),
+    "emissiveColor": ("emissive_color", 3),
+    "specularColor": ("specular_color", 3),
+    "metallic": ("metallic", 1),
+    "roughness": ("roughness", 1),
+    "clearcoat": ("clearcoat", 1),
+    "clearcoatRoughness": ("clearcoat_roughness", 1),
+    "opacity": ("opacity", 1),
+    "ior": ("ior", 1),
+    "normal": ("normal", 3),
 }
 _OPACITY_MODES = {0: "transparent", 1: "presence", "transparent": "transparent", "presence": "presence"}
 _NEUTRAL_NORMAL = np.array([0.0, 0.0, 1.0], np.float32)
@@ -133,8 +160,10 @@ def _normal(surface: _Surface, name: str) -> MaterialInput:
     if port is None or port.node is None:
         return MaterialInput(_NEUTRAL_NORMAL)
     if port.node.category != "normalmap":
-        surface.evaluator.warn(f"{name} comes from {port.node.name} ('{port.node.category}'), not a normalmap "
-                               f"node; using the unperturbed normal")
+        surface.evaluator.warn(
+            f"{name} comes from {port.node.name} ('{port.node.category}'), not a normalmap "
+            f"node; using the unperturbed normal"
+        )
         return MaterialInput(_NEUTRAL_NORMAL)
     return surface.evaluator.evaluate(port, _NEUTRAL_NORMAL, name)
 
@@ -187,9 +216,7 @@ def _dropped(surface: _Surface, names: dict[str, str], dropped: tuple) -> list[s
 
 def _preview_surface_fields(surface: _Surface) -> dict:
     """Material fields of a MaterialX UsdPreviewSurface: input for input."""
-    fields = {
-        field: surface.input(name, num_channels) for name, (field, num_channels) in _PREVIEW_INPUTS.items()
-    }
+    fields = {field: surface.input(name, num_channels) for name, (field, num_channels) in _PREVIEW_INPUTS.items()}
     use_specular = surface.constant("useSpecularWorkflow")
     threshold = surface.constant("opacityThreshold")
     mode = surface.constant("opacityMode")
@@ -203,8 +230,9 @@ def _preview_surface_fields(surface: _Surface) -> dict:
     return fields
 
 
-def surface_material(path: str, node: Node, images: ImageCache, warn: Callable[[str], None],
-                     documents: tuple[str, ...] = ()) -> Material:
+def surface_material(
+    path: str, node: Node, images: ImageCache, warn: Callable[[str], None], documents: tuple[str, ...] = ()
+) -> Material:
     """Map a MaterialX surface node onto a `Material`.
 
     Args:
@@ -230,15 +258,18 @@ def surface_material(path: str, node: Node, images: ImageCache, warn: Callable[[
             fields = _standard_surface_fields(surface, names)
             unused = _dropped(surface, names, dropped)
             if unused:
-                evaluator.warn(f"{node.category} {node.name}: not representable in UsdPreviewSurface, dropped or "
-                               f"approximated: {', '.join(unused)} (docs/MATERIALS.md)")
+                evaluator.warn(
+                    f"{node.category} {node.name}: not representable in UsdPreviewSurface, dropped or "
+                    f"approximated: {', '.join(unused)} (docs/MATERIALS.md)"
+                )
     except RelightError as error:
         raise RelightError(f"material {path}: {node.name}: {error}") from None
     return Material(path, documents=documents, **fields)
 
 
-def usd_surface_material(path: str, shader: UsdShade.Shader, time: Usd.TimeCode, images: ImageCache,
-                         warn: Callable[[str], None]) -> Material:
+def usd_surface_material(
+    path: str, shader: UsdShade.Shader, time: Usd.TimeCode, images: ImageCache, warn: Callable[[str], None]
+) -> Material:
     """`surface_material` of a UsdShade shader whose id is in `SURFACE_IDS`."""
     return surface_material(path, UsdNode(shader, time), images, warn)
 
@@ -280,12 +311,15 @@ def _material_node(document: mx.Document, file: str, target: str, prim_name: str
             return materials[candidate]
     if not name and len(materials) == 1:
         return next(iter(materials.values()))
-    raise RelightError(f"MaterialX document {file} has no material '{name or prim_name}' "
-                       f"(it has: {', '.join(sorted(materials)) or 'none'})")
+    raise RelightError(
+        f"MaterialX document {file} has no material '{name or prim_name}' "
+        f"(it has: {', '.join(sorted(materials)) or 'none'})"
+    )
 
 
-def document_material(path: str, prim_name: str, file: str, target: str, images: ImageCache,
-                      warn: Callable[[str], None]) -> Material:
+def document_material(
+    path: str, prim_name: str, file: str, target: str, images: ImageCache, warn: Callable[[str], None]
+) -> Material:
     """The `Material` of a USD material prim that references `target` in the `.mtlx` document `file`.
 
     Raises:
@@ -299,6 +333,8 @@ def document_material(path: str, prim_name: str, file: str, target: str, images:
     if shader is None:
         raise RelightError(f"MaterialX material {material.getName()} in {file} has no surfaceshader")
     if shader.getCategory() not in SURFACE_NODEDEFS:
-        raise RelightError(f"MaterialX material {material.getName()} in {file}: surface '{shader.getCategory()}' "
-                           f"is not one of {', '.join(SURFACE_NODEDEFS)}")
+        raise RelightError(
+            f"MaterialX material {material.getName()} in {file}: surface '{shader.getCategory()}' "
+            f"is not one of {', '.join(SURFACE_NODEDEFS)}"
+        )
     return surface_material(path, MtlxNode(shader, os.path.dirname(file)), images, warn, documents=(file,))

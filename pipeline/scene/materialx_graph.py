@@ -47,11 +47,23 @@ _MAX_DEPTH = 64
 # MaterialX address modes -> UsdUVTexture wrap modes ('constant' returns the image node's
 # `default` outside [0, 1]: exact as 'black' when that default is 0).
 _ADDRESS_MODES = {"periodic": "repeat", "clamp": "clamp", "mirror": "mirror", "constant": "black"}
-_WRAP_MODES = {"repeat": "repeat", "periodic": "repeat", "clamp": "clamp", "mirror": "mirror", "black": "black",
-               "useMetadata": "useMetadata"}
+_WRAP_MODES = {
+    "repeat": "repeat",
+    "periodic": "repeat",
+    "clamp": "clamp",
+    "mirror": "mirror",
+    "black": "black",
+    "useMetadata": "useMetadata",
+}
 # Colour spaces of MaterialX filename inputs -> UsdUVTexture sourceColorSpace.
-_COLOR_SPACES = {"srgb_texture": "sRGB", "srgb": "sRGB", "g22_rec709": "sRGB", "lin_rec709": "raw",
-                 "raw": "raw", "": "raw"}
+_COLOR_SPACES = {
+    "srgb_texture": "sRGB",
+    "srgb": "sRGB",
+    "g22_rec709": "sRGB",
+    "lin_rec709": "raw",
+    "raw": "raw",
+    "": "raw",
+}
 _OUTPUT_INDICES = {"rgb": [0, 1, 2], "r": [0], "g": [1], "b": [2], "a": [3]}
 
 
@@ -192,8 +204,9 @@ class MtlxNode:
             return _default_port(self._node.getNodeDef(), name)
         if node_input.getType() == "filename":
             path = node_input.getResolvedValueString()
-            return Port(value=os.path.normpath(os.path.join(self._dir, path)),
-                        color_space=node_input.getActiveColorSpace())
+            return Port(
+                value=os.path.normpath(os.path.join(self._dir, path)), color_space=node_input.getActiveColorSpace()
+            )
         return Port(value=_python_value(node_input.getValue()))
 
 
@@ -215,8 +228,13 @@ def _texture_rgb(texture: Texture) -> Texture:
     """An equivalent texture whose output is 'rgb' with identity scale and bias (pixels mapped)."""
     rgba = expand_to_rgba(texture.pixels) * texture.scale + texture.bias
     pixels = fit_channels(select_output(rgba, texture.output), 3).astype(np.float32)
-    return replace(texture, pixels=np.ascontiguousarray(pixels), scale=np.ones(4, np.float32),
-                   bias=np.zeros(4, np.float32), output="rgb")
+    return replace(
+        texture,
+        pixels=np.ascontiguousarray(pixels),
+        scale=np.ones(4, np.float32),
+        bias=np.zeros(4, np.float32),
+        output="rgb",
+    )
 
 
 def scaled(value: MaterialInput, multiplier, offset=0.0) -> MaterialInput:
@@ -313,16 +331,21 @@ class GraphEvaluator:
             sign = 1.0 if category == "add" else -1.0
             return self._sum(operand("in1"), operand("in2"), sign, label)
         if category == "mix":
-            return self.mix(operand("fg"), operand("bg"), self.evaluate(
-                node.port("mix"), np.zeros(1, np.float32), label, depth + 1), label)
+            return self.mix(
+                operand("fg"),
+                operand("bg"),
+                self.evaluate(node.port("mix"), np.zeros(1, np.float32), label, depth + 1),
+                label,
+            )
         if category == "normalmap":
             strength = float(as_floats(self._constant(node, "scale", 1.0), 1)[0])
             encoded = self.evaluate(node.port("in"), np.array([0.5, 0.5, 1.0], np.float32), label, depth + 1)
             return scaled(fit_input(encoded, 3), [2 * strength, 2 * strength, 2], [-strength, -strength, -1])
         if category in ("image", "tiledimage", "UsdUVTexture"):
             return self._image(node, port.output, default, label, depth)
-        self.warn(f"{label} is driven by unsupported MaterialX node {node.name} ('{category}'); "
-                  f"using {default.tolist()}")
+        self.warn(
+            f"{label} is driven by unsupported MaterialX node {node.name} ('{category}'); using {default.tolist()}"
+        )
         return MaterialInput(default)
 
     def _constant(self, node: Node, name: str, default):
@@ -375,7 +398,7 @@ class GraphEvaluator:
         if fallback_value is not None:
             values = np.atleast_1d(np.asarray(fallback_value, np.float32)).reshape(-1)
             if usd_texture:
-                rgba = np.concatenate([values[:4], np.array([0, 0, 0, 1], np.float32)[values.size:]])
+                rgba = np.concatenate([values[:4], np.array([0, 0, 0, 1], np.float32)[values.size :]])
                 values = select_output(rgba, output if output in _OUTPUT_INDICES else "rgb")
             constant = fit_channels(values, num_channels)
         file_port = node.port("file")
@@ -392,9 +415,14 @@ class GraphEvaluator:
             primvar, st_from_uv = self._texcoord(node.port("st"), label, depth)
         else:
             texture_output = "r" if node.type in ("float", "integer") else "rgb"
-            modes = ("periodic", "periodic") if node.category == "tiledimage" else (
-                str(self._constant(node, "uaddressmode", "periodic")),
-                str(self._constant(node, "vaddressmode", "periodic")))
+            modes = (
+                ("periodic", "periodic")
+                if node.category == "tiledimage"
+                else (
+                    str(self._constant(node, "uaddressmode", "periodic")),
+                    str(self._constant(node, "vaddressmode", "periodic")),
+                )
+            )
             wrap = [_ADDRESS_MODES.get(mode) for mode in modes]
             source_color_space = self._color_space(node, file_port, label)
             scale, bias = None, None
@@ -405,9 +433,18 @@ class GraphEvaluator:
             self.warn(f"image {node.name}: unknown address mode; using 'periodic'")
             wrap = [mode or "repeat" for mode in wrap]
         try:
-            texture = load_texture(path, self._images, source_color_space=source_color_space,
-                                   wrap_s=wrap[0], wrap_t=wrap[1], scale=scale, bias=bias,
-                                   output=texture_output, st_primvar=primvar, st_from_uv=st_from_uv)
+            texture = load_texture(
+                path,
+                self._images,
+                source_color_space=source_color_space,
+                wrap_s=wrap[0],
+                wrap_t=wrap[1],
+                scale=scale,
+                bias=bias,
+                output=texture_output,
+                st_primvar=primvar,
+                st_from_uv=st_from_uv,
+            )
         except RelightError as error:
             self.warn(f"{error}; using the constant {constant.tolist()} for {label}")
             return MaterialInput(constant)
@@ -452,8 +489,10 @@ class GraphEvaluator:
         node = port.node
         if node.category == "texcoord":
             if int(self._constant(node, "index", 0)) != 0:
-                self.warn(f"{node.name} reads texture coordinate set {self._constant(node, 'index', 0)}; "
-                          f"the walker bakes 'st'")
+                self.warn(
+                    f"{node.name} reads texture coordinate set {self._constant(node, 'index', 0)}; "
+                    f"the walker bakes 'st'"
+                )
             return "st", np.eye(3)
         if node.category in ("geompropvalue", "UsdPrimvarReader"):
             name = str(self._constant(node, "geomprop" if node.category == "geompropvalue" else "varname", "st"))
@@ -471,8 +510,10 @@ class GraphEvaluator:
             else:
                 transform[:2, 2] = operand if node.category == "add" else -operand
             return primvar, transform @ inner
-        self.warn(f"texture coordinates for {label} come from unsupported node {node.name} ('{node.category}'); "
-                  f"using primvar 'st'")
+        self.warn(
+            f"texture coordinates for {label} come from unsupported node {node.name} ('{node.category}'); "
+            f"using primvar 'st'"
+        )
         return "st", np.eye(3)
 
 

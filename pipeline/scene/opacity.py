@@ -31,10 +31,16 @@ def material_opacity(material: Material) -> OpacityMap:
         # UsdUVTexture's alpha of a grey or RGB image is 1 everywhere.
         return OpacityMap(scale + bias, **common)
     plane = np.ascontiguousarray(_channel_plane(texture.pixels, channel), np.float32)
-    return OpacityMap(constant, texels=torch.from_numpy(plane), wrap_s=texture.wrap_s, wrap_t=texture.wrap_t,
-                      scale=scale, bias=bias,
-                      st_from_uv=torch.from_numpy(np.asarray(texture.st_from_uv[:2], np.float64)),
-                      **common)
+    return OpacityMap(
+        constant,
+        texels=torch.from_numpy(plane),
+        wrap_s=texture.wrap_s,
+        wrap_t=texture.wrap_t,
+        scale=scale,
+        bias=bias,
+        st_from_uv=torch.from_numpy(np.asarray(texture.st_from_uv[:2], np.float64)),
+        **common,
+    )
 
 
 def _channel_plane(pixels: np.ndarray, channel: int) -> np.ndarray:
@@ -58,6 +64,9 @@ def scene_opacity(scene: Scene) -> OpacityTable | None:
         return None
     # Maps renumbered to the materials that are used.
     used, map_index = np.unique(geometry.material_ids[triangles], return_inverse=True)
-    return OpacityTable(torch.from_numpy(triangles.astype(np.int64)), torch.from_numpy(map_index.astype(np.int64)),
-                        torch.from_numpy(np.ascontiguousarray(geometry.uvs[triangles], np.float32)),
-                        tuple(maps[index] for index in used))
+    return OpacityTable(
+        torch.from_numpy(triangles.astype(np.int64)),
+        torch.from_numpy(map_index.astype(np.int64)),
+        torch.from_numpy(np.ascontiguousarray(geometry.uvs[triangles], np.float32)),
+        tuple(maps[index] for index in used),
+    )

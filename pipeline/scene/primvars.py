@@ -51,8 +51,9 @@ def triangulate(face_vertex_counts: np.ndarray) -> Triangulation:
     return Triangulation(corners=corners, face_ids=face_ids)
 
 
-def expand(values: np.ndarray, interpolation: str, triangulation: Triangulation,
-           face_vertex_indices: np.ndarray) -> np.ndarray | None:
+def expand(
+    values: np.ndarray, interpolation: str, triangulation: Triangulation, face_vertex_indices: np.ndarray
+) -> np.ndarray | None:
     """Gather primvar values per triangle corner.
 
     Args:

@@ -69,9 +69,19 @@ class Cage:
         return int(self.points.shape[0])
 
 
-def make_cage(points, counts, indices, *, uvs=None, face_ids=None, crease_edges=None,
-              crease_sharpness=None, corner_indices=None, corner_sharpness=None,
-              interpolate_boundary: str = "edgeAndCorner") -> Cage:
+def make_cage(
+    points,
+    counts,
+    indices,
+    *,
+    uvs=None,
+    face_ids=None,
+    crease_edges=None,
+    crease_sharpness=None,
+    corner_indices=None,
+    corner_sharpness=None,
+    interpolate_boundary: str = "edgeAndCorner",
+) -> Cage:
     """A `Cage` from plain arrays (sharpness >= INFINITELY_SHARP becomes inf).
 
     Args:
@@ -87,12 +97,17 @@ def make_cage(points, counts, indices, *, uvs=None, face_ids=None, crease_edges=
     corners = np.zeros(len(points))
     if corner_indices is not None and len(corner_indices):
         np.maximum.at(corners, np.asarray(corner_indices, np.int64), np.asarray(corner_sharpness, np.float64))
-    return Cage(points=points, counts=counts, indices=np.asarray(indices, np.int64),
-                uvs=None if uvs is None else np.asarray(uvs, np.float64).reshape(-1, 2),
-                face_ids=np.arange(counts.size, dtype=np.int64) if face_ids is None
-                else np.asarray(face_ids, np.int64),
-                crease_edges=edges.reshape(-1, 2), crease_sharpness=_infinite(edge_sharpness),
-                corner_sharpness=_infinite(corners), corner_boundary=interpolate_boundary == "edgeAndCorner")
+    return Cage(
+        points=points,
+        counts=counts,
+        indices=np.asarray(indices, np.int64),
+        uvs=None if uvs is None else np.asarray(uvs, np.float64).reshape(-1, 2),
+        face_ids=np.arange(counts.size, dtype=np.int64) if face_ids is None else np.asarray(face_ids, np.int64),
+        crease_edges=edges.reshape(-1, 2),
+        crease_sharpness=_infinite(edge_sharpness),
+        corner_sharpness=_infinite(corners),
+        corner_boundary=interpolate_boundary == "edgeAndCorner",
+    )
 
 
 def _infinite(sharpness: np.ndarray) -> np.ndarray:
@@ -101,8 +116,9 @@ def _infinite(sharpness: np.ndarray) -> np.ndarray:
 
 def _accumulate(ids: np.ndarray, values: np.ndarray, num_bins: int) -> np.ndarray:
     """Sum (N, C) `values` into `num_bins` bins by (N,) `ids` -> (num_bins, C) float64."""
-    return np.stack([np.bincount(ids, weights=values[:, c], minlength=num_bins)
-                     for c in range(values.shape[1])], axis=-1)
+    return np.stack(
+        [np.bincount(ids, weights=values[:, c], minlength=num_bins) for c in range(values.shape[1])], axis=-1
+    )
 
 
 class _Topology:
@@ -165,8 +181,7 @@ class _Topology:
 
     def rules(self, threshold: float) -> np.ndarray:
         """(V,) vertex rule where sharpness above `threshold` counts: 0 smooth, 1 crease, 2 corner."""
-        sharp_edges = np.bincount(self.edges[self.sharpness > threshold].ravel(),
-                                  minlength=self.vertex_faces.size)
+        sharp_edges = np.bincount(self.edges[self.sharpness > threshold].ravel(), minlength=self.vertex_faces.size)
         rule = np.minimum(np.where(sharp_edges < 2, 0, sharp_edges - 1), 2)
         return np.where(self.vertex_sharpness > threshold, 2, rule)
 
@@ -185,6 +200,7 @@ class _Topology:
 def _vertex_points(topology: _Topology, points: np.ndarray, smooth: np.ndarray) -> np.ndarray:
     """New positions of the old vertices from their smooth-rule positions (V, 3), with crease
     and corner rules and the fractional blend where the rule changes at this level."""
+
     def by_rule(rule: np.ndarray, threshold: float) -> np.ndarray:
         crease = (topology.crease_neighbour_sum(points, threshold) + 6.0 * points) / 8.0
         return np.where((rule == 0)[:, None], smooth, np.where((rule == 1)[:, None], crease, points))
@@ -233,37 +249,54 @@ def catmull_clark_step(cage: Cage) -> Cage:
 
     # Edge points: (v0 + v1 + f0 + f1) / 4 = (midpoint + mean of the faces' points) / 2.
     midpoint = points[topology.edges].mean(axis=1)
-    face_mean = (_accumulate(topology.edge_of_corner, face_points[topology.face_of_corner], num_edges)
-                 / np.maximum(topology.edge_faces, 1)[:, None])
+    face_mean = (
+        _accumulate(topology.edge_of_corner, face_points[topology.face_of_corner], num_edges)
+        / np.maximum(topology.edge_faces, 1)[:, None]
+    )
     edge_points = _edge_points(topology, points, (midpoint + face_mean) / 2.0)
 
     # Vertex points, smooth rule (Q + 2 R + (n - 3) v) / n with n edges, Q the mean of the
     # faces' points and R the mean of the edge midpoints.
     valence = np.maximum(topology.vertex_edges, 1)[:, None].astype(np.float64)
-    q = (_accumulate(indices, face_points[topology.face_of_corner], num_points)
-         / np.maximum(topology.vertex_faces, 1)[:, None])
+    q = (
+        _accumulate(indices, face_points[topology.face_of_corner], num_points)
+        / np.maximum(topology.vertex_faces, 1)[:, None]
+    )
     r = (points + topology.neighbour_sum(points) / valence) / 2.0
     smooth = (q + 2.0 * r + (valence - 3.0) * points) / valence
     vertex_points = _vertex_points(topology, points, smooth)
 
     corner = np.arange(indices.size)
-    quads = np.stack((indices, num_points + topology.edge_of_corner,
-                      num_points + num_edges + topology.face_of_corner,
-                      num_points + topology.edge_of_corner[topology.prev_corner]), axis=-1)
+    quads = np.stack(
+        (
+            indices,
+            num_points + topology.edge_of_corner,
+            num_points + num_edges + topology.face_of_corner,
+            num_points + topology.edge_of_corner[topology.prev_corner],
+        ),
+        axis=-1,
+    )
     uvs = None
     if cage.uvs is not None:
         uv, uv_next, uv_prev = cage.uvs, cage.uvs[topology.next_corner], cage.uvs[topology.prev_corner]
         face_uv = _accumulate(topology.face_of_corner, uv, cage.counts.size) / cage.counts[:, None]
-        uvs = np.stack((uv, (uv + uv_next) / 2, face_uv[topology.face_of_corner], (uv + uv_prev) / 2),
-                       axis=1).reshape(-1, 2)
+        uvs = np.stack((uv, (uv + uv_next) / 2, face_uv[topology.face_of_corner], (uv + uv_prev) / 2), axis=1).reshape(
+            -1, 2
+        )
     crease_edges, crease_sharpness = _child_creases(topology, num_points)
     return replace(
-        cage, points=np.concatenate((vertex_points, edge_points, face_points)),
-        counts=np.full(corner.size, 4, np.int64), indices=quads.reshape(-1), uvs=uvs,
-        face_ids=cage.face_ids[topology.face_of_corner], crease_edges=crease_edges,
+        cage,
+        points=np.concatenate((vertex_points, edge_points, face_points)),
+        counts=np.full(corner.size, 4, np.int64),
+        indices=quads.reshape(-1),
+        uvs=uvs,
+        face_ids=cage.face_ids[topology.face_of_corner],
+        crease_edges=crease_edges,
         crease_sharpness=crease_sharpness,
-        corner_sharpness=np.concatenate((np.maximum(cage.corner_sharpness - 1.0, 0.0),
-                                         np.zeros(num_edges + cage.counts.size))))
+        corner_sharpness=np.concatenate(
+            (np.maximum(cage.corner_sharpness - 1.0, 0.0), np.zeros(num_edges + cage.counts.size))
+        ),
+    )
 
 
 def _loop_beta(valence: np.ndarray) -> np.ndarray:
@@ -288,20 +321,40 @@ def loop_step(cage: Cage) -> Cage:
 
     v = indices.reshape(-1, 3)
     e = num_points + topology.edge_of_corner.reshape(-1, 3)  # e[:, k]: edge from corner k to k + 1
-    triangles = np.stack((np.stack((v[:, 0], e[:, 0], e[:, 2]), -1), np.stack((v[:, 1], e[:, 1], e[:, 0]), -1),
-                          np.stack((v[:, 2], e[:, 2], e[:, 1]), -1), e), axis=1)
+    triangles = np.stack(
+        (
+            np.stack((v[:, 0], e[:, 0], e[:, 2]), -1),
+            np.stack((v[:, 1], e[:, 1], e[:, 0]), -1),
+            np.stack((v[:, 2], e[:, 2], e[:, 1]), -1),
+            e,
+        ),
+        axis=1,
+    )
     uvs = None
     if cage.uvs is not None:
         uv = cage.uvs.reshape(-1, 3, 2)
         mid = (uv + np.roll(uv, -1, axis=1)) / 2  # mid[:, k]: middle of edge k -> k + 1
-        uvs = np.stack((np.stack((uv[:, 0], mid[:, 0], mid[:, 2]), 1), np.stack((uv[:, 1], mid[:, 1], mid[:, 0]), 1),
-                        np.stack((uv[:, 2], mid[:, 2], mid[:, 1]), 1), mid), axis=1).reshape(-1, 2)
+        uvs = np.stack(
+            (
+                np.stack((uv[:, 0], mid[:, 0], mid[:, 2]), 1),
+                np.stack((uv[:, 1], mid[:, 1], mid[:, 0]), 1),
+                np.stack((uv[:, 2], mid[:, 2], mid[:, 1]), 1),
+                mid,
+            ),
+            axis=1,
+        ).reshape(-1, 2)
     crease_edges, crease_sharpness = _child_creases(topology, num_points)
     return replace(
-        cage, points=np.concatenate((vertex_points, edge_points)),
-        counts=np.full(4 * len(v), 3, np.int64), indices=triangles.reshape(-1), uvs=uvs,
-        face_ids=np.repeat(cage.face_ids, 4), crease_edges=crease_edges, crease_sharpness=crease_sharpness,
-        corner_sharpness=np.concatenate((np.maximum(cage.corner_sharpness - 1.0, 0.0), np.zeros(num_edges))))
+        cage,
+        points=np.concatenate((vertex_points, edge_points)),
+        counts=np.full(4 * len(v), 3, np.int64),
+        indices=triangles.reshape(-1),
+        uvs=uvs,
+        face_ids=np.repeat(cage.face_ids, 4),
+        crease_edges=crease_edges,
+        crease_sharpness=crease_sharpness,
+        corner_sharpness=np.concatenate((np.maximum(cage.corner_sharpness - 1.0, 0.0), np.zeros(num_edges))),
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -337,8 +390,9 @@ def _sector_normals(cage: Cage, topology: _Topology, points: np.ndarray) -> np.n
     num_points = cage.num_points
     p = points[indices]
     # Face normal = sum over corners of p x p_next (Newell), |.| = 2 area for planar faces.
-    face_normals = _accumulate(topology.face_of_corner, np.cross(p, points[indices[topology.next_corner]]),
-                               cage.counts.size)
+    face_normals = _accumulate(
+        topology.face_of_corner, np.cross(p, points[indices[topology.next_corner]]), cage.counts.size
+    )
     has_sharp = np.bincount(topology.edges[topology.sharpness > 0].ravel(), minlength=num_points) > 0
     # Labels: a vertex id for corners of vertices without sharp edges, else num_points + a corner
     # id propagated around the vertex across its smooth edges (the smallest id of the sector).
@@ -439,8 +493,11 @@ def limit_triangles(cage: Cage, limit: np.ndarray, normals: np.ndarray) -> dict[
     corners = np.arange(cage.indices.size).reshape(-1, size)
     if size == 4:
         corners = corners[:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3)
-    result = {"positions": limit[cage.indices[corners]], "normals": normals[corners],
-              "face_ids": np.repeat(cage.face_ids, size - 2)}
+    result = {
+        "positions": limit[cage.indices[corners]],
+        "normals": normals[corners],
+        "face_ids": np.repeat(cage.face_ids, size - 2),
+    }
     if cage.uvs is not None:
         result["uvs"] = cage.uvs[corners]
     return result
@@ -458,5 +515,5 @@ def refined_triangles(cage: Cage, scheme: str, levels: int) -> dict[str, np.ndar
 def triangle_count(counts: np.ndarray, scheme: str, levels: int) -> int:
     """Triangles `refined_triangles` makes from faces of `counts` at `levels` (>= 1)."""
     if scheme == "loop":
-        return int(counts.size * 4 ** levels)
+        return int(counts.size * 4**levels)
     return int(2 * counts.sum() * 4 ** (levels - 1))

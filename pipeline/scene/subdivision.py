@@ -62,8 +62,10 @@ def _creases(mesh: UsdGeom.Mesh, time: Usd.TimeCode, warnings: list[str]):
         return empty
     num_edges = int(np.maximum(lengths - 1, 0).sum())
     if lengths.sum() != indices.size or (lengths < 2).any() or sharpness.size not in (lengths.size, num_edges):
-        warn(f"mesh {mesh.GetPath()}: creaseIndices/creaseLengths/creaseSharpnesses do not agree; "
-             "creases ignored", warnings)
+        warn(
+            f"mesh {mesh.GetPath()}: creaseIndices/creaseLengths/creaseSharpnesses do not agree; creases ignored",
+            warnings,
+        )
         return empty
     starts = np.cumsum(lengths) - lengths
     crease_of_edge = np.repeat(np.arange(lengths.size), lengths - 1)
@@ -81,14 +83,12 @@ def _corners(mesh: UsdGeom.Mesh, time: Usd.TimeCode, warnings: list[str]):
     indices = np.asarray(mesh.GetCornerIndicesAttr().Get(time) or [], np.int64)
     sharpness = np.asarray(mesh.GetCornerSharpnessesAttr().Get(time) or [], np.float64)
     if indices.size != sharpness.size:
-        warn(f"mesh {mesh.GetPath()}: cornerIndices and cornerSharpnesses differ in length; "
-             "corners ignored", warnings)
+        warn(f"mesh {mesh.GetPath()}: cornerIndices and cornerSharpnesses differ in length; corners ignored", warnings)
         return np.zeros(0, np.int64), np.zeros(0)
     return indices, sharpness
 
 
-def read_subdivision_mesh(mesh: UsdGeom.Mesh, time: Usd.TimeCode,
-                          warnings: list[str]) -> SubdivisionMesh | None:
+def read_subdivision_mesh(mesh: UsdGeom.Mesh, time: Usd.TimeCode, warnings: list[str]) -> SubdivisionMesh | None:
     """The cage of a subdivision mesh, or None when it cannot be subdivided (empty or invalid
     topology, left to the caller's `mesh_surface` to warn about; faces of fewer than 3 vertices,
     a vertex repeated along a face, or non-finite points, warned): the caller then renders the
@@ -101,8 +101,7 @@ def read_subdivision_mesh(mesh: UsdGeom.Mesh, time: Usd.TimeCode,
     points, counts, indices = topology
     path = str(mesh.GetPath())
     if (counts < 3).any():
-        warn(f"mesh {path}: faces with fewer than 3 vertices cannot be subdivided; the cage is rendered",
-             warnings)
+        warn(f"mesh {path}: faces with fewer than 3 vertices cannot be subdivided; the cage is rendered", warnings)
         return None
     if not np.isfinite(points).all():
         warn(f"mesh {path}: non-finite points cannot be subdivided; the cage is rendered", warnings)
@@ -130,13 +129,21 @@ def read_subdivision_mesh(mesh: UsdGeom.Mesh, time: Usd.TimeCode,
     has_uvs = uvs is not None and uvs.shape[-1] == 2
     crease_edges, crease_sharpness = _creases(mesh, time, warnings)
     corner_indices, corner_sharpness = _corners(mesh, time, warnings)
-    cage = make_cage(points, counts, indices[corner], uvs=uvs.reshape(-1, 2) if has_uvs else None,
-                     crease_edges=crease_edges, crease_sharpness=crease_sharpness,
-                     corner_indices=corner_indices, corner_sharpness=corner_sharpness,
-                     interpolate_boundary=str(mesh.GetInterpolateBoundaryAttr().Get(time)))
+    cage = make_cage(
+        points,
+        counts,
+        indices[corner],
+        uvs=uvs.reshape(-1, 2) if has_uvs else None,
+        crease_edges=crease_edges,
+        crease_sharpness=crease_sharpness,
+        corner_indices=corner_indices,
+        corner_sharpness=corner_sharpness,
+        interpolate_boundary=str(mesh.GetInterpolateBoundaryAttr().Get(time)),
+    )
     pairs = np.sort(np.stack((cage.indices, cage.indices[following]), axis=-1), axis=1)
-    return SubdivisionMesh(path=path, scheme=scheme, cage=cage, edges=np.unique(pairs, axis=0),
-                           num_faces=int(counts.size), has_uvs=has_uvs)
+    return SubdivisionMesh(
+        path=path, scheme=scheme, cage=cage, edges=np.unique(pairs, axis=0), num_faces=int(counts.size), has_uvs=has_uvs
+    )
 
 
 class Refinement:
@@ -201,8 +208,9 @@ class Refinement:
         mesh = self.mesh
         pixels = None
         if views:
-            pixels = dicing.max_projected_length(mesh.cage.points[mesh.edges[:, 0]],
-                                                 mesh.cage.points[mesh.edges[:, 1]], world_from_local, views)
+            pixels = dicing.max_projected_length(
+                mesh.cage.points[mesh.edges[:, 0]], mesh.cage.points[mesh.edges[:, 1]], world_from_local, views
+            )
             wanted = max(1, dicing.level_for_pixels(pixels))
         else:
             wanted = dicing.FALLBACK_LEVEL
@@ -219,10 +227,12 @@ class Refinement:
             flat_level = min(level, max(flat_level + 1, flat_level + math.ceil(math.log(excess, 4))))
         if level == wanted or (level >= 1 and self._flatness(level, world_from_local, views) <= 1.0):
             return level, None
-        reached = "" if pixels is None else f" (edges up to {pixels / 2 ** level:.1f} pixels)"
-        return level, (f"mesh {mesh.path}: subdivision level {wanted} would make "
-                       f"{triangle_count(mesh.cage.counts, mesh.scheme, wanted):,} triangles, over the budget "
-                       f"of {dicing.TRIANGLE_BUDGET:,} per mesh; refined to level {level}{reached}")
+        reached = "" if pixels is None else f" (edges up to {pixels / 2**level:.1f} pixels)"
+        return level, (
+            f"mesh {mesh.path}: subdivision level {wanted} would make "
+            f"{triangle_count(mesh.cage.counts, mesh.scheme, wanted):,} triangles, over the budget "
+            f"of {dicing.TRIANGLE_BUDGET:,} per mesh; refined to level {level}{reached}"
+        )
 
     def surface(self, level: int) -> Surface:
         """The limit surface refined `level` (>= 1) times, as a `Surface`."""
@@ -231,6 +241,10 @@ class Refinement:
             positions = refined["positions"]
             uvs = refined["uvs"] if self.mesh.has_uvs else np.zeros(positions.shape[:2] + (2,))
             self._surfaces[level] = Surface(
-                positions=positions.astype(np.float32), normals=refined["normals"].astype(np.float32),
-                uvs=uvs.astype(np.float32), face_ids=refined["face_ids"], num_faces=self.mesh.num_faces)
+                positions=positions.astype(np.float32),
+                normals=refined["normals"].astype(np.float32),
+                uvs=uvs.astype(np.float32),
+                face_ids=refined["face_ids"],
+                num_faces=self.mesh.num_faces,
+            )
         return self._surfaces[level]

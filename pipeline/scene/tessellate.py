@@ -68,12 +68,17 @@ def _normalized(vectors: np.ndarray) -> np.ndarray:
 
 def _accumulate(ids: np.ndarray, weights: np.ndarray, num_bins: int) -> np.ndarray:
     """Sum (N, 3) `weights` into `num_bins` bins by (N,) `ids` -> (num_bins, 3) float64."""
-    return np.stack([np.bincount(ids, weights=weights[:, c], minlength=num_bins)
-                     for c in range(3)], axis=-1)
+    return np.stack([np.bincount(ids, weights=weights[:, c], minlength=num_bins) for c in range(3)], axis=-1)
 
 
-def _computed_normals(positions: np.ndarray, triangulation: Triangulation, counts: np.ndarray,
-                      indices: np.ndarray, num_points: int, smooth: bool) -> np.ndarray:
+def _computed_normals(
+    positions: np.ndarray,
+    triangulation: Triangulation,
+    counts: np.ndarray,
+    indices: np.ndarray,
+    num_points: int,
+    smooth: bool,
+) -> np.ndarray:
     """Area-weighted normals: smooth (per point) or flat (per authored face).
 
     A face's normal is the sum of its fan triangles' cross products (|cross| = 2 area, so the
@@ -102,16 +107,25 @@ def _computed_normals(positions: np.ndarray, triangulation: Triangulation, count
     return _normalized(normals).astype(np.float32)
 
 
-def corner_values(prim: Usd.Prim, name: str, values_and_interpolation, triangulation: Triangulation,
-                   face_vertex_indices: np.ndarray, warnings: list[str]) -> np.ndarray | None:
+def corner_values(
+    prim: Usd.Prim,
+    name: str,
+    values_and_interpolation,
+    triangulation: Triangulation,
+    face_vertex_indices: np.ndarray,
+    warnings: list[str],
+) -> np.ndarray | None:
     """Expand a read primvar per corner, warning when its size does not fit its interpolation."""
     if values_and_interpolation is None:
         return None
     values, interpolation = values_and_interpolation
     expanded = expand(values, interpolation, triangulation, face_vertex_indices)
     if expanded is None:
-        warn(f"mesh {prim.GetPath()}: {name} has {len(values)} values, too few for "
-             f"'{interpolation}' interpolation; ignored", warnings)
+        warn(
+            f"mesh {prim.GetPath()}: {name} has {len(values)} values, too few for "
+            f"'{interpolation}' interpolation; ignored",
+            warnings,
+        )
     return expanded
 
 
@@ -146,10 +160,10 @@ def mesh_topology(mesh: UsdGeom.Mesh, time: Usd.TimeCode, warnings: list[str]):
     indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(time) or [], np.int64)
     if counts.size == 0 or (indices.size == 0 and not counts.any()):  # no faces, or only empty ones
         return None
-    if (counts.sum() != indices.size or (counts < 0).any() or indices.min() < 0
-            or indices.max() >= len(points)):
-        warn(f"mesh {path}: faceVertexCounts/faceVertexIndices do not match its "
-             f"{len(points)} points; skipped", warnings)
+    if counts.sum() != indices.size or (counts < 0).any() or indices.min() < 0 or indices.max() >= len(points):
+        warn(
+            f"mesh {path}: faceVertexCounts/faceVertexIndices do not match its {len(points)} points; skipped", warnings
+        )
         return None
     if len(mesh.GetHoleIndicesAttr().Get(time) or []):
         warn(f"mesh {path}: holeIndices are not supported; hole faces are rendered", warnings)
@@ -182,17 +196,20 @@ def mesh_surface(mesh: UsdGeom.Mesh, time: Usd.TimeCode, warnings: list[str]) ->
     positions = points[point_ids]
 
     prim = mesh.GetPrim()
-    normals = corner_values(prim, "normals", _authored_normals(mesh, time), triangulation,
-                             indices, warnings)
+    normals = corner_values(prim, "normals", _authored_normals(mesh, time), triangulation, indices, warnings)
     if normals is None:
         smooth = mesh.GetSubdivisionSchemeAttr().Get(time) != UsdGeom.Tokens.none
         normals = _computed_normals(positions, triangulation, counts, indices, len(points), smooth)
     uvs = corner_values(prim, "st", uv_primvar(prim, time), triangulation, indices, warnings)
     if uvs is None or uvs.shape[-1] != 2:
         uvs = np.zeros(positions.shape[:2] + (2,), np.float32)
-    return Surface(positions=positions, normals=_normalized(normals).astype(np.float32),
-                   uvs=uvs.astype(np.float32), face_ids=triangulation.face_ids,
-                   num_faces=int(counts.size))
+    return Surface(
+        positions=positions,
+        normals=_normalized(normals).astype(np.float32),
+        uvs=uvs.astype(np.float32),
+        face_ids=triangulation.face_ids,
+        num_faces=int(counts.size),
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -216,8 +233,7 @@ class _Profile:
     normal: np.ndarray
 
 
-def _arc(center_z: float, radius: float, theta_start: float, theta_end: float,
-         num_points: int) -> _Profile:
+def _arc(center_z: float, radius: float, theta_start: float, theta_end: float, num_points: int) -> _Profile:
     """Circular arc of a sphere's profile, elevation angle theta from -pi/2 (bottom pole) up."""
     theta = np.linspace(theta_start, theta_end, num_points)
     normal = np.stack((np.cos(theta), np.sin(theta)), axis=-1)
@@ -236,8 +252,7 @@ def _frustum_side(radius_bottom: float, radius_top: float, height: float) -> _Pr
     """The slanted side of a cylinder or cone from z = -height/2 up to +height/2."""
     normal = np.array([height, radius_bottom - radius_top], np.float64)
     normal /= np.linalg.norm(normal)
-    return _Profile(np.array([radius_bottom, radius_top]), np.array([-height, height]) / 2,
-                    np.tile(normal, (2, 1)))
+    return _Profile(np.array([radius_bottom, radius_top]), np.array([-height, height]) / 2, np.tile(normal, (2, 1)))
 
 
 def _revolve(profiles: list[_Profile], axis: str) -> Surface:
@@ -249,7 +264,7 @@ def _revolve(profiles: list[_Profile], axis: str) -> Surface:
     total_length = sum(float(s.sum()) for s in lengths)
     offset = 0.0
     positions, normals, uvs = [], [], []
-    for profile, segment_lengths in zip(profiles, lengths):
+    for profile, segment_lengths in zip(profiles, lengths, strict=True):
         v = (offset + np.concatenate(([0.0], np.cumsum(segment_lengths)))) / total_length
         offset += float(segment_lengths.sum())
         # (P, S+1, C) grids of vertex attributes.
@@ -273,8 +288,12 @@ def _revolve(profiles: list[_Profile], axis: str) -> Surface:
 
 
 def _surface(positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray) -> Surface:
-    return Surface(positions=positions.astype(np.float32), normals=normals.astype(np.float32),
-                   uvs=uvs.astype(np.float32), face_ids=np.zeros(len(positions), np.int64))
+    return Surface(
+        positions=positions.astype(np.float32),
+        normals=normals.astype(np.float32),
+        uvs=uvs.astype(np.float32),
+        face_ids=np.zeros(len(positions), np.int64),
+    )
 
 
 def _capsule(radius_bottom: float, radius_top: float, height: float, axis: str) -> Surface:
@@ -284,9 +303,16 @@ def _capsule(radius_bottom: float, radius_top: float, height: float, axis: str) 
     num = NUM_RINGS // 2 + 1
     bottom = _arc(-height / 2, radius_bottom, -np.pi / 2, alpha, num)
     top = _arc(height / 2, radius_top, alpha, np.pi / 2, num)
-    return _revolve([_Profile(np.concatenate((bottom.radius, top.radius)),
-                              np.concatenate((bottom.z, top.z)),
-                              np.concatenate((bottom.normal, top.normal)))], axis)
+    return _revolve(
+        [
+            _Profile(
+                np.concatenate((bottom.radius, top.radius)),
+                np.concatenate((bottom.z, top.z)),
+                np.concatenate((bottom.normal, top.normal)),
+            )
+        ],
+        axis,
+    )
 
 
 def _frustum(radius_bottom: float, radius_top: float, height: float, axis: str) -> Surface:
@@ -310,8 +336,9 @@ def _quads(centers: np.ndarray, half_u: np.ndarray, half_v: np.ndarray, normals:
         centers, half_u, half_v, normals: (Q, 3); half_u x half_v must point along the normal.
     """
     signs = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], np.float64)  # (4, 2), uv = (s+1)/2
-    corners = (centers[:, None] + signs[None, :, 0, None] * half_u[:, None]
-               + signs[None, :, 1, None] * half_v[:, None])                # (Q, 4, 3)
+    corners = (
+        centers[:, None] + signs[None, :, 0, None] * half_u[:, None] + signs[None, :, 1, None] * half_v[:, None]
+    )  # (Q, 4, 3)
     triangles = np.array([[0, 1, 2], [0, 2, 3]])
     positions = corners[:, triangles].reshape(-1, 3, 3)
     uvs = np.broadcast_to(((signs + 1) / 2)[triangles], (len(centers), 2, 3, 2)).reshape(-1, 3, 2)
@@ -337,8 +364,7 @@ def _plane(width: float, length: float, axis: str) -> Surface:
     along_length = eye[2] if axis == "Y" else eye[1]
     if np.dot(np.cross(along_width, along_length), normal) < 0:
         along_length = -along_length  # keep the winding counter-clockwise seen from +axis
-    return _quads(np.zeros((1, 3)), along_width[None] * width / 2,
-                  along_length[None] * length / 2, normal[None])
+    return _quads(np.zeros((1, 3)), along_width[None] * width / 2, along_length[None] * length / 2, normal[None])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -366,8 +392,12 @@ def _cylinder(prim, time):
 
 def _cylinder_1(prim, time):
     g = UsdGeom.Cylinder_1(prim)
-    return _frustum(_get(g.GetRadiusBottomAttr(), time), _get(g.GetRadiusTopAttr(), time),
-                    _get(g.GetHeightAttr(), time), _axis(g, time))
+    return _frustum(
+        _get(g.GetRadiusBottomAttr(), time),
+        _get(g.GetRadiusTopAttr(), time),
+        _get(g.GetHeightAttr(), time),
+        _axis(g, time),
+    )
 
 
 def _cone(prim, time):
@@ -383,8 +413,12 @@ def _capsule_0(prim, time):
 
 def _capsule_1(prim, time):
     g = UsdGeom.Capsule_1(prim)
-    return _capsule(_get(g.GetRadiusBottomAttr(), time), _get(g.GetRadiusTopAttr(), time),
-                    _get(g.GetHeightAttr(), time), _axis(g, time))
+    return _capsule(
+        _get(g.GetRadiusBottomAttr(), time),
+        _get(g.GetRadiusTopAttr(), time),
+        _get(g.GetHeightAttr(), time),
+        _axis(g, time),
+    )
 
 
 def _cube_prim(prim, time):

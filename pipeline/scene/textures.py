@@ -116,7 +116,7 @@ def load_texture(
     default = Texture(file=path, pixels=image.pixels)
     wrap_modes = [
         token if token != "useMetadata" else (file_mode or "black")
-        for token, file_mode in zip((wrap_s, wrap_t), image.file_wrap_modes)
+        for token, file_mode in zip((wrap_s, wrap_t), image.file_wrap_modes, strict=True)
     ]
     return Texture(
         file=path,

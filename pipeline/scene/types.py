@@ -96,7 +96,7 @@ class Material:
     normal: MaterialInput = field(default_factory=lambda: _const(0.0, 0.0, 1.0))
     documents: tuple[str, ...] = ()
 
-    def replace(self, **changes) -> "Material":
+    def replace(self, **changes) -> Material:
         return dataclasses.replace(self, **changes)
 
 

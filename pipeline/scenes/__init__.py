@@ -11,5 +11,12 @@ from pipeline.scenes.bundled import BundledScene, LightEdit, LightOverride
 from pipeline.scenes.lights import example_light_edits, light_edit_layers, write_light_edits
 from pipeline.scenes.registry import SCENES
 
-__all__ = ["SCENES", "BundledScene", "LightEdit", "LightOverride", "example_light_edits", "light_edit_layers",
-           "write_light_edits"]
+__all__ = [
+    "SCENES",
+    "BundledScene",
+    "LightEdit",
+    "LightOverride",
+    "example_light_edits",
+    "light_edit_layers",
+    "write_light_edits",
+]

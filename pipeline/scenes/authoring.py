@@ -43,7 +43,7 @@ _PREVIEW_INPUT_TYPES = {
 
 def create_stage(meters_per_unit: float, doc: str) -> Usd.Stage:
     """An in-memory stage: /World (default prim) with Materials (Scope), Geometry and Lights (Xforms)."""
-    register_schemas()                       # before any stage exists in this process (USD_EXR_NOTES 4)
+    register_schemas()  # before any stage exists in this process (USD_EXR_NOTES 4)
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
@@ -103,15 +103,16 @@ def define_mesh(stage: Usd.Stage, path: str, mesh: MeshData) -> UsdGeom.Mesh:
     usd_mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(mesh.points))
     usd_mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(mesh.face_vertex_counts))
     usd_mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(mesh.face_vertex_indices))
-    usd_mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(
-        np.stack([mesh.points.min(axis=0), mesh.points.max(axis=0)])))
+    usd_mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([mesh.points.min(axis=0), mesh.points.max(axis=0)])))
     primvars = UsdGeom.PrimvarsAPI(usd_mesh)
     if mesh.normals is not None:
         primvars.CreatePrimvar("normals", Sdf.ValueTypeNames.Normal3fArray, UsdGeom.Tokens.vertex).Set(
-            Vt.Vec3fArray.FromNumpy(mesh.normals))
+            Vt.Vec3fArray.FromNumpy(mesh.normals)
+        )
     if mesh.st is not None:
         primvars.CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
-            Vt.Vec2fArray.FromNumpy(mesh.st))
+            Vt.Vec2fArray.FromNumpy(mesh.st)
+        )
     return usd_mesh
 
 
@@ -134,8 +135,17 @@ def define_preview_material(stage: Usd.Stage, name: str, **inputs) -> tuple[UsdS
     return material, shader
 
 
-def connect_texture(material: UsdShade.Material, shader: UsdShade.Shader, input_name: str, file: str, *,
-                    source_color_space: str, scale=None, bias=None, output: str = "rgb") -> UsdShade.Shader:
+def connect_texture(
+    material: UsdShade.Material,
+    shader: UsdShade.Shader,
+    input_name: str,
+    file: str,
+    *,
+    source_color_space: str,
+    scale=None,
+    bias=None,
+    output: str = "rgb",
+) -> UsdShade.Shader:
     """Feed a UsdPreviewSurface input from an image through UsdUVTexture, reading primvar 'st'.
 
     Args:
@@ -152,7 +162,7 @@ def connect_texture(material: UsdShade.Material, shader: UsdShade.Shader, input_
     if not reader:
         reader = UsdShade.Shader.Define(stage, reader_path)
         reader.CreateIdAttr("UsdPrimvarReader_float2")
-        reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")   # string, not token
+        reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")  # string, not token
         reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
     texture = UsdShade.Shader.Define(stage, material_path.AppendChild(f"{input_name}Texture"))
     texture.CreateIdAttr("UsdUVTexture")
@@ -176,8 +186,16 @@ def bind_material(prim: Usd.Prim, material: UsdShade.Material) -> None:
     UsdShade.MaterialBindingAPI.Apply(prim).Bind(material)
 
 
-def define_camera(stage: Usd.Stage, path: str, position, target, *, focal_length_mm: float,
-                  aperture_mm: tuple[float, float], clipping_range: tuple[float, float]) -> UsdGeom.Camera:
+def define_camera(
+    stage: Usd.Stage,
+    path: str,
+    position,
+    target,
+    *,
+    focal_length_mm: float,
+    aperture_mm: tuple[float, float],
+    clipping_range: tuple[float, float],
+) -> UsdGeom.Camera:
     """A perspective camera at `position` looking at `target` with +Y up.
 
     USD stores focal length and apertures in tenths of a scene unit: 35 mm is 35 when

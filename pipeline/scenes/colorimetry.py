@@ -58,7 +58,7 @@ def linear_rec709_from_xyz_matrix() -> np.ndarray:
     their sum is the white point, then inverted.
     """
     x, y = REC709_PRIMARIES_XY[:, 0], REC709_PRIMARIES_XY[:, 1]
-    xyz_from_rgb_unscaled = np.stack([x / y, np.ones(3), (1.0 - x - y) / y])   # (3, 3) columns = primaries
+    xyz_from_rgb_unscaled = np.stack([x / y, np.ones(3), (1.0 - x - y) / y])  # (3, 3) columns = primaries
     scale = np.linalg.solve(xyz_from_rgb_unscaled, _xyz_white_d65())
     return np.linalg.inv(xyz_from_rgb_unscaled * scale)
 
@@ -73,7 +73,7 @@ def reflectance_to_linear_rec709(wavelengths_nm: np.ndarray, reflectance: np.nda
     Returns:
         (3,) float64 linear RGB albedo.
     """
-    weights = D65[:, None] * CMF_XYZ                                 # (81, 3)
+    weights = D65[:, None] * CMF_XYZ  # (81, 3)
     xyz = resample_spectrum(wavelengths_nm, reflectance) @ weights / (D65 @ CMF_XYZ[:, 1])
     return linear_rec709_from_xyz_matrix() @ xyz
 

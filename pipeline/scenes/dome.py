@@ -40,8 +40,10 @@ def sky_texture(height: int = TEXTURE_SIZE[0], width: int = TEXTURE_SIZE[1]) -> 
     u = (np.arange(width) + 0.5) / width
     theta = v[:, None] * math.pi
     longitude = (0.5 - u[None, :]) * 2.0 * math.pi
-    direction = np.stack(np.broadcast_arrays(np.sin(theta) * np.sin(longitude), np.cos(theta),
-                                             np.sin(theta) * np.cos(longitude)), axis=-1)
+    direction = np.stack(
+        np.broadcast_arrays(np.sin(theta) * np.sin(longitude), np.cos(theta), np.sin(theta) * np.cos(longitude)),
+        axis=-1,
+    )
     up = direction[..., 1:2]
     zenith, horizon = np.array([0.25, 0.4, 0.8]), np.array([0.6, 0.62, 0.65])
     sky = horizon + (zenith - horizon) * np.clip(up, 0.0, 1.0) ** 0.5
@@ -81,13 +83,21 @@ def write(directory: Path) -> Path:
 
 
 LIGHT_EDITS = (
-    LightEdit("rotate", "turn the dome 120 degrees about +Y (the sun moves round to the left)",
-              (LightOverride(DOME, {"xformOp:rotateXYZ": ("float3", Gf.Vec3f(0.0, 120.0, 0.0))}),)),
-    LightEdit("warm", "warm the dome's colour and raise its exposure",
-              (LightOverride(DOME, {"inputs:color": ("color3f", Gf.Vec3f(1.0, 0.8, 0.6)),
-                                    "inputs:exposure": ("float", 0.5)}),)),
-    LightEdit("dim", "halve the dome's intensity",
-              (LightOverride(DOME, {"inputs:intensity": ("float", 0.5)}),)),
+    LightEdit(
+        "rotate",
+        "turn the dome 120 degrees about +Y (the sun moves round to the left)",
+        (LightOverride(DOME, {"xformOp:rotateXYZ": ("float3", Gf.Vec3f(0.0, 120.0, 0.0))}),),
+    ),
+    LightEdit(
+        "warm",
+        "warm the dome's colour and raise its exposure",
+        (
+            LightOverride(
+                DOME, {"inputs:color": ("color3f", Gf.Vec3f(1.0, 0.8, 0.6)), "inputs:exposure": ("float", 0.5)}
+            ),
+        ),
+    ),
+    LightEdit("dim", "halve the dome's intensity", (LightOverride(DOME, {"inputs:intensity": ("float", 0.5)}),)),
 )
 
 SCENE = BundledScene(

@@ -62,18 +62,33 @@ def _define_materials(stage, albedo_file: str, normal_file: str) -> dict:
     materials = {}
     for name, (color, roughness) in METALS.items():
         materials[name], _ = authoring.define_preview_material(
-            stage, name, diffuseColor=color, metallic=1.0, roughness=roughness)
+            stage, name, diffuseColor=color, metallic=1.0, roughness=roughness
+        )
     materials["RedPlastic"], _ = authoring.define_preview_material(
-        stage, "RedPlastic", diffuseColor=(0.60, 0.05, 0.04), metallic=0.0, roughness=0.3)
+        stage, "RedPlastic", diffuseColor=(0.60, 0.05, 0.04), metallic=0.0, roughness=0.3
+    )
     materials["BluePlastic"], _ = authoring.define_preview_material(
-        stage, "BluePlastic", diffuseColor=(0.05, 0.15, 0.50), useSpecularWorkflow=1,
-        specularColor=(0.04, 0.04, 0.04), roughness=0.15)
+        stage,
+        "BluePlastic",
+        diffuseColor=(0.05, 0.15, 0.50),
+        useSpecularWorkflow=1,
+        specularColor=(0.04, 0.04, 0.04),
+        roughness=0.15,
+    )
     materials["Backdrop"], _ = authoring.define_preview_material(
-        stage, "Backdrop", diffuseColor=(0.35, 0.35, 0.35), metallic=0.0, roughness=0.9)
+        stage, "Backdrop", diffuseColor=(0.35, 0.35, 0.35), metallic=0.0, roughness=0.9
+    )
     bricks, shader = authoring.define_preview_material(stage, "Bricks", metallic=0.0, roughness=0.8)
     authoring.connect_texture(bricks, shader, "diffuseColor", albedo_file, source_color_space="sRGB")
-    authoring.connect_texture(bricks, shader, "normal", normal_file, source_color_space="raw",
-                              scale=(2.0, 2.0, 2.0, 1.0), bias=(-1.0, -1.0, -1.0, 0.0))
+    authoring.connect_texture(
+        bricks,
+        shader,
+        "normal",
+        normal_file,
+        source_color_space="raw",
+        scale=(2.0, 2.0, 2.0, 1.0),
+        bias=(-1.0, -1.0, -1.0, 0.0),
+    )
     materials["Bricks"] = bricks
     return materials
 
@@ -107,8 +122,15 @@ def _define_geometry(stage, materials: dict) -> None:
     cube.CreateExtentAttr([(-17.5, -17.5, -17.5), (17.5, 17.5, 17.5)])
     authoring.place(cube, (45.0, 17.5, 85.0), rotate_xyz=(0.0, 30.0, 0.0))
 
-    for prim, material in ((floor, "Bricks"), (backdrop, "Backdrop"), (gold, "Gold"), (copper, "Copper"),
-                           (aluminium, "Aluminium"), (cylinder, "RedPlastic"), (cube, "BluePlastic")):
+    for prim, material in (
+        (floor, "Bricks"),
+        (backdrop, "Backdrop"),
+        (gold, "Gold"),
+        (copper, "Copper"),
+        (aluminium, "Aluminium"),
+        (cylinder, "RedPlastic"),
+        (cube, "BluePlastic"),
+    ):
         authoring.bind_material(prim.GetPrim(), materials[material])
 
 
@@ -129,35 +151,65 @@ def write(directory: Path) -> Path:
     """Write DIR/glossy.usda and its textures under DIR/textures/; return the layer's path."""
     directory = Path(directory)
     albedo, normal = write_brick_textures(directory / TEXTURE_DIR, NAME)
-    stage = authoring.create_stage(0.01, "Glossy test scene: metals, plastics, a textured floor "
-                                         "(centimetres).")
+    stage = authoring.create_stage(0.01, "Glossy test scene: metals, plastics, a textured floor (centimetres).")
     materials = _define_materials(stage, f"./{TEXTURE_DIR}/{albedo.name}", f"./{TEXTURE_DIR}/{normal.name}")
     _define_geometry(stage, materials)
     _define_lights(stage)
-    camera = authoring.define_camera(stage, CAMERA, (0.0, 110.0, 380.0), (0.0, 25.0, 0.0),
-                                     focal_length_mm=35.0, aperture_mm=(36.0, 27.0),
-                                     clipping_range=(1.0, 1.0e4))
+    camera = authoring.define_camera(
+        stage,
+        CAMERA,
+        (0.0, 110.0, 380.0),
+        (0.0, 25.0, 0.0),
+        focal_length_mm=35.0,
+        aperture_mm=(36.0, 27.0),
+        clipping_range=(1.0, 1.0e4),
+    )
     authoring.define_render_settings(stage, camera, RESOLUTION)
     return authoring.save_stage(stage, directory / f"{NAME}.usda")
 
 
 LIGHT_EDITS = (
-    LightEdit("move", "move the key light to the camera's left and lower it",
-              (LightOverride(KEY, {"xformOp:translate": ("double3", Gf.Vec3d(-180.0, 140.0, 150.0))}),)),
-    LightEdit("reaim_spot", "re-aim the spot from the gold sphere to the aluminium torus",
-              (LightOverride(SPOT, {"xformOp:rotateXYZ": ("float3", authoring.aim_rotation_xyz(
-                  np.subtract((95.0, 10.0, 10.0), SPOT_POSITION)))}),)),
-    LightEdit("colour_shaping", "warm the spot and widen its cone with a softer edge",
-              (LightOverride(SPOT, {"inputs:color": ("color3f", Gf.Vec3f(1.0, 0.6, 0.3)),
-                                    "inputs:shaping:cone:angle": ("float", 35.0),
-                                    "inputs:shaping:cone:softness": ("float", 0.8)}),)),
+    LightEdit(
+        "move",
+        "move the key light to the camera's left and lower it",
+        (LightOverride(KEY, {"xformOp:translate": ("double3", Gf.Vec3d(-180.0, 140.0, 150.0))}),),
+    ),
+    LightEdit(
+        "reaim_spot",
+        "re-aim the spot from the gold sphere to the aluminium torus",
+        (
+            LightOverride(
+                SPOT,
+                {
+                    "xformOp:rotateXYZ": (
+                        "float3",
+                        authoring.aim_rotation_xyz(np.subtract((95.0, 10.0, 10.0), SPOT_POSITION)),
+                    )
+                },
+            ),
+        ),
+    ),
+    LightEdit(
+        "colour_shaping",
+        "warm the spot and widen its cone with a softer edge",
+        (
+            LightOverride(
+                SPOT,
+                {
+                    "inputs:color": ("color3f", Gf.Vec3f(1.0, 0.6, 0.3)),
+                    "inputs:shaping:cone:angle": ("float", 35.0),
+                    "inputs:shaping:cone:softness": ("float", 0.8),
+                },
+            ),
+        ),
+    ),
 )
 
 SCENE = BundledScene(
     name=NAME,
     camera=CAMERA,
     description="metals (gold/copper/aluminium) and plastics on a brick-textured, normal-mapped floor; "
-                "sphere light + spot",
+    "sphere light + spot",
     write=write,
     light_edits=LIGHT_EDITS,
 )

@@ -27,7 +27,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, UsdGeom, UsdLux
+from pxr import Gf, UsdLux
 
 from pipeline.scenes import authoring
 from pipeline.scenes.bundled import BundledScene, LightEdit, LightOverride
@@ -63,8 +63,8 @@ def leaf_texture(size: int = TEXTURE_SIZE) -> np.ndarray:
     outline (a lens between two circular arcs, pointed at both ends), 0 outside and in small
     holes along the midrib."""
     centres = (np.arange(size) + 0.5) / size
-    s, t = np.meshgrid(centres, 1.0 - centres)            # row 0 is the top: t = 1
-    x, y = 2.0 * s - 1.0, 2.0 * t - 1.0                   # the midrib runs along y
+    s, t = np.meshgrid(centres, 1.0 - centres)  # row 0 is the top: t = 1
+    x, y = 2.0 * s - 1.0, 2.0 * t - 1.0  # the midrib runs along y
     # Lens: inside both circles of radius R centred at (+-c, 0) through the tips (0, +-0.95).
     half_width, tip = 0.45, 0.95
     centre = (tip**2 - half_width**2) / (2.0 * half_width)
@@ -97,8 +97,9 @@ def _write_texture(path: Path, rgba: np.ndarray) -> Path:
 
 
 def _cutout_material(stage, name: str, file: str):
-    material, shader = authoring.define_preview_material(stage, name, roughness=0.7, metallic=0.0,
-                                                         opacityThreshold=THRESHOLD)
+    material, shader = authoring.define_preview_material(
+        stage, name, roughness=0.7, metallic=0.0, opacityThreshold=THRESHOLD
+    )
     authoring.connect_texture(material, shader, "diffuseColor", file, source_color_space="sRGB")
     authoring.connect_texture(material, shader, "opacity", file, source_color_space="sRGB", output="a")
     return material
@@ -109,10 +110,10 @@ def write(directory: Path) -> Path:
     directory = Path(directory)
     leaf = _write_texture(directory / TEXTURE_DIR / f"{NAME}_leaf.png", leaf_texture())
     lattice = _write_texture(directory / TEXTURE_DIR / f"{NAME}_lattice.png", lattice_texture())
-    stage = authoring.create_stage(0.01, "Opacity test scene: cut-out leaves and a lattice over a floor "
-                                         "(centimetres).")
-    floor_material, _ = authoring.define_preview_material(stage, "Floor", diffuseColor=(0.6, 0.6, 0.6),
-                                                          roughness=0.9, metallic=0.0)
+    stage = authoring.create_stage(0.01, "Opacity test scene: cut-out leaves and a lattice over a floor (centimetres).")
+    floor_material, _ = authoring.define_preview_material(
+        stage, "Floor", diffuseColor=(0.6, 0.6, 0.6), roughness=0.9, metallic=0.0
+    )
     leaf_material = _cutout_material(stage, "Leaf", f"./{TEXTURE_DIR}/{leaf.name}")
     lattice_material = _cutout_material(stage, "Lattice", f"./{TEXTURE_DIR}/{lattice.name}")
     geometry = authoring.GEOMETRY
@@ -134,31 +135,54 @@ def write(directory: Path) -> Path:
     authoring.place(key, KEY_POSITION)
     sun = UsdLux.DistantLight.Define(stage, SUN)
     sun.CreateAngleAttr(1.0)
-    authoring.set_light(sun.LightAPI(), intensity=SUN_IRRADIANCE / (np.pi * np.sin(np.radians(0.5)) ** 2),
-                        color=(1.0, 0.98, 0.95))
+    authoring.set_light(
+        sun.LightAPI(), intensity=SUN_IRRADIANCE / (np.pi * np.sin(np.radians(0.5)) ** 2), color=(1.0, 0.98, 0.95)
+    )
     authoring.place(sun, (0.0, 0.0, 0.0), rotate_xyz=authoring.aim_rotation_xyz(np.array([-0.35, -0.9, -0.25])))
-    camera = authoring.define_camera(stage, CAMERA, (0.0, 190.0, 230.0), (0.0, 20.0, -10.0),
-                                     focal_length_mm=35.0, aperture_mm=(36.0, 27.0), clipping_range=(1.0, 1.0e4))
+    camera = authoring.define_camera(
+        stage,
+        CAMERA,
+        (0.0, 190.0, 230.0),
+        (0.0, 20.0, -10.0),
+        focal_length_mm=35.0,
+        aperture_mm=(36.0, 27.0),
+        clipping_range=(1.0, 1.0e4),
+    )
     authoring.define_render_settings(stage, camera, RESOLUTION)
     return authoring.save_stage(stage, directory / f"{NAME}.usda")
 
 
 LIGHT_EDITS = (
-    LightEdit("move", "move the key light low to the right, lengthening the leaves' shadows",
-              (LightOverride(KEY, {"xformOp:translate": ("double3", Gf.Vec3d(180.0, 120.0, 60.0))}),)),
-    LightEdit("turn_sun", "turn the sun to come from the front right",
-              (LightOverride(SUN, {"xformOp:rotateXYZ": ("float3", authoring.aim_rotation_xyz(
-                  np.array([0.4, -0.8, -0.45])))}),)),
-    LightEdit("warm_key", "warm the key light and double it",
-              (LightOverride(KEY, {"inputs:color": ("color3f", Gf.Vec3f(1.0, 0.7, 0.45)),
-                                   "inputs:intensity": ("float", 500.0)}),)),
+    LightEdit(
+        "move",
+        "move the key light low to the right, lengthening the leaves' shadows",
+        (LightOverride(KEY, {"xformOp:translate": ("double3", Gf.Vec3d(180.0, 120.0, 60.0))}),),
+    ),
+    LightEdit(
+        "turn_sun",
+        "turn the sun to come from the front right",
+        (
+            LightOverride(
+                SUN, {"xformOp:rotateXYZ": ("float3", authoring.aim_rotation_xyz(np.array([0.4, -0.8, -0.45])))}
+            ),
+        ),
+    ),
+    LightEdit(
+        "warm_key",
+        "warm the key light and double it",
+        (
+            LightOverride(
+                KEY, {"inputs:color": ("color3f", Gf.Vec3f(1.0, 0.7, 0.45)), "inputs:intensity": ("float", 500.0)}
+            ),
+        ),
+    ),
 )
 
 SCENE = BundledScene(
     name=NAME,
     camera=CAMERA,
     description="alpha-textured cut-out leaves and a lattice fence over a floor (opacity + opacityThreshold); "
-                "sphere light + sun",
+    "sphere light + sun",
     write=write,
     light_edits=LIGHT_EDITS,
 )

@@ -18,7 +18,6 @@ from pipeline.scenes.registry import SCENES
 from relight_torch.io.atomic import write_text_atomic
 from relight_torch.schema import register_schemas
 
-
 NEW_LIGHT_PATH = "/RelightEdits/AddedSphere"
 """The prim of the light `new_sphere_layer` adds."""
 
@@ -27,7 +26,9 @@ def edit_layer_text(scene_name: str, edit: LightEdit) -> str:
     """The .usda text of one light edit: `over`s of the edited lights with their new values."""
     register_schemas()
     stage = Usd.Stage.CreateInMemory()
-    stage.GetRootLayer().documentation = f"Light edit '{edit.name}' over bundled scene '{scene_name}': {edit.description}"
+    stage.GetRootLayer().documentation = (
+        f"Light edit '{edit.name}' over bundled scene '{scene_name}': {edit.description}"
+    )
     for override in edit.overrides:
         prim = stage.OverridePrim(override.prim_path)
         for api in override.api_schemas:
@@ -72,8 +73,11 @@ def new_sphere_layer(scene_path: Path, camera_path: str, out: Path) -> Path:
     of their diagonal and a radiance giving an irradiance of about 0.5 at the centre.
     """
     stage = Usd.Stage.Open(str(scene_path))
-    bounds = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"]).ComputeWorldBound(
-        stage.GetPseudoRoot()).ComputeAlignedRange()
+    bounds = (
+        UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"])
+        .ComputeWorldBound(stage.GetPseudoRoot())
+        .ComputeAlignedRange()
+    )
     centre, diagonal = np.array(bounds.GetMidpoint()), float(bounds.GetSize().GetLength())
     camera = UsdGeom.Camera(stage.GetPrimAtPath(camera_path)).GetCamera(Usd.TimeCode.Default())
     eye = np.array(camera.frustum.GetPosition())

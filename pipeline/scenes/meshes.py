@@ -58,8 +58,7 @@ def polygons(corners: np.ndarray) -> MeshData:
         corners: (F, C, 3) corner positions, each polygon wound as it should face.
     """
     num_faces, num_corners = corners.shape[:2]
-    return _mesh(corners.reshape(-1, 3), np.full(num_faces, num_corners),
-                 np.arange(num_faces * num_corners))
+    return _mesh(corners.reshape(-1, 3), np.full(num_faces, num_corners), np.arange(num_faces * num_corners))
 
 
 def newell_normals(corners: np.ndarray) -> np.ndarray:
@@ -114,19 +113,32 @@ def box(size: tuple[float, float, float], center: tuple[float, float, float] = (
     eye = np.eye(3)
     # Per face: outward normal n and in-plane axes u, v with u x v = n, so (0,0),(1,0),(1,1),(0,1)
     # in (u, v) runs counter-clockwise seen from outside.
-    normal = np.concatenate([eye, -eye])                                  # +x +y +z -x -y -z
+    normal = np.concatenate([eye, -eye])  # +x +y +z -x -y -z
     u_axis = eye[[1, 2, 0, 2, 0, 1]]
     v_axis = np.cross(normal, u_axis)
-    unit_square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64)   # (4, 2) st per corner
-    offsets = (normal[:, None] + (2 * unit_square[None, :, :1] - 1) * u_axis[:, None]
-               + (2 * unit_square[None, :, 1:] - 1) * v_axis[:, None])      # (6, 4, 3)
+    unit_square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64)  # (4, 2) st per corner
+    offsets = (
+        normal[:, None]
+        + (2 * unit_square[None, :, :1] - 1) * u_axis[:, None]
+        + (2 * unit_square[None, :, 1:] - 1) * v_axis[:, None]
+    )  # (6, 4, 3)
     points = np.asarray(center, np.float64) + offsets * half
-    return _mesh(points.reshape(-1, 3), np.full(6, 4), np.arange(24),
-                 normals=np.repeat(normal, 4, axis=0), st=np.tile(unit_square, (6, 1)))
+    return _mesh(
+        points.reshape(-1, 3),
+        np.full(6, 4),
+        np.arange(24),
+        normals=np.repeat(normal, 4, axis=0),
+        st=np.tile(unit_square, (6, 1)),
+    )
 
 
-def revolve(profile: np.ndarray, num_segments: int, *, angle_range: tuple[float, float] = (0.0, 2 * np.pi),
-            closed_profile: bool = False) -> MeshData:
+def revolve(
+    profile: np.ndarray,
+    num_segments: int,
+    *,
+    angle_range: tuple[float, float] = (0.0, 2 * np.pi),
+    closed_profile: bool = False,
+) -> MeshData:
     """A smooth surface of revolution about the local +Y axis.
 
     The profile is a polyline in the (radius, height) half-plane; a point (r, h) at angle theta
@@ -146,32 +158,32 @@ def revolve(profile: np.ndarray, num_segments: int, *, angle_range: tuple[float,
         MeshData with (K [+1], S + 1) points (the seam duplicated so st has no wrap), st =
         (angle fraction, profile arc-length fraction).
     """
-    profile = np.array(profile, np.float64)                  # a copy: poles are snapped to r = 0 below
+    profile = np.array(profile, np.float64)  # a copy: poles are snapped to r = 0 below
     if closed_profile:
         profile_for_tangent = np.concatenate([profile[-1:], profile, profile[:1]])
-        tangent = (profile_for_tangent[2:] - profile_for_tangent[:-2])
+        tangent = profile_for_tangent[2:] - profile_for_tangent[:-2]
         profile, tangent = np.concatenate([profile, profile[:1]]), np.concatenate([tangent, tangent[:1]])
     else:
         tangent = np.gradient(profile, axis=0)
-    normal_rh = _normalized(np.stack([tangent[:, 1], -tangent[:, 0]], axis=-1))   # (K, 2) right of travel
+    normal_rh = _normalized(np.stack([tangent[:, 1], -tangent[:, 0]], axis=-1))  # (K, 2) right of travel
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(profile, axis=0), axis=-1))])
-    on_axis = profile[:, 0] <= 1e-9 * np.abs(profile).max()    # e.g. sin(pi) * r is 1e-16, not 0
+    on_axis = profile[:, 0] <= 1e-9 * np.abs(profile).max()  # e.g. sin(pi) * r is 1e-16, not 0
     profile[on_axis, 0] = 0.0
 
     num_rows, num_columns = len(profile), num_segments + 1
     theta = np.linspace(angle_range[0], angle_range[1], num_columns)
-    sin, cos = np.sin(theta)[None, :], np.cos(theta)[None, :]                        # (1, S + 1)
+    sin, cos = np.sin(theta)[None, :], np.cos(theta)[None, :]  # (1, S + 1)
     rows = (num_rows, num_columns)
     points = np.stack([profile[:, :1] * sin, np.broadcast_to(profile[:, 1:], rows), profile[:, :1] * cos], -1)
-    normals = np.stack([normal_rh[:, :1] * sin, np.broadcast_to(normal_rh[:, 1:], rows),
-                        normal_rh[:, :1] * cos], -1)
+    normals = np.stack([normal_rh[:, :1] * sin, np.broadcast_to(normal_rh[:, 1:], rows), normal_rh[:, :1] * cos], -1)
     st = np.stack(np.broadcast_arrays(np.linspace(0.0, 1.0, num_columns)[None, :], (arc / arc[-1])[:, None]), -1)
 
     # Quad (k, j) -> corners (k, j), (k, j+1), (k+1, j+1), (k+1, j): first edge around the axis, then
     # along the profile, whose cross product points to the right of the profile's travel.
     k, j = np.meshgrid(np.arange(num_rows - 1), np.arange(num_segments), indexing="ij")
-    quads = np.stack([k * num_columns + j, k * num_columns + j + 1,
-                      (k + 1) * num_columns + j + 1, (k + 1) * num_columns + j], -1)   # (K-1, S, 4)
+    quads = np.stack(
+        [k * num_columns + j, k * num_columns + j + 1, (k + 1) * num_columns + j + 1, (k + 1) * num_columns + j], -1
+    )  # (K-1, S, 4)
     faces, counts = [], []
     for row in range(num_rows - 1):
         # A pole row collapses one edge of its quads: drop the duplicate corner.
@@ -183,8 +195,13 @@ def revolve(profile: np.ndarray, num_segments: int, *, angle_range: tuple[float,
             row_faces = quads[row]
         faces.append(row_faces.ravel())
         counts.append(np.full(num_segments, row_faces.shape[1]))
-    return _mesh(points.reshape(-1, 3), np.concatenate(counts), np.concatenate(faces),
-                 normals=normals.reshape(-1, 3), st=st.reshape(-1, 2))
+    return _mesh(
+        points.reshape(-1, 3),
+        np.concatenate(counts),
+        np.concatenate(faces),
+        normals=normals.reshape(-1, 3),
+        st=st.reshape(-1, 2),
+    )
 
 
 def merge(meshes: list[MeshData]) -> MeshData:
@@ -195,7 +212,7 @@ def merge(meshes: list[MeshData]) -> MeshData:
     return _mesh(
         np.concatenate([mesh.points for mesh in meshes]),
         np.concatenate([mesh.face_vertex_counts for mesh in meshes]),
-        np.concatenate([mesh.face_vertex_indices + offset for mesh, offset in zip(meshes, offsets)]),
+        np.concatenate([mesh.face_vertex_indices + offset for mesh, offset in zip(meshes, offsets, strict=True)]),
         normals=np.concatenate([mesh.normals for mesh in meshes]) if has_normals else None,
         st=np.concatenate([mesh.st for mesh in meshes]) if has_st else None,
     )
@@ -211,9 +228,14 @@ def transformed(mesh: MeshData, parent_from_local: np.ndarray) -> MeshData:
         raise ValueError(f"transformed: matrix must preserve orientation, det = {np.linalg.det(linear)}")
     normals = None
     if mesh.normals is not None:
-        normals = _normalized(mesh.normals @ np.linalg.inv(linear))      # n' = inv(A).T n, row-vector form
-    return _mesh(mesh.points @ linear.T + translation, mesh.face_vertex_counts, mesh.face_vertex_indices,
-                 normals=normals, st=mesh.st)
+        normals = _normalized(mesh.normals @ np.linalg.inv(linear))  # n' = inv(A).T n, row-vector form
+    return _mesh(
+        mesh.points @ linear.T + translation,
+        mesh.face_vertex_counts,
+        mesh.face_vertex_indices,
+        normals=normals,
+        st=mesh.st,
+    )
 
 
 def uv_sphere(radius: float, num_segments: int, num_rings: int) -> MeshData:

@@ -72,8 +72,7 @@ def _rotation_x(degrees: float) -> np.ndarray:
     return matrix
 
 
-def _band(radius_from: float, height_from: float, radius_to: float, height_to: float,
-          num_segments: int) -> MeshData:
+def _band(radius_from: float, height_from: float, radius_to: float, height_to: float, num_segments: int) -> MeshData:
     """A cylinder, cone or annulus band between two profile points (outside on the right of travel)."""
     return revolve(np.array([[radius_from, height_from], [radius_to, height_to]]), num_segments)
 
@@ -82,25 +81,30 @@ def column_mesh() -> MeshData:
     """A Tuscan-style column, 510 cm tall: plinth, torus moulding, tapered shaft, echinus, abacus."""
     segments = COLUMN_SEGMENTS
     moulding_angle = np.linspace(-np.pi / 2, np.pi / 2, 17)
-    moulding = revolve(np.stack([30.0 + 10.0 * np.cos(moulding_angle), 40.0 + 10.0 * np.sin(moulding_angle)], -1),
-                       segments)
+    moulding = revolve(
+        np.stack([30.0 + 10.0 * np.cos(moulding_angle), 40.0 + 10.0 * np.sin(moulding_angle)], -1), segments
+    )
     shaft_t = np.linspace(0.0, 1.0, 48)
     shaft = revolve(np.stack([28.0 - 4.0 * shaft_t**2, 50.0 + 410.0 * shaft_t], -1), segments)
     echinus_t = np.linspace(0.0, 1.0, 17)
-    echinus = revolve(np.stack([24.0 + 14.0 * np.sin(0.5 * np.pi * echinus_t) ** 2, 460.0 + 30.0 * echinus_t], -1),
-                      segments)
-    return merge([
-        box((80.0, 30.0, 80.0), (0.0, 15.0, 0.0)),
-        moulding,
-        _band(30.0, 50.0, 28.0, 50.0, segments),          # ledge from the moulding in to the shaft, facing up
-        shaft,
-        echinus,
-        box((80.0, 20.0, 80.0), (0.0, 500.0, 0.0)),
-    ])
+    echinus = revolve(
+        np.stack([24.0 + 14.0 * np.sin(0.5 * np.pi * echinus_t) ** 2, 460.0 + 30.0 * echinus_t], -1), segments
+    )
+    return merge(
+        [
+            box((80.0, 30.0, 80.0), (0.0, 15.0, 0.0)),
+            moulding,
+            _band(30.0, 50.0, 28.0, 50.0, segments),  # ledge from the moulding in to the shaft, facing up
+            shaft,
+            echinus,
+            box((80.0, 20.0, 80.0), (0.0, 500.0, 0.0)),
+        ]
+    )
 
 
-def arch_mesh(inner_radius: float = 175.0, outer_radius: float = 225.0, half_depth: float = 30.0,
-              num_segments: int = 64) -> MeshData:
+def arch_mesh(
+    inner_radius: float = 175.0, outer_radius: float = 225.0, half_depth: float = 30.0, num_segments: int = 64
+) -> MeshData:
     """A semicircular arch in the XY plane (feet at x = +-radius, y = 0), depth along z.
 
     Revolved as a half ring about Y over the angles whose points then rise, and stood up by a
@@ -110,14 +114,18 @@ def arch_mesh(inner_radius: float = 175.0, outer_radius: float = 225.0, half_dep
     """
     half_ring = (np.pi / 2, 3 * np.pi / 2)
     bands = [
-        revolve(np.array([[outer_radius, -half_depth], [outer_radius, half_depth]]), num_segments,
-                angle_range=half_ring),                                           # extrados, facing out
-        revolve(np.array([[inner_radius, half_depth], [inner_radius, -half_depth]]), num_segments,
-                angle_range=half_ring),                                           # intrados, facing the axis
-        revolve(np.array([[outer_radius, half_depth], [inner_radius, half_depth]]), num_segments,
-                angle_range=half_ring),                                           # front face (+h)
-        revolve(np.array([[inner_radius, -half_depth], [outer_radius, -half_depth]]), num_segments,
-                angle_range=half_ring),                                           # back face (-h)
+        revolve(
+            np.array([[outer_radius, -half_depth], [outer_radius, half_depth]]), num_segments, angle_range=half_ring
+        ),  # extrados, facing out
+        revolve(
+            np.array([[inner_radius, half_depth], [inner_radius, -half_depth]]), num_segments, angle_range=half_ring
+        ),  # intrados, facing the axis
+        revolve(
+            np.array([[outer_radius, half_depth], [inner_radius, half_depth]]), num_segments, angle_range=half_ring
+        ),  # front face (+h)
+        revolve(
+            np.array([[inner_radius, -half_depth], [outer_radius, -half_depth]]), num_segments, angle_range=half_ring
+        ),  # back face (-h)
     ]
     return transformed(merge(bands), _rotation_x(90.0))
 
@@ -142,16 +150,18 @@ def _vase_radius(height_fraction: np.ndarray) -> np.ndarray:
 def vase_mesh(wall: float = 1.0, num_segments: int = 48) -> MeshData:
     """A 40 cm vase standing on y = 0, hollow with a 1 cm wall and a rim."""
     outside_t = np.linspace(0.0, 1.0, 33)
-    inside_t = np.linspace(1.0, 0.05, 32)                     # down the inside to a 2 cm thick bottom
+    inside_t = np.linspace(1.0, 0.05, 32)  # down the inside to a 2 cm thick bottom
     outside = np.stack([_vase_radius(outside_t), 40.0 * outside_t], -1)
     inside = np.stack([_vase_radius(inside_t) - wall, 40.0 * inside_t], -1)
-    return merge([
-        _band(0.0, 0.0, outside[0, 0], 0.0, num_segments),                    # foot, facing down
-        revolve(outside, num_segments),                                      # facing out
-        _band(outside[-1, 0], 40.0, inside[0, 0], 40.0, num_segments),      # rim, facing up
-        revolve(inside, num_segments),                                       # facing the axis
-        _band(inside[-1, 0], inside[-1, 1], 0.0, inside[-1, 1], num_segments),  # inner bottom, facing up
-    ])
+    return merge(
+        [
+            _band(0.0, 0.0, outside[0, 0], 0.0, num_segments),  # foot, facing down
+            revolve(outside, num_segments),  # facing out
+            _band(outside[-1, 0], 40.0, inside[0, 0], 40.0, num_segments),  # rim, facing up
+            revolve(inside, num_segments),  # facing the axis
+            _band(inside[-1, 0], inside[-1, 1], 0.0, inside[-1, 1], num_segments),  # inner bottom, facing up
+        ]
+    )
 
 
 def _wall_with_windows(side: float) -> MeshData:
@@ -159,13 +169,24 @@ def _wall_with_windows(side: float) -> MeshData:
     center_x = side * (HALF_WIDTH + 0.5 * WALL)
     length = 2.0 * (HALF_LENGTH + WALL)
     window_height = WINDOW_HEAD - WINDOW_SILL
-    edges = np.concatenate([[-0.5 * length], np.ravel([(z - 0.5 * WINDOW_WIDTH, z + 0.5 * WINDOW_WIDTH)
-                                                       for z in WINDOW_Z]), [0.5 * length]])
-    piers = [box((WALL, window_height, end - start), (center_x, WINDOW_SILL + 0.5 * window_height, 0.5 * (start + end)))
-             for start, end in zip(edges[::2], edges[1::2])]
-    return merge([box((WALL, WINDOW_SILL, length), (center_x, 0.5 * WINDOW_SILL, 0.0)),
-                  box((WALL, HEIGHT - WINDOW_HEAD, length), (center_x, 0.5 * (HEIGHT + WINDOW_HEAD), 0.0))]
-                 + piers)
+    edges = np.concatenate(
+        [
+            [-0.5 * length],
+            np.ravel([(z - 0.5 * WINDOW_WIDTH, z + 0.5 * WINDOW_WIDTH) for z in WINDOW_Z]),
+            [0.5 * length],
+        ]
+    )
+    piers = [
+        box((WALL, window_height, end - start), (center_x, WINDOW_SILL + 0.5 * window_height, 0.5 * (start + end)))
+        for start, end in zip(edges[::2], edges[1::2], strict=True)
+    ]
+    return merge(
+        [
+            box((WALL, WINDOW_SILL, length), (center_x, 0.5 * WINDOW_SILL, 0.0)),
+            box((WALL, HEIGHT - WINDOW_HEAD, length), (center_x, 0.5 * (HEIGHT + WINDOW_HEAD), 0.0)),
+        ]
+        + piers
+    )
 
 
 def _ceiling() -> MeshData:
@@ -175,12 +196,14 @@ def _ceiling() -> MeshData:
     y = HEIGHT + 0.5 * WALL
     front_depth = HALF_LENGTH + WALL - sz
     side_width = HALF_WIDTH + WALL - sx
-    return merge([
-        box((full_x, WALL, front_depth), (0.0, y, sz + 0.5 * front_depth)),
-        box((full_x, WALL, front_depth), (0.0, y, -sz - 0.5 * front_depth)),
-        box((side_width, WALL, 2.0 * sz), (sx + 0.5 * side_width, y, 0.0)),
-        box((side_width, WALL, 2.0 * sz), (-sx - 0.5 * side_width, y, 0.0)),
-    ])
+    return merge(
+        [
+            box((full_x, WALL, front_depth), (0.0, y, sz + 0.5 * front_depth)),
+            box((full_x, WALL, front_depth), (0.0, y, -sz - 0.5 * front_depth)),
+            box((side_width, WALL, 2.0 * sz), (sx + 0.5 * side_width, y, 0.0)),
+            box((side_width, WALL, 2.0 * sz), (-sx - 0.5 * side_width, y, 0.0)),
+        ]
+    )
 
 
 def _define_materials(stage) -> dict:
@@ -189,8 +212,14 @@ def _define_materials(stage) -> dict:
         "Plaster": dict(diffuseColor=(0.60, 0.58, 0.55), roughness=0.9),
         "Marble": dict(diffuseColor=(0.70, 0.68, 0.64), roughness=0.25),
         "Wood": dict(diffuseColor=(0.40, 0.24, 0.12), roughness=0.45),
-        "Ceramic": dict(diffuseColor=(0.08, 0.20, 0.35), useSpecularWorkflow=1, specularColor=(0.04, 0.04, 0.04),
-                        roughness=0.3, clearcoat=1.0, clearcoatRoughness=0.05),
+        "Ceramic": dict(
+            diffuseColor=(0.08, 0.20, 0.35),
+            useSpecularWorkflow=1,
+            specularColor=(0.04, 0.04, 0.04),
+            roughness=0.3,
+            clearcoat=1.0,
+            clearcoatRoughness=0.05,
+        ),
     }
     return {name: authoring.define_preview_material(stage, name, **inputs)[0] for name, inputs in specs.items()}
 
@@ -201,10 +230,14 @@ def _define_room(stage, materials: dict) -> None:
         "Floor": (plane(2.0 * HALF_WIDTH, 2.0 * HALF_LENGTH, st_repeat=10.0), "Stone"),
         "WallEast": (_wall_with_windows(1.0), "Plaster"),
         "WallWest": (_wall_with_windows(-1.0), "Plaster"),
-        "WallNorth": (box((2.0 * (HALF_WIDTH + WALL), HEIGHT, WALL), (0.0, 0.5 * HEIGHT, -HALF_LENGTH - 0.5 * WALL)),
-                      "Plaster"),
-        "WallSouth": (box((2.0 * (HALF_WIDTH + WALL), HEIGHT, WALL), (0.0, 0.5 * HEIGHT, HALF_LENGTH + 0.5 * WALL)),
-                      "Plaster"),
+        "WallNorth": (
+            box((2.0 * (HALF_WIDTH + WALL), HEIGHT, WALL), (0.0, 0.5 * HEIGHT, -HALF_LENGTH - 0.5 * WALL)),
+            "Plaster",
+        ),
+        "WallSouth": (
+            box((2.0 * (HALF_WIDTH + WALL), HEIGHT, WALL), (0.0, 0.5 * HEIGHT, HALF_LENGTH + 0.5 * WALL)),
+            "Plaster",
+        ),
         "Ceiling": (_ceiling(), "Plaster"),
     }
     for name, (mesh, material) in parts.items():
@@ -231,8 +264,15 @@ def _yaw_quaternions(degrees: np.ndarray) -> Vt.QuathArray:
     return Vt.QuathArray([Gf.Quath(float(np.cos(h)), Gf.Vec3h(0.0, float(np.sin(h)), 0.0)) for h in half])
 
 
-def _define_point_instancer(stage, path: str, prototypes: dict[str, tuple[MeshData, str]], materials: dict,
-                            proto_indices: np.ndarray, positions: np.ndarray, yaw_degrees: np.ndarray) -> None:
+def _define_point_instancer(
+    stage,
+    path: str,
+    prototypes: dict[str, tuple[MeshData, str]],
+    materials: dict,
+    proto_indices: np.ndarray,
+    positions: np.ndarray,
+    yaw_degrees: np.ndarray,
+) -> None:
     """A PointInstancer with mesh prototypes under <path>/Prototypes (each bound to its material)."""
     instancer = UsdGeom.PointInstancer.Define(stage, path)
     targets = []
@@ -250,22 +290,31 @@ def _define_instancers(stage, materials: dict) -> None:
     # Arches between neighbouring columns of each row, turned to span along z.
     arch_z = 0.5 * (np.asarray(COLUMN_Z[:-1]) + np.asarray(COLUMN_Z[1:]))
     arch_positions = np.array([(x, ARCH_SPRING_Y, z) for x in COLUMN_X for z in arch_z])
-    _define_point_instancer(stage, f"{authoring.GEOMETRY}/Arcade", {"Arch": (arch_mesh(), "Marble")}, materials,
-                            np.zeros(len(arch_positions)), arch_positions, np.full(len(arch_positions), 90.0))
+    _define_point_instancer(
+        stage,
+        f"{authoring.GEOMETRY}/Arcade",
+        {"Arch": (arch_mesh(), "Marble")},
+        materials,
+        np.zeros(len(arch_positions)),
+        arch_positions,
+        np.full(len(arch_positions), 90.0),
+    )
 
     # Tables, four chairs around each facing it, a vase on each.
     tables = np.array([(x, 0.0, z) for x in TABLE_X for z in TABLE_Z])
     chair_offsets = np.array([(-40.0, 0.0, -65.0), (40.0, 0.0, -65.0), (-40.0, 0.0, 65.0), (40.0, 0.0, 65.0)])
     chairs = (tables[:, None, :] + chair_offsets[None]).reshape(-1, 3)
-    chair_yaw = np.tile([0.0, 0.0, 180.0, 180.0], len(tables))          # chairs face +z; far side turned round
+    chair_yaw = np.tile([0.0, 0.0, 180.0, 180.0], len(tables))  # chairs face +z; far side turned round
     vases = tables + (0.0, TABLE_TOP_Y, 0.0)
     _define_point_instancer(
-        stage, f"{authoring.GEOMETRY}/Furniture",
+        stage,
+        f"{authoring.GEOMETRY}/Furniture",
         {"Table": (table_mesh(), "Wood"), "Chair": (chair_mesh(), "Wood"), "Vase": (vase_mesh(), "Ceramic")},
         materials,
         np.concatenate([np.zeros(len(tables)), np.ones(len(chairs)), np.full(len(vases), 2)]),
         np.concatenate([tables, chairs, vases]),
-        np.concatenate([np.zeros(len(tables)), chair_yaw, np.zeros(len(vases))]))
+        np.concatenate([np.zeros(len(tables)), chair_yaw, np.zeros(len(vases))]),
+    )
 
 
 def _define_lights(stage) -> None:
@@ -302,31 +351,64 @@ def write(directory: Path) -> Path:
     _define_columns(stage, materials)
     _define_instancers(stage, materials)
     _define_lights(stage)
-    camera = authoring.define_camera(stage, CAMERA, (0.0, 170.0, 1400.0), (0.0, 250.0, -HALF_LENGTH),
-                                     focal_length_mm=24.0, aperture_mm=(36.0, 27.0),
-                                     clipping_range=(1.0, 1.0e5))
+    camera = authoring.define_camera(
+        stage,
+        CAMERA,
+        (0.0, 170.0, 1400.0),
+        (0.0, 250.0, -HALF_LENGTH),
+        focal_length_mm=24.0,
+        aperture_mm=(36.0, 27.0),
+        clipping_range=(1.0, 1.0e5),
+    )
     authoring.define_render_settings(stage, camera, RESOLUTION)
     return authoring.save_stage(stage, Path(directory) / f"{NAME}.usda")
 
 
 LIGHT_EDITS = (
-    LightEdit("move", "move lamp A to the other end of its table row",
-              (LightOverride(LAMP_A, {"xformOp:translate": ("double3", Gf.Vec3d(-200.0, 260.0, 1000.0))}),)),
-    LightEdit("reaim_spot", "re-aim the wall wash at the east wall's windows",
-              (LightOverride(WALL_WASH, {"xformOp:rotateXYZ": ("float3", authoring.aim_rotation_xyz(
-                  np.subtract((HALF_WIDTH, 300.0, 0.0), WALL_WASH_POSITION)))}),)),
-    LightEdit("colour_shaping", "late-afternoon sun: lower, warmer; wall wash narrower and harder",
-              (LightOverride(SUN, {"xformOp:rotateXYZ": ("float3", authoring.aim_rotation_xyz((0.9, -0.6, 0.2))),
-                                   "inputs:color": ("color3f", Gf.Vec3f(1.0, 0.7, 0.45))}),
-               LightOverride(WALL_WASH, {"inputs:shaping:cone:angle": ("float", 15.0),
-                                         "inputs:shaping:cone:softness": ("float", 0.05)}))),
+    LightEdit(
+        "move",
+        "move lamp A to the other end of its table row",
+        (LightOverride(LAMP_A, {"xformOp:translate": ("double3", Gf.Vec3d(-200.0, 260.0, 1000.0))}),),
+    ),
+    LightEdit(
+        "reaim_spot",
+        "re-aim the wall wash at the east wall's windows",
+        (
+            LightOverride(
+                WALL_WASH,
+                {
+                    "xformOp:rotateXYZ": (
+                        "float3",
+                        authoring.aim_rotation_xyz(np.subtract((HALF_WIDTH, 300.0, 0.0), WALL_WASH_POSITION)),
+                    )
+                },
+            ),
+        ),
+    ),
+    LightEdit(
+        "colour_shaping",
+        "late-afternoon sun: lower, warmer; wall wash narrower and harder",
+        (
+            LightOverride(
+                SUN,
+                {
+                    "xformOp:rotateXYZ": ("float3", authoring.aim_rotation_xyz((0.9, -0.6, 0.2))),
+                    "inputs:color": ("color3f", Gf.Vec3f(1.0, 0.7, 0.45)),
+                },
+            ),
+            LightOverride(
+                WALL_WASH,
+                {"inputs:shaping:cone:angle": ("float", 15.0), "inputs:shaping:cone:softness": ("float", 0.05)},
+            ),
+        ),
+    ),
 )
 
 SCENE = BundledScene(
     name=NAME,
     camera=CAMERA,
     description="hall with a colonnade, arches and furniture (~320k triangles via instancing); "
-                "sun, window rect, two sphere lamps, disk spot",
+    "sun, window rect, two sphere lamps, disk spot",
     write=write,
     light_edits=LIGHT_EDITS,
 )

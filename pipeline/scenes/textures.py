@@ -22,8 +22,9 @@ MORTAR_LINEAR_RGB = np.array([0.45, 0.44, 0.40])
 """Linear albedo of the mortar."""
 
 
-def brick_height(size: int, num_bricks_x: int, num_rows: int, *, mortar: float = 0.06,
-                 bevel: float = 0.05) -> np.ndarray:
+def brick_height(
+    size: int, num_bricks_x: int, num_rows: int, *, mortar: float = 0.06, bevel: float = 0.05
+) -> np.ndarray:
     """Height field of a running-bond brick wall, 0 in the mortar and 1 on the brick faces.
 
     Args:
@@ -36,17 +37,17 @@ def brick_height(size: int, num_bricks_x: int, num_rows: int, *, mortar: float =
     Returns:
         (size, size) float32 heights in [0, 1].
     """
-    row_f = (np.arange(size) + 0.5) / size * num_rows                       # brick-row units
-    col_f = (np.arange(size) + 0.5) / size * num_bricks_x                   # brick-width units
+    row_f = (np.arange(size) + 0.5) / size * num_rows  # brick-row units
+    col_f = (np.arange(size) + 0.5) / size * num_bricks_x  # brick-width units
     row_index = np.floor(row_f)[:, None]
-    shifted = col_f[None, :] + 0.5 * (row_index % 2)                         # half-brick offset every other row
-    brick_aspect = (size / num_bricks_x) / (size / num_rows)                 # brick width / height
+    shifted = col_f[None, :] + 0.5 * (row_index % 2)  # half-brick offset every other row
+    brick_aspect = (size / num_bricks_x) / (size / num_rows)  # brick width / height
     # Distance to the nearest joint, in brick heights.
     to_row_joint = 0.5 - np.abs(row_f[:, None] - row_index - 0.5)
     to_col_joint = (0.5 - np.abs(shifted - np.floor(shifted) - 0.5)) * brick_aspect
     inside = np.minimum(to_row_joint, to_col_joint) - 0.5 * mortar
     ramp = np.clip(inside / bevel, 0.0, 1.0)
-    return (ramp * ramp * (3.0 - 2.0 * ramp)).astype(np.float32)             # smoothstep bevel
+    return (ramp * ramp * (3.0 - 2.0 * ramp)).astype(np.float32)  # smoothstep bevel
 
 
 def brick_albedo(height: np.ndarray, num_bricks_x: int, num_rows: int, seed: int = 7) -> np.ndarray:
@@ -61,12 +62,12 @@ def brick_albedo(height: np.ndarray, num_bricks_x: int, num_rows: int, seed: int
     """
     size = height.shape[0]
     rng = np.random.default_rng(seed)
-    tints = rng.uniform(0.75, 1.2, size=(num_rows, num_bricks_x, 1)) * BRICK_LINEAR_RGB   # (rows, bricks, 3)
+    tints = rng.uniform(0.75, 1.2, size=(num_rows, num_bricks_x, 1)) * BRICK_LINEAR_RGB  # (rows, bricks, 3)
     row = (np.arange(size) * num_rows // size)[:, None]
     col_f = (np.arange(size) + 0.5) / size * num_bricks_x
-    col = np.floor(col_f[None, :] + 0.5 * (row % 2)).astype(int) % num_bricks_x   # wrap: tiles seamlessly
-    brick = tints[row, col, :]                                                       # (S, S, 3)
-    mix = np.clip(height * 4.0, 0.0, 1.0)[..., None]                                 # mortar -> brick quickly
+    col = np.floor(col_f[None, :] + 0.5 * (row % 2)).astype(int) % num_bricks_x  # wrap: tiles seamlessly
+    brick = tints[row, col, :]  # (S, S, 3)
+    mix = np.clip(height * 4.0, 0.0, 1.0)[..., None]  # mortar -> brick quickly
     return np.clip(mix * brick + (1.0 - mix) * MORTAR_LINEAR_RGB, 0.0, 1.0).astype(np.float32)
 
 
@@ -82,7 +83,7 @@ def normal_map_from_height(height: np.ndarray, depth: float) -> np.ndarray:
     """
     size = height.shape[0]
     dh_ds = (np.roll(height, -1, axis=1) - np.roll(height, 1, axis=1)) * (0.5 * size)
-    dh_dt = -(np.roll(height, -1, axis=0) - np.roll(height, 1, axis=0)) * (0.5 * size)   # rows run down
+    dh_dt = -(np.roll(height, -1, axis=0) - np.roll(height, 1, axis=0)) * (0.5 * size)  # rows run down
     normal = np.stack([-depth * dh_ds, -depth * dh_dt, np.ones_like(height)], axis=-1)
     return (normal / np.linalg.norm(normal, axis=-1, keepdims=True)).astype(np.float32)
 
@@ -111,8 +112,9 @@ def write_png(path: Path, pixels: np.ndarray, *, color_space: str) -> Path:
     return path
 
 
-def write_brick_textures(directory: Path, prefix: str, *, size: int = 512, num_bricks_x: int = 4,
-                         num_rows: int = 8, depth: float = 0.01) -> tuple[Path, Path]:
+def write_brick_textures(
+    directory: Path, prefix: str, *, size: int = 512, num_bricks_x: int = 4, num_rows: int = 8, depth: float = 0.01
+) -> tuple[Path, Path]:
     """Write <prefix>_brick_albedo.png (sRGB) and <prefix>_brick_normal.png (raw) into `directory`.
 
     Returns:
@@ -122,5 +124,7 @@ def write_brick_textures(directory: Path, prefix: str, *, size: int = 512, num_b
     albedo = brick_albedo(height, num_bricks_x, num_rows)
     normal = normal_map_from_height(height, depth)
     directory = Path(directory)
-    return (write_png(directory / f"{prefix}_brick_albedo.png", srgb_encode(albedo), color_space="sRGB"),
-            write_png(directory / f"{prefix}_brick_normal.png", 0.5 * (normal + 1.0), color_space="Raw"))
+    return (
+        write_png(directory / f"{prefix}_brick_albedo.png", srgb_encode(albedo), color_space="sRGB"),
+        write_png(directory / f"{prefix}_brick_normal.png", 0.5 * (normal + 1.0), color_space="Raw"),
+    )

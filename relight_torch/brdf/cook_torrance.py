@@ -17,8 +17,14 @@ import torch
 
 from relight_torch.brdf.common import check_pair, check_sample_args, positive, where_above
 from relight_torch.brdf.params import BrdfParams, colour, scalar
-from relight_torch.math.microfacet import (ggx_d, ggx_reflection_pdf, half_cosines, sample_ggx_reflection, schlick_fresnel,
-                                           smith_g_ggx)
+from relight_torch.math.microfacet import (
+    ggx_d,
+    ggx_reflection_pdf,
+    half_cosines,
+    sample_ggx_reflection,
+    schlick_fresnel,
+    smith_g_ggx,
+)
 
 
 @dataclass(frozen=True)
@@ -33,7 +39,7 @@ def eval(params: CookTorranceParams, wo_local: torch.Tensor, wi_local: torch.Ten
     """BRDF value (..., 3) in 1/sr for directions (..., 3); 0 below the horizon."""
     check_pair(wo_local, wi_local)
     cos_o, cos_i = wo_local[..., 2], wi_local[..., 2]
-    cos_h, wo_dot_h = half_cosines(wo_local, wi_local)   # N.h as its pdf computes it
+    cos_h, wo_dot_h = half_cosines(wo_local, wi_local)  # N.h as its pdf computes it
     fresnel = schlick_fresnel(params.f0, torch.ones_like(params.f0), wo_dot_h.unsqueeze(-1))
     microfacet = ggx_d(cos_h, params.alpha) * smith_g_ggx(cos_o, cos_i, params.alpha)
     value = fresnel * (microfacet / (4.0 * positive(cos_o) * positive(cos_i))).unsqueeze(-1)

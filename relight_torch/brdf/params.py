@@ -10,7 +10,8 @@ Rows broadcast against the batch axes of the directions: params of N rows shade 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Mapping, Self
+from collections.abc import Mapping
+from typing import Any, Self
 
 import numpy as np
 import torch

@@ -166,8 +166,14 @@ def split(
 
 
 def split_factors(
-    params: PreviewSurfaceParams, cos_e: torch.Tensor, cos_l: torch.Tensor, e_dot_l: torch.Tensor, coat: bool,
-    weight: torch.Tensor | None = None, view_sq: torch.Tensor | float = 1.0, light_sq: torch.Tensor | float = 1.0,
+    params: PreviewSurfaceParams,
+    cos_e: torch.Tensor,
+    cos_l: torch.Tensor,
+    e_dot_l: torch.Tensor,
+    coat: bool,
+    weight: torch.Tensor | None = None,
+    view_sq: torch.Tensor | float = 1.0,
+    light_sq: torch.Tensor | float = 1.0,
 ) -> torch.Tensor:
     """The scalars (F, ...) that `split` is linear in, for lights summed over many directions.
 
@@ -189,13 +195,23 @@ def split_factors(
         weight: multiplies every factor (e.g. a cosine and a solid angle), or None.
         view_sq, light_sq: |E|^2 and |L|^2 where the directions are not unit.
     """
-    roughnesses = (params.roughness, params.clearcoat_roughness)[:1 + coat]
+    roughnesses = (params.roughness, params.clearcoat_roughness)[: 1 + coat]
     batch = torch.broadcast_shapes(  # type: ignore[no-untyped-call]  # unannotated in torch
         cos_e.shape, cos_l.shape, e_dot_l.shape, *(r.shape for r in roughnesses), () if weight is None else weight.shape
     )
     out = cos_l.new_empty(2 + 2 * len(roughnesses), *batch)
-    return split_factors_cosines(roughnesses, cos_e, cos_l, e_dot_l, 1.0 if weight is None else weight, out,
-                                 cos_l.new_empty(4, *batch), view_sq, light_sq, cosine=False)
+    return split_factors_cosines(
+        roughnesses,
+        cos_e,
+        cos_l,
+        e_dot_l,
+        1.0 if weight is None else weight,
+        out,
+        cos_l.new_empty(4, *batch),
+        view_sq,
+        light_sq,
+        cosine=False,
+    )
 
 
 # `split_factors_cosines`' factor blocks: one (F, P, M) tensor, or F (P, M) tensors (compiled callers).
@@ -203,9 +219,16 @@ _Blocks = TypeVar("_Blocks", bound=torch.Tensor | Sequence[torch.Tensor])
 
 
 def split_factors_cosines(
-    roughnesses: tuple[torch.Tensor, ...], cos_e: torch.Tensor, cos_l: torch.Tensor, e_dot_l: torch.Tensor,
-    weight: torch.Tensor | float, out: _Blocks, scratch: torch.Tensor | Sequence[torch.Tensor],
-    view_sq: torch.Tensor | float = 1.0, light_sq: torch.Tensor | float = 1.0, cosine: bool = True,
+    roughnesses: tuple[torch.Tensor, ...],
+    cos_e: torch.Tensor,
+    cos_l: torch.Tensor,
+    e_dot_l: torch.Tensor,
+    weight: torch.Tensor | float,
+    out: _Blocks,
+    scratch: torch.Tensor | Sequence[torch.Tensor],
+    view_sq: torch.Tensor | float = 1.0,
+    light_sq: torch.Tensor | float = 1.0,
+    cosine: bool = True,
 ) -> _Blocks:
     """`split_factors` times max(N.L, 0) (or without it: `cosine` False) from dot products,
     computed in place: for P points with M light directions each, in blocks that stay in cache.
@@ -235,21 +258,21 @@ def split_factors_cosines(
     lit, schlick = out[0], out[1]
     temp, temp2, cos_h, lit_cos = scratch[0], scratch[1], scratch[2], scratch[3]
     cos_e_clamped = cos_e.clamp(0.0, 1.0)
-    torch.clamp(cos_l, 0.0, 1.0, out=temp2)                    # N.L, 0 below the horizon
+    torch.clamp(cos_l, 0.0, 1.0, out=temp2)  # N.L, 0 below the horizon
     torch.mul(temp2 if cosine else temp2 > 0, weight, out=lit)
-    if torch.compiler.is_compiling() or not bool((cos_e > 0).all()):   # compiled: no data-dependent branch
+    if torch.compiler.is_compiling() or not bool((cos_e > 0).all()):  # compiled: no data-dependent branch
         lit.mul_(cos_e > 0)
-    torch.mul(lit, temp2, out=lit_cos)                          # the N.L of G1(N.L) (times the cosine's)
-    torch.add(e_dot_l, view_sq, out=schlick)                    # E.h |h|
+    torch.mul(lit, temp2, out=lit_cos)  # the N.L of G1(N.L) (times the cosine's)
+    torch.add(e_dot_l, view_sq, out=schlick)  # E.h |h|
     torch.add(schlick, light_sq, out=temp)
-    temp.add_(e_dot_l).clamp_min_(1e-24).rsqrt_()               # 1 / |h|
-    schlick.mul_(temp).clamp_(0.0, 1.0)                         # E.h
+    temp.add_(e_dot_l).clamp_min_(1e-24).rsqrt_()  # 1 / |h|
+    schlick.mul_(temp).clamp_(0.0, 1.0)  # E.h
     torch.add(cos_l, cos_e, out=cos_h)
-    cos_h.mul_(temp).clamp_(0.0, 1.0)                           # N.h
+    cos_h.mul_(temp).clamp_(0.0, 1.0)  # N.h
     schlick.neg_().add_(1.0)
     torch.mul(schlick, schlick, out=temp)
     temp.mul_(temp)
-    schlick.mul_(temp)                                          # (1 - E.h)^5
+    schlick.mul_(temp)  # (1 - E.h)^5
     for index, roughness in enumerate(roughnesses):
         alpha = storm_alpha(roughness)
         a2, k = alpha * alpha, 0.5 * alpha
@@ -346,9 +369,7 @@ def lobe_probabilities(params: PreviewSurfaceParams, wo_local: torch.Tensor) -> 
     return torch.where(total > 0, weights / total.clamp_min(torch.finfo(weights.dtype).tiny), black)
 
 
-def sample(
-    params: PreviewSurfaceParams, wo_local: torch.Tensor, u: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
+def sample(params: PreviewSurfaceParams, wo_local: torch.Tensor, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """wi (..., 3) from the lobe mixture, with the mixture pdf (...) (0 for lost samples).
 
     u[..., 0] picks the lobe and is then rescaled to [0, 1) within the lobe's interval, so two

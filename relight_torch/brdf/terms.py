@@ -9,8 +9,9 @@ The names are the keys of `TERM_MODULES`; each module exposes eval / sample / pd
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from types import ModuleType
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
 
 import torch
 

@@ -77,12 +77,12 @@ def gbuffer_to_channels(gbuffer: GBuffer) -> tuple[dict[str, np.ndarray], dict[s
     channels = {"coverage": image(np.ones(index.size), np.float16)}
     for layer, name, components, dtype in GEOMETRY_CHANNELS:
         values = getattr(gbuffer, name).cpu().numpy()
-        for channel, column in zip(_names(layer, components), _columns(values)):
+        for channel, column in zip(_names(layer, components), _columns(values), strict=True):
             channels[channel] = image(column, dtype)
     constants: dict[str, float] = {}
     for layer, name, components in MATERIAL_CHANNELS:
         values = getattr(gbuffer.params, name).cpu().numpy().astype(np.float32)
-        for channel, column in zip(_names(layer, components), _columns(values)):
+        for channel, column in zip(_names(layer, components), _columns(values), strict=True):
             if not column.size:  # nothing covered: every channel is trivially constant
                 constants[channel] = 0.0
             elif np.all(column == column[0]):
@@ -111,19 +111,22 @@ def check_channel_types(types: dict[str, np.dtype], source: str) -> None:
     for layer, _, components, dtype in GEOMETRY_CHANNELS:
         expected.update({channel: (np.dtype(dtype),) for channel in _names(layer, components)})
     for layer, _, components in MATERIAL_CHANNELS:
-        expected.update({channel: (np.dtype(np.float16), np.dtype(np.float32))
-                         for channel in _names(layer, components)})
+        expected.update(
+            {channel: (np.dtype(np.float16), np.dtype(np.float32)) for channel in _names(layer, components)}
+        )
     for channel, dtype in sorted(types.items()):
         if channel not in expected:
             raise RelightError(f"{source}: unexpected deep framebuffer channel {channel}")
         if np.dtype(dtype) not in expected[channel]:
             names = " or ".join(PIXEL_TYPE_NAMES[d] for d in expected[channel])
-            raise RelightError(f"{source}: channel {channel} is {PIXEL_TYPE_NAMES.get(np.dtype(dtype), dtype)}, "
-                               f"expected {names}")
+            raise RelightError(
+                f"{source}: channel {channel} is {PIXEL_TYPE_NAMES.get(np.dtype(dtype), dtype)}, expected {names}"
+            )
 
 
-def gbuffer_from_channels(channels: dict[str, np.ndarray], constants: dict[str, float],
-                          camera_position: np.ndarray, source: str) -> GBuffer:
+def gbuffer_from_channels(
+    channels: dict[str, np.ndarray], constants: dict[str, float], camera_position: np.ndarray, source: str
+) -> GBuffer:
     """Rebuild a GBuffer (CPU tensors) from EXR channels and constants.
 
     Raises:
@@ -157,10 +160,13 @@ def gbuffer_from_channels(channels: dict[str, np.ndarray], constants: dict[str, 
         columns = [column(c, dtype) for c in _names(layer, components)]
         return np.stack(columns, axis=-1) if components else columns[0]
 
-    arrays = {name: gather(layer, comps, np.float32 if dtype != np.uint32 else np.int32)
-              for layer, name, comps, dtype in GEOMETRY_CHANNELS}
+    arrays = {
+        name: gather(layer, comps, np.float32 if dtype != np.uint32 else np.int32)
+        for layer, name, comps, dtype in GEOMETRY_CHANNELS
+    }
     material = {name: gather(layer, comps, np.float32) for layer, name, comps in MATERIAL_CHANNELS}
     material["use_specular_workflow"] = material["use_specular_workflow"] > 0.5
     params = PreviewSurfaceParams.from_numpy(material)
-    return GBuffer.from_numpy(image_size=shape, pixel_index=pixel_index, params=params,
-                              camera_position=camera_position, **arrays)
+    return GBuffer.from_numpy(
+        image_size=shape, pixel_index=pixel_index, params=params, camera_position=camera_position, **arrays
+    )

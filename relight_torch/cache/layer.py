@@ -31,8 +31,8 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
 from relight_torch.errors import RelightError
-from relight_torch.methods import METHOD_NAMES
 from relight_torch.io.atomic import atomic_path
+from relight_torch.methods import METHOD_NAMES
 from relight_torch.schema import register_schemas
 from relight_torch.stage import usd_error_line
 
@@ -111,8 +111,9 @@ class CacheDescription:
         for payload in self.payloads:
             if payload.name == name:
                 return payload
-        raise RelightError(f"{self.layer or 'cache'}: has no payload named {name!r} "
-                           f"(has {[p.name for p in self.payloads]})")
+        raise RelightError(
+            f"{self.layer or 'cache'}: has no payload named {name!r} (has {[p.name for p in self.payloads]})"
+        )
 
 
 def file_sha256(path: str | os.PathLike) -> str:
@@ -167,8 +168,9 @@ def shot_units(source: str | os.PathLike) -> tuple[str, float]:
         raise RelightError(f"{source}: no such USD layer (the cache's source)")
     root = layer.pseudoRoot
     up_axis = root.GetInfo("upAxis") if root.HasInfo("upAxis") else UsdGeom.GetFallbackUpAxis()
-    meters_per_unit = (root.GetInfo("metersPerUnit") if root.HasInfo("metersPerUnit")
-                       else UsdGeom.LinearUnits.centimeters)
+    meters_per_unit = (
+        root.GetInfo("metersPerUnit") if root.HasInfo("metersPerUnit") else UsdGeom.LinearUnits.centimeters
+    )
     return str(up_axis), float(meters_per_unit)
 
 
@@ -186,8 +188,10 @@ def write_cache_layer(path: str | os.PathLike, description: CacheDescription) ->
     up_axis, meters_per_unit = shot_units(description.source)
     UsdGeom.SetStageUpAxis(stage, up_axis)
     UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
-    layer.documentation = (f"relight {description.method} cache of {description.camera_path} in "
-                           f"{os.path.relpath(description.source, directory)}")
+    layer.documentation = (
+        f"relight {description.method} cache of {description.camera_path} in "
+        f"{os.path.relpath(description.source, directory)}"
+    )
     cache = stage.DefinePrim(CACHE_PRIM, "RelightCache")
     stage.SetDefaultPrim(cache)
     cache.GetAttribute("relight:method").Set(description.method)
@@ -261,8 +265,12 @@ def _read_payload(prim: Usd.Prim, path: Path) -> Payload:
     """One RelightPayload prim, its attributes checked for consistency."""
     names = list(_get(prim, "relight:constantChannels", path))
     values = [float(v) for v in _get(prim, "relight:constantValues", path)]
-    _require(len(names) == len(values), path, prim,
-             f"relight:constantValues has {len(values)} values for {len(names)} relight:constantChannels")
+    _require(
+        len(names) == len(values),
+        path,
+        prim,
+        f"relight:constantValues has {len(values)} values for {len(names)} relight:constantChannels",
+    )
     file = _get(prim, "relight:file", path).path
     _require(bool(file), path, prim, "relight:file is empty")
     # Payloads live beside their layer: a path out of its folder would let an edited layer make
@@ -279,20 +287,32 @@ def _read_payload(prim: Usd.Prim, path: Path) -> Payload:
         channels=tuple(_get(prim, "relight:channels", path)),
         shape=tuple(int(n) for n in _get(prim, "relight:shape", path)),
         dtype=_get(prim, "relight:dtype", path),
-        constants=dict(zip(names, values)),
+        constants=dict(zip(names, values, strict=True)),
     )
     _require(payload.format in FORMATS, path, prim, f"relight:format {payload.format!r} is not one of {FORMATS}")
-    _require(_SHA256.fullmatch(payload.sha256) is not None, path, prim,
-             f"relight:sha256 {payload.sha256!r} is not a sha256 hex digest")
+    _require(
+        _SHA256.fullmatch(payload.sha256) is not None,
+        path,
+        prim,
+        f"relight:sha256 {payload.sha256!r} is not a sha256 hex digest",
+    )
     _require(payload.num_bytes > 0, path, prim, f"relight:bytes = {payload.num_bytes} must be > 0")
     if payload.format == "exr":
         _require(len(payload.channels) > 0, path, prim, "relight:channels is empty for an EXR payload")
-        _require(payload.shape == () or (len(payload.shape) == 2 and min(payload.shape) > 0), path, prim,
-                 f"relight:shape {list(payload.shape)} of an EXR payload must be empty or a positive (H, W)")
+        _require(
+            payload.shape == () or (len(payload.shape) == 2 and min(payload.shape) > 0),
+            path,
+            prim,
+            f"relight:shape {list(payload.shape)} of an EXR payload must be empty or a positive (H, W)",
+        )
     else:
         _require(all(n >= 0 for n in payload.shape), path, prim, f"relight:shape {list(payload.shape)} is negative")
-        _require(plain_dtype(payload.dtype), path, prim,
-                 f"relight:dtype {payload.dtype!r} is not a numpy dtype without objects")
+        _require(
+            plain_dtype(payload.dtype),
+            path,
+            prim,
+            f"relight:dtype {payload.dtype!r} is not a numpy dtype without objects",
+        )
     return payload
 
 
@@ -316,8 +336,9 @@ def read_cache_layer(path: str | os.PathLike) -> CacheDescription:
         raise RelightError(f"{path}: not a relight cache (no RelightCache prim at {CACHE_PRIM})")
     version = _get(cache, "relight:version", path)
     if version != CACHE_VERSION:
-        raise RelightError(f"{path}: cache version {version} is not supported (this relight reads version "
-                           f"{CACHE_VERSION}); re-bake it")
+        raise RelightError(
+            f"{path}: cache version {version} is not supported (this relight reads version {CACHE_VERSION}); re-bake it"
+        )
     method = _get(cache, "relight:method", path)
     _require(method in METHOD_NAMES, path, cache, f"relight:method {method!r} is not one of {METHOD_NAMES}")
     directory = path.parent.resolve()
@@ -325,26 +346,47 @@ def read_cache_layer(path: str | os.PathLike) -> CacheDescription:
     _require(bool(source), path, cache, "relight:source is empty")
     files = list(_get(cache, "relight:inputFiles", path))
     hashes = list(_get(cache, "relight:inputHashes", path))
-    _require(len(files) == len(hashes), path, cache,
-             f"relight:inputHashes has {len(hashes)} entries for {len(files)} relight:inputFiles")
+    _require(
+        len(files) == len(hashes),
+        path,
+        cache,
+        f"relight:inputHashes has {len(hashes)} entries for {len(files)} relight:inputFiles",
+    )
     camera_path = _get(cache, "relight:cameraPath", path)
-    _require(Sdf.Path.IsValidPathString(camera_path) and Sdf.Path(camera_path).IsAbsolutePath()
-             and Sdf.Path(camera_path).IsPrimPath(), path, cache,
-             f"relight:cameraPath {camera_path!r} is not an absolute prim path")
+    _require(
+        Sdf.Path.IsValidPathString(camera_path)
+        and Sdf.Path(camera_path).IsAbsolutePath()
+        and Sdf.Path(camera_path).IsPrimPath(),
+        path,
+        cache,
+        f"relight:cameraPath {camera_path!r} is not an absolute prim path",
+    )
     resolution = tuple(int(v) for v in _get(cache, "relight:resolution", path))
     _require(min(resolution) > 0, path, cache, f"relight:resolution {list(resolution)} must be positive")
     supersampling = int(_get(cache, "relight:supersampling", path))
     _require(supersampling >= 1, path, cache, f"relight:supersampling = {supersampling} must be >= 1")
     exposure_scale = float(_get(cache, "relight:exposureScale", path))
-    _require(math.isfinite(exposure_scale) and exposure_scale >= 0, path, cache,
-             f"relight:exposureScale = {exposure_scale} must be finite and >= 0")
+    _require(
+        math.isfinite(exposure_scale) and exposure_scale >= 0,
+        path,
+        cache,
+        f"relight:exposureScale = {exposure_scale} must be finite and >= 0",
+    )
     matrix = np.array(_get(cache, "relight:worldFromCamera", path), dtype=np.float64).T
-    _require(bool(np.all(np.isfinite(matrix))) and not math.isclose(abs(np.linalg.det(matrix[:3, :3])), 0.0),
-             path, cache, "relight:worldFromCamera is not a valid transform")
-    parameters = {a.GetName().split(":", 2)[2]: a.Get() for a in cache.GetAttributes()
-                  if a.GetName().startswith("relight:parameters:")}
-    payloads = tuple(_read_payload(prim, path) for prim in cache.GetChildren()
-                     if prim.GetTypeName() == "RelightPayload")
+    _require(
+        bool(np.all(np.isfinite(matrix))) and not math.isclose(abs(np.linalg.det(matrix[:3, :3])), 0.0),
+        path,
+        cache,
+        "relight:worldFromCamera is not a valid transform",
+    )
+    parameters = {
+        a.GetName().split(":", 2)[2]: a.Get()
+        for a in cache.GetAttributes()
+        if a.GetName().startswith("relight:parameters:")
+    }
+    payloads = tuple(
+        _read_payload(prim, path) for prim in cache.GetChildren() if prim.GetTypeName() == "RelightPayload"
+    )
     return CacheDescription(
         method=method,
         source=str((directory / source).resolve()),
@@ -354,7 +396,7 @@ def read_cache_layer(path: str | os.PathLike) -> CacheDescription:
         world_from_camera=matrix,
         exposure_scale=exposure_scale,
         content_hash=_get(cache, "relight:contentHash", path),
-        inputs={str((directory / f).resolve()): h for f, h in zip(files, hashes)},
+        inputs={str((directory / f).resolve()): h for f, h in zip(files, hashes, strict=True)},
         parameters=parameters,
         payloads=payloads,
         code_version=str(cache.GetAttribute("relight:codeVersion").Get() or ""),

@@ -19,8 +19,9 @@ import contextlib
 import hashlib
 import math
 import os
+from collections.abc import Iterator
 from pathlib import Path
-from typing import BinaryIO, Iterator
+from typing import BinaryIO
 
 import numpy as np
 
@@ -29,7 +30,6 @@ from relight_torch.cache.layer import CacheDescription, Payload, file_sha256, pl
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.io.exr import ExrHeader, read_exr, read_exr_header
-
 
 MAX_EXR_EXPANSION = 2048
 """An EXR payload whose header claims more raw pixel bytes than this many times its file size is
@@ -67,11 +67,15 @@ def check_payload_bytes(path: Path, payload: Payload, handle: BinaryIO | None = 
     if size < payload.num_bytes:
         raise RelightError(f"{path}: payload {payload.name} is truncated ({size} of {payload.num_bytes} bytes)")
     if size != payload.num_bytes:
-        raise RelightError(f"{path}: payload {payload.name} is {size} bytes, the cache layer records "
-                           f"{payload.num_bytes} (replaced or appended to)")
+        raise RelightError(
+            f"{path}: payload {payload.name} is {size} bytes, the cache layer records "
+            f"{payload.num_bytes} (replaced or appended to)"
+        )
     if _handle_sha256(handle) != payload.sha256:
-        raise RelightError(f"{path}: payload {payload.name} does not match the sha256 the cache layer records "
-                           f"(corrupt, edited, or overwritten by another bake)")
+        raise RelightError(
+            f"{path}: payload {payload.name} does not match the sha256 the cache layer records "
+            f"(corrupt, edited, or overwritten by another bake)"
+        )
     return None
 
 
@@ -91,17 +95,23 @@ def check_exr_header(path: Path, payload: Payload, header: ExrHeader, image_size
     height, width = image_size
     raw = header.width * header.height * sum(dtype.itemsize for dtype in header.channels.values())
     if raw > MAX_EXR_EXPANSION * path.stat().st_size:
-        raise RelightError(f"{path}: payload {payload.name} header claims {header.width}x{header.height} x "
-                           f"{len(header.channels)} channels ({raw} bytes) from a {path.stat().st_size}-byte file; "
-                           f"refused before reading")
+        raise RelightError(
+            f"{path}: payload {payload.name} header claims {header.width}x{header.height} x "
+            f"{len(header.channels)} channels ({raw} bytes) from a {path.stat().st_size}-byte file; "
+            f"refused before reading"
+        )
     if (header.height, header.width) != (height, width):
-        raise RelightError(f"{path}: payload {payload.name} is a {header.width}x{header.height} EXR, "
-                           f"the cache layer says {width}x{height}")
+        raise RelightError(
+            f"{path}: payload {payload.name} is a {header.width}x{header.height} EXR, "
+            f"the cache layer says {width}x{height}"
+        )
     if set(header.channels) != set(payload.channels):
         extra = sorted(set(header.channels) - set(payload.channels))
         missing = sorted(set(payload.channels) - set(header.channels))
-        raise RelightError(f"{path}: payload {payload.name} channels differ from the cache layer's "
-                           f"(unexpected {extra}, missing {missing})")
+        raise RelightError(
+            f"{path}: payload {payload.name} channels differ from the cache layer's "
+            f"(unexpected {extra}, missing {missing})"
+        )
     check_channel_types(header.channels, str(path))
 
 
@@ -172,8 +182,10 @@ def read_npy_header(path: Path, handle: BinaryIO | None = None) -> tuple[tuple[i
     data_bytes = math.prod(shape) * dtype.itemsize
     size = os.fstat(handle.fileno()).st_size
     if data_offset + data_bytes != size:
-        raise RelightError(f"{path}: .npy header claims {dtype.name}{list(shape)} ({data_bytes} bytes of data) but "
-                           f"the file holds {size - data_offset}; refused before reading")
+        raise RelightError(
+            f"{path}: .npy header claims {dtype.name}{list(shape)} ({data_bytes} bytes of data) but "
+            f"the file holds {size - data_offset}; refused before reading"
+        )
     return shape, dtype, fortran_order, data_offset
 
 
@@ -181,13 +193,16 @@ def check_npy_header(path: Path, payload: Payload, header: tuple[tuple[int, ...]
     """Refuse a .npy payload whose shape or dtype (`header`, from `read_npy_header`) differ from the layer's."""
     shape, dtype = header[:2]
     if shape != payload.shape or dtype.name != payload.dtype:
-        raise RelightError(f"{path}: payload {payload.name} is {dtype.name}{list(shape)}, the cache layer says "
-                           f"{payload.dtype}{list(payload.shape)}")
+        raise RelightError(
+            f"{path}: payload {payload.name} is {dtype.name}{list(shape)}, the cache layer says "
+            f"{payload.dtype}{list(payload.shape)}"
+        )
 
 
 @contextlib.contextmanager
-def opened_payload(layer_path: Path, description: CacheDescription, payload: Payload,
-                   image_size: tuple[int, int] | None = None) -> Iterator[tuple[Path, BinaryIO, object]]:
+def opened_payload(
+    layer_path: Path, description: CacheDescription, payload: Payload, image_size: tuple[int, int] | None = None
+) -> Iterator[tuple[Path, BinaryIO, object]]:
     """Open one payload file and make every check short of decoding it; yields (path, handle, header).
 
     The header and bytes checked are those of the open handle's file, so what is decoded from the
@@ -233,8 +248,9 @@ def _identity(status: os.stat_result) -> tuple[int, ...]:
     return status.st_dev, status.st_ino, status.st_size, status.st_mtime_ns, status.st_ctime_ns
 
 
-def read_payload_exr(layer_path: Path, description: CacheDescription, payload: Payload,
-                     image_size: tuple[int, int] | None = None) -> tuple[Path, dict[str, np.ndarray]]:
+def read_payload_exr(
+    layer_path: Path, description: CacheDescription, payload: Payload, image_size: tuple[int, int] | None = None
+) -> tuple[Path, dict[str, np.ndarray]]:
     """An EXR payload's channels, checked as `opened_payload` does; returns (path, channels).
 
     OpenEXR reads by path, so the file is checked to be the one whose bytes were hashed after it is
@@ -247,8 +263,10 @@ def read_payload_exr(layer_path: Path, description: CacheDescription, payload: P
         channels, _ = read_exr(path)
         replaced = not path.is_file() or _identity(os.stat(path)) != _identity(os.fstat(handle.fileno()))
     if replaced:
-        raise RelightError(f"{path}: payload {payload.name} was replaced while being read (a bake writing "
-                           f"this cache?); open the cache again")
+        raise RelightError(
+            f"{path}: payload {payload.name} was replaced while being read (a bake writing "
+            f"this cache?); open the cache again"
+        )
     return path, channels
 
 
@@ -289,5 +307,4 @@ def load_npy(layer_path: Path, description: CacheDescription, name: str) -> np.n
         shape, dtype, fortran_order, offset = header
         if math.prod(shape) == 0:
             return np.empty(shape, dtype, order="F" if fortran_order else "C")
-        return np.memmap(handle, dtype=dtype, mode="r", offset=offset, shape=shape,
-                         order="F" if fortran_order else "C")
+        return np.memmap(handle, dtype=dtype, mode="r", offset=offset, shape=shape, order="F" if fortran_order else "C")

@@ -76,5 +76,6 @@ def cache_status(path: str | os.PathLike) -> CacheStatus:
             problem = str(error)
         size = file.stat().st_size if file.is_file() else None
         statuses.append(PayloadStatus(payload=payload, path=file, num_bytes=size, problem=problem))
-    return CacheStatus(path=path, description=description, payloads=tuple(statuses),
-                       stale_inputs=stale_inputs(description))
+    return CacheStatus(
+        path=path, description=description, payloads=tuple(statuses), stale_inputs=stale_inputs(description)
+    )

@@ -44,13 +44,19 @@ def _check_payload_file(prim: Usd.Prim, time_range) -> list[UsdValidation.Valida
         return []
     path = payload_file_path(prim)
     if not path or not os.path.isfile(path):
-        return [_error(prim, "PayloadFileMissing",
-                       f"{prim.GetPath()}: relight:file {path or '(empty)'} does not exist")]
+        return [
+            _error(prim, "PayloadFileMissing", f"{prim.GetPath()}: relight:file {path or '(empty)'} does not exist")
+        ]
     recorded = prim.GetAttribute("relight:bytes").Get()
     size = os.path.getsize(path)
     if size != recorded:
-        return [_error(prim, "PayloadSizeMismatch",
-                       f"{prim.GetPath()}: {path} is {size} bytes, relight:bytes records {recorded}")]
+        return [
+            _error(
+                prim,
+                "PayloadSizeMismatch",
+                f"{prim.GetPath()}: {path} is {size} bytes, relight:bytes records {recorded}",
+            )
+        ]
     return []
 
 

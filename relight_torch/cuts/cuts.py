@@ -83,8 +83,8 @@ def variance_cut_mask(tree: LightTree, variances: torch.Tensor, sigma: float) ->
     for h in range(len(tree.level_nodes) - 1, 0, -1):
         parents = tree.level_nodes[h]
         split = active[:, parents] & ~fine[:, parents]
-        active[:, parents - (1 << h)] = split      # left children (height h - 1)
-        active[:, parents - 1] = split                     # right children
+        active[:, parents - (1 << h)] = split  # left children (height h - 1)
+        active[:, parents - 1] = split  # right children
     return active & fine
 
 

@@ -29,17 +29,19 @@ def cell_pattern(directions: torch.Tensor, solid_angles: torch.Tensor) -> torch.
     k = torch.arange(CELL_SAMPLES, device=directions.device, dtype=directions.dtype) + 0.5
     radius = torch.sqrt(k / CELL_SAMPLES)
     angle = k * math.pi * (3.0 - math.sqrt(5.0))
-    cap = torch.sqrt(solid_angles / math.pi).unsqueeze(-1)     # disk radius (radians, small cells)
+    cap = torch.sqrt(solid_angles / math.pi).unsqueeze(-1)  # disk radius (radians, small cells)
     offset = torch.stack((radius * torch.cos(angle), radius * torch.sin(angle)), dim=-1)
     tangent, bitangent = orthonormal_basis(directions)
-    local = torch.cat((cap.unsqueeze(-1) * offset, torch.ones_like(offset[..., :1]).expand(directions.shape[0], -1, 1)),
-                      dim=-1)
+    local = torch.cat(
+        (cap.unsqueeze(-1) * offset, torch.ones_like(offset[..., :1]).expand(directions.shape[0], -1, 1)), dim=-1
+    )
     world = to_world(local, tangent.unsqueeze(1), bitangent.unsqueeze(1), directions.unsqueeze(1))
     return torch.nn.functional.normalize(world, dim=-1)
 
 
-def dome_leaf_light(lights: list[Light], pattern: torch.Tensor,
-                    solid_angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def dome_leaf_light(
+    lights: list[Light], pattern: torch.Tensor, solid_angles: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(diffuse, specular) (L, 3) light of every leaf from the given dome lights, for the two BRDF
     lobes: each dome's radiance over the leaf's cell, evaluated once, times its per-lobe multiplier.
 

@@ -74,7 +74,7 @@ def merge(tree: LightTree, sources: list[tuple[Cuts, torch.Tensor]]) -> MergedCu
     previous = torch.cat((merged.new_full((1,), -1), merged[:-1]))
     keep = previous < row * num_nodes + tree.leftleaf[node]
     merged, row, node = merged[keep], row[keep], node[keep]
-    cover = tuple(entry[torch.searchsorted(key, merged)] for key, entry in zip(keys, entries))
+    cover = tuple(entry[torch.searchsorted(key, merged)] for key, entry in zip(keys, entries, strict=True))
     return MergedCuts(row, node, cover)
 
 
@@ -82,14 +82,17 @@ def leaf_cut_index(tree: LightTree, shared: torch.Tensor) -> torch.Tensor:
     """(2L - 1,) int64: at each leaf's node index, the index into the cut `shared` (K,) (sorted,
     a partition of the leaves) of the cut node holding the leaf (0 at inner nodes). A node n
     overlaps the cut nodes from the one at leftleaf(n) to the one at n - height(n), its last leaf."""
-    leaf_cut = torch.repeat_interleave(torch.arange(shared.shape[0], device=shared.device),
-                                       tree.size.index_select(0, shared))
+    leaf_cut = torch.repeat_interleave(
+        torch.arange(shared.shape[0], device=shared.device), tree.size.index_select(0, shared)
+    )
     return torch.zeros(tree.num_nodes, dtype=torch.int64, device=shared.device).index_copy_(
-        0, tree.leaf_nodes, leaf_cut)
+        0, tree.leaf_nodes, leaf_cut
+    )
 
 
-def refine_nodes(tree: LightTree, node: torch.Tensor, shared: torch.Tensor
-                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def refine_nodes(
+    tree: LightTree, node: torch.Tensor, shared: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Merge a cut shared by every row into merged nodes `node` (Q,) int64 (each row's a sorted partition).
 
     The shared cut's index of every leaf is tabulated once (`leaf_cut_index`); a node's leftmost
@@ -110,9 +113,11 @@ def refine_nodes(tree: LightTree, node: torch.Tensor, shared: torch.Tensor
         return torch.arange(node.shape[0], device=node.device), node, first
     parent = torch.repeat_interleave(counts)
     shared_index = (first - (torch.cumsum(counts, 0) - counts)).index_select(0, parent) + torch.arange(
-        parent.shape[0], device=node.device)
-    new_node = torch.where((counts == 1).index_select(0, parent), node.index_select(0, parent),
-                           shared.index_select(0, shared_index))
+        parent.shape[0], device=node.device
+    )
+    new_node = torch.where(
+        (counts == 1).index_select(0, parent), node.index_select(0, parent), shared.index_select(0, shared_index)
+    )
     return parent, new_node, shared_index
 
 

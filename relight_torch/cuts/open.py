@@ -12,18 +12,21 @@ from relight_torch.cache.load import load_npy
 from relight_torch.cuts.cuts import MEAN_LEVELS, Cuts, indirect_scale
 from relight_torch.cuts.relighter import CutsCache, CutsRelighter, CutsRelightSettings
 from relight_torch.cuts.tree import LightTree
-from relight_torch.errors import RelightError
 from relight_torch.direct.relighter import RelightSettings, open_relighter
+from relight_torch.errors import RelightError
 from relight_torch.indirect_samples import GatherSamples
 
-_POINT_FIELDS = {"position": "Position", "normal": "Normal", "albedo": "Albedo", "emission": "Emission",
-                 "area": "Area"}
+_POINT_FIELDS = {"position": "Position", "normal": "Normal", "albedo": "Albedo", "emission": "Emission", "area": "Area"}
 
 
-def open_cuts_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
-                        lights_layer: str | os.PathLike | None = None,
-                        settings: RelightSettings = RelightSettings(),
-                        cuts_settings: CutsRelightSettings = CutsRelightSettings()) -> CutsRelighter:
+def open_cuts_relighter(
+    path: str | os.PathLike,
+    device: str | torch.device = "cpu",
+    shadows: str = "embree",
+    lights_layer: str | os.PathLike | None = None,
+    settings: RelightSettings = RelightSettings(),
+    cuts_settings: CutsRelightSettings = CutsRelightSettings(),
+) -> CutsRelighter:
     """A CutsRelighter for a 'cuts' cache layer (arguments as `open_relighter`).
 
     Raises:
@@ -36,26 +39,34 @@ def open_cuts_relighter(path: str | os.PathLike, device: str | torch.device = "c
 
     def load(name: str, tensor_dtype: torch.dtype) -> torch.Tensor:
         array = np.asarray(load_npy(layer_path, description, name))
-        return torch.from_numpy(array.astype(np.int64) if tensor_dtype == torch.int64 else array.astype(np.float32)
-                                ).to(device, tensor_dtype)
+        return torch.from_numpy(array.astype(np.int64) if tensor_dtype == torch.int64 else array.astype(np.float32)).to(
+            device, tensor_dtype
+        )
 
     try:
         if description.parameters.get("cutsMode", "env") == "env":
-            leaves = {"leaf_directions": load("cutsLeafDirections", dtype), "leaf_weights": load("cutsLeafWeights", dtype)}
+            leaves = {
+                "leaf_directions": load("cutsLeafDirections", dtype),
+                "leaf_weights": load("cutsLeafWeights", dtype),
+            }
             num_leaves = leaves["leaf_directions"].shape[0]
             scale = 1.0 / MEAN_LEVELS
         else:
-            points = GatherSamples(**{field: load(f"cutsLeaf{name}", dtype) for field, name in _POINT_FIELDS.items()},
-                                   object_id=load("cutsLeafObjectId", torch.int64))
+            points = GatherSamples(
+                **{field: load(f"cutsLeaf{name}", dtype) for field, name in _POINT_FIELDS.items()},
+                object_id=load("cutsLeafObjectId", torch.int64),
+            )
             leaves = {"leaf_points": points}
             num_leaves = points.num_gathers
             scale = indirect_scale(num_leaves)
         tree = LightTree.of(num_leaves, device)
-        visibility = Cuts(load("cutsOffsets", torch.int64), load("cutsNodes", torch.int64),
-                          load("cutsMeans", dtype) * scale)
+        visibility = Cuts(
+            load("cutsOffsets", torch.int64), load("cutsNodes", torch.int64), load("cutsMeans", dtype) * scale
+        )
         visibility.check(tree)
-        cuts = CutsCache(tree, visibility, load("cutsSampleVertices", torch.int64), load("cutsSampleWeights", dtype),
-                         **leaves)
+        cuts = CutsCache(
+            tree, visibility, load("cutsSampleVertices", torch.int64), load("cutsSampleWeights", dtype), **leaves
+        )
         if cuts.sample_vertices.numel() and int(cuts.sample_vertices.max()) >= visibility.num_cuts:
             raise ValueError("a sub-sample names a lattice vertex without a cut")
         return CutsRelighter(direct, cuts, cuts_settings)

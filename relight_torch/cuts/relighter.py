@@ -40,15 +40,14 @@ from relight_torch.cuts.cuts import Cuts, intensity_cut
 from relight_torch.cuts.env import cell_pattern, dome_leaf_light
 from relight_torch.cuts.merge import MergedCuts, leaf_cut_index, merge
 from relight_torch.cuts.tree import LightTree
+from relight_torch.direct.relighter import Relighter, light_group
+from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.lights.dome import REC709_LUMINANCE
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import linked_points
 from relight_torch.math.frame import to_local
 from relight_torch.parallel import parallel_map, tile_threads
 from relight_torch.protocol import tensor_bytes
-from relight_torch.direct.relighter import Relighter, light_group
-from relight_torch.indirect_samples import GatherSamples, gather_radiance
-
 
 MERGE_ROWS = 2048
 """Sub-samples whose visibility cuts are merged together (`CutsRelighter.visibility_batches`), and
@@ -218,12 +217,14 @@ class CutsRelighter:
             `FactorColumns`) and 'illumination_cut' (its size).
     """
 
-    material_edits = True   # the cuts' light follows `params` (`CacheRelighter`)
+    material_edits = True  # the cuts' light follows `params` (`CacheRelighter`)
 
     def __init__(self, direct: Relighter, cuts: CutsCache, settings: CutsRelightSettings = CutsRelightSettings()):
         if cuts.sample_vertices.shape[0] != direct.gbuffer.num_samples:
-            raise ValueError(f"the cuts interpolate {cuts.sample_vertices.shape[0]} sub-samples, the deep "
-                             f"framebuffer has {direct.gbuffer.num_samples}")
+            raise ValueError(
+                f"the cuts interpolate {cuts.sample_vertices.shape[0]} sub-samples, the deep "
+                f"framebuffer has {direct.gbuffer.num_samples}"
+            )
         self.direct = direct
         self.cuts = cuts
         self.settings = settings
@@ -249,7 +250,7 @@ class CutsRelighter:
         self._node_points = torch.cat((points, points.new_zeros((1, 3)))).t().contiguous()
         self._domes: dict[str, Light] = {}
         self._leaf_radiance: dict[str, tuple[Light, torch.Tensor]] = {}
-        self._leaf_pattern: torch.Tensor | None = None    # env: the leaves' cells' directions (`env.cell_pattern`)
+        self._leaf_pattern: torch.Tensor | None = None  # env: the leaves' cells' directions (`env.cell_pattern`)
         self._samples: torch.Tensor | None = None
         self._visibility_batches: tuple[int, list[VisibilityBatch]] | None = None
         self._by_node: list[tuple[torch.Tensor, torch.Tensor] | None] | None = None
@@ -308,9 +309,10 @@ class CutsRelighter:
         if params.diffuse_color.shape != self.params.diffuse_color.shape:
             raise ValueError(f"material parameters must have {self.params.diffuse_color.shape[0]} rows")
         params = params.to(self.params.diffuse_color.device, self.params.diffuse_color.dtype)
-        if self._columns is not None:   # only the lobes' widths enter the kept factors
-            self._columns.dirty |= ((params.roughness != self.params.roughness)
-                                    | (params.clearcoat_roughness != self.params.clearcoat_roughness))
+        if self._columns is not None:  # only the lobes' widths enter the kept factors
+            self._columns.dirty |= (params.roughness != self.params.roughness) | (
+                params.clearcoat_roughness != self.params.clearcoat_roughness
+            )
         self.params = params
         self._samples = None
 
@@ -396,14 +398,20 @@ class CutsRelighter:
         for light in lights:
             cached = self._leaf_radiance.get(light.path)
             if cached is None or cached[0] is not light:
-                leaf = gather_radiance(light, points, self.direct.visibility, self.direct.num_light_samples(light),
-                                       object_paths=self.direct.object_paths)
+                leaf = gather_radiance(
+                    light,
+                    points,
+                    self.direct.visibility,
+                    self.direct.num_light_samples(light),
+                    object_paths=self.direct.object_paths,
+                )
                 cached = self._leaf_radiance[light.path] = (light, leaf)
             radiance = radiance + cached[1]
         return radiance, radiance
 
-    def illumination_cut(self, lights: list[Light], emission: bool = False
-                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def illumination_cut(
+        self, lights: list[Light], emission: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(nodes (K,), diffuse means (K, 3), specular means (K, 3)) of the illumination cut of
         `lights`: refined by the nodes' luminance up to `settings.max_cut` nodes."""
         tree = self.cuts.tree
@@ -474,16 +482,22 @@ class CutsRelighter:
         table[slot] = torch.cat((diffuse_light, specular_light), dim=1)
         table = table.to(settings.factor_dtype)
         relit = state.table is None or not torch.equal(state.table, table)
-        if state.light_key != key:   # the kept grids are the last illumination cut's
+        if state.light_key != key:  # the kept grids are the last illumination cut's
             state.grids = [None] * len(state.grids)
         state.light_key, state.table = key, table
         # Tables of the nodes to evaluate: every node into its slot (a new cut, dirty rows), or
         # the nodes new to the cut in cut order.
         num_slots = state.slot_node.shape[0]
-        every_table = _NodeTable.of(self.cuts.tree, nodes, torch.ones_like(new), self._node_size, slot, num_slots) if (
-            bool(new.all()) or bool(state.dirty.any())) else None
-        new_table = every_table if bool(new.all()) else (
-            _NodeTable.of(self.cuts.tree, nodes, new, self._node_size) if bool(new.any()) else None)
+        every_table = (
+            _NodeTable.of(self.cuts.tree, nodes, torch.ones_like(new), self._node_size, slot, num_slots)
+            if (bool(new.all()) or bool(state.dirty.any()))
+            else None
+        )
+        new_table = (
+            every_table
+            if bool(new.all())
+            else (_NodeTable.of(self.cuts.tree, nodes, new, self._node_size) if bool(new.any()) else None)
+        )
         batches = self.visibility_batches()
         keep_grids = keep and int(state.dirty.sum()) <= KEPT_GRID_SHARE * g.num_samples
 
@@ -494,40 +508,47 @@ class CutsRelighter:
             stats["inputs"] += batch.inputs
             stats["dark"] += batch.dark
             shape = (batch.rows.shape[0], num_factors, state.slot_node.shape[0])
-            columns = state.columns[index] if keep else torch.zeros(shape, dtype=settings.factor_dtype,
-                                                                   device=out.device)
+            columns = (
+                state.columns[index] if keep else torch.zeros(shape, dtype=settings.factor_dtype, device=out.device)
+            )
             counts = state.counts[index] if keep else torch.zeros(shape[2], dtype=torch.int64, device=out.device)
-            fresh = None    # (P, F, new nodes) float the columns of the nodes new to the cut, for their slots
+            fresh = None  # (P, F, new nodes) float the columns of the nodes new to the cut, for their slots
             if new_table is not None and new_table.everything:
                 counts.zero_()
                 # Chunks of rows, each without the padding all its rows have (the column sums'
                 # scatter stays in cache).
                 for part in torch.arange(shape[0], device=out.device).split(MERGE_ROWS):
                     values, grid = self._factor_columns(batch, new_table, num_factors, part)
-                    columns[int(part[0]):int(part[-1]) + 1].copy_(values[:, :, :num_slots].transpose(0, 1))
+                    columns[int(part[0]) : int(part[-1]) + 1].copy_(values[:, :, :num_slots].transpose(0, 1))
                     counts += grid.counts
                 stats["evaluated"] += int(counts.sum())
             elif new_table is not None:
                 values, grid = self._factor_columns(batch, new_table, num_factors, by_node=self._entries_by_node(index))
-                fresh = values[:, :, :grid.counts.shape[0]].transpose(0, 1)
+                fresh = values[:, :, : grid.counts.shape[0]].transpose(0, 1)
                 counts[slot[new]] = grid.counts
                 stats["evaluated"] += int(grid.counts.sum())
             dirty = state.dirty.index_select(0, batch.rows)
             dirty_rows = torch.nonzero(dirty).squeeze(1)
-            if dirty_rows.shape[0] and not bool(new.all()):   # the lobes' factors (2 on) of their rows
+            if dirty_rows.shape[0] and not bool(new.all()):  # the lobes' factors (2 on) of their rows
                 # The grids of the last edit if it was of the same rows (a roughness slider dragged).
                 last = state.grids[index] if keep else None
                 kept = last[1] if last is not None and torch.equal(last[0], dirty_rows) else None
                 assert every_table is not None  # made whenever rows are dirty
                 grids = []
-                for number, part in enumerate(dirty_rows.split(MERGE_ROWS)):   # the column sums' scatter stays in cache
-                    values, grid = self._factor_columns(batch, every_table, num_factors, part, first_factor=2,
-                                                        grid=None if kept is None else kept[number])
+                for number, part in enumerate(dirty_rows.split(MERGE_ROWS)):  # the column sums' scatter stays in cache
+                    values, grid = self._factor_columns(
+                        batch,
+                        every_table,
+                        num_factors,
+                        part,
+                        first_factor=2,
+                        grid=None if kept is None else kept[number],
+                    )
                     grids.append(grid)
                     stats["evaluated"] += int(grid.counts.sum())
                     # The lobes' factors as one span of each row: ~25 % faster than a 3-D index_copy_.
                     lobes = values[2:, :, :num_slots].transpose(0, 1).to(columns.dtype).contiguous()
-                    columns.view(shape[0], -1)[:, 2 * num_slots:].index_copy_(0, part, lobes.view(part.shape[0], -1))
+                    columns.view(shape[0], -1)[:, 2 * num_slots :].index_copy_(0, part, lobes.view(part.shape[0], -1))
                 if keep:
                     state.grids[index] = (dirty_rows, grids) if keep_grids else None
             stats["merged"] += int(counts[slot].sum())
@@ -535,14 +556,18 @@ class CutsRelighter:
                 # Chunks of rows: the new slots written (scattered along the last axis: every
                 # cache line of the columns is read and written) just before the products read them.
                 for part in range(0, shape[0], PRODUCT_ROWS):
-                    chunk = columns[part:part + PRODUCT_ROWS]
+                    chunk = columns[part : part + PRODUCT_ROWS]
                     if fresh is not None:
-                        chunk.index_copy_(2, slot[new], fresh[part:part + PRODUCT_ROWS].to(chunk.dtype))
-                    state.sums.index_copy_(0, batch.rows[part:part + PRODUCT_ROWS],
-                                           _light_sums(chunk, table, out.dtype))
+                        chunk.index_copy_(2, slot[new], fresh[part : part + PRODUCT_ROWS].to(chunk.dtype))
+                    state.sums.index_copy_(
+                        0, batch.rows[part : part + PRODUCT_ROWS], _light_sums(chunk, table, out.dtype)
+                    )
             elif dirty_rows.shape[0]:
-                state.sums.index_copy_(0, batch.rows.index_select(0, dirty_rows),
-                                       _light_sums(_rows_of(columns, dirty_rows), table, out.dtype))
+                state.sums.index_copy_(
+                    0,
+                    batch.rows.index_select(0, dirty_rows),
+                    _light_sums(_rows_of(columns, dirty_rows), table, out.dtype),
+                )
             return stats
 
         # Batches on the kept worker threads (`relight_torch.parallel`): much of a batch's
@@ -565,14 +590,28 @@ class CutsRelighter:
                 columns.append(torch.zeros((batch.rows.shape[0], num_factors, max_cut), dtype=dtype, device=device))
                 counts.append(torch.zeros(max_cut, dtype=torch.int64, device=device))
         num_samples = self.direct.gbuffer.num_samples
-        return FactorColumns(key, torch.full((max_cut,), -1, dtype=torch.int64, device=device), columns, counts,
-                             torch.zeros((num_samples, num_factors, 3), dtype=self.direct.gbuffer.position.dtype,
-                                         device=device), None, None,
-                             torch.zeros(num_samples, dtype=torch.bool, device=device), [None] * len(columns))
+        return FactorColumns(
+            key,
+            torch.full((max_cut,), -1, dtype=torch.int64, device=device),
+            columns,
+            counts,
+            torch.zeros((num_samples, num_factors, 3), dtype=self.direct.gbuffer.position.dtype, device=device),
+            None,
+            None,
+            torch.zeros(num_samples, dtype=torch.bool, device=device),
+            [None] * len(columns),
+        )
 
-    def _factor_columns(self, batch: VisibilityBatch, table: _NodeTable, num_factors: int,
-                        rows: torch.Tensor | None = None, by_node: tuple[torch.Tensor, torch.Tensor] | None = None,
-                        first_factor: int = 0, grid: _Grid | None = None) -> tuple[torch.Tensor, _Grid]:
+    def _factor_columns(
+        self,
+        batch: VisibilityBatch,
+        table: _NodeTable,
+        num_factors: int,
+        rows: torch.Tensor | None = None,
+        by_node: tuple[torch.Tensor, torch.Tensor] | None = None,
+        first_factor: int = 0,
+        grid: _Grid | None = None,
+    ) -> tuple[torch.Tensor, _Grid]:
         """BRDF factors of a batch's merged cut (its visibility clusters merged with the
         illumination cut), summed per wanted illumination-cut node (`table`).
 
@@ -603,26 +642,30 @@ class CutsRelighter:
         """
         node, visibility = batch.node, batch.visibility
         samples, geometry = batch.rows, batch.geometry
-        if rows is not None:   # their entries, less the padding all of them have
+        if rows is not None:  # their entries, less the padding all of them have
             width = max(int(batch.length.index_select(0, rows).max()), 1)
             node, visibility = node[:, :width].index_select(0, rows), visibility[:, :width].index_select(0, rows)
             samples, geometry = samples.index_select(0, rows), geometry.index_select(0, rows)
         (num_rows, width), num_columns = node.shape, table.nodes.shape[0]
         flat_node, flat_visibility = node.view(-1), visibility.view(-1)
-        roughnesses = (self.params.roughness, self.params.clearcoat_roughness)[:num_factors // 2 - 1]
+        roughnesses = (self.params.roughness, self.params.clearcoat_roughness)[: num_factors // 2 - 1]
         roughnesses = tuple(r.index_select(0, samples).unsqueeze(1) for r in roughnesses)
         cos_e = self._cos_e.index_select(0, samples).unsqueeze(1)
         view_sq = self._view_sq.index_select(0, samples).unsqueeze(1)
         # Column of each entry: < C its wanted node's, C + 1 spanning several cut nodes (some
         # wanted), C none (or padding); the sums have two dump columns C, C + 1 of weight 0.
         if table.everything:
-            entry = None    # every entry of the (P, M) rows
+            entry = None  # every entry of the (P, M) rows
             column = table.column.index_select(0, flat_node)
-        else:   # only the entries of the wanted nodes' subtrees and of the nodes above them
+        else:  # only the entries of the wanted nodes' subtrees and of the nodes above them
             assert by_node is not None  # callers pass it for a partial table
             order, offsets = by_node
-            entry = order.index_select(0, _concatenated_ranges(offsets.index_select(0, table.ranges[0]).long(),
-                                                               offsets.index_select(0, table.ranges[1]).long())).long()
+            entry = order.index_select(
+                0,
+                _concatenated_ranges(
+                    offsets.index_select(0, table.ranges[0]).long(), offsets.index_select(0, table.ranges[1]).long()
+                ),
+            ).long()
             column = table.column.index_select(0, flat_node.index_select(0, entry))
         if grid is None:
             grid = _grid(table, column, entry, flat_node, flat_visibility, num_rows, width)
@@ -644,16 +687,26 @@ class CutsRelighter:
         weight = table.inside_size.index_select(0, node.reshape(-1)).view(node.shape).mul_(visibility)
         cell = column.add_((lines * (num_columns + 2)).unsqueeze(1))
         flat = sums.view(-1)
-        picked = None if entry is None else lines    # one entry per line: its row's values gathered per block
+        picked = None if entry is None else lines  # one entry per line: its row's values gathered per block
         for part in slabs(*node.shape):
-            blocks.dense(self._node_points, node[part], _lines_of(geometry, part, picked),
-                         self._positions(_lines_of(samples, part, picked)),
-                         tuple(_lines_of(r, part, picked) for r in roughnesses), _lines_of(cos_e, part, picked),
-                         _lines_of(view_sq, part, picked), weight[part], cell[part].reshape(-1), flat, first_factor)
+            blocks.dense(
+                self._node_points,
+                node[part],
+                _lines_of(geometry, part, picked),
+                self._positions(_lines_of(samples, part, picked)),
+                tuple(_lines_of(r, part, picked) for r in roughnesses),
+                _lines_of(cos_e, part, picked),
+                _lines_of(view_sq, part, picked),
+                weight[part],
+                cell[part].reshape(-1),
+                flat,
+                first_factor,
+            )
         return sums, grid
 
-    def _grid_sums(self, blocks: BlockEvaluator, table: _NodeTable, grid: _Grid, rows: tuple, sums: torch.Tensor,
-                   first_factor: int) -> None:
+    def _grid_sums(
+        self, blocks: BlockEvaluator, table: _NodeTable, grid: _Grid, rows: tuple, sums: torch.Tensor, first_factor: int
+    ) -> None:
         """The factors of a `_Grid` of P rows written into the column sums `sums` (F, P, C + 2)
         (`_factor_columns`): every factor if the grid has every column, else the live columns'
         from `first_factor` on (the earlier factors unset); the rest 0. `rows`: (geometry,
@@ -668,24 +721,42 @@ class CutsRelighter:
         block = sums.new_empty(0 if in_place or not parts else num_factors * parts[0].stop * num_grid)
         for part in parts:
             size = part.stop - part.start
-            out = sums[:, part, :num_columns] if in_place else block[:num_factors * size * num_grid].view(
-                num_factors, size, num_grid)
-            blocks.grid(self._node_points, nodes, geometry[part], self._positions(samples[part]),
-                        tuple(r[part] for r in roughnesses), cos_e[part], view_sq[part], grid.weight[part], out)
+            out = (
+                sums[:, part, :num_columns]
+                if in_place
+                else block[: num_factors * size * num_grid].view(num_factors, size, num_grid)
+            )
+            blocks.grid(
+                self._node_points,
+                nodes,
+                geometry[part],
+                self._positions(samples[part]),
+                tuple(r[part] for r in roughnesses),
+                cos_e[part],
+                view_sq[part],
+                grid.weight[part],
+                out,
+            )
             if not in_place:
                 lines = torch.arange(part.start, part.stop, device=sums.device) * (num_columns + 2)
                 add_factors(sums.view(-1), (grid.columns + lines.unsqueeze(1)).view(-1), out, first_factor)
 
     def held_bytes(self) -> int:
         """`CacheRelighter.held_bytes`: the direct relighter's, the leaves' light per light and `kept_bytes`."""
-        return (self.direct.held_bytes() + tensor_bytes(*(radiance for _, radiance in self._leaf_radiance.values()))
-                + self.kept_bytes())
+        return (
+            self.direct.held_bytes()
+            + tensor_bytes(*(radiance for _, radiance in self._leaf_radiance.values()))
+            + self.kept_bytes()
+        )
 
     def kept_bytes(self) -> int:
         """Bytes kept between frames: the merged visibility batches (and their entries by node),
         the factor columns and the last roughness edit's grids."""
-        tensors = [t for batch in (self._visibility_batches or (0, []))[1]
-                   for t in (batch.rows, batch.geometry, batch.node, batch.visibility, batch.length)]
+        tensors = [
+            t
+            for batch in (self._visibility_batches or (0, []))[1]
+            for t in (batch.rows, batch.geometry, batch.node, batch.visibility, batch.length)
+        ]
         tensors += [t for index in (self._by_node or []) if index is not None for t in index]
         if self._columns is not None:
             tensors += [*self._columns.columns, *self._columns.counts, self._columns.sums, self._columns.dirty]
@@ -712,7 +783,7 @@ class CutsRelighter:
             counts = torch.bincount(node, minlength=self.cuts.tree.num_nodes + 1)
             offsets = torch.cat((counts.new_zeros(1), torch.cumsum(counts, 0)))
             # The padding (node 2L - 1, sorted last) is never looked up: not kept.
-            order = torch.argsort(node, stable=True)[:int(offsets[self.cuts.tree.num_nodes])].int()
+            order = torch.argsort(node, stable=True)[: int(offsets[self.cuts.tree.num_nodes])].int()
             entry = self._by_node[index] = (order, offsets.int())
         return entry
 
@@ -728,10 +799,10 @@ class CutsRelighter:
             order = torch.argsort(inputs, stable=True)
             batches = []
             for start in range(0, g.num_samples, batch_rows):
-                rows = order[start:start + batch_rows]
+                rows = order[start : start + batch_rows]
                 row, node, visibility, dark = [], [], [], 0
-                for first in range(0, rows.shape[0], MERGE_ROWS):   # the merge's temporaries stay small
-                    part = rows[first:first + MERGE_ROWS]
+                for first in range(0, rows.shape[0], MERGE_ROWS):  # the merge's temporaries stay small
+                    part = rows[first : first + MERGE_ROWS]
                     merged = self.merged_visibility(part)
                     blend = self._visibility(merged, cuts.sample_weights[part])
                     # Clusters all three vertices see as dark stay dark however the illumination
@@ -742,11 +813,22 @@ class CutsRelighter:
                     visibility.append(blend[lit])
                     dark += int((~lit).sum())
                 length, padded_node, padded_visibility = _padded_rows(
-                    torch.cat(row), (torch.cat(node), torch.cat(visibility)), rows.shape[0],
-                    (self.cuts.tree.num_nodes, 0.0))
-                batches.append(VisibilityBatch(rows, self._geometry[rows], padded_node.int(), padded_visibility,
-                                               length.int(),
-                                               int(inputs[rows].sum()), dark))
+                    torch.cat(row),
+                    (torch.cat(node), torch.cat(visibility)),
+                    rows.shape[0],
+                    (self.cuts.tree.num_nodes, 0.0),
+                )
+                batches.append(
+                    VisibilityBatch(
+                        rows,
+                        self._geometry[rows],
+                        padded_node.int(),
+                        padded_visibility,
+                        length.int(),
+                        int(inputs[rows].sum()),
+                        dark,
+                    )
+                )
             self._visibility_batches = (batch_rows, batches)
             self._by_node = [None] * len(batches)
         return self._visibility_batches[1]
@@ -755,8 +837,9 @@ class CutsRelighter:
         """(Q,) barycentric blend of the three vertices' cluster means; `weights` (P, 3) per row."""
         values = self.cuts.visibility.values
         row, cover = merged.row, merged.cover
-        return (weights[row, 0] * values[cover[0]] + weights[row, 1] * values[cover[1]]
-                + weights[row, 2] * values[cover[2]])
+        return (
+            weights[row, 0] * values[cover[0]] + weights[row, 1] * values[cover[1]] + weights[row, 2] * values[cover[2]]
+        )
 
     def merged_visibility(self, rows: torch.Tensor) -> MergedCuts:
         """The merged visibility cuts of the three lattice vertices of sub-samples `rows` (P,)."""
@@ -778,7 +861,7 @@ def _assign_slots(slot_node: torch.Tensor, nodes: torch.Tensor, num_nodes: int) 
     new = slot < 0
     used = torch.zeros_like(slot_node, dtype=torch.bool)
     used[slot[~new]] = True
-    slot[new] = torch.nonzero(~used).squeeze(1)[:int(new.sum())]
+    slot[new] = torch.nonzero(~used).squeeze(1)[: int(new.sum())]
     slot_node.fill_(-1)
     slot_node[slot] = nodes
     return slot, new
@@ -817,8 +900,14 @@ class _NodeTable:
     everything: bool
 
     @staticmethod
-    def of(tree: LightTree, nodes: torch.Tensor, wanted: torch.Tensor, node_size: torch.Tensor,
-           columns: torch.Tensor | None = None, num_columns: int = 0) -> _NodeTable:
+    def of(
+        tree: LightTree,
+        nodes: torch.Tensor,
+        wanted: torch.Tensor,
+        node_size: torch.Tensor,
+        columns: torch.Tensor | None = None,
+        num_columns: int = 0,
+    ) -> _NodeTable:
         """The table of the cut `nodes` (K,) (sorted) whose `wanted` (K,) bool nodes are to be
         computed, into `num_columns` columns, `columns` (K,) int64 giving a wanted node's (e.g.
         its slot), or by default in cut order (C = W); `node_size` (2L - 1,) float |C| of
@@ -837,23 +926,39 @@ class _NodeTable:
             columns, num_columns = rank - 1, num_wanted
         else:
             grid_source = torch.full((num_columns,), num_wanted, dtype=torch.int64, device=nodes.device).index_copy_(
-                0, columns.index_select(0, wanted_index), torch.arange(num_wanted, device=nodes.device))
+                0, columns.index_select(0, wanted_index), torch.arange(num_wanted, device=nodes.device)
+            )
         column_nodes = torch.full((num_columns,), tree.num_nodes, dtype=torch.int64, device=nodes.device).index_copy_(
-            0, columns.index_select(0, wanted_index), nodes.index_select(0, wanted_index))
-        column = torch.where(first == last, torch.where(wanted.index_select(0, first), columns.index_select(0, first),
-                                                        num_columns),
-                             torch.where(end > start, num_columns + 1, num_columns))
+            0, columns.index_select(0, wanted_index), nodes.index_select(0, wanted_index)
+        )
+        column = torch.where(
+            first == last,
+            torch.where(wanted.index_select(0, first), columns.index_select(0, first), num_columns),
+            torch.where(end > start, num_columns + 1, num_columns),
+        )
         pad = column.new_zeros(1)
         padded_size = torch.cat((node_size, node_size.new_zeros(1)))
         inside_size = torch.where(column < num_columns, node_size, 0.0)
         wanted_nodes = nodes.index_select(0, wanted_index)
         spanning = torch.nonzero(column == num_columns + 1).squeeze(1)
-        ranges = torch.stack((torch.cat((tree.leftleaf.index_select(0, wanted_nodes), spanning)),
-                              torch.cat((wanted_nodes, spanning)) + 1))
-        return _NodeTable(column_nodes, padded_size.index_select(0, column_nodes),
-                          torch.cat((column, pad + num_columns)), torch.cat((start, pad)), torch.cat((end, pad)),
-                          grid_source, ranges,
-                          torch.cat((inside_size, inside_size.new_zeros(1))), num_wanted, num_wanted == nodes.shape[0])
+        ranges = torch.stack(
+            (
+                torch.cat((tree.leftleaf.index_select(0, wanted_nodes), spanning)),
+                torch.cat((wanted_nodes, spanning)) + 1,
+            )
+        )
+        return _NodeTable(
+            column_nodes,
+            padded_size.index_select(0, column_nodes),
+            torch.cat((column, pad + num_columns)),
+            torch.cat((start, pad)),
+            torch.cat((end, pad)),
+            grid_source,
+            ranges,
+            torch.cat((inside_size, inside_size.new_zeros(1))),
+            num_wanted,
+            num_wanted == nodes.shape[0],
+        )
 
 
 @dataclass(frozen=True)
@@ -875,8 +980,15 @@ class _Grid:
     counts: torch.Tensor
 
 
-def _grid(table: _NodeTable, column: torch.Tensor, entry: torch.Tensor | None, flat_node: torch.Tensor,
-          flat_visibility: torch.Tensor, num_rows: int, width: int) -> _Grid:
+def _grid(
+    table: _NodeTable,
+    column: torch.Tensor,
+    entry: torch.Tensor | None,
+    flat_node: torch.Tensor,
+    flat_visibility: torch.Tensor,
+    num_rows: int,
+    width: int,
+) -> _Grid:
     """The `_Grid` of the (P, M) rows `flat_node`, `flat_visibility` (P M,) of a batch (M =
     `width`) whose entries `entry` (E,) int64 (None: all) have columns `column` (E,) int64
     (`_NodeTable.column`)."""
@@ -895,17 +1007,21 @@ def _grid(table: _NodeTable, column: torch.Tensor, entry: torch.Tensor | None, f
     steps = torch.zeros(num_rows * (num_wanted + 1), dtype=torch.int32, device=flat_node.device)
     steps.index_add_(0, base + start, label)
     steps.index_add_(0, base + end, -label)
-    cluster = torch.cumsum(steps.view(num_rows, num_wanted + 1), dim=1, dtype=torch.int32)   # 0: none (last column: 0)
+    cluster = torch.cumsum(steps.view(num_rows, num_wanted + 1), dim=1, dtype=torch.int32)  # 0: none (last column: 0)
     # Grid cells holding a cluster, per wanted node in cut order (the last: none).
-    covered = torch.cumsum(torch.bincount(start, minlength=num_wanted + 1)
-                           - torch.bincount(end, minlength=num_wanted + 1), 0)
-    weight = torch.cat((flat_visibility.new_zeros(1), flat_visibility.index_select(0, spanning))).index_select(
-        0, cluster.view(-1)).view(num_rows, num_wanted + 1)
+    covered = torch.cumsum(
+        torch.bincount(start, minlength=num_wanted + 1) - torch.bincount(end, minlength=num_wanted + 1), 0
+    )
+    weight = (
+        torch.cat((flat_visibility.new_zeros(1), flat_visibility.index_select(0, spanning)))
+        .index_select(0, cluster.view(-1))
+        .view(num_rows, num_wanted + 1)
+    )
     source = table.grid_source
     covered = covered[:num_wanted] if source is None else covered.index_select(0, source)
     # The `dome` backdrop's chunks of 2,048 rows span ~147 of the cut's 256 nodes.
     live = torch.nonzero(covered).squeeze(1)
-    if live.shape[0] > GRID_LIVE_SHARE * num_columns:   # every column
+    if live.shape[0] > GRID_LIVE_SHARE * num_columns:  # every column
         live, size = torch.arange(num_columns, device=flat_node.device), table.size
         weight = weight[:, :num_wanted] if source is None else weight.index_select(1, source)
     else:
@@ -925,20 +1041,29 @@ def _concatenated_ranges(low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
     counts = high - low
     owner = torch.repeat_interleave(torch.arange(low.shape[0], device=low.device), counts)
     return (low - (torch.cumsum(counts, 0) - counts)).index_select(0, owner) + torch.arange(
-        owner.shape[0], device=low.device)
+        owner.shape[0], device=low.device
+    )
 
 
-def _padded_rows(row: torch.Tensor, values: tuple[torch.Tensor, ...], num_rows: int,
-                 fills: tuple[float, ...]) -> tuple[torch.Tensor, ...]:
+def _padded_rows(
+    row: torch.Tensor, values: tuple[torch.Tensor, ...], num_rows: int, fills: tuple[float, ...]
+) -> tuple[torch.Tensor, ...]:
     """((P,) int64 entries per row, then (P, M) arrays of per-row entries: `values` (Q,) each, in
     rows `row` (Q,) int64 ascending, each row's entries in order then its `fill`); M the longest
     row (at least 1)."""
     counts = torch.bincount(row, minlength=num_rows)
     width = max(int(counts.max()) if num_rows else 0, 1)
-    slot = row * width + torch.arange(row.shape[0], device=row.device) - (torch.cumsum(counts, 0) - counts
-                                                                           ).index_select(0, row)
-    return counts, *(torch.full((num_rows * width,), fill, dtype=value.dtype, device=value.device).index_copy_(
-        0, slot, value).view(num_rows, width) for value, fill in zip(values, fills))
+    slot = (
+        row * width
+        + torch.arange(row.shape[0], device=row.device)
+        - (torch.cumsum(counts, 0) - counts).index_select(0, row)
+    )
+    return counts, *(
+        torch.full((num_rows * width,), fill, dtype=value.dtype, device=value.device)
+        .index_copy_(0, slot, value)
+        .view(num_rows, width)
+        for value, fill in zip(values, fills, strict=True)
+    )
 
 
 def _rows_of(columns: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:

@@ -71,9 +71,15 @@ from relight_torch.visibility.rays import RayVisibility
 from relight_torch.visibility.shadow_maps import ShadowMapVisibility
 from relight_torch.visibility.surface_filter import SurfaceFilter
 
-
-_COLOUR_FIELDS = ("intensity", "exposure", "color", "enable_color_temperature", "color_temperature",
-                  "diffuse", "specular")
+_COLOUR_FIELDS = (
+    "intensity",
+    "exposure",
+    "color",
+    "enable_color_temperature",
+    "color_temperature",
+    "diffuse",
+    "specular",
+)
 _SHADING_FIELDS = ("shaping", "barzel")
 # Pixels per row when a colour scale is applied (see Relighter._add_light).
 _TILE_PIXELS = 1024
@@ -177,7 +183,7 @@ def box_filter(image: torch.Tensor, s: int) -> torch.Tensor:
     rows = image.reshape(height // s, s, width * channels)
     total = sum((rows[:, k] for k in range(1, s)), rows[:, 0])
     runs = total.reshape(height // s, width // s, s * channels)
-    total = sum((runs[..., k * channels:(k + 1) * channels] for k in range(1, s)), runs[..., :channels])
+    total = sum((runs[..., k * channels : (k + 1) * channels] for k in range(1, s)), runs[..., :channels])
     return total / (s * s)
 
 
@@ -222,8 +228,9 @@ def light_group(light: Light) -> str:
 
 def unit_light(light: Light) -> Light:
     """The light with intensity 1, exposure 0, white colour and no colour temperature."""
-    return dataclasses.replace(light, intensity=1.0, exposure=0.0, color=(1.0, 1.0, 1.0),
-                               enable_color_temperature=False)
+    return dataclasses.replace(
+        light, intensity=1.0, exposure=0.0, color=(1.0, 1.0, 1.0), enable_color_temperature=False
+    )
 
 
 def colour_scale(light: Light) -> np.ndarray:
@@ -293,7 +300,8 @@ class _Transport:
         if self.emission_local is None:
             directions = self.directions
             self.emission_local = torch.nn.functional.normalize(
-                LightFrame.of(light, directions).vector_to_local(-directions), dim=-1)
+                LightFrame.of(light, directions).vector_to_local(-directions), dim=-1
+            )
             self.directions = None
         return self.emission_local
 
@@ -325,11 +333,17 @@ class Relighter:
         counters: 'visibility', 'shading' and 'masks' passes run so far (one per light and stage).
     """
 
-    material_edits = False   # the baked materials are shaded as they are (`CacheRelighter`)
+    material_edits = False  # the baked materials are shaded as they are (`CacheRelighter`)
 
-    def __init__(self, gbuffer: GBuffer, visibility: Visibility, supersampling: int = 1,
-                 exposure_scale: float = 1.0, settings: RelightSettings = RelightSettings(),
-                 object_paths: list[str] | None = None):
+    def __init__(
+        self,
+        gbuffer: GBuffer,
+        visibility: Visibility,
+        supersampling: int = 1,
+        exposure_scale: float = 1.0,
+        settings: RelightSettings = RelightSettings(),
+        object_paths: list[str] | None = None,
+    ):
         height, width = gbuffer.image_size
         if height % supersampling or width % supersampling:
             raise ValueError(f"image {width}x{height} is not a multiple of supersampling {supersampling}")
@@ -338,8 +352,11 @@ class Relighter:
         self.supersampling = supersampling
         self.exposure_scale = exposure_scale
         self.settings = settings
-        self.filter_radius = (auto_filter_radius(gbuffer.image_size, supersampling)
-                              if settings.shadow_filter_radius is None else settings.shadow_filter_radius)
+        self.filter_radius = (
+            auto_filter_radius(gbuffer.image_size, supersampling)
+            if settings.shadow_filter_radius is None
+            else settings.shadow_filter_radius
+        )
         self.counters: collections.Counter[str] = collections.Counter()
         self.description: CacheDescription | None = None
         self.object_paths = object_paths
@@ -358,7 +375,8 @@ class Relighter:
         self._u: dict[int, torch.Tensor] = {}
         # Every pixel covered in order: scattering into the image is a reshape.
         self._dense = gbuffer.num_samples == height * width and bool(
-            (gbuffer.pixel_index == torch.arange(height * width, device=gbuffer.device)).all())
+            (gbuffer.pixel_index == torch.arange(height * width, device=gbuffer.device)).all()
+        )
         # Emission plus every light but `_active` (the last one edited), or None when stale.
         self._active: str | None = None
         self._others: torch.Tensor | None = None
@@ -396,9 +414,14 @@ class Relighter:
             self._active, self._others = light.path, None
 
     @classmethod
-    def from_cache(cls, path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
-                   lights_layer: str | os.PathLike | None = None,
-                   settings: RelightSettings = RelightSettings()) -> "Relighter":
+    def from_cache(
+        cls,
+        path: str | os.PathLike,
+        device: str | torch.device = "cpu",
+        shadows: str = "embree",
+        lights_layer: str | os.PathLike | None = None,
+        settings: RelightSettings = RelightSettings(),
+    ) -> Relighter:
         """The direct relighter of a cache layer, checked before loading: see `open_relighter`."""
         return open_relighter(path, device, shadows, lights_layer, settings)
 
@@ -497,8 +520,10 @@ class Relighter:
         if not scale.any():
             return total if in_place else total.clone()
         diffuse, specular = self._images(state)
-        diffuse_scale, specular_scale = (torch.as_tensor(scale * lobe, device=total.device, dtype=total.dtype)
-                                         for lobe in (light.diffuse, light.specular))
+        diffuse_scale, specular_scale = (
+            torch.as_tensor(scale * lobe, device=total.device, dtype=total.dtype)
+            for lobe in (light.diffuse, light.specular)
+        )
         mask = self._mask(light)
         if mask is not None:
             diffuse_scale, specular_scale = diffuse_scale * mask, specular_scale * mask
@@ -523,8 +548,9 @@ class Relighter:
             return None
         if link not in self._masks:
             if self.object_paths is None:
-                raise ValueError(f"{light.path}: light linking needs the cache's object paths "
-                                 f"(re-bake the cache with this version)")
+                raise ValueError(
+                    f"{light.path}: light linking needs the cache's object paths (re-bake the cache with this version)"
+                )
             g = self.gbuffer
             self._masks[link] = linked_points(self.object_paths, link, g.object_id).to(g.position.dtype).unsqueeze(-1)
             self.counters["masks"] += 1
@@ -536,7 +562,7 @@ class Relighter:
         n = self.gbuffer.num_samples if points is None else points.shape[0]
         step = max(1, min(self.settings.chunk_samples // num_samples, -(-n // pieces)))
         if points is not None:
-            return [points[i:i + step] for i in range(0, n, step)] or [points]
+            return [points[i : i + step] for i in range(0, n, step)] or [points]
         # No covered point (a camera that sees only sky) is one empty chunk: an empty transport.
         return [slice(i, min(i + step, n)) for i in range(0, n, step)] or [slice(0, 0)]
 
@@ -562,15 +588,19 @@ class Relighter:
             return settings.dome_samples
         if settings.full_sampling_angle <= 0.0:  # every light takes them all: no pass over the points
             return settings.area_samples
-        return adaptive_sample_count(settings.area_samples, settings.min_area_samples,
-                                     angular_radius(light, self.gbuffer.position),
-                                     np.radians(settings.full_sampling_angle))
+        return adaptive_sample_count(
+            settings.area_samples,
+            settings.min_area_samples,
+            angular_radius(light, self.gbuffer.position),
+            np.radians(settings.full_sampling_angle),
+        )
 
     def _fixed_u(self, num_samples: int) -> torch.Tensor:
         if num_samples not in self._u:
             g = self.gbuffer
-            self._u[num_samples] = fixed_light_samples(g.num_samples, num_samples, self.settings.seed,
-                                                       g.device, g.position.dtype)
+            self._u[num_samples] = fixed_light_samples(
+                g.num_samples, num_samples, self.settings.seed, g.device, g.position.dtype
+            )
         return self._u[num_samples]
 
     def _transports(self, state: _LightState) -> list[_Transport]:
@@ -584,7 +614,7 @@ class Relighter:
         threads = tile_threads(self.gbuffer.device, self.visibility.thread_safe)
         for points, num_samples in self._sample_groups(light):
             chunks = self._chunks(num_samples, points, threads)
-            u, viewer = self._fixed_u(num_samples), self._view_directions()   # made here, shared by the tiles
+            u, viewer = self._fixed_u(num_samples), self._view_directions()  # made here, shared by the tiles
             parts = parallel_map(lambda chunk: self._chunk_transport(light, chunk, u, viewer), chunks, threads)
             state.transports.append(parts[0] if len(parts) == 1 else self._joined(parts, chunks))
         if state.transports[0].shadow_sums is not None:
@@ -622,8 +652,14 @@ class Relighter:
         n = self.gbuffer.num_samples
         points = None
         if any(part.points is not None for part in parts):
-            points = torch.cat([torch.arange(chunk.start, chunk.stop, device=self.gbuffer.device)
-                                if part.points is None else part.points for chunk, part in zip(chunks, parts)])
+            points = torch.cat(
+                [
+                    torch.arange(chunk.start, chunk.stop, device=self.gbuffer.device)
+                    if part.points is None
+                    else part.points
+                    for chunk, part in zip(chunks, parts, strict=True)
+                ]
+            )
         dense = points is not None and 2 * points.shape[0] > n
 
         def join(name: str, dim: int, fill: float) -> torch.Tensor | None:
@@ -637,9 +673,15 @@ class Relighter:
                 joined = joined.new_full(shape, fill).index_copy_(dim, points, joined)
             return joined
 
-        return _Transport(None if dense else points, join("directions", 1, 0.0), join("lobes", 2, 0.0),
-                          join("diffuse_ratio", 0, 1.0), join("factors", 2, 0.0), parts[0].colour,
-                          join("shadow_sums", 0, 0.0))
+        return _Transport(
+            None if dense else points,
+            join("directions", 1, 0.0),
+            join("lobes", 2, 0.0),
+            join("diffuse_ratio", 0, 1.0),
+            join("factors", 2, 0.0),
+            parts[0].colour,
+            join("shadow_sums", 0, 0.0),
+        )
 
     def _filter_visibility(self, transports: list[_Transport]) -> None:
         """Fold the filtered visibility F(sum w V) / F(sum w) into the transports' diffuse ratios
@@ -665,8 +707,13 @@ class Relighter:
         shadowed, unshadowed = self._surface_filter(sums).unbind(-1)
         return torch.where(unshadowed > 0, shadowed / torch.where(unshadowed > 0, unshadowed, 1.0), 0.0)
 
-    def _chunk_transport(self, light: Light, chunk: slice | torch.Tensor, u: torch.Tensor,
-                         viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor]) -> _Transport:
+    def _chunk_transport(
+        self,
+        light: Light,
+        chunk: slice | torch.Tensor,
+        u: torch.Tensor,
+        viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    ) -> _Transport:
         """The transport of an unshaped unit light at the shading points of `chunk` (a slice of
         all of them, or their indices), with the fixed light samples `u` (N, S, 2) of every point
         and the `_view_directions` `viewer`.
@@ -700,9 +747,13 @@ class Relighter:
             rows = points = chunk[local] if subset else local + chunk.start
         direction, cosine = direction[:, local], cosine[:, local]
         scalar, radiance = scalar[:, local], radiance[:, local]
-        distance = self.visibility.occluder_distance(light, g.position[rows], g.geometric_normal[rows],
-                                                     direction.transpose(0, 1),
-                                                     sample.distance.transpose(0, 1)[:, local].transpose(0, 1))
+        distance = self.visibility.occluder_distance(
+            light,
+            g.position[rows],
+            g.geometric_normal[rows],
+            direction.transpose(0, 1),
+            sample.distance.transpose(0, 1)[:, local].transpose(0, 1),
+        )
         distance = distance.transpose(0, 1)
         # The samples' unshadowed estimate of the cosine-weighted solid angle, for the ratio estimator.
         reaching = (sample.distance < math.inf).transpose(0, 1)[:, local]
@@ -715,10 +766,12 @@ class Relighter:
             unshadowed = scalar * radiance[..., k] / float(scale[k])
             weight = unshadowed
             if shadow.enable:
-                weight = weight * (1.0 - (1.0 - shadow.color[0]) * shadow_strength(
-                    shadow, distance < math.inf, distance))
-            factors = preview_surface.split_factors(params, cos_e[rows], cosine * inverse_norm[rows],
-                                                    dot(direction, wo), self._coat)
+                weight = weight * (
+                    1.0 - (1.0 - shadow.color[0]) * shadow_strength(shadow, distance < math.inf, distance)
+                )
+            factors = preview_surface.split_factors(
+                params, cos_e[rows], cosine * inverse_norm[rows], dot(direction, wo), self._coat
+            )
             # With a filtered visibility the diffuse factors stay unshadowed (see _Transport).
             factors[:2] *= unshadowed if filtered else weight
             factors[2:] *= weight
@@ -784,8 +837,11 @@ class Relighter:
         per_sample = (6 + 3) * size if light.texture is None else (2 * 3 + 3) * size
         samples = max(num for _, num in self._sample_groups(light))
         needed = self.gbuffer.num_samples * samples * per_sample
-        kept = sum(other.images.numel() * other.images.element_size()
-                   for other in self._lights.values() if other.images is not None)
+        kept = sum(
+            other.images.numel() * other.images.element_size()
+            for other in self._lights.values()
+            if other.images is not None
+        )
         return kept + needed <= self.memory_budget
 
     def _fit_budget(self, current: _LightState) -> None:
@@ -820,8 +876,9 @@ class Relighter:
             def tile(chunk):
                 part = self._chunk_transport(light, chunk, u, viewer)
                 if part.points is None:  # the whole tile: name its points, as `_joined` does
-                    part.points = (torch.arange(chunk.start, chunk.stop, device=g.device)
-                                   if isinstance(chunk, slice) else chunk)
+                    part.points = (
+                        torch.arange(chunk.start, chunk.stop, device=g.device) if isinstance(chunk, slice) else chunk
+                    )
                 return part.points, self._per_point(state.light, part), part.shadow_sums
 
             for index, per_point, shadow_sums in parallel_map(tile, chunks, threads):
@@ -877,15 +934,21 @@ class Relighter:
         return emission_factor(light, transport.emission_in(light), position, origin)
 
 
-def embree_visibility(occluders: np.ndarray, occluder_objects: np.ndarray | None,
-                      object_paths: list[str] | None,
-                      opacity: OpacityTable | None = None) -> tuple[EmbreeCaster, RayVisibility]:
+def embree_visibility(
+    occluders: np.ndarray,
+    occluder_objects: np.ndarray | None,
+    object_paths: list[str] | None,
+    opacity: OpacityTable | None = None,
+) -> tuple[EmbreeCaster, RayVisibility]:
     """Embree over a cache's (T, 3, 3) occluders and the shadow-ray visibility using it, with a
     caster per shadow-link set when the (T,) occluder objects and their paths are given; shadow
     rays pass through the holes of the occluders' `opacity` table (`load_opacity`)."""
     caster = EmbreeCaster(occluders, opacity=opacity)
-    links = None if occluder_objects is None else ShadowLinkCasters(occluders, occluder_objects, object_paths,
-                                                                    caster.epsilon, opacity=opacity)
+    links = (
+        None
+        if occluder_objects is None
+        else ShadowLinkCasters(occluders, occluder_objects, object_paths, caster.epsilon, opacity=opacity)
+    )
     return caster, RayVisibility(caster, links)
 
 
@@ -901,9 +964,13 @@ def load_opacity(layer_path: Path, description: CacheDescription) -> OpacityTabl
         raise RelightError(f"{layer_path}: occluder opacity payloads: {error}") from error
 
 
-def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
-                   lights_layer: str | os.PathLike | None = None,
-                   settings: RelightSettings = RelightSettings()) -> Relighter:
+def open_relighter(
+    path: str | os.PathLike,
+    device: str | torch.device = "cpu",
+    shadows: str = "embree",
+    lights_layer: str | os.PathLike | None = None,
+    settings: RelightSettings = RelightSettings(),
+) -> Relighter:
     """A Relighter for a cache layer, with the shot's lights (and `lights_layer`'s edits over them).
 
     Everything is checked before tensors are allocated (`relight_torch.cache.load`): payload sizes
@@ -926,19 +993,26 @@ def open_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", 
     object_paths = decode_paths(load_npy(layer_path, description, "objectPaths")) if linking else None
     if shadows == "embree":
         occluder_objects = np.asarray(load_npy(layer_path, description, "occluderObjects")) if linking else None
-        _, visibility = embree_visibility(occluders, occluder_objects, object_paths,
-                                          load_opacity(layer_path, description))
+        _, visibility = embree_visibility(
+            occluders, occluder_objects, object_paths, load_opacity(layer_path, description)
+        )
     elif shadows == "shadowmaps":
         # Always cube maps for spot lights: a cone edit does not re-run visibility, and a perspective
         # map sized for the old cone would leave the new one's receivers unshadowed.
-        visibility = ShadowMapVisibility(torch.from_numpy(occluders).to(device), settings.shadow_map_resolution,
-                                         settings.shadow_map_march_steps, receivers=gbuffer.position,
-                                         max_spot_half_angle=0.0, lookup=settings.shadow_map_lookup,
-                                         opacity=load_opacity(layer_path, description))
+        visibility = ShadowMapVisibility(
+            torch.from_numpy(occluders).to(device),
+            settings.shadow_map_resolution,
+            settings.shadow_map_march_steps,
+            receivers=gbuffer.position,
+            max_spot_half_angle=0.0,
+            lookup=settings.shadow_map_lookup,
+            opacity=load_opacity(layer_path, description),
+        )
     else:
         raise RelightError(f"shadows must be 'embree' or 'shadowmaps', got {shadows!r}")
-    relighter = Relighter(gbuffer, visibility, description.supersampling, description.exposure_scale, settings,
-                          object_paths)
+    relighter = Relighter(
+        gbuffer, visibility, description.supersampling, description.exposure_scale, settings, object_paths
+    )
     relighter.description = description
     relighter.set_lights(shot_lights(description, lights_layer))
     return relighter
@@ -955,5 +1029,6 @@ def shot_lights(description: CacheDescription, lights_layer: str | os.PathLike |
     try:
         return read_stage_lights(stage, time_code(stage, description.parameters.get("time")))
     except ValueError as error:
-        raise RelightError(f"{defining_layer(stage, str(error), lights_layer or description.source)}: "
-                           f"{error}") from None
+        raise RelightError(
+            f"{defining_layer(stage, str(error), lights_layer or description.source)}: {error}"
+        ) from None

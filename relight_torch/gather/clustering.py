@@ -28,8 +28,9 @@ def features(position: torch.Tensor, normal: torch.Tensor, position_weight: floa
     return torch.cat((position * position_weight, normal), dim=-1)
 
 
-def cluster_means(points: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
-                  num_clusters: int) -> tuple[torch.Tensor, torch.Tensor]:
+def cluster_means(
+    points: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor, num_clusters: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-set cluster means.
 
     Args:
@@ -70,8 +71,9 @@ def _masked_mean(points: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor
     return torch.bmm(weight, points).squeeze(1) / count.clamp(min=1.0), count
 
 
-def hierarchical_seeds(points: torch.Tensor, valid: torch.Tensor, num_clusters: int,
-                       num_split_iterations: int = 4) -> torch.Tensor:
+def hierarchical_seeds(
+    points: torch.Tensor, valid: torch.Tensor, num_clusters: int, num_split_iterations: int = 4
+) -> torch.Tensor:
     """Labels (B, M) int64 of K clusters made by repeatedly splitting the worst cluster in two.
 
     Each step works on the split cluster's members only, packed to the left (`_compact`), and
@@ -106,8 +108,10 @@ def hierarchical_seeds(points: torch.Tensor, valid: torch.Tensor, num_clusters: 
         centre_b = 2.0 * mean - centre_a
         side_b = torch.zeros_like(members)
         for _ in range(num_split_iterations):
-            side_b = members & ((cluster_points - centre_b.unsqueeze(1)).norm(dim=-1)
-                                < (cluster_points - centre_a.unsqueeze(1)).norm(dim=-1))
+            side_b = members & (
+                (cluster_points - centre_b.unsqueeze(1)).norm(dim=-1)
+                < (cluster_points - centre_a.unsqueeze(1)).norm(dim=-1)
+            )
             for side, centre in ((members & ~side_b, centre_a), (side_b, centre_b)):
                 side_mean, count = _masked_mean(cluster_points, side)
                 centre.copy_(torch.where(count > 0, side_mean, centre))
@@ -120,8 +124,9 @@ def hierarchical_seeds(points: torch.Tensor, valid: torch.Tensor, num_clusters: 
     return labels
 
 
-def kmeans(points: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor, num_clusters: int,
-           num_iterations: int = 8) -> torch.Tensor:
+def kmeans(
+    points: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor, num_clusters: int, num_iterations: int = 8
+) -> torch.Tensor:
     """Refine labels (B, M) by k-means steps (assign to the nearest non-empty mean, recompute).
 
     Args:
@@ -142,15 +147,21 @@ def kmeans(points: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor, num_
     return labels
 
 
-def cluster(points: torch.Tensor, valid: torch.Tensor, num_clusters: int, num_split_iterations: int = 4,
-            num_kmeans_iterations: int = 8) -> torch.Tensor:
+def cluster(
+    points: torch.Tensor,
+    valid: torch.Tensor,
+    num_clusters: int,
+    num_split_iterations: int = 4,
+    num_kmeans_iterations: int = 8,
+) -> torch.Tensor:
     """The two phases: `hierarchical_seeds` then `kmeans`. Returns (B, M) labels, -1 where not valid."""
     seeds = hierarchical_seeds(points, valid, num_clusters, num_split_iterations)
     return kmeans(points, valid, seeds, num_clusters, num_kmeans_iterations)
 
 
-def nearest_members(positions: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
-                    num_clusters: int) -> torch.Tensor:
+def nearest_members(
+    positions: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor, num_clusters: int
+) -> torch.Tensor:
     """(B, K) index in [0, M) of each cluster's member nearest its mean position (3-D), or -1 if empty.
 
     The paper places a clustered sample at that member so that visibility is evaluated on a real

@@ -9,15 +9,19 @@ import numpy as np
 import torch
 
 from relight_torch.cache.load import load_npy
+from relight_torch.direct.relighter import RelightSettings, open_relighter
 from relight_torch.errors import RelightError
 from relight_torch.gather.relighter import DEFAULT_GATHER_SAMPLES, SET_NAMES, GatherRelighter, GatherSet, SurfacePoints
-from relight_torch.direct.relighter import RelightSettings, open_relighter
 
 
-def open_gather_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
-                          lights_layer: str | os.PathLike | None = None,
-                          settings: RelightSettings = RelightSettings(),
-                          gather_samples: int = DEFAULT_GATHER_SAMPLES) -> GatherRelighter:
+def open_gather_relighter(
+    path: str | os.PathLike,
+    device: str | torch.device = "cpu",
+    shadows: str = "embree",
+    lights_layer: str | os.PathLike | None = None,
+    settings: RelightSettings = RelightSettings(),
+    gather_samples: int = DEFAULT_GATHER_SAMPLES,
+) -> GatherRelighter:
     """A GatherRelighter for a 'gather' cache layer (arguments as `open_relighter`; `gather_samples`
     as `GatherRelighter`).
 
@@ -34,11 +38,19 @@ def open_gather_relighter(path: str | os.PathLike, device: str | torch.device = 
         return torch.from_numpy(np.array(load_npy(layer_path, description, name))).to(device)
 
     try:
-        points = SurfacePoints(*(load(f"gather{field}") for field in ("Position", "Normal", "Albedo")),
-                               object_id=load("gatherObject")).to(device, dtype)
-        sets = {lobe: GatherSet(**{field: load(f"{lobe}{field.capitalize()}")
-                                   for field in ("index", "weight", "offsets", "neighbours", "rbf")}).to(device, dtype)
-                for lobe in SET_NAMES if f"{lobe}Offsets" in names}
+        points = SurfacePoints(
+            *(load(f"gather{field}") for field in ("Position", "Normal", "Albedo")), object_id=load("gatherObject")
+        ).to(device, dtype)
+        sets = {
+            lobe: GatherSet(
+                **{
+                    field: load(f"{lobe}{field.capitalize()}")
+                    for field in ("index", "weight", "offsets", "neighbours", "rbf")
+                }
+            ).to(device, dtype)
+            for lobe in SET_NAMES
+            if f"{lobe}Offsets" in names
+        }
         return GatherRelighter(direct, points, sets, load("viewPixels"), load("viewAlbedo").to(dtype), gather_samples)
     except ValueError as error:
         raise RelightError(f"{layer_path}: {error}") from None

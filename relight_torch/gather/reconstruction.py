@@ -38,5 +38,6 @@ def interpolate(values: torch.Tensor, neighbours: torch.Tensor, weights: torch.T
     if neighbours.shape[1] == 0:  # no representative (a camera that sees only sky): bags of nothing
         return values.new_zeros(neighbours.shape[0], values.shape[1])
     # A weighted embedding bag: ~7x faster on CPU than indexing (P, k, C) and summing over k.
-    return torch.nn.functional.embedding_bag(neighbours.clamp(0, values.shape[0] - 1), values,
-                                             per_sample_weights=weights.to(values.dtype), mode="sum")
+    return torch.nn.functional.embedding_bag(
+        neighbours.clamp(0, values.shape[0] - 1), values, per_sample_weights=weights.to(values.dtype), mode="sum"
+    )

@@ -28,12 +28,12 @@ from typing import cast
 import torch
 
 from relight_torch.diffuse_light import diffuse_radiance
+from relight_torch.direct.relighter import Relighter, unit_light
 from relight_torch.gather.reconstruction import interpolate
 from relight_torch.gather.remembered import RememberedVisibility
 from relight_torch.indirect import IndirectRelighter, gather_light_key
 from relight_torch.lights.light import Light
 from relight_torch.protocol import tensor_bytes
-from relight_torch.direct.relighter import Relighter, unit_light
 
 SET_NAMES = ("diffuse", "glossy")
 GREY_TOLERANCE = 1e-5
@@ -66,7 +66,9 @@ class SurfacePoints:
         num_points = self.position.shape[0]
         for name in ("position", "normal", "albedo"):
             if getattr(self, name).shape != (num_points, 3):
-                raise ValueError(f"SurfacePoints.{name} must be ({num_points}, 3), got {tuple(getattr(self, name).shape)}")
+                raise ValueError(
+                    f"SurfacePoints.{name} must be ({num_points}, 3), got {tuple(getattr(self, name).shape)}"
+                )
         if self.object_id.shape != (num_points,):
             raise ValueError(f"SurfacePoints.object_id must be ({num_points},), got {tuple(self.object_id.shape)}")
 
@@ -78,7 +80,7 @@ class SurfacePoints:
     def num_bytes(self) -> int:
         return sum(t.numel() * t.element_size() for t in dataclasses.astuple(self))
 
-    def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> "SurfacePoints":
+    def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> SurfacePoints:
         position, normal, albedo = (t.to(device, dtype) for t in (self.position, self.normal, self.albedo))
         return SurfacePoints(position, normal, albedo, object_id=self.object_id.to(device, torch.int64))
 
@@ -105,17 +107,24 @@ class GatherSet:
     def __post_init__(self) -> None:
         num_gathers = self.index.shape[0]
         if self.index.ndim != 1 or self.weight.shape != (num_gathers, 3):
-            raise ValueError(f"GatherSet.index must be (G,) and .weight (G, 3), got {tuple(self.index.shape)} "
-                             f"and {tuple(self.weight.shape)}")
+            raise ValueError(
+                f"GatherSet.index must be (G,) and .weight (G, 3), got {tuple(self.index.shape)} "
+                f"and {tuple(self.weight.shape)}"
+            )
         if num_gathers and int(self.index.min()) < 0:
             raise ValueError("GatherSet.index must not be negative")
-        if self.offsets.ndim != 1 or int(self.offsets[0]) != 0 or int(self.offsets[-1]) != num_gathers \
-                or bool((self.offsets[1:] < self.offsets[:-1]).any()):
+        if (
+            self.offsets.ndim != 1
+            or int(self.offsets[0]) != 0
+            or int(self.offsets[-1]) != num_gathers
+            or bool((self.offsets[1:] < self.offsets[:-1]).any())
+        ):
             raise ValueError(f"GatherSet.offsets must rise from 0 to {num_gathers}")
         if self.neighbours.shape != self.rbf.shape or self.neighbours.ndim != 2:
             raise ValueError("GatherSet.neighbours and .rbf must both be (P, k)")
-        if self.neighbours.numel() and (int(self.neighbours.min()) < 0
-                                        or int(self.neighbours.max()) >= self.num_representatives):
+        if self.neighbours.numel() and (
+            int(self.neighbours.min()) < 0 or int(self.neighbours.max()) >= self.num_representatives
+        ):
             raise ValueError(f"GatherSet.neighbours must index {self.num_representatives} representatives")
 
     @property
@@ -130,7 +139,7 @@ class GatherSet:
     def num_bytes(self) -> int:
         return sum(t.numel() * t.element_size() for t in dataclasses.astuple(self))
 
-    def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> "GatherSet":
+    def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> GatherSet:
         moved = {f.name: getattr(self, f.name).to(device) for f in dataclasses.fields(self)}
         for name in ("weight", "rbf"):
             moved[name] = moved[name].to(dtype)
@@ -145,13 +154,28 @@ class GatherSet:
         # diffuse set's, and the glossy set's of white-specular or specular-free materials) take
         # one bag over all three colours, else one bag per colour (~3x the time).
         if self._grey:
-            return torch.nn.functional.embedding_bag(self.index, radiance, self.offsets, mode="sum",
-                                                     per_sample_weights=self._grey_weight.to(radiance.dtype),
-                                                     include_last_offset=True)
-        return torch.stack([torch.nn.functional.embedding_bag(
-            self.index, radiance[:, c:c + 1].contiguous(), self.offsets, mode="sum",
-            per_sample_weights=weight.to(radiance.dtype), include_last_offset=True)[:, 0]
-            for c, weight in enumerate(self._channel_weights)], dim=-1)
+            return torch.nn.functional.embedding_bag(
+                self.index,
+                radiance,
+                self.offsets,
+                mode="sum",
+                per_sample_weights=self._grey_weight.to(radiance.dtype),
+                include_last_offset=True,
+            )
+        return torch.stack(
+            [
+                torch.nn.functional.embedding_bag(
+                    self.index,
+                    radiance[:, c : c + 1].contiguous(),
+                    self.offsets,
+                    mode="sum",
+                    per_sample_weights=weight.to(radiance.dtype),
+                    include_last_offset=True,
+                )[:, 0]
+                for c, weight in enumerate(self._channel_weights)
+            ],
+            dim=-1,
+        )
 
     @functools.cached_property
     def _grey(self) -> bool:
@@ -190,8 +214,15 @@ class GatherRelighter(IndirectRelighter):
         visibility: the remembered visibility of the gathers (its counters say how many queries traced).
     """
 
-    def __init__(self, direct: Relighter, points: SurfacePoints, sets: dict[str, GatherSet],
-                 view_pixels: torch.Tensor, view_albedo: torch.Tensor, gather_samples: int = DEFAULT_GATHER_SAMPLES):
+    def __init__(
+        self,
+        direct: Relighter,
+        points: SurfacePoints,
+        sets: dict[str, GatherSet],
+        view_pixels: torch.Tensor,
+        view_albedo: torch.Tensor,
+        gather_samples: int = DEFAULT_GATHER_SAMPLES,
+    ):
         unknown = set(sets) - set(SET_NAMES)
         if unknown or not sets:
             raise ValueError(f"gather sets must be among {SET_NAMES}, got {sorted(sets)}")
@@ -199,8 +230,10 @@ class GatherRelighter(IndirectRelighter):
             raise ValueError(f"gather_samples must be >= 1, got {gather_samples}")
         for name, gather_set in sets.items():
             if gather_set.neighbours.shape[0] != view_pixels.shape[0]:
-                raise ValueError(f"the {name} set reconstructs {gather_set.neighbours.shape[0]} pixels, "
-                                 f"expected {view_pixels.shape[0]}")
+                raise ValueError(
+                    f"the {name} set reconstructs {gather_set.neighbours.shape[0]} pixels, "
+                    f"expected {view_pixels.shape[0]}"
+                )
             if gather_set.num_gathers and int(gather_set.index.max()) >= points.num_points:
                 raise ValueError(f"the {name} set indexes past the {points.num_points} surface points")
         if view_albedo.shape != (view_pixels.shape[0], 3):
@@ -245,9 +278,17 @@ class GatherRelighter(IndirectRelighter):
     def surface_radiance(self, light: Light) -> torch.Tensor:
         """(U, 3) radiance D leaving the shared surface points, lit by `light` (its colour included)."""
         p = self.points
-        return diffuse_radiance(light, p.position, p.normal, p.albedo, self.visibility,
-                                self._gather_samples(light, self.gather_samples), self.direct.settings.seed,
-                                object_id=p.object_id, object_paths=self.direct.object_paths)
+        return diffuse_radiance(
+            light,
+            p.position,
+            p.normal,
+            p.albedo,
+            self.visibility,
+            self._gather_samples(light, self.gather_samples),
+            self.direct.settings.seed,
+            object_id=p.object_id,
+            object_paths=self.direct.object_paths,
+        )
 
     def _indirect_bytes(self) -> int:
         return tensor_bytes(*(image for _, image in self._per_light.values()))

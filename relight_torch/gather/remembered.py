@@ -14,8 +14,8 @@ import collections
 
 import torch
 
-from relight_torch.lights.light import Light
 from relight_torch.direct.relighter import geometry_key
+from relight_torch.lights.light import Light
 from relight_torch.visibility import Visibility
 
 MAX_ANSWERS = 8
@@ -38,8 +38,14 @@ class RememberedVisibility:
         self.counters: collections.Counter[str] = collections.Counter()
         self._answers: dict[str, tuple[tuple, list[tuple[tuple[torch.Tensor, ...], torch.Tensor]]]] = {}
 
-    def occluder_distance(self, light: Light, points: torch.Tensor, normals: torch.Tensor,
-                          directions: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
+    def occluder_distance(
+        self,
+        light: Light,
+        points: torch.Tensor,
+        normals: torch.Tensor,
+        directions: torch.Tensor,
+        distances: torch.Tensor,
+    ) -> torch.Tensor:
         """(N, S) distance to the first occluder, inf where visible (see `Visibility`)."""
         key = geometry_key(light)
         if light.path not in self._answers or self._answers[light.path][0] != key:
@@ -47,7 +53,7 @@ class RememberedVisibility:
         queries = (points, normals, directions, distances)
         answers = self._answers[light.path][1]
         for asked, answer in answers:
-            if all(a.shape == q.shape and torch.equal(a, q) for a, q in zip(asked, queries)):
+            if all(a.shape == q.shape and torch.equal(a, q) for a, q in zip(asked, queries, strict=True)):
                 self.counters["remembered"] += 1
                 return answer
         answer = self.visibility.occluder_distance(light, points, normals, directions, distances)

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 from relight_torch.errors import RelightError
 
@@ -34,8 +34,9 @@ def atomic_path(target: str | os.PathLike[str]) -> Iterator[Path]:
             os.fsync(handle.fileno())
         os.replace(temp, target)
     except OSError as error:  # disk full, quota, permissions: one line naming the file
-        raise RelightError(f"{target}: could not be written ({error.strerror or error}); "
-                           f"nothing was replaced") from error
+        raise RelightError(
+            f"{target}: could not be written ({error.strerror or error}); nothing was replaced"
+        ) from error
     finally:
         with contextlib.suppress(FileNotFoundError):
             temp.unlink()

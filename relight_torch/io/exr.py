@@ -16,15 +16,17 @@ import numpy as np
 import OpenEXR
 import OpenImageIO as oiio
 
-from relight_torch.io.atomic import atomic_path
 from relight_torch.errors import RelightError
+from relight_torch.io.atomic import atomic_path
 
 OpenEXR.set_global_thread_count(os.cpu_count() or 1)
 
 _ALLOWED = (np.float16, np.float32, np.uint32)
 # OpenImageIO's names of the three EXR pixel types, and the numpy dtype each reads back as.
 _PIXEL_TYPES: dict[str, np.dtype[Any]] = {
-    "half": np.dtype(np.float16), "float": np.dtype(np.float32), "uint": np.dtype(np.uint32)
+    "half": np.dtype(np.float16),
+    "float": np.dtype(np.float32),
+    "uint": np.dtype(np.uint32),
 }
 # The EXR specification's names of the pixel types, by numpy dtype (for messages and reports).
 PIXEL_TYPE_NAMES = {np.dtype(np.float16): "HALF", np.dtype(np.float32): "FLOAT", np.dtype(np.uint32): "UINT"}
@@ -46,8 +48,9 @@ class ExrHeader:
     compression: str
 
 
-def write_exr(path: str | os.PathLike[str], channels: dict[str, np.ndarray],
-              attributes: dict[str, object] | None = None) -> None:
+def write_exr(
+    path: str | os.PathLike[str], channels: dict[str, np.ndarray], attributes: dict[str, object] | None = None
+) -> None:
     """Write single-part scanline EXR with ZIP compression, atomically.
 
     Args:
@@ -67,17 +70,19 @@ def write_exr(path: str | os.PathLike[str], channels: dict[str, np.ndarray],
         data[name] = np.ascontiguousarray(array)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     header.update(attributes or {})
-    with atomic_path(path) as temp:
-        with OpenEXR.File(header, data) as exr:
-            try:
-                exr.write(str(temp))
-            except RuntimeError as error:  # OpenEXR's failed write (disk full...): atomic_path reports OSErrors
-                raise OSError(_one_line(error)) from error
+    with atomic_path(path) as temp, OpenEXR.File(header, data) as exr:
+        try:
+            exr.write(str(temp))
+        except RuntimeError as error:  # OpenEXR's failed write (disk full...): atomic_path reports OSErrors
+            raise OSError(_one_line(error)) from error
 
 
-def write_rgb_exr(path: str | os.PathLike[str], rgb: np.ndarray,
-                  layers: dict[str, np.ndarray] | None = None,
-                  attributes: dict[str, object] | None = None) -> None:
+def write_rgb_exr(
+    path: str | os.PathLike[str],
+    rgb: np.ndarray,
+    layers: dict[str, np.ndarray] | None = None,
+    attributes: dict[str, object] | None = None,
+) -> None:
     """Write an (H, W, 3) float image as R, G, B (float32), plus optional `layer` -> (H, W, 3) as layer.R/G/B."""
     channels = {c: rgb[..., i].astype(np.float32) for i, c in enumerate("RGB")}
     for layer, image in (layers or {}).items():
@@ -142,9 +147,13 @@ def read_exr_header(path: str | os.PathLike[str]) -> ExrHeader:
         unknown = sorted({str(f) for f in formats} - set(_PIXEL_TYPES))
         if unknown:
             raise RelightError(f"{path}: unsupported EXR pixel type {unknown[0]}")
-        channels = {name: _PIXEL_TYPES[str(f)] for name, f in zip(spec.channelnames, formats)}
-        return ExrHeader(width=spec.width, height=spec.height, channels=channels,
-                         compression=str(spec.getattribute("compression") or "none"))
+        channels = {name: _PIXEL_TYPES[str(f)] for name, f in zip(spec.channelnames, formats, strict=True)}
+        return ExrHeader(
+            width=spec.width,
+            height=spec.height,
+            channels=channels,
+            compression=str(spec.getattribute("compression") or "none"),
+        )
     finally:
         image.close()
 

@@ -98,8 +98,9 @@ class DomeSampler:
         def tensor(array: np.ndarray, table_dtype: torch.dtype = torch.float64) -> torch.Tensor:
             return torch.as_tensor(array, device=device, dtype=table_dtype)
 
-        return DomeSampler(tensor(texture, dtype), tensor(marginal_cdf), tensor(row_cdf), tensor(flat_row_cdf),
-                           tensor(pdf_uv, dtype))
+        return DomeSampler(
+            tensor(texture, dtype), tensor(marginal_cdf), tensor(row_cdf), tensor(flat_row_cdf), tensor(pdf_uv, dtype)
+        )
 
     def sample_uv(self, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Warp uniform numbers u (..., 2) to (u, v_from_top), each (...), distributed as pdf_uv."""

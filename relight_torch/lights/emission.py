@@ -60,9 +60,17 @@ import numpy as np
 import torch
 from pxr import UsdLux
 
-from relight_torch.lights.dome import dome_samplers, local_from_lookup, lookup_from_local, latlong_direction
-from relight_torch.lights.geometry import (LightFrame, SurfaceHits, check_transform, intersect_surface, planar_hits,
-                                           sample_area_local, surface_area, world_radius)
+from relight_torch.lights.dome import dome_samplers, latlong_direction, local_from_lookup, lookup_from_local
+from relight_torch.lights.geometry import (
+    LightFrame,
+    SurfaceHits,
+    check_transform,
+    intersect_surface,
+    planar_hits,
+    sample_area_local,
+    surface_area,
+    world_radius,
+)
 from relight_torch.lights.image import image_tensors, lookup_bilinear
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.shaping import emission_factor
@@ -120,7 +128,8 @@ def size_factor(light: Light) -> float:
 def is_delta_light(light: Light) -> bool:
     """Point light (radius-0 sphere) or zero-angle distant light: only `sample_light` reaches it."""
     return (light.kind is LightKind.SPHERE and light.radius == 0.0) or (
-        light.kind is LightKind.DISTANT and light.angle == 0.0)
+        light.kind is LightKind.DISTANT and light.angle == 0.0
+    )
 
 
 def light_radiance_scale(light: Light) -> np.ndarray:
@@ -152,16 +161,21 @@ def validate_light(light: Light) -> None:
     images = {"texture": light.texture, "cookie": light.barzel.cookie if light.barzel else None}
     for name, image in images.items():
         if image is not None and (image.ndim != 3 or image.shape[-1] != 3 or image.dtype != np.float32):
-            raise ValueError(f"{light.path}: {name} must be an (H, W, 3) float32 array, got "
-                             f"{image.dtype} {image.shape}")
+            raise ValueError(
+                f"{light.path}: {name} must be an (H, W, 3) float32 array, got {image.dtype} {image.shape}"
+            )
     barzel = light.barzel
     if barzel is not None:
         if barzel.near_end > 0 and not 0 <= barzel.near_start <= barzel.near_end:
-            raise ValueError(f"{light.path}: relight:barzel:near:start must lie in [0, near:end], "
-                             f"got {barzel.near_start} and {barzel.near_end}")
+            raise ValueError(
+                f"{light.path}: relight:barzel:near:start must lie in [0, near:end], "
+                f"got {barzel.near_start} and {barzel.near_end}"
+            )
         if barzel.far_end >= 0 and not 0 <= barzel.far_start <= barzel.far_end:
-            raise ValueError(f"{light.path}: relight:barzel:far:start must lie in [0, far:end], "
-                             f"got {barzel.far_start} and {barzel.far_end}")
+            raise ValueError(
+                f"{light.path}: relight:barzel:far:start must lie in [0, far:end], "
+                f"got {barzel.far_start} and {barzel.far_end}"
+            )
 
 
 def sample_light(light: Light, points: torch.Tensor, u: torch.Tensor) -> LightSample:
@@ -186,8 +200,10 @@ def sample_light(light: Light, points: torch.Tensor, u: torch.Tensor) -> LightSa
     check_last_dim(points, 3, "points")
     check_last_dim(u, 2, "u")
     if u.dtype != points.dtype or u.shape[:-2] != points.shape[:-1]:
-        raise ValueError(f"u must be (N, S, 2) of the points' dtype {points.dtype} for points {tuple(points.shape)}; "
-                         f"got {u.dtype} {tuple(u.shape)}")
+        raise ValueError(
+            f"u must be (N, S, 2) of the points' dtype {points.dtype} for points {tuple(points.shape)}; "
+            f"got {u.dtype} {tuple(u.shape)}"
+        )
     u = u.movedim(-2, 0).contiguous()
     receivers = points.unsqueeze(0)
     frame = LightFrame.of(light, points)
@@ -200,8 +216,13 @@ def sample_light(light: Light, points: torch.Tensor, u: torch.Tensor) -> LightSa
     else:
         directions = _sample_directions(light, frame, receivers, u)
         sample = LightSample(directions, *_trace(light, frame, receivers, directions), False)
-    return LightSample(sample.direction.movedim(0, -2), sample.distance.movedim(0, -1),
-                       sample.radiance.movedim(0, -2), sample.pdf.movedim(0, -1), sample.is_delta)
+    return LightSample(
+        sample.direction.movedim(0, -2),
+        sample.distance.movedim(0, -1),
+        sample.radiance.movedim(0, -2),
+        sample.pdf.movedim(0, -1),
+        sample.is_delta,
+    )
 
 
 def _sample_directions(light: Light, frame: LightFrame, receivers: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -254,8 +275,9 @@ def _checked_trace(
     return _trace(light, LightFrame.of(light, directions), points, directions)
 
 
-def _trace(light: Light, frame: LightFrame, points: torch.Tensor, directions: torch.Tensor,
-           hits: SurfaceHits | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _trace(
+    light: Light, frame: LightFrame, points: torch.Tensor, directions: torch.Tensor, hits: SurfaceHits | None = None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(distance (...), radiance (..., 3), pdf (...)) of rays from `points` along `directions`.
 
     `points` stay unbroadcast, so that per-point work is done once per point. `hits`: the rays'
@@ -293,8 +315,9 @@ def _trace(light: Light, frame: LightFrame, points: torch.Tensor, directions: to
     return distance, torch.where(lit, scale * factor, 0.0), pdf
 
 
-def _shape(light: Light, frame: LightFrame, emission_world: torch.Tensor,
-           receivers: torch.Tensor) -> torch.Tensor | None:
+def _shape(
+    light: Light, frame: LightFrame, emission_world: torch.Tensor, receivers: torch.Tensor
+) -> torch.Tensor | None:
     """(..., 3) ShapingAPI x Barzel factor of an area light for world emission directions (..., 3);
     None when neither applies."""
     if light.shaping is None and light.barzel is None:
@@ -336,8 +359,9 @@ def _dome_radiance_pdf(
     """(radiance (..., 3), pdf (...)) of a dome light along world directions (..., 3)."""
     if light.texture is None:
         return scale.expand_as(directions), torch.full_like(directions[..., 0], 0.25 / math.pi)
-    lookup = lookup_from_local(torch.nn.functional.normalize(frame.vector_to_local(directions), dim=-1),
-                               light.pole_axis)
+    lookup = lookup_from_local(
+        torch.nn.functional.normalize(frame.vector_to_local(directions), dim=-1), light.pole_axis
+    )
     sampler = dome_samplers.get(light.texture, directions.device, directions.dtype)
     return scale * sampler.radiance(lookup), sampler.pdf(lookup)
 

@@ -90,12 +90,16 @@ def check_transform(light: Light) -> None:
     orthogonal = np.abs(cosines - np.eye(3)).max() <= _ORTHOGONALITY_TOLERANCE
     if light.kind in (LightKind.SPHERE, LightKind.DOME):
         if not (orthogonal and np.ptp(scale) <= _ORTHOGONALITY_TOLERANCE * scale.max()):
-            raise ValueError(f"{light.path}: {light.kind.value} needs a rotation and one uniform scale; "
-                             f"its transform scales the axes by {np.round(scale, 6).tolist()} or shears")
+            raise ValueError(
+                f"{light.path}: {light.kind.value} needs a rotation and one uniform scale; "
+                f"its transform scales the axes by {np.round(scale, 6).tolist()} or shears"
+            )
     if light.kind is LightKind.CYLINDER:
         if not (orthogonal and abs(scale[1] - scale[2]) <= _ORTHOGONALITY_TOLERANCE * scale.max()):
-            raise ValueError(f"{light.path}: CylinderLight needs orthogonal axes with Y and Z scaled equally "
-                             f"(a circular cross-section); its axes scale by {np.round(scale, 6).tolist()}")
+            raise ValueError(
+                f"{light.path}: CylinderLight needs orthogonal axes with Y and Z scaled equally "
+                f"(a circular cross-section); its axes scale by {np.round(scale, 6).tolist()}"
+            )
 
 
 def axis_scales(light: Light) -> np.ndarray:
@@ -145,8 +149,9 @@ def sample_area_local(light: Light, disk_points: torch.Tensor | None, u: torch.T
         assert disk_points is not None, "a disk light's points need disk_points"
         return torch.cat((disk_points * light.radius, zero.unsqueeze(-1)), dim=-1)
     phi = 2.0 * math.pi * u[..., 1]
-    return torch.stack(((u[..., 0] - 0.5) * light.length, light.radius * torch.cos(phi),
-                        light.radius * torch.sin(phi)), dim=-1)
+    return torch.stack(
+        ((u[..., 0] - 0.5) * light.length, light.radius * torch.cos(phi), light.radius * torch.sin(phi)), dim=-1
+    )
 
 
 @dataclass(frozen=True)
@@ -205,8 +210,9 @@ def intersect_surface(light: Light, frame: LightFrame, origins: torch.Tensor, di
     return SurfaceHits(first, point_local, first_cos, pdf)
 
 
-def planar_hits(light: Light, frame: LightFrame, origins: torch.Tensor,
-                point_local: torch.Tensor) -> tuple[torch.Tensor, SurfaceHits]:
+def planar_hits(
+    light: Light, frame: LightFrame, origins: torch.Tensor, point_local: torch.Tensor
+) -> tuple[torch.Tensor, SurfaceHits]:
     """Rays from `origins` (..., 3) aimed at local points (..., 3) of a rect or disk light.
 
     A ray meets a plane once, at the point it was aimed at, so the hits need no intersection:
@@ -221,12 +227,17 @@ def planar_hits(light: Light, frame: LightFrame, origins: torch.Tensor,
     emitting = frame.normal_to_world_unit(to_light.new_tensor([0.0, 0.0, -1.0]))
     cos_light = -(directions @ emitting)
     hit = (cos_light != 0) & (distance > 0)
-    return directions, SurfaceHits(torch.where(hit, distance, math.inf), point_local, cos_light,
-                                   _solid_angle_density(distance, cos_light, hit, surface_area(light)))
+    return directions, SurfaceHits(
+        torch.where(hit, distance, math.inf),
+        point_local,
+        cos_light,
+        _solid_angle_density(distance, cos_light, hit, surface_area(light)),
+    )
 
 
-def _solid_angle_density(distance: torch.Tensor, cos_light: torch.Tensor, hit: torch.Tensor,
-                         area: float) -> torch.Tensor:
+def _solid_angle_density(
+    distance: torch.Tensor, cos_light: torch.Tensor, hit: torch.Tensor, area: float
+) -> torch.Tensor:
     """d^2 / (A |cos|) where `hit`, else 0: uniform area sampling's density in solid angle."""
     safe_cos = torch.where(hit, cos_light.abs(), torch.ones_like(cos_light))
     return torch.where(hit, distance.square() / (area * safe_cos), torch.zeros_like(distance))
@@ -263,8 +274,13 @@ def _cylinder_crossings(
     crossings = []
     for distance in (q / a, c / q):
         point = origin_local + torch.nan_to_num(distance, posinf=0.0, neginf=0.0).unsqueeze(-1) * direction_local
-        hit = ((discriminant >= 0) & (a > 0) & (distance > 0) & torch.isfinite(distance)
-               & (point[..., 0].abs() <= 0.5 * light.length))
+        hit = (
+            (discriminant >= 0)
+            & (a > 0)
+            & (distance > 0)
+            & torch.isfinite(distance)
+            & (point[..., 0].abs() <= 0.5 * light.length)
+        )
         normal = torch.stack((torch.zeros_like(oy), point[..., 1], point[..., 2]), dim=-1)
         crossings.append((torch.where(hit, distance, math.inf), normal))
     return crossings

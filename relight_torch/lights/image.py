@@ -9,12 +9,14 @@ from __future__ import annotations
 import collections
 import os
 import weakref
-from typing import Callable, Generic, Hashable, TypeVar
+from collections.abc import Callable, Hashable
+from typing import Generic, TypeVar
 
 import numpy as np
 import torch
 
 from relight_torch.io.images import read_image
+
 
 def read_linear_rgb(path: str | os.PathLike[str]) -> np.ndarray:
     """Read an image file as linear RGB (`relight_torch.io.images.read_image`, 'auto' colour space).
@@ -89,7 +91,8 @@ def lookup_bilinear(image: torch.Tensor, st: torch.Tensor) -> torch.Tensor:
     # grid_sample wants x right, y DOWN in [-1, 1] with align_corners=False = pixel-edge convention.
     grid = torch.stack([2.0 * st[..., 0] - 1.0, 1.0 - 2.0 * st[..., 1]], dim=-1).reshape(1, 1, -1, 2)
     sampled = torch.nn.functional.grid_sample(
-        image.permute(2, 0, 1).unsqueeze(0), grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+        image.permute(2, 0, 1).unsqueeze(0), grid, mode="bilinear", padding_mode="zeros", align_corners=False
+    )
     inside = ((st >= 0.0) & (st <= 1.0)).all(dim=-1, keepdim=True)
     return sampled.reshape(3, -1).T.reshape(*st.shape[:-1], 3) * inside
 
@@ -109,5 +112,8 @@ def lookup_nearest(image: torch.Tensor, u: torch.Tensor, v_from_top: torch.Tenso
     col = (u * width).long().clamp_(0, width - 1)
     row = (v_from_top * height).long().clamp_(0, height - 1)
     # One index_select of flat pixels: on the CPU ~2x faster than image[row, col].
-    return image.reshape(-1, image.shape[-1]).index_select(0, row.mul_(width).add_(col).reshape(-1)).reshape(
-        *row.shape, image.shape[-1])
+    return (
+        image.reshape(-1, image.shape[-1])
+        .index_select(0, row.mul_(width).add_(col).reshape(-1))
+        .reshape(*row.shape, image.shape[-1])
+    )

@@ -27,9 +27,11 @@ def _linkable(prim: Usd.Prim) -> bool:
 def _links_everything(collection: Usd.CollectionAPI) -> bool:
     """True when the collection has its default, all-including opinion (no traversal needed)."""
     expression = collection.GetMembershipExpressionAttr().Get()
-    return (bool(collection.GetIncludeRootAttr().Get())
-            and not collection.GetExcludesRel().GetTargets()
-            and (expression is None or expression.IsEmpty()))
+    return (
+        bool(collection.GetIncludeRootAttr().Get())
+        and not collection.GetExcludesRel().GetTargets()
+        and (expression is None or expression.IsEmpty())
+    )
 
 
 def read_link(collection: Usd.CollectionAPI) -> tuple[str, ...] | None:
@@ -46,9 +48,11 @@ def read_link(collection: Usd.CollectionAPI) -> tuple[str, ...] | None:
         return None
     query = collection.ComputeMembershipQuery()
     stage = collection.GetPrim().GetStage()
-    objects = [prim for prim in Usd.PrimRange(stage.GetPseudoRoot(),
-                                              Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
-               if _linkable(prim)]
+    objects = [
+        prim
+        for prim in Usd.PrimRange(stage.GetPseudoRoot(), Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
+        if _linkable(prim)
+    ]
     included = tuple(str(prim.GetPath()) for prim in objects if query.IsPathIncluded(prim.GetPath()))
     return None if len(included) == len(objects) else included
 

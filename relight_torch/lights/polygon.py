@@ -41,8 +41,15 @@ def has_closed_form(light: Light) -> bool:
 
 
 def _edge_term(
-    ax: torch.Tensor, ay: torch.Tensor, az: torch.Tensor, bx: torch.Tensor, by: torch.Tensor, bz: torch.Tensor,
-    nx: torch.Tensor, ny: torch.Tensor, nz: torch.Tensor,
+    ax: torch.Tensor,
+    ay: torch.Tensor,
+    az: torch.Tensor,
+    bx: torch.Tensor,
+    by: torch.Tensor,
+    bz: torch.Tensor,
+    nx: torch.Tensor,
+    ny: torch.Tensor,
+    nz: torch.Tensor,
 ) -> torch.Tensor:
     """theta (n . Gamma) of the edges a -> b (components, broadcasting): 0 for a degenerate edge.
 
@@ -73,9 +80,9 @@ def _clipped_sum(v: list[torch.Tensor], n: list[torch.Tensor], height: torch.Ten
     next_height, next_above = height.roll(-1, 0), above.roll(-1, 0)
     crossing = above != next_above
     t = torch.where(crossing, height / torch.where(crossing, height - next_height, 1.0), 0.0)
-    p = [a + t * (b - a) for a, b in zip(u, w)]
-    start = [torch.where(above, a, q) for a, q in zip(u, p)]
-    end = [torch.where(next_above, b, q) for b, q in zip(w, p)]
+    p = [a + t * (b - a) for a, b in zip(u, w, strict=True)]
+    start = [torch.where(above, a, q) for a, q in zip(u, p, strict=True)]
+    end = [torch.where(next_above, b, q) for b, q in zip(w, p, strict=True)]
     edges = torch.where(above | next_above, _edge_term(*start, *end, *n), 0.0).sum(0)
     # The horizon edge: from the crossing where the boundary leaves to the one where it re-enters.
     leaving, entering = crossing & above, crossing & next_above
@@ -101,9 +108,17 @@ def rect_cosine_integral(light: Light, points: torch.Tensor, normals: torch.Tens
     """
     frame = LightFrame.of(light, points)
     half_x, half_y = 0.5 * light.width, 0.5 * light.height
-    corners_local = torch.tensor([[half_x, half_y, 0.0], [-half_x, half_y, 0.0], [-half_x, -half_y, 0.0],
-                                  [half_x, -half_y, 0.0], [half_x, half_y, 0.0]],
-                                 device=points.device, dtype=points.dtype)
+    corners_local = torch.tensor(
+        [
+            [half_x, half_y, 0.0],
+            [-half_x, half_y, 0.0],
+            [-half_x, -half_y, 0.0],
+            [half_x, -half_y, 0.0],
+            [half_x, half_y, 0.0],
+        ],
+        device=points.device,
+        dtype=points.dtype,
+    )
     corners = frame.point_to_world(corners_local)  # (5, 3): closed
     origin = corners[0]
     along = torch.nn.functional.normalize(corners[1] - origin, dim=0)
@@ -117,14 +132,30 @@ def rect_cosine_integral(light: Light, points: torch.Tensor, normals: torch.Tens
     # plane: its sign is that of the receiver's z in the plane's frame (-Z) times that row's
     # component along the plane's normal.
     facing = float(frame.light_from_world[2] @ plane_normal)
-    blocks = [_rect_block(x, y, -position[2, i:i + CHUNK_POINTS], position[0, i:i + CHUNK_POINTS],
-                          position[1, i:i + CHUNK_POINTS], normal[:, i:i + CHUNK_POINTS], facing)
-              for i in range(0, max(points.shape[0], 1), CHUNK_POINTS)]   # one (empty) block for no receivers
+    blocks = [
+        _rect_block(
+            x,
+            y,
+            -position[2, i : i + CHUNK_POINTS],
+            position[0, i : i + CHUNK_POINTS],
+            position[1, i : i + CHUNK_POINTS],
+            normal[:, i : i + CHUNK_POINTS],
+            facing,
+        )
+        for i in range(0, max(points.shape[0], 1), CHUNK_POINTS)
+    ]  # one (empty) block for no receivers
     return blocks[0] if len(blocks) == 1 else torch.cat(blocks)
 
 
-def _rect_block(x: list[float], y: list[float], z: torch.Tensor, px: torch.Tensor, py: torch.Tensor,
-                normal: torch.Tensor, facing: float) -> torch.Tensor:
+def _rect_block(
+    x: list[float],
+    y: list[float],
+    z: torch.Tensor,
+    px: torch.Tensor,
+    py: torch.Tensor,
+    normal: torch.Tensor,
+    facing: float,
+) -> torch.Tensor:
     """G (M,) of M receivers in the light plane's frame (`rect_cosine_integral`).
 
     Args:
@@ -156,9 +187,15 @@ def _rect_block(x: list[float], y: list[float], z: torch.Tensor, px: torch.Tenso
     cut = torch.nonzero((lowest <= 0) & (highest > 0)).squeeze(-1)
     if cut.numel():
         closed = [torch.stack([c[k].index_select(0, cut) for k in (0, 1, 2, 3, 0)]) for c in (u, v)]
-        total.index_copy_(0, cut, _clipped_sum([*closed, z.index_select(0, cut).expand(5, -1)],
-                                               [c.index_select(0, cut) for c in (nx, ny, nz)],
-                                               torch.stack([h.index_select(0, cut) for h in height])))
+        total.index_copy_(
+            0,
+            cut,
+            _clipped_sum(
+                [*closed, z.index_select(0, cut).expand(5, -1)],
+                [c.index_select(0, cut) for c in (nx, ny, nz)],
+                torch.stack([h.index_select(0, cut) for h in height]),
+            ),
+        )
     return total.abs_().mul_(0.5).masked_fill_(z * facing <= 0, 0.0)
 
 
@@ -172,8 +209,9 @@ def ratio_of(exact: torch.Tensor, estimate: torch.Tensor) -> torch.Tensor:
     return torch.where(estimate > 0, exact / torch.where(estimate > 0, estimate, 1.0), 1.0)
 
 
-def analytic_ratio(light: Light, points: torch.Tensor, normals: torch.Tensor,
-                   estimate: torch.Tensor) -> torch.Tensor | None:
+def analytic_ratio(
+    light: Light, points: torch.Tensor, normals: torch.Tensor, estimate: torch.Tensor
+) -> torch.Tensor | None:
     """(N,) G / estimate per receiver, the ratio estimator's factor on the diffuse term (module doc).
 
     Args:

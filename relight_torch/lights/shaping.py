@@ -90,8 +90,12 @@ def barzel_factor(barzel: BarzelShaping, emission_local: torch.Tensor, receiver_
         factor = factor * (1.0 - smoothstep(1.0 - edge, 1.0, q)) * in_front
     horizontal = torch.rad2deg(torch.atan2(x, -z))
     vertical = torch.rad2deg(torch.atan2(y, -z))
-    factor = factor * ((horizontal <= barzel.barn_door_right) & (horizontal >= -barzel.barn_door_left)
-                       & (vertical <= barzel.barn_door_top) & (vertical >= -barzel.barn_door_bottom))
+    factor = factor * (
+        (horizontal <= barzel.barn_door_right)
+        & (horizontal >= -barzel.barn_door_left)
+        & (vertical <= barzel.barn_door_top)
+        & (vertical >= -barzel.barn_door_bottom)
+    )
     ramp = smoothstep if barzel.falloff_smooth else linear_step
     if barzel.near_end > 0:
         factor = factor * ramp(barzel.near_start, barzel.near_end, receiver_distance)
@@ -107,8 +111,9 @@ def barzel_factor(barzel: BarzelShaping, emission_local: torch.Tensor, receiver_
     return factor
 
 
-def emission_factor(light: Light, emission_local: torch.Tensor, receivers: torch.Tensor,
-                    origin: torch.Tensor) -> torch.Tensor | None:
+def emission_factor(
+    light: Light, emission_local: torch.Tensor, receivers: torch.Tensor, origin: torch.Tensor
+) -> torch.Tensor | None:
     """ShapingAPI x Barzel factor (..., 3) of a light for unit emission directions in its frame.
 
     Args:

@@ -13,9 +13,9 @@ from __future__ import annotations
 import logging
 import math
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
@@ -68,15 +68,21 @@ _LIGHT_INPUTS = (
     _Input("specular", "inputs:specular", "nonnegative"),
 )
 _KIND_INPUTS = {
-    LightKind.SPHERE: (_Input("radius", "inputs:radius", "nonnegative"),
-                       _Input("treat_as_point", "treatAsPoint", "flag")),
-    LightKind.RECT: (_Input("width", "inputs:width", "nonnegative"),
-                     _Input("height", "inputs:height", "nonnegative"),
-                     _Input("texture_file", "inputs:texture:file", "asset")),
+    LightKind.SPHERE: (
+        _Input("radius", "inputs:radius", "nonnegative"),
+        _Input("treat_as_point", "treatAsPoint", "flag"),
+    ),
+    LightKind.RECT: (
+        _Input("width", "inputs:width", "nonnegative"),
+        _Input("height", "inputs:height", "nonnegative"),
+        _Input("texture_file", "inputs:texture:file", "asset"),
+    ),
     LightKind.DISK: (_Input("radius", "inputs:radius", "nonnegative"),),
-    LightKind.CYLINDER: (_Input("length", "inputs:length", "nonnegative"),
-                         _Input("radius", "inputs:radius", "nonnegative"),
-                         _Input("treat_as_line", "treatAsLine", "flag")),
+    LightKind.CYLINDER: (
+        _Input("length", "inputs:length", "nonnegative"),
+        _Input("radius", "inputs:radius", "nonnegative"),
+        _Input("treat_as_line", "treatAsLine", "flag"),
+    ),
     LightKind.DISTANT: (_Input("angle", "inputs:angle", "nonnegative"),),
     LightKind.DOME: (_Input("texture_file", "inputs:texture:file", "asset"),),
 }
@@ -128,9 +134,13 @@ def iter_light_prims(stage: Usd.Stage, time: Usd.TimeCode) -> Iterator[Usd.Prim]
     prims = iter(Usd.PrimRange(stage.GetPseudoRoot(), Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
     for prim in prims:
         imageable = UsdGeom.Imageable(prim)
-        if prim.IsA(UsdGeom.PointInstancer) or (imageable and (
+        if prim.IsA(UsdGeom.PointInstancer) or (
+            imageable
+            and (
                 imageable.ComputeVisibility(time) == UsdGeom.Tokens.invisible
-                or imageable.ComputePurpose() not in (UsdGeom.Tokens.default_, UsdGeom.Tokens.render))):
+                or imageable.ComputePurpose() not in (UsdGeom.Tokens.default_, UsdGeom.Tokens.render)
+            )
+        ):
             prims.PruneChildren()
             continue
         if prim.HasAPI(UsdLux.LightAPI):
@@ -156,8 +166,9 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode = Usd.TimeCode.Default()) -> L
     kind = light_kind(prim)
     path = str(prim.GetPath())
     if kind is None:
-        raise ValueError(f"{path}: unsupported light type '{prim.GetTypeName()}' "
-                         f"(supported: {', '.join(_KIND_FROM_TYPE)})")
+        raise ValueError(
+            f"{path}: unsupported light type '{prim.GetTypeName()}' (supported: {', '.join(_KIND_FROM_TYPE)})"
+        )
     values = _read_inputs(prim, time, _LIGHT_INPUTS + _KIND_INPUTS[kind])
     if values.get("texture_file"):
         values["texture"] = read_linear_rgb(values["texture_file"])
@@ -165,8 +176,10 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode = Usd.TimeCode.Default()) -> L
         values["pole_axis"] = _pole_axis(prim)
         texture_format = str(prim.GetAttribute("inputs:texture:format").Get(time))
         if values.get("texture_file") and texture_format not in _LATLONG_FORMATS:
-            raise ValueError(f"{path}: inputs:texture:format '{texture_format}' is not supported "
-                             f"(only {' / '.join(_LATLONG_FORMATS)} lat-long maps)")
+            raise ValueError(
+                f"{path}: inputs:texture:format '{texture_format}' is not supported "
+                f"(only {' / '.join(_LATLONG_FORMATS)} lat-long maps)"
+            )
     if prim.HasAPI(UsdLux.ShapingAPI):
         values["shaping"] = Shaping(**_read_inputs(prim, time, _SHAPING_INPUTS))
     values["shadow"] = Shadow(**_read_inputs(prim, time, _SHADOW_INPUTS))
@@ -177,10 +190,15 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode = Usd.TimeCode.Default()) -> L
         values["barzel"] = BarzelShaping(**barzel)
     light_group = prim.GetAttribute(LIGHT_GROUP_ATTRIBUTE).Get(time) if prim.HasAttribute(LIGHT_GROUP_ATTRIBUTE) else ""
     light_api = UsdLux.LightAPI(prim)
-    light = Light(path=path, kind=kind, world_from_light=_world_from_light(prim, time),
-                  light_group=light_group or prim.GetName(),
-                  light_link=read_link(light_api.GetLightLinkCollectionAPI()),
-                  shadow_link=read_link(light_api.GetShadowLinkCollectionAPI()), **values)
+    light = Light(
+        path=path,
+        kind=kind,
+        world_from_light=_world_from_light(prim, time),
+        light_group=light_group or prim.GetName(),
+        light_link=read_link(light_api.GetLightLinkCollectionAPI()),
+        shadow_link=read_link(light_api.GetShadowLinkCollectionAPI()),
+        **values,
+    )
     validate_light(light)
     return light
 
@@ -221,8 +239,12 @@ def _checked(
     if len(items) != count or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in items):
         raise ValueError(f"{authored} is not {'a number' if count == 1 else f'{count} numbers'}")
     numbers = tuple(float(x) for x in items)
-    minimum, strict = {"nonnegative": (0.0, False), "colour": (0.0, False), "positive": (0.0, True),
-                       "positive_pair": (0.0, True)}.get(spec.check, (-math.inf, False))
+    minimum, strict = {
+        "nonnegative": (0.0, False),
+        "colour": (0.0, False),
+        "positive": (0.0, True),
+        "positive_pair": (0.0, True),
+    }.get(spec.check, (-math.inf, False))
     if not all(math.isfinite(x) and (x > minimum if strict else x >= minimum) for x in numbers):
         bound = "" if minimum == -math.inf else f" and {'>' if strict else '>='} {minimum:g}"
         raise ValueError(f"{where} = {value} must be finite{bound}")
@@ -284,8 +306,11 @@ def write_light(stage: Usd.Stage, light: Light) -> Usd.Prim:
             UsdLux.DomeLight_1(prim).CreatePoleAxisAttr(light.pole_axis)
     applied = {"ShapingAPI": light.shaping is not None, "ShadowAPI": True, BARZEL_API: light.barzel is not None}
     _author_api_schemas(prim, applied)
-    for values, inputs in ((light.shaping, _SHAPING_INPUTS), (light.shadow, _SHADOW_INPUTS),
-                           (light.barzel, _BARZEL_INPUTS)):
+    for values, inputs in (
+        (light.shaping, _SHAPING_INPUTS),
+        (light.shadow, _SHADOW_INPUTS),
+        (light.barzel, _BARZEL_INPUTS),
+    ):
         if values is not None:
             _write_inputs(prim, values, inputs)
     light_api = UsdLux.LightAPI(prim)
@@ -316,8 +341,10 @@ def _author_api_schemas(prim: Usd.Prim, applied: dict[str, bool]) -> None:
         operation = Sdf.TokenListOp.CreateExplicit(unmanaged(current.explicitItems) + wanted)
     else:
         operation = Sdf.TokenListOp.Create(
-            prependedItems=unmanaged(current.prependedItems) + wanted, appendedItems=unmanaged(current.appendedItems),
-            deletedItems=unmanaged(current.deletedItems) + [name for name, on in applied.items() if not on])
+            prependedItems=unmanaged(current.prependedItems) + wanted,
+            appendedItems=unmanaged(current.appendedItems),
+            deletedItems=unmanaged(current.deletedItems) + [name for name, on in applied.items() if not on],
+        )
     spec.SetInfo("apiSchemas", operation)
 
 
@@ -385,4 +412,3 @@ def write_lights_layer(path: str | os.PathLike[str], lights: list[Light]) -> Non
     with atomic_path(path) as temp:
         if not stage.GetRootLayer().Export(os.fspath(temp)):
             raise OSError(f"{path}: could not write the lights layer")
-

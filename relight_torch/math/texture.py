@@ -42,7 +42,7 @@ def sample_bilinear(pixels, st, wrap_s: str, wrap_t: str):
     fx = _cast(x - x0, pixels)[:, None]
     fy = _cast(y - y0, pixels)[:, None]
     x0, y0 = _integers(x0), _integers(y0)
-    sampled = 0.0   # the sum of the four taps below
+    sampled = 0.0  # the sum of the four taps below
     for dx, weight_x in ((0, 1.0 - fx), (1, fx)):
         column, column_inside = _wrap_indices(x0 + dx, width, wrap_s)
         for dy, weight_y in ((0, 1.0 - fy), (1, fy)):

@@ -66,11 +66,17 @@ class ViewPoints:
     def num_points(self) -> int:
         return int(self.pixel_index.shape[0])
 
-    def to(self, device: torch.device | str) -> "ViewPoints":
-        return ViewPoints(self.image_size, self.pixel_index.to(device), self.position.to(device),
-                          self.geometric_normal.to(device), self.object_id.to(device), self.depth.to(device),
-                          self.camera_position.to(device),
-                          None if self.shading_normal is None else self.shading_normal.to(device))
+    def to(self, device: torch.device | str) -> ViewPoints:
+        return ViewPoints(
+            self.image_size,
+            self.pixel_index.to(device),
+            self.position.to(device),
+            self.geometric_normal.to(device),
+            self.object_id.to(device),
+            self.depth.to(device),
+            self.camera_position.to(device),
+            None if self.shading_normal is None else self.shading_normal.to(device),
+        )
 
 
 @dataclass(frozen=True)
@@ -103,13 +109,15 @@ def same_surface(surface: torch.Tensor, object_id: torch.Tensor, normal: torch.T
 
 
 def _depth_tolerance(depth, pixel_angle, cos):
-    slope = torch.clamp(torch.sqrt(torch.clamp(1.0 - cos * cos, min=0.0)) / torch.clamp(cos, min=1.0 / MAX_SLOPE),
-                        max=MAX_SLOPE)
+    slope = torch.clamp(
+        torch.sqrt(torch.clamp(1.0 - cos * cos, min=0.0)) / torch.clamp(cos, min=1.0 / MAX_SLOPE), max=MAX_SLOPE
+    )
     return depth * (pixel_angle * (1.0 + 2.0 * slope) + RELATIVE_DEPTH_TOLERANCE)
 
 
-def correspondence_map(views: CachingViews, position: torch.Tensor, normal: torch.Tensor,
-                       object_id: torch.Tensor) -> Correspondence:
+def correspondence_map(
+    views: CachingViews, position: torch.Tensor, normal: torch.Tensor, object_id: torch.Tensor
+) -> Correspondence:
     """Eq. 5 for every point, all cameras at once.
 
     The score without visibility, (n . u_i) / d_i^2, bounds each camera's score from above, so
@@ -136,9 +144,9 @@ def correspondence_map(views: CachingViews, position: torch.Tensor, normal: torc
     best_pixel = torch.full((num_points, 2), torch.nan, dtype=torch.float32, device=device)
     if num_points == 0 or views.num_views == 0:
         return Correspondence(best_view, best_row, best_score, best_pixel)
-    bound, faces = _score_bounds(views, position, normal)                   # (N, J), (C, N)
+    bound, faces = _score_bounds(views, position, normal)  # (N, J), (C, N)
     object_id = object_id.to(torch.float32)
-    pending = None                                                                  # every point
+    pending = None  # every point
     for _ in range(bound.shape[1]):
         rows = bound if pending is None else bound.index_select(0, pending)
         value, column = rows.max(1)
@@ -148,8 +156,13 @@ def correspondence_map(views: CachingViews, position: torch.Tensor, normal: torc
             break
         column = column.index_select(0, live)
         camera = _column_camera(views, faces, column, pending)
-        pixel, row, score = _visible_sample(views, camera, position.index_select(0, pending),
-                                            normal.index_select(0, pending), object_id.index_select(0, pending))
+        pixel, row, score = _visible_sample(
+            views,
+            camera,
+            position.index_select(0, pending),
+            normal.index_select(0, pending),
+            object_id.index_select(0, pending),
+        )
         seen = row >= 0
         found = torch.nonzero(seen).squeeze(-1)
         done = pending.index_select(0, found)
@@ -163,8 +176,9 @@ def correspondence_map(views: CachingViews, position: torch.Tensor, normal: torc
     return Correspondence(best_view, best_row, best_score, best_pixel)
 
 
-def _column_camera(views: CachingViews, faces: torch.Tensor, column: torch.Tensor,
-                   points: torch.Tensor) -> torch.Tensor:
+def _column_camera(
+    views: CachingViews, faces: torch.Tensor, column: torch.Tensor, points: torch.Tensor
+) -> torch.Tensor:
     """(P,) int64 the camera of bound columns `column` (P,) at `points` (P,): a single camera's own,
     a cube's face the point lies in (`faces`, (C, N), from `_score_bounds`)."""
     num_singles = views.singles.shape[0]
@@ -176,8 +190,9 @@ def _column_camera(views: CachingViews, faces: torch.Tensor, column: torch.Tenso
     return torch.where(column < num_singles, views.singles.index_select(0, column.clamp(max=num_singles - 1)), face)
 
 
-def _score_bounds(views: CachingViews, position: torch.Tensor,
-                  normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _score_bounds(
+    views: CachingViews, position: torch.Tensor, normal: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(N, J) float32 (n . u_j) / (d_j^2 a_j^2) of every point and bound column, and (C, N) int64 the
     camera of the face of each cube each point lies in (-1: a dropped face).
 
@@ -190,19 +205,21 @@ def _score_bounds(views: CachingViews, position: torch.Tensor,
     num_singles = singles.shape[0]
     dtype = position.dtype
     origin = position.mean(0)
-    members = torch.cat([singles, cubes.amax(1)])          # a camera of each column (a cube's: any face)
+    members = torch.cat([singles, cubes.amax(1)])  # a camera of each column (a cube's: any face)
     points, centres = position - origin, views.centres.index_select(1, members).T.to(dtype) - origin
-    facing = torch.addmm(-(normal * points).sum(-1, keepdim=True), normal, centres.T)              # n.(c - p)
-    squared = torch.addmm((points * points).sum(-1, keepdim=True) + (centres * centres).sum(-1), points, centres.T,
-                          alpha=-2.0).clamp_(min=1e-30)
+    facing = torch.addmm(-(normal * points).sum(-1, keepdim=True), normal, centres.T)  # n.(c - p)
+    squared = torch.addmm(
+        (points * points).sum(-1, keepdim=True) + (centres * centres).sum(-1), points, centres.T, alpha=-2.0
+    ).clamp_(min=1e-30)
     inverse = squared.rsqrt_()
     facing.clamp_(min=0.0).mul_(inverse).mul_(inverse).mul_(inverse)
     angle = views.pixel_angle.to(dtype)
     if num_singles:
         forward, cone = views.axes[:3].index_select(1, singles).T.to(dtype), views.axes[3].index_select(0, singles)
-        ahead = torch.addmm(-(forward * centres[:num_singles]).sum(-1), points, forward.T)          # f.(p - c)
+        ahead = torch.addmm(-(forward * centres[:num_singles]).sum(-1), points, forward.T)  # f.(p - c)
         facing[:, :num_singles].mul_(angle.index_select(0, singles) ** -2).mul_(
-            ahead.mul_(inverse[:, :num_singles]) > cone.to(dtype))
+            ahead.mul_(inverse[:, :num_singles]) > cone.to(dtype)
+        )
     faces = []
     for c in range(cubes.shape[0]):
         direction = points - centres[num_singles + c]
@@ -212,15 +229,17 @@ def _score_bounds(views: CachingViews, position: torch.Tensor,
         camera = cubes[c].index_select(0, face)
         facing[:, num_singles + c].mul_(torch.where(camera >= 0, angle.index_select(0, camera.clamp(min=0)) ** -2, 0.0))
         faces.append(camera)
-    return facing, torch.stack(faces) if faces else torch.zeros((0, position.shape[0]), dtype=torch.int64,
-                                                                   device=position.device)
+    return facing, torch.stack(faces) if faces else torch.zeros(
+        (0, position.shape[0]), dtype=torch.int64, device=position.device
+    )
 
 
-def _visible_sample(views: CachingViews, camera: torch.Tensor, position: torch.Tensor, normal: torch.Tensor,
-                    object_id: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _visible_sample(
+    views: CachingViews, camera: torch.Tensor, position: torch.Tensor, normal: torch.Tensor, object_id: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Each point (P, 3) seen by its own `camera` (P,): its continuous (column, row) (P, 2), the
     cached sample's pool row (-1 where the depth or same-surface test fails) and eq. 5's score (P,)."""
-    p = take_small(views.projection, camera)                                      # (19, P)
+    p = take_small(views.projection, camera)  # (19, P)
     x, y, z = position[:, 0], position[:, 1], position[:, 2]
     local_x, local_y, local_z = (p[4 * i] * x + p[4 * i + 1] * y + p[4 * i + 2] * z + p[4 * i + 3] for i in range(3))
     depth = -local_z
@@ -236,11 +255,15 @@ def _visible_sample(views: CachingViews, camera: torch.Tensor, position: torch.T
     to_x, to_y, to_z = centre[0] - x, centre[1] - y, centre[2] - z
     distance_squared = to_x * to_x + to_y * to_y + to_z * to_z
     cos = (normal[:, 0] * to_x + normal[:, 1] * to_y + normal[:, 2] * to_z) * torch.rsqrt(
-        torch.clamp(distance_squared, min=1e-30))
+        torch.clamp(distance_squared, min=1e-30)
+    )
     angle = views.pixel_angle.index_select(0, camera)
     tolerance = _depth_tolerance(depth, angle, cos)
     seen = inside & (cos > 0) & ((depth - views.depth.index_select(0, flat)).abs() <= tolerance)
     sample = torch.where(seen, views.pool_row.index_select(0, flat), torch.zeros_like(flat))
     seen &= same_surface(take_rows(views.surface_table, sample), object_id, normal)
-    return (torch.stack((column, line), -1), torch.where(seen, sample, torch.full_like(sample, -1)),
-            cos / distance_squared / (angle * angle))
+    return (
+        torch.stack((column, line), -1),
+        torch.where(seen, sample, torch.full_like(sample, -1)),
+        cos / distance_squared / (angle * angle),
+    )

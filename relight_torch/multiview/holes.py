@@ -23,8 +23,10 @@ from relight_torch.multiview.views import SAME_SURFACE_COS
 
 MAX_FILL_PIXELS = 2
 # Neighbour offsets (drow, dcol) within two pixels, nearest first: the order a hole pixel tries them.
-_OFFSETS = sorted(((dr, dc) for dr in range(-2, 3) for dc in range(-2, 3) if (dr, dc) != (0, 0)),
-                  key=lambda o: (o[0] ** 2 + o[1] ** 2, o))
+_OFFSETS = sorted(
+    ((dr, dc) for dr in range(-2, 3) for dc in range(-2, 3) if (dr, dc) != (0, 0)),
+    key=lambda o: (o[0] ** 2 + o[1] ** 2, o),
+)
 
 
 @dataclass(frozen=True)
@@ -54,8 +56,9 @@ class HoleReport:
         return (self.num_holes - self.num_filled) / max(self.num_points, 1)
 
 
-def fill_small_holes(view: ViewPoints, pool_row: torch.Tensor, pool: GBuffer,
-                     max_fill_pixels: int = MAX_FILL_PIXELS) -> tuple[torch.Tensor, HoleReport]:
+def fill_small_holes(
+    view: ViewPoints, pool_row: torch.Tensor, pool: GBuffer, max_fill_pixels: int = MAX_FILL_PIXELS
+) -> tuple[torch.Tensor, HoleReport]:
     """Fill small holes of a correspondence from their neighbours.
 
     Args:
@@ -69,7 +72,7 @@ def fill_small_holes(view: ViewPoints, pool_row: torch.Tensor, pool: GBuffer,
     """
     height, width = view.image_size
     device = pool_row.device
-    slot = torch.full((height * width,), -1, dtype=torch.int64, device=device)   # point of each pixel
+    slot = torch.full((height * width,), -1, dtype=torch.int64, device=device)  # point of each pixel
     slot[view.pixel_index] = torch.arange(view.num_points, device=device)
     hole_points = torch.nonzero(pool_row < 0).squeeze(-1)
     hole_image = np.zeros(height * width, bool)
@@ -90,14 +93,22 @@ def fill_small_holes(view: ViewPoints, pool_row: torch.Tensor, pool: GBuffer,
         neighbour = slot[torch.where(inside, row * width + column, torch.zeros_like(pixel))]
         sample = torch.where(inside & (neighbour >= 0), pool_row[neighbour.clamp(min=0)], -torch.ones_like(pixel))
         safe = sample.clamp(min=0)
-        take = (sample >= 0) & (pool.object_id[safe].to(torch.int64) == view.object_id[todo].to(torch.int64)) & (
-            (pool.geometric_normal[safe].to(view.geometric_normal.dtype) * view.geometric_normal[todo]).sum(-1)
-            > SAME_SURFACE_COS)
+        take = (
+            (sample >= 0)
+            & (pool.object_id[safe].to(torch.int64) == view.object_id[todo].to(torch.int64))
+            & (
+                (pool.geometric_normal[safe].to(view.geometric_normal.dtype) * view.geometric_normal[todo]).sum(-1)
+                > SAME_SURFACE_COS
+            )
+        )
         filled[todo[take]] = sample[take]
         todo = todo[~take]
     num_holes = int(hole_points.numel())
     report = HoleReport(
-        num_points=view.num_points, num_holes=num_holes, num_filled=num_holes - int((filled < 0).sum()),
+        num_points=view.num_points,
+        num_holes=num_holes,
+        num_filled=num_holes - int((filled < 0).sum()),
         num_large_holes=int(np.count_nonzero(sizes > max_fill_pixels)),
-        large_pixel_index=torch.nonzero(large).squeeze(-1))
+        large_pixel_index=torch.nonzero(large).squeeze(-1),
+    )
     return filled, report

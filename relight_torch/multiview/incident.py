@@ -39,6 +39,7 @@ import torch
 
 from relight_torch.brdf import preview_surface
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
+from relight_torch.direct.relighter import unit_light
 from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light
 from relight_torch.lights.geometry import LightFrame
@@ -47,7 +48,6 @@ from relight_torch.lights.polygon import analytic_ratio
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.lights.shaping import emission_factor
 from relight_torch.math.frame import dot
-from relight_torch.direct.relighter import unit_light
 
 CHANNELS = 7
 """Columns per group in a table: W (RGB), D (xyz), then the light's ratio-estimator factor on the
@@ -68,17 +68,25 @@ def sample_groups(num_samples: int, num_groups: int) -> torch.Tensor:
     return index * num_groups // num_samples
 
 
-def pool_light_samples(counts: list[int], num_samples: int, seed: int, device: torch.device,
-                       dtype: torch.dtype = torch.float32) -> torch.Tensor:
+def pool_light_samples(
+    counts: list[int], num_samples: int, seed: int, device: torch.device, dtype: torch.dtype = torch.float32
+) -> torch.Tensor:
     """(R, S, 2) fixed light samples of a pool of views with `counts` samples each: each view's
     own `fixed_light_samples(N_k, S, seed)`, those the direct Relighter over that view draws."""
     parts = [fixed_light_samples(n, num_samples, seed, device, dtype) for n in counts if n]
     return torch.cat(parts) if parts else torch.zeros((0, num_samples, 2), device=device, dtype=dtype)
 
 
-def incident_table(light: Light, position: torch.Tensor, normal: torch.Tensor, shading_normal: torch.Tensor,
-                   u: torch.Tensor, visibility, num_groups: int,
-                   chunk_samples: int = 1 << 20) -> tuple[torch.Tensor, torch.Tensor]:
+def incident_table(
+    light: Light,
+    position: torch.Tensor,
+    normal: torch.Tensor,
+    shading_normal: torch.Tensor,
+    u: torch.Tensor,
+    visibility,
+    num_groups: int,
+    chunk_samples: int = 1 << 20,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(P, G, 7) float32 W, D and the diffuse ratio (module docstring) of `light` at P points, and
     (P,) their unshadowed W summed over samples and channels (what edge detection divides by).
 
@@ -96,23 +104,43 @@ def incident_table(light: Light, position: torch.Tensor, normal: torch.Tensor, s
     groups = sample_groups(num_samples, num_groups).to(position.device)
     num_groups = int(groups.max()) + 1
     step = max(1, chunk_samples // num_samples)
-    parts = [_chunk_table(light, unit, position[i:i + step], normal[i:i + step], shading_normal[i:i + step],
-                          u[i:i + step], visibility, groups, num_groups) for i in range(0, position.shape[0], step)]
+    parts = [
+        _chunk_table(
+            light,
+            unit,
+            position[i : i + step],
+            normal[i : i + step],
+            shading_normal[i : i + step],
+            u[i : i + step],
+            visibility,
+            groups,
+            num_groups,
+        )
+        for i in range(0, position.shape[0], step)
+    ]
     if not parts:
         return position.new_zeros(0, num_groups, CHANNELS), position.new_zeros(0)
     return torch.cat([table for table, _ in parts]), torch.cat([unshadowed for _, unshadowed in parts])
 
 
-def _chunk_table(light: Light, unit: Light, position: torch.Tensor, normal: torch.Tensor,
-                 shading_normal: torch.Tensor, u: torch.Tensor, visibility, groups: torch.Tensor,
-                 num_groups: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _chunk_table(
+    light: Light,
+    unit: Light,
+    position: torch.Tensor,
+    normal: torch.Tensor,
+    shading_normal: torch.Tensor,
+    u: torch.Tensor,
+    visibility,
+    groups: torch.Tensor,
+    num_groups: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(P, G, 7) and (P,) of the points `position`, `normal`, `shading_normal` (P, 3) with light samples
     u (P, S, 2)."""
     num_samples = u.shape[1]
     sample = sample_light(unit, position, u)
-    direction = sample.direction.transpose(0, 1)                                  # (S, P, 3)
+    direction = sample.direction.transpose(0, 1)  # (S, P, 3)
     scalar = sample.inverse_pdf().transpose(0, 1) * (dot(direction, normal) > 0) / num_samples
-    weight = sample.radiance.transpose(0, 1) * scalar.unsqueeze(-1)               # (S, P, 3)
+    weight = sample.radiance.transpose(0, 1) * scalar.unsqueeze(-1)  # (S, P, 3)
     table = position.new_zeros(position.shape[0], num_groups, CHANNELS)
     unshadowed = position.new_zeros(position.shape[0])
     live = (weight != 0).any(-1).any(0)
@@ -122,17 +150,20 @@ def _chunk_table(light: Light, unit: Light, position: torch.Tensor, normal: torc
     reaching = torch.isfinite(sample.distance).transpose(0, 1)
     distance = sample.distance.transpose(0, 1)
     if index.numel() < live.shape[0]:  # else every point: no copies
+
         def pick(values: torch.Tensor) -> torch.Tensor:
             return values.index_select(0, index)
 
         position, normal, shading_normal = pick(position), pick(normal), pick(shading_normal)
-        direction, weight, scalar, reaching, distance = (v.index_select(1, index)
-                                                         for v in (direction, weight, scalar, reaching, distance))
+        direction, weight, scalar, reaching, distance = (
+            v.index_select(1, index) for v in (direction, weight, scalar, reaching, distance)
+        )
     # The samples' unshadowed estimate of the cosine-weighted solid angle, for the ratio estimator.
     cosine = dot(direction, shading_normal)
     ratio = analytic_ratio(unit, position, shading_normal, (scalar * cosine.clamp(min=0.0) * reaching).sum(0))
-    distance = visibility.occluder_distance(unit, position, normal, direction.transpose(0, 1),
-                                            distance.transpose(0, 1)).transpose(0, 1)
+    distance = visibility.occluder_distance(
+        unit, position, normal, direction.transpose(0, 1), distance.transpose(0, 1)
+    ).transpose(0, 1)
     if light.shaping is not None or light.barzel is not None:
         local = torch.nn.functional.normalize(LightFrame.of(light, direction).vector_to_local(-direction), dim=-1)
         origin = torch.as_tensor(light.world_from_light[:3, 3], device=position.device, dtype=position.dtype)
@@ -169,8 +200,9 @@ def view_directions(wo: torch.Tensor, normal: torch.Tensor, geometric_normal: to
     return torch.cat([wo, normal, geometric_normal], 1).T.contiguous()
 
 
-def group_images(params: PreviewSurfaceParams, directions: torch.Tensor, table: torch.Tensor,
-                 colours: torch.Tensor | None = None) -> torch.Tensor:
+def group_images(
+    params: PreviewSurfaceParams, directions: torch.Tensor, table: torch.Tensor, colours: torch.Tensor | None = None
+) -> torch.Tensor:
     """(2, N, 3) diffuse and specular unit images of N points from their W and D.
 
     The BRDF is `preview_surface.split` through its factored form (scalars per group and point,
@@ -193,7 +225,7 @@ def group_images(params: PreviewSurfaceParams, directions: torch.Tensor, table: 
     if colours is None:
         colours = view_colours(params)
     coat = colours.shape[0] > 4
-    roughnesses = (params.roughness, params.clearcoat_roughness)[:1 + coat]
+    roughnesses = (params.roughness, params.clearcoat_roughness)[: 1 + coat]
     # Most points lit: shade them all (masked) rather than gather the lit ones and scatter back.
     live = None if 2 * count > num_points else torch.nonzero(reached).squeeze(-1)
     if live is not None:
@@ -207,22 +239,28 @@ def group_images(params: PreviewSurfaceParams, directions: torch.Tensor, table: 
         return dx * rows[axis] + dy * rows[axis + 1] + dz * rows[axis + 2]
 
     e_dot_l, cos_l = along(0).mul_(inverse), along(3).mul_(inverse)
-    valid = along(6) > 0                          # the light on the geometric side too (N.L: the function's)
+    valid = along(6) > 0  # the light on the geometric side too (N.L: the function's)
     if live is None:
         valid &= reached
     groups, points = cos_l.shape
     factors = cos_l.new_empty(4 + 2 * coat, groups, points)
     # Points first, groups last, as the function lays them out: views of the (G, P) slabs.
-    preview_surface.split_factors_cosines(tuple(r[:, None] for r in roughnesses), cos_e[:, None], cos_l.T,
-                                          e_dot_l.T, valid.to(cos_l.dtype).T, factors.transpose(1, 2),
-                                          cos_l.new_empty(4, points, groups))                 # (F, G, P)
-    light = table[:3].permute(1, 2, 0)                                                      # (G, P, 3)
+    preview_surface.split_factors_cosines(
+        tuple(r[:, None] for r in roughnesses),
+        cos_e[:, None],
+        cos_l.T,
+        e_dot_l.T,
+        valid.to(cos_l.dtype).T,
+        factors.transpose(1, 2),
+        cos_l.new_empty(4, points, groups),
+    )  # (F, G, P)
+    light = table[:3].permute(1, 2, 0)  # (G, P, 3)
     if groups == 1:  # one group: its light factors out of the sum
         diffuse, specular = preview_surface.combine_factors(colours, factors[:, 0, :, None])
         diffuse.mul_(light[0]).mul_(table[6, 0, :, None])
         specular.mul_(light[0])
     else:
-        sums = (factors.unsqueeze(-1) * light).sum(1)                                       # (F, P, 3)
+        sums = (factors.unsqueeze(-1) * light).sum(1)  # (F, P, 3)
         diffuse, specular = preview_surface.combine_factors(colours, sums)
         diffuse.mul_(table[6, 0, :, None])
     if live is None:

@@ -41,6 +41,7 @@ import torch
 
 from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import check_inputs, load_npy
+from relight_torch.direct.relighter import Relighter, RelightSettings, embree_visibility, replace_rig, shot_lights
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.light_samples import bounding_radius, fixed_light_samples
@@ -50,14 +51,20 @@ from relight_torch.math.extremes import extremes_of_four
 from relight_torch.math.frame import orthonormal_basis
 from relight_torch.multiview.correspondence import ViewPoints, correspondence_map
 from relight_torch.multiview.holes import HoleReport, fill_small_holes
-from relight_torch.multiview.incident import (CHANNELS, group_images, incident_table, pool_light_samples, sample_groups,
-                                              view_colours, view_directions)
+from relight_torch.multiview.incident import (
+    CHANNELS,
+    group_images,
+    incident_table,
+    pool_light_samples,
+    sample_groups,
+    view_colours,
+    view_directions,
+)
 from relight_torch.multiview.load import load_camera_table, load_view_gbuffers
 from relight_torch.multiview.resample import bilinear_samples
 from relight_torch.multiview.views import CachingViews, concat_gbuffers, gather_gbuffer, take_rows
 from relight_torch.parallel import parallel_map, tile_threads
 from relight_torch.protocol import refuse_material_edit
-from relight_torch.direct.relighter import Relighter, RelightSettings, embree_visibility, replace_rig, shot_lights
 from relight_torch.visibility.embree import EmbreeCaster
 
 
@@ -78,8 +85,9 @@ class ViewSamples(NamedTuple):
     weights: torch.Tensor
 
 
-def view_gbuffer(views: CachingViews, view: ViewPoints, patch: GBuffer | None = None,
-                 normal_mapped: torch.Tensor | None = None) -> ViewSamples:
+def view_gbuffer(
+    views: CachingViews, view: ViewPoints, patch: GBuffer | None = None, normal_mapped: torch.Tensor | None = None
+) -> ViewSamples:
     """The new view's samples from the caching cameras' (see the module docstring).
 
     Args:
@@ -106,11 +114,23 @@ def view_gbuffer(views: CachingViews, view: ViewPoints, patch: GBuffer | None = 
     row = kept(rows)
     geometric_normal = kept(view.geometric_normal)
     pixel = torch.where(matched[:, None], kept(correspondence.pixel), views.pool_pixel.index_select(0, row))
-    chosen = bilinear_samples(views, pixel, row, geometric_normal,
-                              None if view.shading_normal is None else kept(view.shading_normal), normal_mapped)
-    gbuffer = GBuffer(image_size=view.image_size, pixel_index=kept(view.pixel_index), position=kept(view.position),
-                      geometric_normal=geometric_normal, depth=kept(view.depth), camera_position=view.camera_position,
-                      **{k: v for k, v in chosen._asdict().items() if k not in ("taps", "weights")})
+    chosen = bilinear_samples(
+        views,
+        pixel,
+        row,
+        geometric_normal,
+        None if view.shading_normal is None else kept(view.shading_normal),
+        normal_mapped,
+    )
+    gbuffer = GBuffer(
+        image_size=view.image_size,
+        pixel_index=kept(view.pixel_index),
+        position=kept(view.position),
+        geometric_normal=geometric_normal,
+        depth=kept(view.depth),
+        camera_position=view.camera_position,
+        **{k: v for k, v in chosen._asdict().items() if k not in ("taps", "weights")},
+    )
     taps, weights = chosen.taps, chosen.weights
     if patch is not None:
         if patch.image_size != view.image_size:
@@ -120,10 +140,12 @@ def view_gbuffer(views: CachingViews, view: ViewPoints, patch: GBuffer | None = 
         fresh = gather_gbuffer(patch, torch.nonzero(~taken[patch.pixel_index]).squeeze(-1))
         # The frame from the normal alone, as resampling builds it (a baked tangent is zero without UVs).
         tangent, bitangent = orthonormal_basis(torch.nn.functional.normalize(fresh.normal, dim=-1))
-        fresh = dataclasses.replace(fresh, tangent=tangent.to(fresh.tangent.dtype),
-                                    bitangent=bitangent.to(fresh.bitangent.dtype))
-        gbuffer = concat_gbuffers([gbuffer, fresh], view.image_size,
-                                  torch.cat([gbuffer.pixel_index, fresh.pixel_index]), view.camera_position)
+        fresh = dataclasses.replace(
+            fresh, tangent=tangent.to(fresh.tangent.dtype), bitangent=bitangent.to(fresh.bitangent.dtype)
+        )
+        gbuffer = concat_gbuffers(
+            [gbuffer, fresh], view.image_size, torch.cat([gbuffer.pixel_index, fresh.pixel_index]), view.camera_position
+        )
     return ViewSamples(gbuffer, report, row, taps, weights)
 
 
@@ -164,14 +186,25 @@ class MultiviewRelighter:
             'view_shading' (light, view) BRDF passes.
     """
 
-    material_edits = False   # the caching views' materials are shaded as baked (`CacheRelighter`)
+    material_edits = False  # the caching views' materials are shaded as baked (`CacheRelighter`)
 
-    def __init__(self, views: CachingViews, visibility, supersampling: int = 1, exposure_scale: float = 1.0,
-                 settings: RelightSettings = RelightSettings(), object_paths: list[str] | None = None,
-                 caster: EmbreeCaster | None = None, occluder_objects: np.ndarray | None = None,
-                 corner_normals: np.ndarray | None = None, normal_mapped: torch.Tensor | None = None,
-                 sample_groups: int = 1, blend_lighting: bool = False, edge_contrast: float | None = 0.8,
-                 near_field: float | None = 0.1):
+    def __init__(
+        self,
+        views: CachingViews,
+        visibility,
+        supersampling: int = 1,
+        exposure_scale: float = 1.0,
+        settings: RelightSettings = RelightSettings(),
+        object_paths: list[str] | None = None,
+        caster: EmbreeCaster | None = None,
+        occluder_objects: np.ndarray | None = None,
+        corner_normals: np.ndarray | None = None,
+        normal_mapped: torch.Tensor | None = None,
+        sample_groups: int = 1,
+        blend_lighting: bool = False,
+        edge_contrast: float | None = 0.8,
+        near_field: float | None = 0.1,
+    ):
         self.views = views
         self.visibility = visibility
         self.supersampling = supersampling
@@ -189,13 +222,13 @@ class MultiviewRelighter:
         self.description: CacheDescription | None = None
         self.report: HoleReport | None = None
         self.counters: collections.Counter[str] = collections.Counter()
-        self._counters_lock = threading.Lock()   # lights are shaded on worker threads (`_shaded`)
+        self._counters_lock = threading.Lock()  # lights are shaded on worker threads (`_shaded`)
         self._lights: dict[str, Light] = {}
         self._relighter: Relighter | None = None
         self._view: ViewSamples | None = None
-        self._directions: torch.Tensor | None = None   # (9, N) `incident.view_directions` of the view
+        self._directions: torch.Tensor | None = None  # (9, N) `incident.view_directions` of the view
         self._colours: torch.Tensor | None = None
-        self._edge_taps: torch.Tensor | None = None   # (4, M) the view's taps for `_refined_points`
+        self._edge_taps: torch.Tensor | None = None  # (4, M) the view's taps for `_refined_points`
         # The view's (3, M) positions and (M,) distances to their nearest samples (near field).
         self._offsets: tuple[torch.Tensor, torch.Tensor] | None = None
         # Per light: the pool's (7 G, R) incident table, channels first, which rows are traced, and
@@ -206,7 +239,7 @@ class MultiviewRelighter:
         self._tables: dict[str, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
         self._ready: set[tuple[str, bool]] = set()
         self._u: dict[int, torch.Tensor] = {}
-        self._traced_u: dict[int, torch.Tensor] = {}   # per sample count, `_point_samples`' draw
+        self._traced_u: dict[int, torch.Tensor] = {}  # per sample count, `_point_samples`' draw
         self._num_samples: dict[str, int] = {}
         # A Relighter over the pool, for the lights' sample counts only (as over a view).
         self._pool_relighter = Relighter(views.pool, visibility, 1, 1.0, settings, object_paths)
@@ -246,8 +279,9 @@ class MultiviewRelighter:
         if self._relighter is not None and path in {light.path for light in self._relighter.lights}:
             self._relighter.remove_light(path)
 
-    def set_view(self, view: ViewPoints, patch: GBuffer | None = None,
-                 exposure_scale: float | None = None) -> HoleReport:
+    def set_view(
+        self, view: ViewPoints, patch: GBuffer | None = None, exposure_scale: float | None = None
+    ) -> HoleReport:
         """Move to a new view: correspondence map, hole filling, and a Relighter over it (no tracing)."""
         if exposure_scale is not None:
             self.exposure_scale = exposure_scale
@@ -258,8 +292,9 @@ class MultiviewRelighter:
         self._edge_taps = self._offsets = None
         self._ready.clear()
         self.report = self._view.report
-        self._relighter = Relighter(gbuffer, self.visibility, self.supersampling, self.exposure_scale,
-                                    self.settings, self.object_paths)
+        self._relighter = Relighter(
+            gbuffer, self.visibility, self.supersampling, self.exposure_scale, self.settings, self.object_paths
+        )
         self._relighter.set_lights(self.lights)
         return self.report
 
@@ -271,8 +306,10 @@ class MultiviewRelighter:
 
     def lighting_bytes(self) -> int:
         """Bytes of the cached per-light lighting of the caching samples."""
-        return sum(table.numel() * table.element_size() + done.numel() + total.numel() * total.element_size()
-                   for table, done, total in self._tables.values())
+        return sum(
+            table.numel() * table.element_size() + done.numel() + total.numel() * total.element_size()
+            for table, done, total in self._tables.values()
+        )
 
     def held_bytes(self) -> int:
         """`CacheRelighter.held_bytes`: the caching samples' lighting and the current view's relighter."""
@@ -303,7 +340,7 @@ class MultiviewRelighter:
         relighter = self.relighter
         missing = [light for light in self._lights.values() if relighter.unit_images(light.path) is None]
         threads = tile_threads(self.views.device, self.visibility.thread_safe)
-        for light, images in zip(missing, parallel_map(self._view_images, missing, threads)):
+        for light, images in zip(missing, parallel_map(self._view_images, missing, threads), strict=True):
             relighter.set_unit_images(light.path, images)
         return relighter
 
@@ -320,8 +357,9 @@ class MultiviewRelighter:
         num_samples = self._num_samples[light.path]
         if num_samples not in self._u:
             views, counts = self.views, torch.bincount(self.views.pool_view, minlength=self.views.num_views)
-            self._u[num_samples] = pool_light_samples(counts.tolist(), num_samples, self.settings.seed, views.device,
-                                                      views.pool.position.dtype)
+            self._u[num_samples] = pool_light_samples(
+                counts.tolist(), num_samples, self.settings.seed, views.device, views.pool.position.dtype
+            )
         return self._u[num_samples]
 
     def _point_samples(self, num_points: int, num_samples: int) -> torch.Tensor:
@@ -331,8 +369,9 @@ class MultiviewRelighter:
         drawn = self._traced_u.get(num_samples)
         if drawn is None or drawn.shape[0] < num_points:
             size = max(num_points, 0 if drawn is None else 2 * drawn.shape[0])
-            drawn = fixed_light_samples(size, num_samples, self.settings.seed, self.views.device,
-                                        self.views.pool.position.dtype)
+            drawn = fixed_light_samples(
+                size, num_samples, self.settings.seed, self.views.device, self.views.pool.position.dtype
+            )
             self._traced_u[num_samples] = drawn
         return drawn[:num_points]
 
@@ -345,9 +384,11 @@ class MultiviewRelighter:
         u = self._light_samples(light)
         if light.path not in self._tables:
             groups = int(sample_groups(u.shape[1], self.sample_groups).max()) + 1
-            self._tables[light.path] = (pool.position.new_zeros(CHANNELS * groups, pool.num_samples),
-                                        torch.zeros(pool.num_samples, dtype=torch.bool, device=pool.device),
-                                        pool.position.new_zeros(2, pool.num_samples))
+            self._tables[light.path] = (
+                pool.position.new_zeros(CHANNELS * groups, pool.num_samples),
+                torch.zeros(pool.num_samples, dtype=torch.bool, device=pool.device),
+                pool.position.new_zeros(2, pool.num_samples),
+            )
         table, done, total = self._tables[light.path]
         taps = self.blend_lighting or self.edge_contrast is not None
         ready = (light.path, taps) if rows is None else None
@@ -359,12 +400,20 @@ class MultiviewRelighter:
         assert rows is not None  # given, or the view's
         missing = rows.new_zeros(0) if bool(done.all()) else torch.unique(rows[~done.index_select(0, rows)])
         if missing.numel():
+
             def pick(values: torch.Tensor) -> torch.Tensor:
                 return values.index_select(0, missing)
 
-            traced, unshadowed = incident_table(light, pick(pool.position), pick(pool.geometric_normal),
-                                                pick(pool.normal), pick(u), self.visibility, self.sample_groups,
-                                                self.settings.chunk_samples)
+            traced, unshadowed = incident_table(
+                light,
+                pick(pool.position),
+                pick(pool.geometric_normal),
+                pick(pool.normal),
+                pick(u),
+                self.visibility,
+                self.sample_groups,
+                self.settings.chunk_samples,
+            )
             table.index_copy_(1, missing, traced.permute(2, 1, 0).reshape(table.shape[0], -1))
             reaching = traced[..., :3].sum((1, 2)).div_(torch.where(unshadowed > 0, unshadowed, 1.0))
             total.index_copy_(1, missing, torch.stack([reaching, unshadowed]))
@@ -383,8 +432,10 @@ class MultiviewRelighter:
         table, totals = self._pool_table(light, None)
         if self.blend_lighting:
             # Four taps: never the empty sum's 0.
-            columns = cast(torch.Tensor, sum(take_rows(table, view.taps[:, t]) * view.weights[:, t]
-                                             for t in range(view.taps.shape[1])))
+            columns = cast(
+                torch.Tensor,
+                sum(take_rows(table, view.taps[:, t]) * view.weights[:, t] for t in range(view.taps.shape[1])),
+            )
         else:
             columns = take_rows(table, view.rows)
         cached = view.rows.shape[0]
@@ -398,19 +449,28 @@ class MultiviewRelighter:
             self._count("patch_samples", gbuffer.num_samples - cached)
         points = torch.cat(traced) if traced else None
         if points is not None and points.numel():
+
             def pick(values: torch.Tensor) -> torch.Tensor:
                 return values.index_select(0, points)
 
             u = self._point_samples(points.numel(), self._light_samples(light).shape[1])
-            fresh, _ = incident_table(light, pick(gbuffer.position), pick(gbuffer.geometric_normal),
-                                      pick(gbuffer.normal), u, self.visibility, self.sample_groups,
-                                      self.settings.chunk_samples)
+            fresh, _ = incident_table(
+                light,
+                pick(gbuffer.position),
+                pick(gbuffer.geometric_normal),
+                pick(gbuffer.normal),
+                u,
+                self.visibility,
+                self.sample_groups,
+                self.settings.chunk_samples,
+            )
             columns.index_copy_(1, points, fresh.permute(2, 1, 0).reshape(columns.shape[0], -1))
         self._count("view_shading", 1)
         # The group count spelt out: with no covered sample (only sky) -1 would be ambiguous.
         groups = columns.shape[0] // CHANNELS
-        return group_images(gbuffer.params, directions, columns.reshape(CHANNELS, groups, gbuffer.num_samples),
-                            self._colours)
+        return group_images(
+            gbuffer.params, directions, columns.reshape(CHANNELS, groups, gbuffer.num_samples), self._colours
+        )
 
     def _refined_points(self, light: Light, totals: torch.Tensor) -> torch.Tensor:
         """(E,) int64 rows of the view traced at their own position for `light`: with `edge_contrast` c,
@@ -429,14 +489,14 @@ class MultiviewRelighter:
                 # (4, M): taps of another surface (weight 0) stand in for the nearest one, which always
                 # counts; rows of taps, so that the extremes are three element-wise maxima and minima.
                 self._edge_taps = torch.where(view.weights > 0, view.taps, view.rows[:, None]).T.contiguous()
-            reaching, unshadowed = take_rows(totals, self._edge_taps).unbind(0)             # (4, M) each
+            reaching, unshadowed = take_rows(totals, self._edge_taps).unbind(0)  # (4, M) each
             high, low = extremes_of_four(reaching)
             refined |= high - low > self.edge_contrast
             high, low = extremes_of_four(unshadowed)
             refined |= high - low > self.edge_contrast * high
         if self.near_field is not None and light.kind not in (LightKind.DISTANT, LightKind.DOME):
             if self._offsets is None:
-                position = view.gbuffer.position[:count].T.contiguous()                    # (3, M)
+                position = view.gbuffer.position[:count].T.contiguous()  # (3, M)
                 offset = position - self.views.pool.position.index_select(0, view.rows).T
                 self._offsets = position, (offset * offset).sum(0).sqrt_()
             position, offsets = self._offsets
@@ -448,11 +508,17 @@ class MultiviewRelighter:
         return torch.nonzero(refined).squeeze(-1)
 
 
-def open_multiview_relighter(path: str | os.PathLike[str], device: str | torch.device = "cpu", shadows: str = "embree",
-                             lights_layer: str | os.PathLike[str] | None = None,
-                             settings: RelightSettings = RelightSettings(),
-                             sample_groups: int = 1, blend_lighting: bool = False,
-                             edge_contrast: float | None = 0.8, near_field: float | None = 0.1) -> MultiviewRelighter:
+def open_multiview_relighter(
+    path: str | os.PathLike[str],
+    device: str | torch.device = "cpu",
+    shadows: str = "embree",
+    lights_layer: str | os.PathLike[str] | None = None,
+    settings: RelightSettings = RelightSettings(),
+    sample_groups: int = 1,
+    blend_lighting: bool = False,
+    edge_contrast: float | None = 0.8,
+    near_field: float | None = 0.1,
+) -> MultiviewRelighter:
     """A MultiviewRelighter for a 'multiview' cache layer, with the shot's lights (and `lights_layer`'s).
 
     No view is set: give it one with `set_view` (`pipeline.bake.multiview.view.view_points` traces
@@ -478,9 +544,22 @@ def open_multiview_relighter(path: str | os.PathLike[str], device: str | torch.d
     corner_normals = np.asarray(load_npy(layer_path, description, "cornerNormals"))
     normal_mapped = torch.from_numpy(np.array(load_npy(layer_path, description, "normalMapped"), bool)).to(device)
     caster, visibility = embree_visibility(occluders, occluder_objects, object_paths)
-    relighter = MultiviewRelighter(views, visibility, description.supersampling, description.exposure_scale,
-                                   settings, object_paths, caster, occluder_objects, corner_normals, normal_mapped,
-                                   sample_groups, blend_lighting, edge_contrast, near_field)
+    relighter = MultiviewRelighter(
+        views,
+        visibility,
+        description.supersampling,
+        description.exposure_scale,
+        settings,
+        object_paths,
+        caster,
+        occluder_objects,
+        corner_normals,
+        normal_mapped,
+        sample_groups,
+        blend_lighting,
+        edge_contrast,
+        near_field,
+    )
     relighter.description = description
     relighter.set_lights(shot_lights(description, lights_layer))
     return relighter

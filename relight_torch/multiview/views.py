@@ -23,8 +23,18 @@ from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.gbuffer import GBuffer
 
 CAMERA_COLUMNS = tuple(f"worldFromCamera{r}{c}" for r in range(4) for c in range(4)) + (
-    "focalLength", "horizontalAperture", "verticalAperture", "horizontalApertureOffset",
-    "verticalApertureOffset", "near", "far", "width", "height", "kind", "group")
+    "focalLength",
+    "horizontalAperture",
+    "verticalAperture",
+    "horizontalApertureOffset",
+    "verticalApertureOffset",
+    "near",
+    "far",
+    "width",
+    "height",
+    "kind",
+    "group",
+)
 """Columns of the (K, C) float64 camera table: the (4, 4) column-vector world_from_camera row by
 row, the film (tenths of a scene unit), clipping range, image size in pixels, kind (`PRIMARY` or
 `SECONDARY`) and group (the cube of a primary camera's six faces; the camera itself otherwise)."""
@@ -62,8 +72,7 @@ def check_camera_table(table: np.ndarray, source: str) -> None:
         raise ValueError(f"{source}: focal lengths and apertures must be > 0")
 
 
-BLEND_FIELDS = tuple(f.name for f in dataclasses.fields(PreviewSurfaceParams)
-                     if f.name != "use_specular_workflow")
+BLEND_FIELDS = tuple(f.name for f in dataclasses.fields(PreviewSurfaceParams) if f.name != "use_specular_workflow")
 """What bilinear resampling blends into the material: the floating material parameters, in
 `PreviewSurfaceParams` field order (the shading normal is blended apart, where it is kept)."""
 
@@ -81,9 +90,9 @@ def unpack_blend_columns(columns: list[torch.Tensor], like: GBuffer) -> dict[str
     """`BLEND_FIELDS` name -> values from the C packed columns, (N,) each, shaped and typed as
     `like`'s fields."""
     out, start = {}, 0
-    for name, source in zip(BLEND_FIELDS, _blend_sources(like)):
+    for name, source in zip(BLEND_FIELDS, _blend_sources(like), strict=True):
         width = source[0].numel() if source.dim() > 1 else 1
-        values = torch.stack(columns[start:start + width], -1) if source.dim() > 1 else columns[start]
+        values = torch.stack(columns[start : start + width], -1) if source.dim() > 1 else columns[start]
         out[name] = values.to(source.dtype)
         start += width
     return out
@@ -103,8 +112,9 @@ def neighbour_slot(drow: torch.Tensor, dcol: torch.Tensor) -> torch.Tensor:
     return slot - (slot > 4).long()
 
 
-def same_object_neighbours(image: torch.Tensor, size: tuple[int, int], pixel: torch.Tensor, rows: torch.Tensor,
-                           object_id: torch.Tensor) -> torch.Tensor:
+def same_object_neighbours(
+    image: torch.Tensor, size: tuple[int, int], pixel: torch.Tensor, rows: torch.Tensor, object_id: torch.Tensor
+) -> torch.Tensor:
     """(8, n) int32 the pool rows at each `NEIGHBOURS` offset of n samples of one view, -1 where
     outside the image, empty or another object than the sample's.
 
@@ -156,12 +166,14 @@ def cube_faces(table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     axis = np.abs(forward).argmax(-1)
     face = 2 * axis + (forward[np.arange(len(table)), axis] < 0)
     focal = camera_column(table, "focalLength")
-    square = (np.isclose(camera_column(table, "horizontalAperture"), 2.0 * focal)
-              & np.isclose(camera_column(table, "verticalAperture"), 2.0 * focal)
-              & (camera_column(table, "horizontalApertureOffset") == 0)
-              & (camera_column(table, "verticalApertureOffset") == 0)
-              & (camera_column(table, "width") == camera_column(table, "height"))
-              & np.isclose(np.abs(forward).max(-1), 1.0))
+    square = (
+        np.isclose(camera_column(table, "horizontalAperture"), 2.0 * focal)
+        & np.isclose(camera_column(table, "verticalAperture"), 2.0 * focal)
+        & (camera_column(table, "horizontalApertureOffset") == 0)
+        & (camera_column(table, "verticalApertureOffset") == 0)
+        & (camera_column(table, "width") == camera_column(table, "height"))
+        & np.isclose(np.abs(forward).max(-1), 1.0)
+    )
     candidates = (camera_column(table, "kind") == PRIMARY) & square
     groups: dict[int, list[int]] = {}
     for k in map(int, np.flatnonzero(candidates)):
@@ -169,8 +181,9 @@ def cube_faces(table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     cubes, singles = [], [int(k) for k in np.flatnonzero(~candidates)]
     for members in groups.values():
         centre = world[members[0], :3, 3]
-        if (len({int(face[k]) for k in members}) < len(members)
-                or not all(np.allclose(world[k, :3, 3], centre) for k in members)):
+        if len({int(face[k]) for k in members}) < len(members) or not all(
+            np.allclose(world[k, :3, 3], centre) for k in members
+        ):
             singles += members
             continue
         faces = [-1] * 6
@@ -197,23 +210,47 @@ def _concat_params(parts: list[PreviewSurfaceParams]) -> PreviewSurfaceParams:
     return PreviewSurfaceParams(**{name: torch.cat([getattr(p, name) for p in parts]) for name in names})
 
 
-def concat_gbuffers(parts: list[GBuffer], image_size: tuple[int, int], pixel_index: torch.Tensor,
-                    camera_position: torch.Tensor) -> GBuffer:
+def concat_gbuffers(
+    parts: list[GBuffer], image_size: tuple[int, int], pixel_index: torch.Tensor, camera_position: torch.Tensor
+) -> GBuffer:
     """The samples of several G-buffers as one G-buffer of `image_size` at `pixel_index` (N,)."""
-    tensors = {name: torch.cat([getattr(p, name) for p in parts])
-               for name in ("position", "normal", "tangent", "bitangent", "geometric_normal", "material_id",
-                            "object_id", "depth")}
-    return GBuffer(image_size=image_size, pixel_index=pixel_index, params=_concat_params([p.params for p in parts]),
-                   camera_position=camera_position, **tensors)
+    tensors = {
+        name: torch.cat([getattr(p, name) for p in parts])
+        for name in (
+            "position",
+            "normal",
+            "tangent",
+            "bitangent",
+            "geometric_normal",
+            "material_id",
+            "object_id",
+            "depth",
+        )
+    }
+    return GBuffer(
+        image_size=image_size,
+        pixel_index=pixel_index,
+        params=_concat_params([p.params for p in parts]),
+        camera_position=camera_position,
+        **tensors,
+    )
 
 
 def gather_gbuffer(pool: GBuffer, rows: torch.Tensor) -> GBuffer:
     """The pool's samples at `rows` (N,), as a GBuffer with the pool's (meaningless) image fields."""
     return dataclasses.replace(
-        pool, pixel_index=pool.pixel_index[rows], position=pool.position[rows], normal=pool.normal[rows],
-        tangent=pool.tangent[rows], bitangent=pool.bitangent[rows], geometric_normal=pool.geometric_normal[rows],
-        params=pool.params.index(rows), material_id=pool.material_id[rows], object_id=pool.object_id[rows],
-        depth=pool.depth[rows])
+        pool,
+        pixel_index=pool.pixel_index[rows],
+        position=pool.position[rows],
+        normal=pool.normal[rows],
+        tangent=pool.tangent[rows],
+        bitangent=pool.bitangent[rows],
+        geometric_normal=pool.geometric_normal[rows],
+        params=pool.params.index(rows),
+        material_id=pool.material_id[rows],
+        object_id=pool.object_id[rows],
+        depth=pool.depth[rows],
+    )
 
 
 @dataclass(frozen=True)
@@ -290,7 +327,7 @@ class CachingViews:
         return self.pool.device
 
     @staticmethod
-    def build(table: np.ndarray, gbuffers: list[GBuffer]) -> "CachingViews":
+    def build(table: np.ndarray, gbuffers: list[GBuffer]) -> CachingViews:
         """Pool K views (`gbuffers[k]` baked by camera row k; all on one device).
 
         Raises:
@@ -323,46 +360,69 @@ class CachingViews:
         pixel_angle = aperture / focal / np.maximum(size_tensor[:, 1].cpu().numpy(), 1)
         rows_all = torch.arange(start, device=device)
         pool = concat_gbuffers(gbuffers, (1, start), rows_all, torch.zeros(3, device=device))
-        neighbours = [same_object_neighbours(row, size, g.pixel_index, torch.arange(offset, offset + g.num_samples,
-                                                                                   device=device), pool.object_id)
-                      for row, size, g, offset in zip(rows, sizes, gbuffers,
-                                                      np.cumsum([0] + [g.num_samples for g in gbuffers]).tolist())]
+        neighbours = [
+            same_object_neighbours(
+                row, size, g.pixel_index, torch.arange(offset, offset + g.num_samples, device=device), pool.object_id
+            )
+            for row, size, g, offset in zip(
+                rows, sizes, gbuffers, np.cumsum([0] + [g.num_samples for g in gbuffers]).tolist(), strict=True
+            )
+        ]
         packed = pack_blend_table(pool)
         kind = column_kinds(packed, pool.material_id)
         camera_from_world = np.linalg.inv(world_from_camera(table))
-        film = np.stack([camera_column(table, name) for name in ("focalLength", "horizontalAperture",
-                                                                 "verticalAperture", "horizontalApertureOffset",
-                                                                 "verticalApertureOffset")], -1)
-        projection = np.concatenate([camera_from_world[:, :3, :].reshape(-1, 12), film,
-                                     size_tensor.cpu().numpy()[:, ::-1]], -1)
+        film = np.stack(
+            [
+                camera_column(table, name)
+                for name in (
+                    "focalLength",
+                    "horizontalAperture",
+                    "verticalAperture",
+                    "horizontalApertureOffset",
+                    "verticalApertureOffset",
+                )
+            ],
+            -1,
+        )
+        projection = np.concatenate(
+            [camera_from_world[:, :3, :].reshape(-1, 12), film, size_tensor.cpu().numpy()[:, ::-1]], -1
+        )
         forward = camera_forward(table)
         corner = np.hypot(film[:, 1] / 2 + np.abs(film[:, 3]), film[:, 2] / 2 + np.abs(film[:, 4])) / film[:, 0]
         cone = 1.0 / np.sqrt(1.0 + (1.01 * corner) ** 2)
         cubes, singles = cube_faces(table)
         return CachingViews(
-            table=np.asarray(table, np.float64), pool=pool,
+            table=np.asarray(table, np.float64),
+            pool=pool,
             camera_from_world=torch.from_numpy(camera_from_world).to(device),
-            sizes=size_tensor, image_offsets=offsets, pool_row=torch.cat(rows), depth=torch.cat(depths),
+            sizes=size_tensor,
+            image_offsets=offsets,
+            pool_row=torch.cat(rows),
+            depth=torch.cat(depths),
             pixel_angle=torch.as_tensor(pixel_angle, dtype=torch.float32, device=device),
             pool_view=torch.cat(owners) if owners else torch.zeros(0, dtype=torch.int64, device=device),
             pool_pixel=torch.cat(centres) if centres else torch.zeros((0, 2), device=device),
-            blend_kind=kind, blend_table=packed[:, kind == TEXTURED].T.contiguous(),
+            blend_kind=kind,
+            blend_table=packed[:, kind == TEXTURED].T.contiguous(),
             material_table=packed[:, kind == PER_MATERIAL].T.contiguous(),
             blend_constants=packed[0] if start else packed.new_zeros(packed.shape[1]),
             normal_table=pool.normal.float().T.contiguous(),
             neighbours=torch.cat(neighbours, 1) if neighbours else torch.zeros((8, 0), dtype=torch.int32),
             surface_table=torch.cat([pool.object_id.float()[None], pool.geometric_normal.float().T]),
-            centres=torch.as_tensor(world_from_camera(table)[:, :3, 3].T.copy(), dtype=torch.float32,
-                                    device=device).reshape(3, -1),
+            centres=torch.as_tensor(
+                world_from_camera(table)[:, :3, 3].T.copy(), dtype=torch.float32, device=device
+            ).reshape(3, -1),
             projection=torch.as_tensor(projection, dtype=torch.float32, device=device).reshape(-1, 19).T.contiguous(),
             cubes=torch.as_tensor(cubes, dtype=torch.int64, device=device).reshape(-1, 6),
             singles=torch.as_tensor(singles, dtype=torch.int64, device=device).reshape(-1),
-            axes=torch.as_tensor(np.concatenate([forward, cone[:, None]], -1).T.copy(), dtype=torch.float32,
-                                 device=device).reshape(4, -1))
+            axes=torch.as_tensor(
+                np.concatenate([forward, cone[:, None]], -1).T.copy(), dtype=torch.float32, device=device
+            ).reshape(4, -1),
+        )
 
     def camera_position(self, k: int) -> torch.Tensor:
         """(3,) float32 world position of camera k."""
-        position = world_from_camera(self.table[k:k + 1])[0, :3, 3]
+        position = world_from_camera(self.table[k : k + 1])[0, :3, 3]
         return torch.as_tensor(position, dtype=torch.float32, device=self.device)
 
     def project(self, k: int, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -381,10 +441,12 @@ class CachingViews:
         x_film = focal * local[:, 0] / safe
         y_film = focal * local[:, 1] / safe
         height, width = (int(v) for v in self.sizes[k])
-        column = ((x_film - float(row[_COLUMN["horizontalApertureOffset"]])) / float(row[_COLUMN["horizontalAperture"]])
-                  + 0.5) * width
-        line = (0.5 - (y_film - float(row[_COLUMN["verticalApertureOffset"]])) / float(row[_COLUMN["verticalAperture"]])
-                ) * height
+        column = (
+            (x_film - float(row[_COLUMN["horizontalApertureOffset"]])) / float(row[_COLUMN["horizontalAperture"]]) + 0.5
+        ) * width
+        line = (
+            0.5 - (y_film - float(row[_COLUMN["verticalApertureOffset"]])) / float(row[_COLUMN["verticalAperture"]])
+        ) * height
         pixels = torch.stack((column, line), -1)
         pixels = torch.where((depth > 0)[:, None], pixels, torch.full_like(pixels, torch.nan))
         return pixels, depth

@@ -32,7 +32,9 @@ def generate(output_dir: Path) -> None:
     """
     subprocess.run(
         [sys.executable, "-m", "pxr.Usd.usdGenSchema", str(SCHEMA_DIR / "schema.usda"), str(output_dir)],
-        check=True, capture_output=True, text=True,
+        check=True,
+        capture_output=True,
+        text=True,
     )
     plug_info = output_dir / "plugInfo.json"
     text = plug_info.read_text()

@@ -50,7 +50,9 @@ def _row_of(offsets: torch.Tensor) -> torch.Tensor:
     return torch.repeat_interleave(torch.arange(offsets.shape[0] - 1, device=offsets.device), offsets.diff())
 
 
-def _segment_reduce(values: torch.Tensor, row: torch.Tensor, num_rows: int, reduce: str, initial: float) -> torch.Tensor:
+def _segment_reduce(
+    values: torch.Tensor, row: torch.Tensor, num_rows: int, reduce: str, initial: float
+) -> torch.Tensor:
     out = values.new_full((num_rows, values.shape[1]), initial)
     return out.scatter_reduce(0, row.unsqueeze(-1).expand_as(values), values, reduce, include_self=False)
 
@@ -100,8 +102,13 @@ class EncodedRows:
     def arrays(self) -> dict[str, np.ndarray]:
         """Payload part name -> array to store (indices narrowed to uint16 where they fit)."""
         index_dtype = np.uint16 if self.num_columns <= 1 << 16 else np.int32
-        tensors = {"Values": self.values.stored, "Scale": self.values.scale, "Low": self.values.low,
-                   "Indices": self.indices, "Offsets": self.offsets}
+        tensors = {
+            "Values": self.values.stored,
+            "Scale": self.values.scale,
+            "Low": self.values.low,
+            "Indices": self.indices,
+            "Offsets": self.offsets,
+        }
         if self.row_colour is not None:
             tensors["Colour"] = self.row_colour
         arrays = {name: tensor.cpu().numpy() for name, tensor in tensors.items()}
@@ -109,23 +116,30 @@ class EncodedRows:
         return arrays
 
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray], num_columns: int) -> "EncodedRows":
+    def from_arrays(cls, arrays: dict[str, np.ndarray], num_columns: int) -> EncodedRows:
         """The inverse of `arrays` (Colour optional); indices widened to int32."""
         tensors = {name: torch.from_numpy(np.array(array)) for name, array in arrays.items() if name != "Indices"}
         indices = torch.from_numpy(np.asarray(arrays["Indices"]).astype(np.int32))
-        return cls(EncodedValues(tensors["Values"], tensors["Scale"], tensors["Low"]), indices, tensors["Offsets"],
-                   num_columns, tensors.get("Colour"))
+        return cls(
+            EncodedValues(tensors["Values"], tensors["Scale"], tensors["Low"]),
+            indices,
+            tensors["Offsets"],
+            num_columns,
+            tensors.get("Colour"),
+        )
 
 
 def encode_rows(rows: SparseRows, encoding: str) -> EncodedRows:
     """Encode the values of `rows` ('float16' or 'uint8'); the layout and row colours are kept."""
     colour = None if rows.row_colour is None else rows.row_colour.float()
-    return EncodedRows(encode(rows.values, rows.offsets, encoding), rows.indices, rows.offsets, rows.num_columns,
-                       colour)
+    return EncodedRows(
+        encode(rows.values, rows.offsets, encoding), rows.indices, rows.offsets, rows.num_columns, colour
+    )
 
 
 def decode_rows(encoded: EncodedRows, dtype: torch.dtype = torch.float32) -> SparseRows:
     """The `SparseRows` back, values of `dtype` (on the encoded tensors' device)."""
     colour = None if encoded.row_colour is None else encoded.row_colour.to(dtype)
-    return SparseRows(decode(encoded.values, encoded.offsets, dtype), encoded.indices, encoded.offsets,
-                      encoded.num_columns, colour)
+    return SparseRows(
+        decode(encoded.values, encoded.offsets, dtype), encoded.indices, encoded.offsets, encoded.num_columns, colour
+    )

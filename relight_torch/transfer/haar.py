@@ -50,8 +50,9 @@ def haar2d(image: torch.Tensor) -> torch.Tensor:
         horizontal = 0.5 * (row_difference[..., 0, :] + row_difference[..., 1, :])
         vertical = 0.5 * (row_sum[..., 0, :] - row_sum[..., 1, :])
         diagonal = 0.5 * (row_difference[..., 0, :] - row_difference[..., 1, :])
-        out[..., :side, :side, :] = torch.cat([torch.cat([box, horizontal], dim=-2),
-                                               torch.cat([vertical, diagonal], dim=-2)], dim=-3)
+        out[..., :side, :side, :] = torch.cat(
+            [torch.cat([box, horizontal], dim=-2), torch.cat([vertical, diagonal], dim=-2)], dim=-3
+        )
         side = half
     return out
 

@@ -11,10 +11,10 @@ import torch
 
 from relight_torch.cache.layer import CacheDescription
 from relight_torch.cache.load import load_npy
-from relight_torch.errors import RelightError
 from relight_torch.direct.relighter import RelightSettings, open_relighter
-from relight_torch.transfer.encoding import PARTS, EncodedRows, decode_rows
+from relight_torch.errors import RelightError
 from relight_torch.indirect_samples import GatherSamples, gather_payload_name
+from relight_torch.transfer.encoding import PARTS, EncodedRows, decode_rows
 from relight_torch.transfer.relighter import TransferRelighter
 from relight_torch.transfer.sparse import SparseRows
 from relight_torch.transfer.upsample import edge_aware_upsampler
@@ -41,33 +41,59 @@ def load_sparse_rows(layer_path: Path, description: CacheDescription, prefix: st
     return rows
 
 
-def open_transfer_relighter(path: str | os.PathLike, device: str | torch.device = "cpu", shadows: str = "embree",
-                            lights_layer: str | os.PathLike | None = None,
-                            settings: RelightSettings = RelightSettings(),
-                            cull_tolerance: float = 0.0) -> TransferRelighter:
+def open_transfer_relighter(
+    path: str | os.PathLike,
+    device: str | torch.device = "cpu",
+    shadows: str = "embree",
+    lights_layer: str | os.PathLike | None = None,
+    settings: RelightSettings = RelightSettings(),
+    cull_tolerance: float = 0.0,
+) -> TransferRelighter:
     """A TransferRelighter for a 'transfer' cache layer (arguments as `open_relighter`; culling of
     weak wavelet lights as `TransferRelighter`)."""
     layer_path = Path(path)
     direct = open_relighter(layer_path, device, shadows, lights_layer, settings)
     description = direct.description
     stored = {payload.name for payload in description.payloads}
-    gathers = GatherSamples(**{field.name: _load(layer_path, description, gather_payload_name(field.name))
-                               for field in dataclasses.fields(GatherSamples)
-                               if gather_payload_name(field.name) in stored or field.name != "object_id"}).to(device)
+    gathers = GatherSamples(
+        **{
+            field.name: _load(layer_path, description, gather_payload_name(field.name))
+            for field in dataclasses.fields(GatherSamples)
+            if gather_payload_name(field.name) in stored or field.name != "object_id"
+        }
+    ).to(device)
     dtype = direct.gbuffer.position.dtype
     final_gather = load_sparse_rows(layer_path, description, "finalGather", gathers.num_gathers).to(device, dtype)
     num_bounces = int(description.parameters["bounces"])
-    bounce = (load_sparse_rows(layer_path, description, "bounce", gathers.num_gathers).to(device, dtype)
-              if num_bounces > 1 else None)
+    bounce = (
+        load_sparse_rows(layer_path, description, "bounce", gathers.num_gathers).to(device, dtype)
+        if num_bounces > 1
+        else None
+    )
     view_pixels = _load(layer_path, description, "viewPixels").to(device)
     scale = int(description.parameters.get("indirectScale", 1))
     upsampler = None
     if scale > 1:
-        upsampler = edge_aware_upsampler(direct.gbuffer, direct.supersampling, scale, view_pixels,
-                                         *(_load(layer_path, description, name).to(device)
-                                           for name in ("viewPosition", "viewNormal", "viewObjectId")))
+        upsampler = edge_aware_upsampler(
+            direct.gbuffer,
+            direct.supersampling,
+            scale,
+            view_pixels,
+            *(
+                _load(layer_path, description, name).to(device)
+                for name in ("viewPosition", "viewNormal", "viewObjectId")
+            ),
+        )
     try:
-        return TransferRelighter(direct, gathers, view_pixels, final_gather, bounce, num_bounces,
-                                 upsampler=upsampler, cull_tolerance=cull_tolerance)
+        return TransferRelighter(
+            direct,
+            gathers,
+            view_pixels,
+            final_gather,
+            bounce,
+            num_bounces,
+            upsampler=upsampler,
+            cull_tolerance=cull_tolerance,
+        )
     except ValueError as error:
         raise RelightError(f"{layer_path}: {error}") from None

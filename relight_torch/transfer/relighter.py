@@ -18,11 +18,11 @@ from typing import cast
 import torch
 
 from relight_torch.diffuse_light import link_mask
+from relight_torch.direct.relighter import Relighter, unit_light
 from relight_torch.indirect import IndirectRelighter, gather_light_key
+from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.lights.light import Light
 from relight_torch.protocol import tensor_bytes
-from relight_torch.direct.relighter import Relighter, unit_light
-from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.transfer.haar import haar2d
 from relight_torch.transfer.sparse import SparseRows, column_norms, cull_light
 from relight_torch.transfer.upsample import EdgeAwareUpsampler
@@ -33,10 +33,10 @@ GATHER_SAMPLES = 4
 
 @dataclasses.dataclass
 class _IndirectState:
-    gather_key: object           # `gather_light_key` of the unit light less its link
-    radiance: torch.Tensor       # (G, 3) its gather light g_d, no light link applied
-    light_link: tuple[str, ...] | None = None     # the link `unit_indirect` was masked with
-    unit_indirect: torch.Tensor | None = None     # (R, 3) its indirect radiance at the F rows
+    gather_key: object  # `gather_light_key` of the unit light less its link
+    radiance: torch.Tensor  # (G, 3) its gather light g_d, no light link applied
+    light_link: tuple[str, ...] | None = None  # the link `unit_indirect` was masked with
+    unit_indirect: torch.Tensor | None = None  # (R, 3) its indirect radiance at the F rows
 
 
 class TransferRelighter(IndirectRelighter):
@@ -71,16 +71,28 @@ class TransferRelighter(IndirectRelighter):
             index_add_) cost 30-80x more per entry there, more than any culling saved (docs/TRANSFER.md).
     """
 
-    def __init__(self, direct: Relighter, gathers: GatherSamples, view_pixels: torch.Tensor,
-                 final_gather: SparseRows, bounce: SparseRows | None = None, num_bounces: int = 1,
-                 gather_samples: int = GATHER_SAMPLES, upsampler: EdgeAwareUpsampler | None = None,
-                 cull_tolerance: float = 0.0):
+    def __init__(
+        self,
+        direct: Relighter,
+        gathers: GatherSamples,
+        view_pixels: torch.Tensor,
+        final_gather: SparseRows,
+        bounce: SparseRows | None = None,
+        num_bounces: int = 1,
+        gather_samples: int = GATHER_SAMPLES,
+        upsampler: EdgeAwareUpsampler | None = None,
+        cull_tolerance: float = 0.0,
+    ):
         if final_gather.num_columns != gathers.num_gathers or final_gather.num_rows != view_pixels.shape[0]:
-            raise ValueError(f"F is {final_gather.num_rows}x{final_gather.num_columns}; expected "
-                             f"{view_pixels.shape[0]} view rows x {gathers.num_gathers} gathers")
+            raise ValueError(
+                f"F is {final_gather.num_rows}x{final_gather.num_columns}; expected "
+                f"{view_pixels.shape[0]} view rows x {gathers.num_gathers} gathers"
+            )
         if num_bounces < 1 or (num_bounces > 1 and (bounce is None or bounce.num_rows != gathers.num_gathers)):
-            raise ValueError(f"{num_bounces} bounces need M as {gathers.num_gathers} rows (got "
-                             f"{None if bounce is None else bounce.num_rows})")
+            raise ValueError(
+                f"{num_bounces} bounces need M as {gathers.num_gathers} rows (got "
+                f"{None if bounce is None else bounce.num_rows})"
+            )
         if gather_samples < 1:
             raise ValueError(f"gather_samples must be >= 1, got {gather_samples}")
         if not 0.0 <= cull_tolerance < 1.0:
@@ -135,8 +147,10 @@ class TransferRelighter(IndirectRelighter):
     # -- cached stages --------------------------------------------------------------------------
 
     def _indirect_bytes(self) -> int:
-        return tensor_bytes(self._emission_indirect, *(t for state in self._per_light.values()
-                                                       for t in (state.radiance, state.unit_indirect)))
+        return tensor_bytes(
+            self._emission_indirect,
+            *(t for state in self._per_light.values() for t in (state.radiance, state.unit_indirect)),
+        )
 
     def _emission_rows(self) -> torch.Tensor:
         if self._emission_indirect is None:

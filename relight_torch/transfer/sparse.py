@@ -58,7 +58,7 @@ class SparseRows:
         arrays = (self.values, self.indices, self.offsets) + (() if self.row_colour is None else (self.row_colour,))
         return sum(t.numel() * t.element_size() for t in arrays)
 
-    def to(self, device: torch.device | str, dtype: torch.dtype) -> "SparseRows":
+    def to(self, device: torch.device | str, dtype: torch.dtype) -> SparseRows:
         """Move to `device`, values cast to `dtype` (indices and offsets keep theirs).
 
         The values keep their (nnz, C) shape but are stored channel by channel (strides (1, nnz)),
@@ -73,17 +73,23 @@ class SparseRows:
         """Raise ValueError naming the first broken invariant of the layout."""
         nnz = self.indices.shape[0]
         if self.values.dim() != 2 or self.values.shape[0] != nnz or self.indices.dim() != 1:
-            raise ValueError(f"values must be (nnz, C) and indices (nnz,); got {tuple(self.values.shape)} "
-                             f"and {tuple(self.indices.shape)}")
+            raise ValueError(
+                f"values must be (nnz, C) and indices (nnz,); got {tuple(self.values.shape)} "
+                f"and {tuple(self.indices.shape)}"
+            )
         if self.indices.dtype != torch.int32 or self.offsets.dtype != torch.int64:
             raise ValueError(f"indices must be int32 and offsets int64; got {self.indices.dtype}, {self.offsets.dtype}")
         offsets = self.offsets
         if offsets.dim() != 1 or offsets.shape[0] < 1 or int(offsets[0]) != 0 or int(offsets[-1]) != nnz:
-            raise ValueError(f"offsets must run from 0 to nnz = {nnz}; got {tuple(offsets.shape)} ending "
-                             f"{int(offsets[-1]) if offsets.numel() else None}")
+            raise ValueError(
+                f"offsets must run from 0 to nnz = {nnz}; got {tuple(offsets.shape)} ending "
+                f"{int(offsets[-1]) if offsets.numel() else None}"
+            )
         if self.row_colour is not None and (self.values.shape[1] != 1 or self.row_colour.shape != (self.num_rows, 3)):
-            raise ValueError(f"a row colour needs (nnz, 1) values and ({self.num_rows}, 3) colours; got "
-                             f"{tuple(self.values.shape)} and {tuple(self.row_colour.shape)}")
+            raise ValueError(
+                f"a row colour needs (nnz, 1) values and ({self.num_rows}, 3) colours; got "
+                f"{tuple(self.values.shape)} and {tuple(self.row_colour.shape)}"
+            )
         if self.row_colour is None and self.values.shape[1] != 3:
             raise ValueError(f"values without a row colour must be (nnz, 3); got {tuple(self.values.shape)}")
         if bool((offsets[1:] < offsets[:-1]).any()):
@@ -111,12 +117,18 @@ class SparseRows:
         offsets = self.offsets.to(indices.dtype)
 
         def bag(table: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-            return torch.nn.functional.embedding_bag(indices, table.contiguous(), offsets, mode="sum",
-                                                     per_sample_weights=weights.contiguous(), include_last_offset=True)
+            return torch.nn.functional.embedding_bag(
+                indices,
+                table.contiguous(),
+                offsets,
+                mode="sum",
+                per_sample_weights=weights.contiguous(),
+                include_last_offset=True,
+            )
 
         if self.row_colour is not None:
             return bag(dense, self.values[:, 0]) * self.row_colour
-        return torch.cat([bag(dense[:, c:c + 1], self.values[:, c]) for c in range(3)], dim=1)
+        return torch.cat([bag(dense[:, c : c + 1], self.values[:, c]) for c in range(3)], dim=1)
 
 
 def keep_top_k(coefficients: torch.Tensor, num_kept: int) -> SparseRows:
@@ -203,13 +215,18 @@ def concatenate(parts: list[SparseRows]) -> SparseRows:
     starts = [0]
     for part in parts[:-1]:
         starts.append(starts[-1] + int(part.offsets[-1]))
-    offsets = torch.cat([parts[0].offsets[:1]] + [p.offsets[1:] + s for p, s in zip(parts, starts)])
+    offsets = torch.cat([parts[0].offsets[:1]] + [p.offsets[1:] + s for p, s in zip(parts, starts, strict=True)])
     colours = [p.row_colour for p in parts if p.row_colour is not None]
     if colours and len(colours) != len(parts):
         raise ValueError("cannot concatenate rows with a row colour and rows without one")
     colour = torch.cat(colours) if colours else None
-    return SparseRows(torch.cat([p.values for p in parts]), torch.cat([p.indices for p in parts]), offsets,
-                      parts[0].num_columns, colour)
+    return SparseRows(
+        torch.cat([p.values for p in parts]),
+        torch.cat([p.indices for p in parts]),
+        offsets,
+        parts[0].num_columns,
+        colour,
+    )
 
 
 def column_norms(rows: SparseRows) -> torch.Tensor:

@@ -51,14 +51,27 @@ class EdgeAwareUpsampler:
 
     def __call__(self, coarse: torch.Tensor) -> torch.Tensor:
         """(R, C) values at the coarse rows -> (P, C) values at the full image's pixels."""
-        return torch.nn.functional.embedding_bag(self.rows, coarse, self.offsets, mode="sum",
-                                                 per_sample_weights=self.weights.to(coarse.dtype),
-                                                 include_last_offset=True)
+        return torch.nn.functional.embedding_bag(
+            self.rows,
+            coarse,
+            self.offsets,
+            mode="sum",
+            per_sample_weights=self.weights.to(coarse.dtype),
+            include_last_offset=True,
+        )
 
 
-def edge_aware_upsampler(fine: GBuffer, supersampling: int, scale: int, coarse_pixels: torch.Tensor,
-                         coarse_position: torch.Tensor, coarse_normal: torch.Tensor, coarse_object: torch.Tensor,
-                         guided: bool = True, chunk_samples: int = 1 << 18) -> EdgeAwareUpsampler:
+def edge_aware_upsampler(
+    fine: GBuffer,
+    supersampling: int,
+    scale: int,
+    coarse_pixels: torch.Tensor,
+    coarse_position: torch.Tensor,
+    coarse_normal: torch.Tensor,
+    coarse_object: torch.Tensor,
+    guided: bool = True,
+    chunk_samples: int = 1 << 18,
+) -> EdgeAwareUpsampler:
     """The upsampler from R coarse samples to the pixels of `fine`'s image.
 
     Args:
@@ -82,28 +95,38 @@ def edge_aware_upsampler(fine: GBuffer, supersampling: int, scale: int, coarse_p
     keys, weights = [], []
     for start in range(0, fine.num_samples, chunk_samples):
         chunk = slice(start, start + chunk_samples)
-        rows, weight = _weights(fine, chunk, supersampling, scale, (coarse_height, coarse_width), row_of_pixel, coarse,
-                                guided)
+        rows, weight = _weights(
+            fine, chunk, supersampling, scale, (coarse_height, coarse_width), row_of_pixel, coarse, guided
+        )
         sub_row = torch.div(fine.pixel_index[chunk], sub_width, rounding_mode="floor")
         sub_col = fine.pixel_index[chunk] % sub_width
-        pixel = (torch.div(sub_row, supersampling, rounding_mode="floor") * width
-                 + torch.div(sub_col, supersampling, rounding_mode="floor"))
+        pixel = torch.div(sub_row, supersampling, rounding_mode="floor") * width + torch.div(
+            sub_col, supersampling, rounding_mode="floor"
+        )
         keep = weight > 0
         keys.append(pixel.unsqueeze(1).expand_as(rows)[keep] * num_rows + rows[keep])
         weights.append(weight[keep])
     # Merge the entries of a pixel (its sub-samples) that name the same coarse row.
     unique, inverse = torch.unique(torch.cat(keys), return_inverse=True)
     merged = torch.zeros(unique.shape[0], dtype=fine.position.dtype, device=device).index_add_(
-        0, inverse, torch.cat(weights))
+        0, inverse, torch.cat(weights)
+    )
     counts = torch.bincount(torch.div(unique, num_rows, rounding_mode="floor"), minlength=height * width)
     offsets = torch.zeros(height * width + 1, dtype=torch.int64, device=device)
     offsets[1:] = counts.cumsum(0)
     return EdgeAwareUpsampler(unique % num_rows, merged, offsets)
 
 
-def _weights(fine: GBuffer, chunk: slice, supersampling: int, scale: int, coarse_size: tuple[int, int],
-             row_of_pixel: torch.Tensor, coarse: tuple[torch.Tensor, torch.Tensor, torch.Tensor], guided: bool
-             ) -> tuple[torch.Tensor, torch.Tensor]:
+def _weights(
+    fine: GBuffer,
+    chunk: slice,
+    supersampling: int,
+    scale: int,
+    coarse_size: tuple[int, int],
+    row_of_pixel: torch.Tensor,
+    coarse: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    guided: bool,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(rows (n, 9) int64, weights (n, 9)) of the sub-samples `chunk`: the coarse rows of the 3 x 3
     coarse pixels around each and their weights (see the module doc), each sub-sample's summing to
     1 / supersampling^2 (0 where no coarse pixel around it is covered)."""
@@ -117,8 +140,9 @@ def _weights(fine: GBuffer, chunk: slice, supersampling: int, scale: int, coarse
     around = torch.tensor([-1, 0, 1], device=index.device)
     cy = (y.round().long().unsqueeze(1) + around.repeat_interleave(3)).clamp(0, coarse_height - 1)
     cx = (x.round().long().unsqueeze(1) + around.repeat(3)).clamp(0, coarse_width - 1)
-    spatial = ((1 - (cy - y.unsqueeze(1)).abs() / SPATIAL_RADIUS).clamp(min=0)
-               * (1 - (cx - x.unsqueeze(1)).abs() / SPATIAL_RADIUS).clamp(min=0))
+    spatial = (1 - (cy - y.unsqueeze(1)).abs() / SPATIAL_RADIUS).clamp(min=0) * (
+        1 - (cx - x.unsqueeze(1)).abs() / SPATIAL_RADIUS
+    ).clamp(min=0)
     rows = row_of_pixel[cy * coarse_width + cx]
     covered = rows >= 0
     rows = rows.clamp(min=0)
@@ -127,9 +151,9 @@ def _weights(fine: GBuffer, chunk: slice, supersampling: int, scale: int, coarse
     normal_weight = (normal * fine_normal).sum(-1).clamp(min=0) ** NORMAL_EXPONENT
     offset = position - fine.position[chunk].unsqueeze(1)
     off_plane = (offset * fine_normal).sum(-1).abs() / offset.norm(dim=-1).clamp(min=1e-12)
-    plane_weight = torch.exp(-(off_plane / PLANE_SIN) ** 2)
+    plane_weight = torch.exp(-((off_plane / PLANE_SIN) ** 2))
     same_object = object_id == fine.object_id[chunk].unsqueeze(1)
     range_weight = torch.where(same_object, normal_weight * plane_weight, 0.0) + FOREIGN_WEIGHT if guided else 1.0
     weight = spatial * covered * range_weight
     total = weight.sum(1, keepdim=True)
-    return rows, torch.where(total > 0, weight / total.clamp(min=1e-30), 0.0) / supersampling ** 2
+    return rows, torch.where(total > 0, weight / total.clamp(min=1e-30), 0.0) / supersampling**2

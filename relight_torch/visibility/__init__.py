@@ -25,8 +25,14 @@ class Visibility(Protocol):
 
     thread_safe: bool
 
-    def occluder_distance(self, light: Light, points: torch.Tensor, normals: torch.Tensor,
-                          directions: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
+    def occluder_distance(
+        self,
+        light: Light,
+        points: torch.Tensor,
+        normals: torch.Tensor,
+        directions: torch.Tensor,
+        distances: torch.Tensor,
+    ) -> torch.Tensor:
         """Distance from each point to the first occluder towards each light sample.
 
         Args:

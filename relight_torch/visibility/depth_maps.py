@@ -109,9 +109,9 @@ class DepthMap:
             inside = torch.ones_like(depth, dtype=torch.bool)
         return face.long(), torch.stack((u, v), dim=-1), depth, inside
 
-    def project_components(self, x: torch.Tensor, y: torch.Tensor,
-                           z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
-                                                     torch.Tensor | None]:
+    def project_components(
+        self, x: torch.Tensor, y: torch.Tensor, z: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(face, u, v, depth, inside bool or None when every point is inside), each (...), of
         world points given by their coordinates x, y, z (broadcast to (...)); face holds whole
         numbers (any dtype). Coordinates as separate contiguous tensors: torch's CPU kernels run
@@ -131,8 +131,9 @@ class DepthMap:
         """(..., 2) image coordinates (u, v) of texel centres (...)."""
         return (torch.stack((col, row), dim=-1).to(self.face_from_world.dtype) + 0.5) * (2.0 / self.resolution) - 1.0
 
-    def texel_plane(self, sample: MapSample, normals: torch.Tensor,
-                    point_normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def texel_plane(
+        self, sample: MapSample, normals: torch.Tensor, point_normal: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Where the texel-centre rays of a sample meet planes through points p with unit normals n.
 
         Args:
@@ -175,8 +176,9 @@ class DepthMap:
         origin, direction = self.texel_rays(face, row, col)
         return MapLookup(stored, depth, origin, direction, _take(self.slope, flat))
 
-    def sample(self, x: torch.Tensor, y: torch.Tensor, z: torch.Tensor,
-               jitter: tuple[torch.Tensor, ...] | None = None) -> MapSample:
+    def sample(
+        self, x: torch.Tensor, y: torch.Tensor, z: torch.Tensor, jitter: tuple[torch.Tensor, ...] | None = None
+    ) -> MapSample:
         """`lookup` without the texel-centre rays, of world points given by their coordinates
         (broadcast to (...), see `project_components`); `jitter`: column and row offsets in
         texels (broadcast to (...)), or None. MapSample of shape (...)."""
@@ -187,9 +189,9 @@ class DepthMap:
             stored = torch.where(inside, stored, torch.inf)
         return MapSample(stored, depth, _take(self.slope, flat), row, col, flat)
 
-    def _texel(self, face: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
-               jitter: tuple[torch.Tensor, ...] | None
-               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _texel(
+        self, face: torch.Tensor, u: torch.Tensor, v: torch.Tensor, jitter: tuple[torch.Tensor, ...] | None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """(face, row, col, flat index) int32 (...) of the texel image coordinates (u, v) (...)
         fall in on `face`, after adding the (column, row) `jitter` in texels."""
         half = 0.5 * self.resolution
@@ -252,8 +254,14 @@ class PinholeMaps(DepthMap):
             made 2x slower).
     """
 
-    def __init__(self, centre: torch.Tensor, face_from_world: torch.Tensor, tan_half_fov: float, resolution: int,
-                 directions: torch.Tensor | None = None):
+    def __init__(
+        self,
+        centre: torch.Tensor,
+        face_from_world: torch.Tensor,
+        tan_half_fov: float,
+        resolution: int,
+        directions: torch.Tensor | None = None,
+    ):
         self.centre = centre
         self.face_from_world = face_from_world
         self.num_faces = face_from_world.shape[0]
@@ -267,9 +275,13 @@ class PinholeMaps(DepthMap):
         row, col = torch.meshgrid(index, index, indexing="ij")
         uv = self.texel_centre_uv(row, col) * self.tan_half_fov
         frame = self.face_from_world[:, None, None]
-        return torch.nn.functional.normalize(
-            uv[..., 0:1] * frame[..., 0, :] + uv[..., 1:2] * frame[..., 1, :] + frame[..., 2, :],
-            dim=-1).permute(3, 0, 1, 2).contiguous()
+        return (
+            torch.nn.functional.normalize(
+                uv[..., 0:1] * frame[..., 0, :] + uv[..., 1:2] * frame[..., 1, :] + frame[..., 2, :], dim=-1
+            )
+            .permute(3, 0, 1, 2)
+            .contiguous()
+        )
 
     def affine_rays(self):
         """Origins: the centre; unnormalised directions: forward + u tan right + v tan up (see `RasterTarget`)."""
@@ -337,8 +349,13 @@ class CubeMap(PinholeMaps):
         directions: as `PinholeMaps` (a cube map's do not depend on its centre).
     """
 
-    def __init__(self, centre: torch.Tensor, resolution: int, directions: torch.Tensor | None = None,
-                 front: torch.Tensor | None = None):
+    def __init__(
+        self,
+        centre: torch.Tensor,
+        resolution: int,
+        directions: torch.Tensor | None = None,
+        front: torch.Tensor | None = None,
+    ):
         eye = torch.eye(3, device=centre.device, dtype=centre.dtype)
         faces = []
         for axis in range(3):
@@ -360,11 +377,11 @@ class CubeMap(PinholeMaps):
         boxes = []
         for right, up, forward in self.face_from_world.tolist():
             # d(u, v) . front = a + b u + c v over the face's square of image coordinates.
-            a, b, c = (sum(f * x for f, x in zip(front.tolist(), row)) for row in (forward, right, up))
+            a, b, c = (sum(f * x for f, x in zip(front.tolist(), row, strict=True)) for row in (forward, right, up))
             corners = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
             values = [a + b * u + c * v for u, v in corners]
             kept = []  # the square clipped to a + b u + c v >= 0
-            for k, (p, fp) in enumerate(zip(corners, values)):
+            for k, (p, fp) in enumerate(zip(corners, values, strict=True)):
                 q, fq = corners[(k + 1) % 4], values[(k + 1) % 4]
                 if fp >= 0.0:
                     kept.append(p)
@@ -432,8 +449,7 @@ class OrthoMap(DepthMap):
         resolution: texels per side.
     """
 
-    def __init__(self, face_from_world: torch.Tensor, window_centre: torch.Tensor, half_size: float,
-                 resolution: int):
+    def __init__(self, face_from_world: torch.Tensor, window_centre: torch.Tensor, half_size: float, resolution: int):
         self.face_from_world = face_from_world.unsqueeze(0)
         self.window_centre = window_centre
         self.half_size = half_size

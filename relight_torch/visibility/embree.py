@@ -19,6 +19,7 @@ Embreex facts this module relies on (embreex 4.4.0.post1, checked by the tests):
 
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 from dataclasses import dataclass
@@ -43,7 +44,6 @@ EPSILON_ULPS = 32
 # Non-opaque surfaces one ray may pass through before it is stopped at the next (bounds the loop
 # that continues rays through holes; a ray through a dense canopy crosses a few dozen leaves).
 MAX_TRANSPARENT_LAYERS = 64
-
 
 
 @dataclass(frozen=True)
@@ -82,8 +82,13 @@ class EmbreeCaster:
             float32 ulps of the largest coordinate. Use it through `offset_origins`.
     """
 
-    def __init__(self, corners: np.ndarray, num_threads: int | None = None, epsilon: float | None = None,
-                 opacity: OpacityTable | None = None):
+    def __init__(
+        self,
+        corners: np.ndarray,
+        num_threads: int | None = None,
+        epsilon: float | None = None,
+        opacity: OpacityTable | None = None,
+    ):
         if corners.dtype != np.float32 or corners.ndim != 3 or corners.shape[1:] != (3, 3):
             raise ValueError(f"corners must be float32 (T, 3, 3), got {corners.dtype} {corners.shape}")
         self.num_threads = num_threads or len(os.sched_getaffinity(0))
@@ -104,8 +109,7 @@ class EmbreeCaster:
         self._scene = _build_scene(opaque_corners)
         self.epsilon = _scene_epsilon(self.corners) if epsilon is None else epsilon
 
-    def intersect(self, origins: np.ndarray, directions: np.ndarray,
-                  t_far: np.ndarray | None = None) -> RayHits:
+    def intersect(self, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray | None = None) -> RayHits:
         """Closest hit of each ray: distance, triangle and barycentrics. Holes of cut-out and
         partially opaque triangles (`opacity`) are passed through.
 
@@ -124,7 +128,8 @@ class EmbreeCaster:
             hit = triangle_id >= 0
             triangle_id[hit] = self._opaque_ids[triangle_id[hit]]
             found, clear_id, clear_distance, clear_barycentrics = self._first_present(
-                origins, directions, np.minimum(limit, distance))
+                origins, directions, np.minimum(limit, distance)
+            )
             triangle_id[found], distance[found], barycentrics[found] = clear_id, clear_distance, clear_barycentrics
         return RayHits(triangle_id >= 0, distance, triangle_id, barycentrics)
 
@@ -145,8 +150,9 @@ class EmbreeCaster:
         blocked = np.zeros(num_rays, bool)
 
         def trace(chunk: slice) -> None:
-            geometry_ids = self._scene.run(origins[chunk], directions[chunk],
-                                           dists=np.array(t_far[chunk], np.float32), query="OCCLUDED")
+            geometry_ids = self._scene.run(
+                origins[chunk], directions[chunk], dists=np.array(t_far[chunk], np.float32), query="OCCLUDED"
+            )
             blocked[chunk] = geometry_ids != -1
 
         if self._opaque_corners.shape[0]:
@@ -156,8 +162,9 @@ class EmbreeCaster:
             blocked[open_rays] = self._first_present(origins[open_rays], directions[open_rays], t_far[open_rays])[0]
         return blocked
 
-    def _closest(self, scene, origins: np.ndarray, directions: np.ndarray,
-                 t_far: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _closest(
+        self, scene, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(primID (N,) int32, -1 on a miss; distance (N,) float32, inf on a miss; barycentrics
         (N, 2) float32) of the closest hits in one embreex scene."""
         num_rays = origins.shape[0]
@@ -176,8 +183,9 @@ class EmbreeCaster:
         self._map_chunks(trace, num_rays)
         return triangle_id, distance, barycentrics
 
-    def _first_present(self, origins: np.ndarray, directions: np.ndarray,
-                       limit: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _first_present(
+        self, origins: np.ndarray, directions: np.ndarray, limit: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The first hit among the non-opaque triangles that stops each ray before `limit` (N,).
 
         The rays restart just past each hit that lets them through (an `epsilon` further), at most
@@ -204,8 +212,11 @@ class EmbreeCaster:
             hit = prim >= 0
             rays, ids = live[hit], self._clear_ids[prim[hit]]
             uv, t = uv[hit], start[rays] + t[hit]
-            stops = self.opacity.present(torch.from_numpy(ids), torch.from_numpy(uv),
-                                         presence_random(ray_keys(origins[rays], directions[rays], ids))).numpy()
+            stops = self.opacity.present(
+                torch.from_numpy(ids),
+                torch.from_numpy(uv),
+                presence_random(ray_keys(origins[rays], directions[rays], ids)),
+            ).numpy()
             if layer == MAX_TRANSPARENT_LAYERS - 1:
                 stops[:] = True
             found[rays[stops]] = True
@@ -214,8 +225,7 @@ class EmbreeCaster:
             start[live] = t[~stops] + step[live]
         return found, triangle_id[found], distance[found], barycentrics[found]
 
-    def offset_origins(self, points: np.ndarray, normals: np.ndarray,
-                       directions: np.ndarray) -> np.ndarray:
+    def offset_origins(self, points: np.ndarray, normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """Push surface points off their surface, to the side rays will leave towards.
 
         Args:
@@ -233,10 +243,9 @@ class EmbreeCaster:
     def _map_chunks(self, trace, num_rays: int) -> None:
         """Call `trace(chunk_slice)` over the batch, on the kept worker threads when it pays
         (`relight_torch.parallel`; inside a worker, on its thread)."""
-        num_chunks = max(-(-num_rays // CHUNK_RAYS),
-                         min(self.num_threads, num_rays // MIN_THREAD_CHUNK_RAYS), 1)
+        num_chunks = max(-(-num_rays // CHUNK_RAYS), min(self.num_threads, num_rays // MIN_THREAD_CHUNK_RAYS), 1)
         bounds = np.linspace(0, num_rays, num_chunks + 1).astype(np.int64)
-        chunks = [slice(int(start), int(stop)) for start, stop in zip(bounds[:-1], bounds[1:])]
+        chunks = [slice(int(start), int(stop)) for start, stop in itertools.pairwise(bounds)]
         parallel_map(trace, chunks, self.num_threads)
 
 
@@ -253,8 +262,15 @@ class ShadowLinkCasters:
         opacity: the non-opaque triangles among `corners`, or None.
     """
 
-    def __init__(self, corners: np.ndarray, object_ids: np.ndarray, object_paths: list[str], epsilon: float,
-                 num_threads: int | None = None, opacity: OpacityTable | None = None):
+    def __init__(
+        self,
+        corners: np.ndarray,
+        object_ids: np.ndarray,
+        object_paths: list[str],
+        epsilon: float,
+        num_threads: int | None = None,
+        opacity: OpacityTable | None = None,
+    ):
         if object_ids.shape != corners.shape[:1]:
             raise ValueError(f"object_ids must be ({corners.shape[0]},), got {object_ids.shape}")
         self.corners, self.object_ids, self.object_paths = corners, np.asarray(object_ids), object_paths
@@ -268,8 +284,9 @@ class ShadowLinkCasters:
             if link not in self._casters:
                 keep = linked_objects(self.object_paths, link)[self.object_ids]
                 opacity = None if self.opacity is None else self.opacity.subset(keep)
-                self._casters[link] = EmbreeCaster(np.ascontiguousarray(self.corners[keep]), self.num_threads,
-                                                   self.epsilon, opacity)
+                self._casters[link] = EmbreeCaster(
+                    np.ascontiguousarray(self.corners[keep]), self.num_threads, self.epsilon, opacity
+                )
             return self._casters[link]
 
 
@@ -290,12 +307,12 @@ def _scene_epsilon(corners: np.ndarray) -> float:
     points = corners.reshape(-1, 3).astype(np.float64)
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
     magnitude = float(np.abs(points).max())
-    return max(EPSILON_DIAGONAL_FRACTION * diagonal,
-               EPSILON_ULPS * float(np.spacing(np.float32(magnitude))))
+    return max(EPSILON_DIAGONAL_FRACTION * diagonal, EPSILON_ULPS * float(np.spacing(np.float32(magnitude))))
 
 
-def _check_rays(origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray | None,
-                t_far_required: bool = False) -> int:
+def _check_rays(
+    origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray | None, t_far_required: bool = False
+) -> int:
     """Raise ValueError unless origins, directions are float32 (N, 3) and t_far float32 (N,).
 
     Returns:

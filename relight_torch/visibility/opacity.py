@@ -43,8 +43,11 @@ def cut_out(opacity, threshold: float):
     `threshold` > 0, 1 for opacity >= threshold and 0 below it."""
     opacity = opacity.clip(0.0, 1.0)
     if threshold > 0.0:
-        return (opacity >= threshold).astype(np.float32) if isinstance(opacity, np.ndarray) \
+        return (
+            (opacity >= threshold).astype(np.float32)
+            if isinstance(opacity, np.ndarray)
             else (opacity >= threshold).to(opacity.dtype)
+        )
     return opacity
 
 
@@ -159,8 +162,12 @@ class OpacityTable:
         new_id = np.cumsum(keep) - 1
         triangles = self.triangles.numpy()
         kept = keep[triangles]
-        return OpacityTable(torch.from_numpy(new_id[triangles[kept]].astype(np.int64)),
-                            self.map_index[torch.from_numpy(kept)], self.uvs[torch.from_numpy(kept)], self.maps)
+        return OpacityTable(
+            torch.from_numpy(new_id[triangles[kept]].astype(np.int64)),
+            self.map_index[torch.from_numpy(kept)],
+            self.uvs[torch.from_numpy(kept)],
+            self.maps,
+        )
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The table as plain arrays for a cache (no pickling): 'opacityTriangles' (K, 2) int32
@@ -170,11 +177,26 @@ class OpacityTable:
         rows, texels, offset = [], [], 0
         for opacity_map in self.maps:
             height, width = (0, 0) if opacity_map.texels is None else opacity_map.texels.shape
-            st = (torch.tensor([[1.0, 0, 0], [0, 1.0, 0]], dtype=torch.float64) if opacity_map.st_from_uv is None
-                  else opacity_map.st_from_uv)
-            rows.append([opacity_map.constant, opacity_map.threshold, OPACITY_MODES.index(opacity_map.mode),
-                         opacity_map.scale, opacity_map.bias, WRAP_MODES.index(opacity_map.wrap_s),
-                         WRAP_MODES.index(opacity_map.wrap_t), height, width, offset, *st.reshape(-1).tolist()])
+            st = (
+                torch.tensor([[1.0, 0, 0], [0, 1.0, 0]], dtype=torch.float64)
+                if opacity_map.st_from_uv is None
+                else opacity_map.st_from_uv
+            )
+            rows.append(
+                [
+                    opacity_map.constant,
+                    opacity_map.threshold,
+                    OPACITY_MODES.index(opacity_map.mode),
+                    opacity_map.scale,
+                    opacity_map.bias,
+                    WRAP_MODES.index(opacity_map.wrap_s),
+                    WRAP_MODES.index(opacity_map.wrap_t),
+                    height,
+                    width,
+                    offset,
+                    *st.reshape(-1).tolist(),
+                ]
+            )
             if opacity_map.texels is not None:
                 texels.append(opacity_map.texels.reshape(-1).numpy())
                 offset += height * width
@@ -203,15 +225,32 @@ class OpacityTable:
             height, width, offset = int(row[7]), int(row[8]), int(row[9])
             if offset < 0 or offset + height * width > texels.size:
                 raise ValueError(f"opacity texels [{offset}, {offset + height * width}) outside {texels.size}")
-            texture = (torch.from_numpy(texels[offset:offset + height * width].reshape(height, width).copy())
-                       if height * width else None)
-            maps.append(OpacityMap(float(row[0]), float(row[1]), OPACITY_MODES[int(row[2])], texture,
-                                   WRAP_MODES[int(row[5])], WRAP_MODES[int(row[6])], float(row[3]), float(row[4]),
-                                   torch.from_numpy(row[10:16].reshape(2, 3).copy())))
+            texture = (
+                torch.from_numpy(texels[offset : offset + height * width].reshape(height, width).copy())
+                if height * width
+                else None
+            )
+            maps.append(
+                OpacityMap(
+                    float(row[0]),
+                    float(row[1]),
+                    OPACITY_MODES[int(row[2])],
+                    texture,
+                    WRAP_MODES[int(row[5])],
+                    WRAP_MODES[int(row[6])],
+                    float(row[3]),
+                    float(row[4]),
+                    torch.from_numpy(row[10:16].reshape(2, 3).copy()),
+                )
+            )
         if pairs.size and (pairs[:, 1].min() < 0 or pairs[:, 1].max() >= len(maps) or pairs[:, 0].min() < 0):
             raise ValueError("opacityTriangles names a negative triangle or a missing map")
-        return OpacityTable(torch.from_numpy(pairs[:, 0].astype(np.int64)),
-                            torch.from_numpy(pairs[:, 1].astype(np.int64)), torch.from_numpy(uvs.copy()), tuple(maps))
+        return OpacityTable(
+            torch.from_numpy(pairs[:, 0].astype(np.int64)),
+            torch.from_numpy(pairs[:, 1].astype(np.int64)),
+            torch.from_numpy(uvs.copy()),
+            tuple(maps),
+        )
 
 
 def presence_random(keys: torch.Tensor) -> torch.Tensor:
@@ -245,7 +284,12 @@ def _multiply32(x: torch.Tensor, constant: int) -> torch.Tensor:
 def ray_keys(origins: np.ndarray, directions: np.ndarray, triangle_id: np.ndarray) -> torch.Tensor:
     """(N, 7) int64 hash keys of rays (float32 (N, 3) origins and directions, their bits) and the
     (N,) triangles they hit, for `presence_random`."""
-    bits = np.concatenate([np.ascontiguousarray(origins, np.float32).view(np.uint32),
-                           np.ascontiguousarray(directions, np.float32).view(np.uint32),
-                           np.asarray(triangle_id, np.int64).astype(np.uint32)[:, None]], axis=1)
+    bits = np.concatenate(
+        [
+            np.ascontiguousarray(origins, np.float32).view(np.uint32),
+            np.ascontiguousarray(directions, np.float32).view(np.uint32),
+            np.asarray(triangle_id, np.int64).astype(np.uint32)[:, None],
+        ],
+        axis=1,
+    )
     return torch.from_numpy(bits.astype(np.int64))

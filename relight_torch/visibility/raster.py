@@ -83,8 +83,9 @@ def ray_triangle_distance(origins: torch.Tensor, directions: torch.Tensor, corne
     return _hit_distance(det, u, v, t, torch.ones_like(t))
 
 
-def _moeller_trumbore_terms(origins: torch.Tensor, directions: torch.Tensor,
-                            corners: torch.Tensor) -> tuple[torch.Tensor, ...]:
+def _moeller_trumbore_terms(
+    origins: torch.Tensor, directions: torch.Tensor, corners: torch.Tensor
+) -> tuple[torch.Tensor, ...]:
     """(det, u numerator, v numerator, t numerator), each (...), of rays (..., 3) against triangles (..., 3, 3)."""
     edge1 = corners[..., 1, :] - corners[..., 0, :]
     edge2 = corners[..., 2, :] - corners[..., 0, :]
@@ -94,8 +95,9 @@ def _moeller_trumbore_terms(origins: torch.Tensor, directions: torch.Tensor,
     return ((edge1 * p).sum(-1), (to_origin * p).sum(-1), (directions * q).sum(-1), (edge2 * q).sum(-1))
 
 
-def _hit_distance(det: torch.Tensor, u: torch.Tensor, v: torch.Tensor, t: torch.Tensor,
-                  length: torch.Tensor) -> torch.Tensor:
+def _hit_distance(
+    det: torch.Tensor, u: torch.Tensor, v: torch.Tensor, t: torch.Tensor, length: torch.Tensor
+) -> torch.Tensor:
     """Distance (...) along the unit ray from Moeller-Trumbore terms of a ray whose direction has `length`."""
     usable = det.abs() > torch.finfo(det.dtype).tiny
     inv_det = 1.0 / torch.where(usable, det, torch.ones_like(det))
@@ -104,8 +106,9 @@ def _hit_distance(det: torch.Tensor, u: torch.Tensor, v: torch.Tensor, t: torch.
     return torch.where(inside & (t >= 0), t * length, torch.full_like(t, torch.inf))
 
 
-def _pair_coefficients(target: RasterTarget, corners: torch.Tensor, face: torch.Tensor,
-                       triangle: torch.Tensor) -> torch.Tensor:
+def _pair_coefficients(
+    target: RasterTarget, corners: torch.Tensor, face: torch.Tensor, triangle: torch.Tensor
+) -> torch.Tensor:
     """(P, 3, 4) coefficients [at (0, 0), d/du, d/dv] of (det, u, v, t numerators) per (face, triangle) pair.
 
     The terms are affine in (u, v) (the origin or the direction is constant on a face), so their
@@ -154,17 +157,31 @@ def rasterise_depth(target: RasterTarget, corners: torch.Tensor, opacity: Opacit
     else:
         opacity = None
     for index in torch.nonzero(large).flatten().tolist():
-        _rasterise_box(depth.view(num_faces, resolution, resolution)[face[index]], box[index].tolist(),
-                       coefficients[index], directions[index])
+        _rasterise_box(
+            depth.view(num_faces, resolution, resolution)[face[index]],
+            box[index].tolist(),
+            coefficients[index],
+            directions[index],
+        )
     small = torch.nonzero(~large).flatten()
     if small.numel():
-        _rasterise_candidates(depth, resolution, face[small], box[small], pair_counts[small], coefficients[small],
-                              directions[small], triangle[small], opacity)
+        _rasterise_candidates(
+            depth,
+            resolution,
+            face[small],
+            box[small],
+            pair_counts[small],
+            coefficients[small],
+            directions[small],
+            triangle[small],
+            opacity,
+        )
     return depth.reshape(num_faces, resolution, resolution)
 
 
-def _present(opacity: OpacityTable, terms: torch.Tensor, triangle: torch.Tensor, texel: torch.Tensor,
-             hit: torch.Tensor) -> torch.Tensor:
+def _present(
+    opacity: OpacityTable, terms: torch.Tensor, triangle: torch.Tensor, texel: torch.Tensor, hit: torch.Tensor
+) -> torch.Tensor:
     """(M,) bool: candidates that are not hits, or whose hit is present (`OpacityTable.present`).
 
     Args:
@@ -188,8 +205,9 @@ def _texel_coordinates(start: int, count: int, resolution: int, like: torch.Tens
     return (index + 0.5) * (2.0 / resolution) - 1.0
 
 
-def _rasterise_box(face_depth: torch.Tensor, box: list[int], coefficients: torch.Tensor,
-                   directions: torch.Tensor) -> None:
+def _rasterise_box(
+    face_depth: torch.Tensor, box: list[int], coefficients: torch.Tensor, directions: torch.Tensor
+) -> None:
     """Test one (face, triangle) pair on every texel of its box, as a dense grid, into `face_depth` (R, R).
 
     Args:
@@ -210,13 +228,21 @@ def _rasterise_box(face_depth: torch.Tensor, box: list[int], coefficients: torch
     inverse = 1.0 / det
     a, b, t = a * inverse, b * inverse, t * inverse
     inside = (a >= -BARYCENTRIC_SLACK) & (b >= -BARYCENTRIC_SLACK) & (a + b <= 1.0 + BARYCENTRIC_SLACK) & (t >= 0)
-    window = face_depth[row_start:row_start + num_rows, col_start:col_start + num_cols]
+    window = face_depth[row_start : row_start + num_rows, col_start : col_start + num_cols]
     torch.fmin(window, (t * length).abs() / inside.to(t.dtype), out=window)
 
 
-def _rasterise_candidates(depth: torch.Tensor, resolution: int, face: torch.Tensor, box: torch.Tensor,
-                          pair_counts: torch.Tensor, coefficients: torch.Tensor, directions: torch.Tensor,
-                          triangle: torch.Tensor, opacity: OpacityTable | None) -> None:
+def _rasterise_candidates(
+    depth: torch.Tensor,
+    resolution: int,
+    face: torch.Tensor,
+    box: torch.Tensor,
+    pair_counts: torch.Tensor,
+    coefficients: torch.Tensor,
+    directions: torch.Tensor,
+    triangle: torch.Tensor,
+    opacity: OpacityTable | None,
+) -> None:
     """Test (face, triangle) pairs on the texels of their boxes, flattened into candidates, into `depth` (F R R,).
 
     Args:
@@ -233,7 +259,7 @@ def _rasterise_candidates(depth: torch.Tensor, resolution: int, face: torch.Tens
     for last in closing:
         if last < first:
             continue
-        chunk_counts = pair_counts[first:last + 1]
+        chunk_counts = pair_counts[first : last + 1]
         local = torch.repeat_interleave(chunk_counts)
         starts = torch.cumsum(chunk_counts, 0) - chunk_counts
         offset = torch.arange(local.numel(), device=ends.device) - starts[local]

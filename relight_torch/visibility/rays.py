@@ -48,12 +48,19 @@ class RayVisibility:
         if light.shadow_link is None:
             return self.caster
         if self.shadow_link_caster is None:
-            raise ValueError(f"{light.path}: shadow linking needs the occluders' object ids "
-                             f"(re-bake the cache with this version)")
+            raise ValueError(
+                f"{light.path}: shadow linking needs the occluders' object ids (re-bake the cache with this version)"
+            )
         return self.shadow_link_caster(light.shadow_link)
 
-    def occluder_distance(self, light: Light, points: torch.Tensor, normals: torch.Tensor,
-                          directions: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
+    def occluder_distance(
+        self,
+        light: Light,
+        points: torch.Tensor,
+        normals: torch.Tensor,
+        directions: torch.Tensor,
+        distances: torch.Tensor,
+    ) -> torch.Tensor:
         """(N, S) distance to the first occluder (inf where visible); see `Visibility`.
 
         The rays go to the caster samples first, in the memory layout `sample_light` returns

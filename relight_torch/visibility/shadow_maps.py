@@ -71,8 +71,8 @@ from relight_torch.errors import RelightError
 from relight_torch.lights.geometry import LightFrame, transform_rows
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.math.frame import orthonormal_basis
-from relight_torch.visibility.opacity import OpacityTable
 from relight_torch.visibility.depth_maps import CubeMap, DepthMap, MapSample, OrthoMap, PinholeMaps
+from relight_torch.visibility.opacity import OpacityTable
 
 # Bias floor for "behind the stored surface", in texel footprints at the stored depth.
 BEHIND_TEXELS = 1.0
@@ -122,12 +122,21 @@ class ShadowMapVisibility:
             queries less their builds), for benchmarks.
     """
 
-    def __init__(self, occluders: torch.Tensor, resolution: int = 1024, march_steps: int = 16,
-                 receivers: torch.Tensor | None = None, max_spot_half_angle: float = 60.0,
-                 lookup: str = "pcss", opacity: OpacityTable | None = None):
+    def __init__(
+        self,
+        occluders: torch.Tensor,
+        resolution: int = 1024,
+        march_steps: int = 16,
+        receivers: torch.Tensor | None = None,
+        max_spot_half_angle: float = 60.0,
+        lookup: str = "pcss",
+        opacity: OpacityTable | None = None,
+    ):
         if not isinstance(occluders, torch.Tensor) or occluders.dim() != 3 or occluders.shape[1:] != (3, 3):
-            raise ValueError(f"occluders must be a (T, 3, 3) tensor of triangle corners, got "
-                             f"{getattr(occluders, 'shape', type(occluders).__name__)}")
+            raise ValueError(
+                f"occluders must be a (T, 3, 3) tensor of triangle corners, got "
+                f"{getattr(occluders, 'shape', type(occluders).__name__)}"
+            )
         if not occluders.is_floating_point():
             raise ValueError(f"occluders must be a floating-point tensor, got {occluders.dtype}")
         if lookup not in LOOKUPS:
@@ -148,8 +157,14 @@ class ShadowMapVisibility:
         # Texel directions shared by every cube map (they do not depend on the light's position).
         self._cube_directions: torch.Tensor | None = None
 
-    def occluder_distance(self, light: Light, points: torch.Tensor, normals: torch.Tensor,
-                          directions: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
+    def occluder_distance(
+        self,
+        light: Light,
+        points: torch.Tensor,
+        normals: torch.Tensor,
+        directions: torch.Tensor,
+        distances: torch.Tensor,
+    ) -> torch.Tensor:
         """(N, S) distance to the first occluder (inf where visible); see `Visibility`.
 
         The distance is where the march found the crossing (mid-step) or where the PCF tap was
@@ -185,8 +200,10 @@ class ShadowMapVisibility:
             points: (N, 3) receivers about to be queried (distant lights: the window covers them).
         """
         if light.kind is LightKind.DOME:
-            raise RelightError(f"{light.path}: DomeLight shadows need Embree: shadow maps cannot represent a dome; "
-                               f"use shadows='embree'")
+            raise RelightError(
+                f"{light.path}: DomeLight shadows need Embree: shadow maps cannot represent a dome; "
+                f"use shadows='embree'"
+            )
         key = _map_key(light)
         cached = self._maps.get(light.path)
         depth_map: DepthMap
@@ -229,8 +246,9 @@ class ShadowMapVisibility:
     def _distant_frame(self, light: Light) -> torch.Tensor:
         """(3, 3) rows right, up, forward (= the light's -direction) of a distant light's map."""
         to_light = np.asarray(light.world_from_light[:3, 2], np.float64)
-        forward = torch.as_tensor(-to_light / np.linalg.norm(to_light), device=self.occluders.device,
-                                  dtype=self.occluders.dtype)
+        forward = torch.as_tensor(
+            -to_light / np.linalg.norm(to_light), device=self.occluders.device, dtype=self.occluders.dtype
+        )
         return torch.stack((*orthonormal_basis(forward), forward))
 
     def _distant_window(self, light: Light, points: torch.Tensor | None) -> tuple[float, float, float, float]:
@@ -264,8 +282,9 @@ class ShadowMapVisibility:
         # Half a texel of padding keeps the window's edges inside texels.
         side = max(u_high - u_low, v_high - v_low, TOP_MARGIN_FRACTION * extent)
         half_size = 0.5 * side * (1.0 + 1.0 / self.resolution)
-        centre_local = torch.tensor((0.5 * (u_low + u_high), 0.5 * (v_low + v_high), top),
-                                    device=frame.device, dtype=frame.dtype)
+        centre_local = torch.tensor(
+            (0.5 * (u_low + u_high), 0.5 * (v_low + v_high), top), device=frame.device, dtype=frame.dtype
+        )
         return OrthoMap(frame, centre_local @ frame, half_size, self.resolution)
 
 
@@ -295,8 +314,14 @@ def _sample_jitter(num_samples: int, like: torch.Tensor) -> torch.Tensor:
     return (torch.remainder(0.5 + index * steps, 1.0) - 0.5).to(like.dtype)
 
 
-def _stored_without_receiver(depth_map: DepthMap, stored: torch.Tensor, ray_origin: torch.Tensor,
-                             ray_direction: torch.Tensor, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+def _stored_without_receiver(
+    depth_map: DepthMap,
+    stored: torch.Tensor,
+    ray_origin: torch.Tensor,
+    ray_direction: torch.Tensor,
+    points: torch.Tensor,
+    normals: torch.Tensor,
+) -> torch.Tensor:
     """Stored depths (N, S) with the receivers' own tangent planes replaced by inf (see the module doc)."""
     cos = (normals * ray_direction).sum(-1)
     abs_cos = cos.abs()
@@ -309,8 +334,14 @@ def _stored_without_receiver(depth_map: DepthMap, stored: torch.Tensor, ray_orig
     return torch.where(own, torch.full_like(stored, torch.inf), stored)
 
 
-def _march(depth_map: DepthMap, points: torch.Tensor, normals: torch.Tensor, directions: torch.Tensor,
-           reach: torch.Tensor, num_steps: int) -> torch.Tensor:
+def _march(
+    depth_map: DepthMap,
+    points: torch.Tensor,
+    normals: torch.Tensor,
+    directions: torch.Tensor,
+    reach: torch.Tensor,
+    num_steps: int,
+) -> torch.Tensor:
     """Distance (N, S) along each sample's segment to the first surface it crosses, inf if none.
 
     Args:
@@ -364,16 +395,19 @@ class _Segments:
     receiver_depth: torch.Tensor
     span: torch.Tensor
 
-    def rows(self, index: torch.Tensor) -> "_Segments":
+    def rows(self, index: torch.Tensor) -> _Segments:
         """The segments of the points `index` (M,) long."""
         pick = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        fields: dict[str, Any] = {name: tuple(t[index] for t in value) if isinstance(value, tuple) else value[index]
-                                  for name, value in pick.items()}
+        fields: dict[str, Any] = {
+            name: tuple(t[index] for t in value) if isinstance(value, tuple) else value[index]
+            for name, value in pick.items()
+        }
         return _Segments(**fields)
 
 
-def _tap(depth_map: DepthMap, segments: _Segments, blocker_depth: torch.Tensor,
-         jitter: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
+def _tap(
+    depth_map: DepthMap, segments: _Segments, blocker_depth: torch.Tensor, jitter: tuple[torch.Tensor, ...]
+) -> tuple[torch.Tensor, ...]:
     """One PCF tap per sample where its segment reaches the blocker depth.
 
     Args:
@@ -391,7 +425,7 @@ def _tap(depth_map: DepthMap, segments: _Segments, blocker_depth: torch.Tensor,
         the module doc.
     """
     along = ((segments.receiver_depth - blocker_depth) / segments.span).clamp(0.0, 1.0) * segments.reach
-    x, y, z = (p + along * d for p, d in zip(segments.point, segments.direction))
+    x, y, z = (p + along * d for p, d in zip(segments.point, segments.direction, strict=True))
     look = depth_map.sample(x, y, z, jitter)
     stored = _receiver_plane(depth_map, look, segments)
     bias = depth_map.footprint(torch.minimum(stored, segments.receiver_depth)) * BEHIND_TEXELS + look.slope
@@ -419,8 +453,9 @@ def _receiver_plane(depth_map: DepthMap, look: MapSample, segments: _Segments) -
     return torch.maximum(look.stored, own.to(look.stored.dtype) * torch.finfo(look.stored.dtype).max)
 
 
-def _percentage_closer(depth_map: DepthMap, points: torch.Tensor, normals: torch.Tensor, directions: torch.Tensor,
-                       reach: torch.Tensor) -> torch.Tensor:
+def _percentage_closer(
+    depth_map: DepthMap, points: torch.Tensor, normals: torch.Tensor, directions: torch.Tensor, reach: torch.Tensor
+) -> torch.Tensor:
     """Distance (N, S) to the occluder of each sample's segment by one PCF tap per sample, inf if none.
 
     Percentage-closer soft shadows (Fernando 2005) with the light's own samples as the filter
@@ -447,13 +482,21 @@ def _percentage_closer(depth_map: DepthMap, points: torch.Tensor, normals: torch
     dx, dy, dz = (t.contiguous() for t in directions.unbind(-1))
     point, direction = (px, py, pz), (dx, dy, dz)
     normal = normals.unsqueeze(1)
-    end_depth = depth_map.depth_of(*(p + reach * d for p, d in zip(point, direction)))
+    end_depth = depth_map.depth_of(*(p + reach * d for p, d in zip(point, direction, strict=True)))
     centre = depth_map.sample(px, py, pz)
-    segments = _Segments(point, normal, (points * normals).sum(-1, keepdim=True), direction,
-                         reach, centre.depth, (centre.depth - end_depth).clamp_min(tiny))
+    segments = _Segments(
+        point,
+        normal,
+        (points * normals).sum(-1, keepdim=True),
+        direction,
+        reach,
+        centre.depth,
+        (centre.depth - end_depth).clamp_min(tiny),
+    )
     stored = _receiver_plane(depth_map, centre, segments)
-    shadowed = centre.depth - stored > depth_map.footprint(torch.minimum(stored, centre.depth)) * BEHIND_TEXELS \
-        + centre.slope
+    shadowed = (
+        centre.depth - stored > depth_map.footprint(torch.minimum(stored, centre.depth)) * BEHIND_TEXELS + centre.slope
+    )
     search_depth = torch.where(shadowed, stored, SEARCH_DEPTH_FRACTION * centre.depth)
     along, taps, in_front, blocked, _ = _tap(depth_map, segments, search_depth, jitter)
     # Distances where blocked, inf elsewhere (a division by the 0/1 mask: `where` costs ~10 adds on the CPU).
@@ -464,8 +507,7 @@ def _percentage_closer(depth_map: DepthMap, points: torch.Tensor, normals: torch
     # Every point with blockers: a tap at the deepest, blocked only where it crosses a surface.
     again = torch.nonzero(candidates).squeeze(-1)
     if again.numel():
-        along, _, _, _, crossing = _tap(depth_map, segments.rows(again), blockers[again].amax(-1, keepdim=True),
-                                        jitter)
+        along, _, _, _, crossing = _tap(depth_map, segments.rows(again), blockers[again].amax(-1, keepdim=True), jitter)
         found[again] = torch.minimum(found[again], along.clamp_min(tiny) / crossing.to(along.dtype))
     # Points the centre lights, with blockers: a tap at their mean depth.
     again = torch.nonzero(candidates & ~shadowed.squeeze(-1)).squeeze(-1)

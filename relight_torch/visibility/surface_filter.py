@@ -38,8 +38,9 @@ class SurfaceFilter:
         covered = gbuffer.scatter(torch.ones_like(gbuffer.position[:, :1]))[..., 0] > 0
         position, normal = gbuffer.scatter(gbuffer.position), gbuffer.scatter(gbuffer.normal)
         # weights[axis][k]: (H', W') float mask of the pairs (p, p + offset k) along axis (1: x, 0: y).
-        self.weights = [[self._same_surface(covered, position, normal, axis, offset)
-                         for offset in self.offsets] for axis in (0, 1)]
+        self.weights = [
+            [self._same_surface(covered, position, normal, axis, offset) for offset in self.offsets] for axis in (0, 1)
+        ]
 
     @property
     def offsets(self) -> list[int]:
@@ -59,8 +60,12 @@ class SurfaceFilter:
         n, m = self._pair(normal, axis, offset)
         between = q - p
         plane = (between * n).sum(-1).abs()
-        same = (both[0] & both[1] & ((n * m).sum(-1) >= MIN_NORMAL_COSINE)
-                & (plane <= MAX_PLANE_SLOPE * between.norm(dim=-1)))
+        same = (
+            both[0]
+            & both[1]
+            & ((n * m).sum(-1) >= MIN_NORMAL_COSINE)
+            & (plane <= MAX_PLANE_SLOPE * between.norm(dim=-1))
+        )
         return same.to(position.dtype)
 
     def __call__(self, values: torch.Tensor) -> torch.Tensor:
@@ -78,7 +83,7 @@ class SurfaceFilter:
         image = planes.reshape(-1, height, width)
         for axis in (1, 0):
             total = image.clone()
-            for offset, weight in zip(self.offsets, self.weights[axis]):
+            for offset, weight in zip(self.offsets, self.weights[axis], strict=True):
                 centre, _ = self._pair(total, axis + 1, offset)
                 _, neighbour = self._pair(image, axis + 1, offset)
                 centre.addcmul_(neighbour, weight)

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
 from pipeline.bake.adapter import Variant, cache_bytes
+from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
 from pipeline.scene.types import Camera, Scene
 from relight_torch.cuts.open import open_cuts_relighter
 from relight_torch.cuts.relighter import CutsRelightSettings
@@ -21,9 +21,11 @@ CUT_SIZES = (128, 256, 512)
 def settings(point: dict[str, object]) -> CutsSettings:
     """The bake settings of a point (keys lights, sigma, mode)."""
     defaults = CutsSettings()
-    return CutsSettings(mode=str(point.get("mode", defaults.mode)),
-                        num_lights=int(point.get("lights", defaults.num_lights)),
-                        sigma=float(point.get("sigma", defaults.sigma)))
+    return CutsSettings(
+        mode=str(point.get("mode", defaults.mode)),
+        num_lights=int(point.get("lights", defaults.num_lights)),
+        sigma=float(point.get("sigma", defaults.sigma)),
+    )
 
 
 class CutsAdapter:
@@ -40,20 +42,41 @@ class CutsAdapter:
     def bounces(self, point: dict[str, object]) -> int:
         return 1 if settings(point).mode == "indirect" else 0
 
-    def bake(self, scene: Scene, camera: Camera, directory: Path, stem: str, point: dict[str, object],
-             supersampling: int, texture_samples: int, time_code: float | None = None) -> Path:
-        return bake_cuts(scene, camera, directory, stem, supersampling, texture_samples, time_code=time_code,
-                         settings=settings(point))
+    def bake(
+        self,
+        scene: Scene,
+        camera: Camera,
+        directory: Path,
+        stem: str,
+        point: dict[str, object],
+        supersampling: int,
+        texture_samples: int,
+        time_code: float | None = None,
+    ) -> Path:
+        return bake_cuts(
+            scene,
+            camera,
+            directory,
+            stem,
+            supersampling,
+            texture_samples,
+            time_code=time_code,
+            settings=settings(point),
+        )
 
     def variants(self, layer: Path, point: dict[str, object], device: str) -> list[Variant]:
         """One variant per illumination cut size: the point's 'cut' (a size or a tuple), else CUT_SIZES."""
         num_bytes, bake = cache_bytes(layer), settings(point)
         sizes = point.get("cut", CUT_SIZES)
         sizes = tuple(int(size) for size in (sizes if isinstance(sizes, tuple) else (sizes,)))
-        return [Variant({"mode": bake.mode, "lights": bake.num_lights, "sigma": bake.sigma, "cut": size},
-                        open_cuts_relighter(layer, device=device, cuts_settings=CutsRelightSettings(max_cut=size)),
-                        num_bytes)
-                for size in sizes]
+        return [
+            Variant(
+                {"mode": bake.mode, "lights": bake.num_lights, "sigma": bake.sigma, "cut": size},
+                open_cuts_relighter(layer, device=device, cuts_settings=CutsRelightSettings(max_cut=size)),
+                num_bytes,
+            )
+            for size in sizes
+        ]
 
 
 ADAPTER = CutsAdapter()

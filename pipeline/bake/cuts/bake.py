@@ -79,35 +79,59 @@ class CutsSettings:
 
     def parameters(self) -> dict[str, object]:
         """The settings that change the cache, as cache-layer parameters."""
-        return {"cutsMode": self.mode, "cutsLights": self.num_lights, "cutsSigma": float(self.sigma),
-                "cutsLatticeEdge": float(self.lattice_edge), "cutsLatticeMax": self.lattice_max,
-                "cutsTreeK": float(self.tree_k), "cutsBeta": float(self.beta), "cutsPilots": self.pilot_vertices}
+        return {
+            "cutsMode": self.mode,
+            "cutsLights": self.num_lights,
+            "cutsSigma": float(self.sigma),
+            "cutsLatticeEdge": float(self.lattice_edge),
+            "cutsLatticeMax": self.lattice_max,
+            "cutsTreeK": float(self.tree_k),
+            "cutsBeta": float(self.beta),
+            "cutsPilots": self.pilot_vertices,
+        }
 
 
-def bake_cuts(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
-              texture_samples: int = 2, time_code: float | None = None,
-              settings: CutsSettings = CutsSettings()) -> Path:
+def bake_cuts(
+    scene: Scene,
+    camera: Camera,
+    out_dir: str | Path,
+    stem: str,
+    supersampling: int = 2,
+    texture_samples: int = 2,
+    time_code: float | None = None,
+    settings: CutsSettings = CutsSettings(),
+) -> Path:
     """Bake the cuts cache of `camera`; returns the cache layer's path.
 
     Raises:
         ValueError: bad settings (`CutsSettings.check`).
     """
     settings.check()
-    bake = start_indirect_bake(scene, camera, out_dir, stem, "cuts", settings.parameters(), supersampling,
-                               texture_samples, time_code)
+    bake = start_indirect_bake(
+        scene, camera, out_dir, stem, "cuts", settings.parameters(), supersampling, texture_samples, time_code
+    )
     shot = ShotSpec.of(scene, camera, time_code)
     remember_shot(shot, scene)
-    parameters = (("mode", settings.mode), ("treeK", float(settings.tree_k)), ("beta", float(settings.beta)),
-                  ("pilots", settings.pilot_vertices),
-                  ("lights", settings.num_lights), ("supersampling", supersampling),
-                  ("latticeEdge", float(settings.lattice_edge)), ("latticeMax", settings.lattice_max),
-                  ("sigma", float(settings.sigma)))
+    parameters = (
+        ("mode", settings.mode),
+        ("treeK", float(settings.tree_k)),
+        ("beta", float(settings.beta)),
+        ("pilots", settings.pilot_vertices),
+        ("lights", settings.num_lights),
+        ("supersampling", supersampling),
+        ("latticeEdge", float(settings.lattice_edge)),
+        ("latticeMax", settings.lattice_max),
+        ("sigma", float(settings.sigma)),
+    )
     setup = cuts_setup(shot, parameters)
     lattice = setup.lattice
-    specs = [ChunkSpec(shot, "visibilityCuts", parameters, start, stop)
-             for start, stop in chunk_ranges(lattice.num_vertices, settings.vertices_per_chunk)]
-    chunks = [load_chunk(path) for path in run_chunks(visibility_chunk, specs, bake.chunk_dir,
-                                                      "visibility cuts", "vertices")]
+    specs = [
+        ChunkSpec(shot, "visibilityCuts", parameters, start, stop)
+        for start, stop in chunk_ranges(lattice.num_vertices, settings.vertices_per_chunk)
+    ]
+    chunks = [
+        load_chunk(path) for path in run_chunks(visibility_chunk, specs, bake.chunk_dir, "visibility cuts", "vertices")
+    ]
     counts = np.concatenate([chunk["counts"] for chunk in chunks]).astype(np.uint64)
     offsets = np.concatenate(([0], np.cumsum(counts)))
     offsets = offsets.astype(np.uint32 if offsets[-1] < np.iinfo(np.uint32).max else np.uint64)

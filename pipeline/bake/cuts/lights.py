@@ -38,6 +38,11 @@ def surface_points(scene: Scene, num_lights: int) -> dict[str, np.ndarray]:
         ValueError: num_lights is not a power of 4.
     """
     gathers = create_gathers(scene, num_lights)
-    return {"Position": gathers.position.numpy(), "Normal": gathers.normal.numpy(), "Albedo": gathers.albedo.numpy(),
-            "Emission": gathers.emission.numpy(), "Area": gathers.area.numpy(),
-            "ObjectId": gathers.object_id.numpy().astype(np.int32)}
+    return {
+        "Position": gathers.position.numpy(),
+        "Normal": gathers.normal.numpy(),
+        "Albedo": gathers.albedo.numpy(),
+        "Emission": gathers.emission.numpy(),
+        "Area": gathers.area.numpy(),
+        "ObjectId": gathers.object_id.numpy().astype(np.int32),
+    }

@@ -42,8 +42,14 @@ def _lattice_index(i: np.ndarray, j: np.ndarray, n: np.ndarray) -> np.ndarray:
     return i * (n + 1) - i * (i - 1) // 2 + j
 
 
-def build_lattice(corners: np.ndarray, triangle_id: np.ndarray, barycentrics: np.ndarray,
-                  camera_position: np.ndarray, target_edge: float, max_subdivisions: int = 64) -> Lattice:
+def build_lattice(
+    corners: np.ndarray,
+    triangle_id: np.ndarray,
+    barycentrics: np.ndarray,
+    camera_position: np.ndarray,
+    target_edge: float,
+    max_subdivisions: int = 64,
+) -> Lattice:
     """Refine the triangles the sub-samples hit and place each sub-sample among the lattice vertices.
 
     Args:
@@ -90,14 +96,21 @@ def build_lattice(corners: np.ndarray, triangle_id: np.ndarray, barycentrics: np
     fa, fc = a - si, c - sj
     upper = (fa + fc > 1.0) & (si + sj <= n_sample - 2)
     base = offsets[local]
-    lower_vertices = np.stack((_lattice_index(si, sj, n_sample), _lattice_index(si + 1, sj, n_sample),
-                               _lattice_index(si, sj + 1, n_sample)), axis=1)
-    upper_vertices = np.stack((_lattice_index(si + 1, sj + 1, n_sample), _lattice_index(si, sj + 1, n_sample),
-                               _lattice_index(si + 1, sj, n_sample)), axis=1)
+    lower_vertices = np.stack(
+        (_lattice_index(si, sj, n_sample), _lattice_index(si + 1, sj, n_sample), _lattice_index(si, sj + 1, n_sample)),
+        axis=1,
+    )
+    upper_vertices = np.stack(
+        (
+            _lattice_index(si + 1, sj + 1, n_sample),
+            _lattice_index(si, sj + 1, n_sample),
+            _lattice_index(si + 1, sj, n_sample),
+        ),
+        axis=1,
+    )
     lower_weights = np.stack((1.0 - fa - fc, fa, fc), axis=1)
     upper_weights = np.stack((fa + fc - 1.0, 1.0 - fa, 1.0 - fc), axis=1)
     vertices = np.where(upper[:, None], upper_vertices, lower_vertices) + base[:, None]
     weights = np.clip(np.where(upper[:, None], upper_weights, lower_weights), 0.0, 1.0)
     weights /= np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
-    return Lattice(position.astype(np.float32), face[owner].astype(np.float32), vertices,
-                   weights.astype(np.float32))
+    return Lattice(position.astype(np.float32), face[owner].astype(np.float32), vertices, weights.astype(np.float32))

@@ -69,9 +69,14 @@ def cuts_setup(shot: ShotSpec, parameters: tuple[tuple[str, object], ...]) -> Cu
     diagonal = float(np.linalg.norm(corners.reshape(-1, 3).max(axis=0) - corners.reshape(-1, 3).min(axis=0)))
     origins, rays = grid_rays(camera, int(values["supersampling"]))
     hits = tracer_for(shot).intersect(origins, rays)
-    lattice = build_lattice(corners, hits.triangle_id[hits.hit], hits.barycentrics[hits.hit],
-                            camera.world_from_camera[:3, 3], float(values["latticeEdge"]) * diagonal,
-                            int(values["latticeMax"]))
+    lattice = build_lattice(
+        corners,
+        hits.triangle_id[hits.hit],
+        hits.barycentrics[hits.hit],
+        camera.world_from_camera[:3, 3],
+        float(values["latticeEdge"]) * diagonal,
+        int(values["latticeMax"]),
+    )
     if values["mode"] == "env":
         directions, weights = sphere_directions(int(values["lights"]))
         leaves = {"Directions": directions, "Weights": weights}
@@ -81,8 +86,9 @@ def cuts_setup(shot: ShotSpec, parameters: tuple[tuple[str, object], ...]) -> Cu
         features = np.concatenate((float(values["treeK"]) / diagonal * leaves["Position"], leaves["Normal"]), axis=1)
     beta = float(values["beta"])
     if beta < 1.0:
-        features = data_driven_features(features, pilot_visibility(tracer_for(shot), lattice, leaves,
-                                                                   int(values["pilots"])), beta)
+        features = data_driven_features(
+            features, pilot_visibility(tracer_for(shot), lattice, leaves, int(values["pilots"])), beta
+        )
     order = build_leaf_order(features)
     return CutsSetup(values["mode"], {name: array[order] for name, array in leaves.items()}, lattice)
 
@@ -101,6 +107,7 @@ def data_driven_features(geometric: np.ndarray, visibility: np.ndarray, beta: fl
     The paper scales d_v by (K^2 + 1) A^2 / M to bring it near d_g; here both parts are scaled
     to unit total variance over the lights instead, which does that normalisation exactly.
     """
+
     def unit(features: np.ndarray) -> np.ndarray:
         spread = float(np.square(features - features.mean(axis=0)).sum(axis=1).mean())
         return features / np.sqrt(max(spread, 1e-30))
@@ -108,8 +115,9 @@ def data_driven_features(geometric: np.ndarray, visibility: np.ndarray, beta: fl
     return np.concatenate((np.sqrt(beta) * unit(geometric), np.sqrt(1.0 - beta) * unit(visibility)), axis=1)
 
 
-def leaf_visibility(tracer: Tracer, position: np.ndarray, normal: np.ndarray, leaves: dict[str, np.ndarray]
-                    ) -> np.ndarray:
+def leaf_visibility(
+    tracer: Tracer, position: np.ndarray, normal: np.ndarray, leaves: dict[str, np.ndarray]
+) -> np.ndarray:
     """(V, L) float32 visibility of L leaf lights from V surface points (0 below their horizon).
 
     Env leaves are distant directions; indirect leaves are surface points, 0 where the vertex is
@@ -128,8 +136,9 @@ def leaf_visibility(tracer: Tracer, position: np.ndarray, normal: np.ndarray, le
     vertex, light = np.nonzero(above)
     origins = (position[vertex] + np.float32(tracer.epsilon) * normal[vertex]).astype(np.float32)
     t_far = distance[vertex, light] * np.float32(1.0 - 1e-4) - np.float32(tracer.epsilon)
-    blocked = tracer.occluded(origins, np.ascontiguousarray(directions[vertex, light], np.float32),
-                              t_far.astype(np.float32))
+    blocked = tracer.occluded(
+        origins, np.ascontiguousarray(directions[vertex, light], np.float32), t_far.astype(np.float32)
+    )
     visibility = np.zeros(above.shape, np.float32)
     visibility[vertex[~blocked], light[~blocked]] = 1.0
     return visibility
@@ -140,8 +149,9 @@ def visibility_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
     setup = cuts_setup(spec.shot, spec.parameters)
     rows = slice(spec.start, spec.stop)
     position = setup.lattice.position[rows]
-    values = torch.from_numpy(leaf_visibility(tracer_for(spec.shot), position, setup.lattice.normal[rows],
-                                              setup.leaves))
+    values = torch.from_numpy(
+        leaf_visibility(tracer_for(spec.shot), position, setup.lattice.normal[rows], setup.leaves)
+    )
     num_leaves = values.shape[1]
     if setup.mode == "indirect":
         values = values * torch.from_numpy(leaf_solid_angle(position, setup.leaves)) / indirect_scale(num_leaves)
@@ -151,10 +161,11 @@ def visibility_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
     cuts = cuts_from_mask(variance_cut_mask(tree, variances, float(spec.param("sigma"))), means.unsqueeze(-1))
     node_dtype = np.uint16 if tree.num_nodes <= np.iinfo(np.uint16).max + 1 else np.uint32
     stored = cuts.values[:, 0].numpy()
-    return {"counts": cuts.sizes().numpy().astype(np.uint32),
-            "nodes": cuts.nodes.numpy().astype(node_dtype),
-            "means": (np.rint(stored * MEAN_LEVELS).astype(np.uint8) if setup.mode == "env"
-                      else stored.astype(np.float16))}
+    return {
+        "counts": cuts.sizes().numpy().astype(np.uint32),
+        "nodes": cuts.nodes.numpy().astype(node_dtype),
+        "means": (np.rint(stored * MEAN_LEVELS).astype(np.uint8) if setup.mode == "env" else stored.astype(np.float16)),
+    }
 
 
 def leaf_solid_angle(position: np.ndarray, leaves: dict[str, np.ndarray]) -> np.ndarray:

@@ -25,17 +25,25 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
-from pipeline.errors import warn
 from pipeline.bake.inputs import code_version, identify_bake
-from pipeline.bake.scheduler import (ChunkSpec, ShotSpec, chunk_folder, chunk_ranges, chunk_threads, load_chunk,
-                                     load_shot, per_process, run_chunks)
+from pipeline.bake.scheduler import (
+    ChunkSpec,
+    ShotSpec,
+    chunk_folder,
+    chunk_ranges,
+    chunk_threads,
+    load_chunk,
+    load_shot,
+    per_process,
+    run_chunks,
+)
+from pipeline.errors import warn
 from pipeline.scene.opacity import scene_opacity
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.cache.gbuffer_exr import gbuffer_to_channels
-from relight_torch.cache.layer import (SUFFIX, CacheDescription, Payload, file_sha256,
-                                       write_cache_layer)
+from relight_torch.cache.layer import SUFFIX, CacheDescription, Payload, file_sha256, write_cache_layer
 from relight_torch.gbuffer import GBuffer
 from relight_torch.io.atomic import atomic_path, remove_temp_files
 from relight_torch.io.exr import write_exr
@@ -52,11 +60,17 @@ BACK_FACING_WARNING = 0.5
 
 def write_npy(path: Path, array: np.ndarray, name: str = "") -> Payload:
     """Write a .npy payload atomically and describe it (as payload `name`)."""
-    with atomic_path(path) as temp:
-        with open(temp, "wb") as handle:
-            np.save(handle, array, allow_pickle=False)
-    return Payload(name=name, file=path.name, format="npy", sha256=file_sha256(path),
-                   num_bytes=path.stat().st_size, shape=tuple(array.shape), dtype=array.dtype.name)
+    with atomic_path(path) as temp, open(temp, "wb") as handle:
+        np.save(handle, array, allow_pickle=False)
+    return Payload(
+        name=name,
+        file=path.name,
+        format="npy",
+        sha256=file_sha256(path),
+        num_bytes=path.stat().st_size,
+        shape=tuple(array.shape),
+        dtype=array.dtype.name,
+    )
 
 
 @per_process
@@ -70,65 +84,117 @@ def _direct_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
     """The deep framebuffer of pixel rows [start, stop): the GBuffer's per-sample arrays, material
     parameters prefixed with _PARAM_PREFIX."""
     scene, camera = load_shot(spec.shot)
-    dfb = bake_deep_framebuffer(scene, camera, spec.param("supersampling"), spec.param("textureSamples"),
-                                tracer=shot_tracer(spec.shot), rows=(spec.start, spec.stop))
-    arrays = {f.name: getattr(dfb.gbuffer, f.name).numpy() for f in dataclasses.fields(GBuffer)
-              if f.name not in ("image_size", "params", "camera_position")}
-    arrays.update({_PARAM_PREFIX + f.name: getattr(dfb.gbuffer.params, f.name).numpy()
-                   for f in dataclasses.fields(PreviewSurfaceParams)})
+    dfb = bake_deep_framebuffer(
+        scene,
+        camera,
+        spec.param("supersampling"),
+        spec.param("textureSamples"),
+        tracer=shot_tracer(spec.shot),
+        rows=(spec.start, spec.stop),
+    )
+    arrays = {
+        f.name: getattr(dfb.gbuffer, f.name).numpy()
+        for f in dataclasses.fields(GBuffer)
+        if f.name not in ("image_size", "params", "camera_position")
+    }
+    arrays.update(
+        {
+            _PARAM_PREFIX + f.name: getattr(dfb.gbuffer.params, f.name).numpy()
+            for f in dataclasses.fields(PreviewSurfaceParams)
+        }
+    )
     arrays[_BACK_FACING] = np.array(dfb.num_back_facing)
     return arrays
 
 
-def _join_bands(chunks: list[dict[str, np.ndarray]], image_size: tuple[int, int],
-                camera_position: np.ndarray) -> GBuffer:
+def _join_bands(
+    chunks: list[dict[str, np.ndarray]], image_size: tuple[int, int], camera_position: np.ndarray
+) -> GBuffer:
     """The bands' arrays (`_direct_chunk`, in row order) as one GBuffer of the whole image."""
     joined = {name: np.concatenate([c[name] for c in chunks]) for name in chunks[0] if name != _BACK_FACING}
-    params = PreviewSurfaceParams.from_numpy({name[len(_PARAM_PREFIX):]: joined.pop(name)
-                                              for name in list(joined) if name.startswith(_PARAM_PREFIX)})
+    params = PreviewSurfaceParams.from_numpy(
+        {name[len(_PARAM_PREFIX) :]: joined.pop(name) for name in list(joined) if name.startswith(_PARAM_PREFIX)}
+    )
     return GBuffer.from_numpy(image_size=image_size, params=params, camera_position=camera_position, **joined)
 
 
-def direct_payloads(scene: Scene, camera: Camera, out_dir: Path, stem: str, supersampling: int,
-                    texture_samples: int, time_code: float | None) -> tuple[CacheDescription, Path]:
+def direct_payloads(
+    scene: Scene,
+    camera: Camera,
+    out_dir: Path,
+    stem: str,
+    supersampling: int,
+    texture_samples: int,
+    time_code: float | None,
+) -> tuple[CacheDescription, Path]:
     """Write the direct payloads; the cache's description (not yet written) and the chunk folder
     to remove once its layer is written."""
     parameters, inputs, digest = identify_bake(
-        scene, {"supersampling": supersampling, "textureSamples": texture_samples}, time_code)
+        scene, {"supersampling": supersampling, "textureSamples": texture_samples}, time_code
+    )
     chunk_dir = chunk_folder(out_dir, stem, "direct", digest)
     shot = ShotSpec.of(scene, camera, time_code)
-    specs = [ChunkSpec(shot, "deepFramebuffer", (("supersampling", supersampling),
-                                                 ("textureSamples", texture_samples)), first, last)
-             for first, last in chunk_ranges(camera.height, ROWS_PER_CHUNK)]
+    specs = [
+        ChunkSpec(
+            shot,
+            "deepFramebuffer",
+            (("supersampling", supersampling), ("textureSamples", texture_samples)),
+            first,
+            last,
+        )
+        for first, last in chunk_ranges(camera.height, ROWS_PER_CHUNK)
+    ]
     paths = run_chunks(_direct_chunk, specs, chunk_dir, "deep framebuffer", "rows")
     camera_position = camera.world_from_camera[:3, 3]
     chunks = [load_chunk(path) for path in paths]
     gbuffer = _join_bands(chunks, (camera.height * supersampling, camera.width * supersampling), camera_position)
     back_facing = sum(int(c[_BACK_FACING]) for c in chunks)
     if back_facing > BACK_FACING_WARNING * gbuffer.num_samples:
-        warn(f"{scene.source}: camera {camera.path} sees the back of single-sided surfaces in "
-             f"{back_facing / gbuffer.num_samples:.0%} of its covered samples: is it inside geometry?",
-             scene.warnings)
+        warn(
+            f"{scene.source}: camera {camera.path} sees the back of single-sided surfaces in "
+            f"{back_facing / gbuffer.num_samples:.0%} of its covered samples: is it inside geometry?",
+            scene.warnings,
+        )
     channels, constants = gbuffer_to_channels(gbuffer)
     dfb_path = out_dir / f"{stem}.dfb.exr"
     write_exr(dfb_path, channels, {"relight:supersampling": supersampling})
-    deep = Payload(name="deepFramebuffer", file=dfb_path.name, format="exr", sha256=file_sha256(dfb_path),
-                   num_bytes=dfb_path.stat().st_size, channels=tuple(sorted(channels)), constants=constants)
-    occluders = write_npy(out_dir / f"{stem}.occluders.npy", scene.geometry.positions.astype(np.float32),
-                          "occluders")
-    occluder_objects = write_npy(out_dir / f"{stem}.occluderObjects.npy",
-                                 scene.geometry.object_ids.astype(np.int32), "occluderObjects")
-    object_paths = write_npy(out_dir / f"{stem}.objectPaths.npy",
-                             encode_paths([obj.path for obj in scene.objects]), "objectPaths")
+    deep = Payload(
+        name="deepFramebuffer",
+        file=dfb_path.name,
+        format="exr",
+        sha256=file_sha256(dfb_path),
+        num_bytes=dfb_path.stat().st_size,
+        channels=tuple(sorted(channels)),
+        constants=constants,
+    )
+    occluders = write_npy(out_dir / f"{stem}.occluders.npy", scene.geometry.positions.astype(np.float32), "occluders")
+    occluder_objects = write_npy(
+        out_dir / f"{stem}.occluderObjects.npy", scene.geometry.object_ids.astype(np.int32), "occluderObjects"
+    )
+    object_paths = write_npy(
+        out_dir / f"{stem}.objectPaths.npy", encode_paths([obj.path for obj in scene.objects]), "objectPaths"
+    )
     opacity = scene_opacity(scene)
-    opacity_payloads = () if opacity is None else tuple(
-        write_npy(out_dir / f"{stem}.{name}.npy", array, name) for name, array in opacity.to_arrays().items())
+    opacity_payloads = (
+        ()
+        if opacity is None
+        else tuple(
+            write_npy(out_dir / f"{stem}.{name}.npy", array, name) for name, array in opacity.to_arrays().items()
+        )
+    )
     description = CacheDescription(
-        method="direct", source=scene.source, camera_path=camera.path,
-        resolution=(camera.width, camera.height), supersampling=supersampling,
-        world_from_camera=camera.world_from_camera, exposure_scale=camera.exposure_scale,
-        content_hash=digest, inputs=inputs, parameters=parameters,
-        payloads=(deep, occluders, occluder_objects, object_paths) + opacity_payloads, code_version=code_version(),
+        method="direct",
+        source=scene.source,
+        camera_path=camera.path,
+        resolution=(camera.width, camera.height),
+        supersampling=supersampling,
+        world_from_camera=camera.world_from_camera,
+        exposure_scale=camera.exposure_scale,
+        content_hash=digest,
+        inputs=inputs,
+        parameters=parameters,
+        payloads=(deep, occluders, occluder_objects, object_paths) + opacity_payloads,
+        code_version=code_version(),
     )
     return description, chunk_dir
 
@@ -147,8 +213,15 @@ def prepare_output(out_dir: str | Path, stem: str, supersampling: int, texture_s
     return out_dir, layer_path
 
 
-def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
-                texture_samples: int = 4, time_code: float | None = None) -> Path:
+def bake_direct(
+    scene: Scene,
+    camera: Camera,
+    out_dir: str | Path,
+    stem: str,
+    supersampling: int = 2,
+    texture_samples: int = 4,
+    time_code: float | None = None,
+) -> Path:
     """Bake the direct-lighting cache of `camera`; returns the cache layer's path.
 
     Args:
@@ -157,8 +230,7 @@ def bake_direct(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
         time_code: the time the scene was read at (recorded so lights are read at the same time).
     """
     out_dir, layer_path = prepare_output(out_dir, stem, supersampling, texture_samples)
-    description, chunk_dir = direct_payloads(scene, camera, out_dir, stem, supersampling, texture_samples,
-                                              time_code)
+    description, chunk_dir = direct_payloads(scene, camera, out_dir, stem, supersampling, texture_samples, time_code)
     write_cache_layer(layer_path, description)
     shutil.rmtree(chunk_dir, ignore_errors=True)
     return layer_path

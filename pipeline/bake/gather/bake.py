@@ -31,12 +31,20 @@ import numpy as np
 import torch
 
 from pipeline.bake.direct.bake import shot_tracer
-from pipeline.bake.indirect import IndirectBake, start_indirect_bake, view_samples
 from pipeline.bake.gather.hemisphere import ClusteredGathers, cluster_gathers, gather
 from pipeline.bake.gather.representatives import choose_representatives, glossy_share, reconstruction_weights
 from pipeline.bake.gather.surface_points import merge_entries, share_points
-from pipeline.bake.scheduler import (ChunkSpec, ShotSpec, chunk_ranges, chunk_threads, load_chunk, load_shot,
-                                     per_process, run_chunks)
+from pipeline.bake.indirect import IndirectBake, start_indirect_bake, view_samples
+from pipeline.bake.scheduler import (
+    ChunkSpec,
+    ShotSpec,
+    chunk_ranges,
+    chunk_threads,
+    load_chunk,
+    load_shot,
+    per_process,
+    run_chunks,
+)
 from pipeline.scene.surface import triangle_tangents
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
@@ -47,8 +55,13 @@ from relight_torch.math.sampling import sobol
 from relight_torch.parallel import torch_threads
 
 REFERENCE_PIXELS = 400 * 400
-_FIELD_DTYPES = {"position": np.float32, "normal": np.float16, "albedo": np.float16, "weight": np.float32,
-                 "object": np.int32}
+_FIELD_DTYPES = {
+    "position": np.float32,
+    "normal": np.float16,
+    "albedo": np.float16,
+    "weight": np.float32,
+    "object": np.int32,
+}
 """Stored precision: positions and weights in full, unit normals and albedos in half (as the paper
 packs its samples in 16-bit floats; their rounding is ~1e-3 relative)."""
 
@@ -87,8 +100,14 @@ class GatherSettings:
 
     def check(self) -> None:
         """Raise ValueError naming the first bad setting."""
-        for name in ("num_directions", "num_clusters", "num_neighbours", "tile", "representatives_per_batch",
-                     "representatives_per_chunk"):
+        for name in (
+            "num_directions",
+            "num_clusters",
+            "num_neighbours",
+            "tile",
+            "representatives_per_batch",
+            "representatives_per_chunk",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.point_cells < 0:
@@ -104,9 +123,15 @@ class GatherSettings:
 
     def parameters(self) -> dict[str, int]:
         """The settings that change the cache, as cache-layer parameters."""
-        return {"directions": self.num_directions, "clusters": self.num_clusters,
-                "representatives": self.num_representatives or 0, "neighbours": self.num_neighbours,
-                "tile": self.tile, "gatherSeed": self.seed, "pointCells": self.point_cells}
+        return {
+            "directions": self.num_directions,
+            "clusters": self.num_clusters,
+            "representatives": self.num_representatives or 0,
+            "neighbours": self.num_neighbours,
+            "tile": self.tile,
+            "gatherSeed": self.seed,
+            "pointCells": self.point_cells,
+        }
 
 
 def set_sizes(view: GBuffer, settings: GatherSettings) -> dict[str, int]:
@@ -115,7 +140,7 @@ def set_sizes(view: GBuffer, settings: GatherSettings) -> dict[str, int]:
     A set whose share rounds to no cluster is not baked (the diffuse set always gets one).
     """
     height, width = view.image_size
-    per_tile = settings.representatives(height * width) / (height * width) * settings.tile ** 2
+    per_tile = settings.representatives(height * width) / (height * width) * settings.tile**2
     glossy = round(per_tile * glossy_share(view))
     sizes = {"diffuse": max(1, round(per_tile) - glossy), "glossy": glossy}
     return {name: count for name, count in sizes.items() if count > 0}
@@ -141,7 +166,7 @@ def _gather_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
     shifts = torch.from_numpy(np.random.default_rng(seed).random((view.num_samples, 2), np.float32))
 
     def work(start: int) -> ClusteredGathers:
-        batch = torch.from_numpy(samples[start:start + per_batch])
+        batch = torch.from_numpy(samples[start : start + per_batch])
         points = gather(scene, tracer, tangents, view, batch, spec.name, directions_u, shifts[batch])
         return cluster_gathers(points, spec.param("clusters"), position_weight)
 
@@ -155,9 +180,17 @@ def _gather_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
     return arrays
 
 
-def bake_gather(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
-                texture_samples: int = 2, time_code: float | None = None,
-                settings: GatherSettings = GatherSettings(), progress: bool | None = None) -> Path:
+def bake_gather(
+    scene: Scene,
+    camera: Camera,
+    out_dir: str | Path,
+    stem: str,
+    supersampling: int = 2,
+    texture_samples: int = 2,
+    time_code: float | None = None,
+    settings: GatherSettings = GatherSettings(),
+    progress: bool | None = None,
+) -> Path:
     """Bake the clustered-gather cache of `camera`; returns the cache layer's path.
 
     Args:
@@ -171,27 +204,44 @@ def bake_gather(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
         ValueError: bad settings (see `GatherSettings.check`).
     """
     settings.check()
-    bake = start_indirect_bake(scene, camera, out_dir, stem, "gather", settings.parameters(), supersampling,
-                               texture_samples, time_code)
+    bake = start_indirect_bake(
+        scene, camera, out_dir, stem, "gather", settings.parameters(), supersampling, texture_samples, time_code
+    )
     chunk_dir = bake.chunk_dir
 
     shot = ShotSpec.of(scene, camera, time_code)
     _, _, view = gather_inputs(shot, texture_samples)
-    parameters = (("textureSamples", texture_samples), ("directions", settings.num_directions),
-                  ("clusters", settings.num_clusters), ("gatherSeed", settings.seed),
-                  ("representativesPerBatch", settings.representatives_per_batch))
+    parameters = (
+        ("textureSamples", texture_samples),
+        ("directions", settings.num_directions),
+        ("clusters", settings.num_clusters),
+        ("gatherSeed", settings.seed),
+        ("representativesPerBatch", settings.representatives_per_batch),
+    )
     position_weight = 2.0 / max(scene.diagonal, 1e-12)
-    payloads = [bake.payload(stem, "viewPixels", view.pixel_index.numpy()),
-                bake.payload(stem, "viewAlbedo", diffuse_albedo(view.params).numpy().astype(np.float32))]
+    payloads = [
+        bake.payload(stem, "viewPixels", view.pixel_index.numpy()),
+        bake.payload(stem, "viewAlbedo", diffuse_albedo(view.params).numpy().astype(np.float32)),
+    ]
     clustered: dict[str, dict[str, np.ndarray]] = {}
     for lobe, clusters_per_tile in set_sizes(view, settings).items():
         with torch_threads(1):
             samples = choose_representatives(view, clusters_per_tile, settings.tile, position_weight)
-        specs = [ChunkSpec(shot, lobe, parameters + (("samples", tuple(samples[first:last].tolist())),), first, last,
-                           (("threads", settings.num_threads),))
-                 for first, last in chunk_ranges(samples.size, settings.representatives_per_chunk)]
-        chunks = [load_chunk(path) for path in run_chunks(_gather_chunk, specs, chunk_dir, f"{lobe} gathers", "reps",
-                                                           progress)]
+        specs = [
+            ChunkSpec(
+                shot,
+                lobe,
+                parameters + (("samples", tuple(samples[first:last].tolist())),),
+                first,
+                last,
+                (("threads", settings.num_threads),),
+            )
+            for first, last in chunk_ranges(samples.size, settings.representatives_per_chunk)
+        ]
+        chunks = [
+            load_chunk(path)
+            for path in run_chunks(_gather_chunk, specs, chunk_dir, f"{lobe} gathers", "reps", progress)
+        ]
         clustered[lobe] = {name: np.concatenate([c[name] for c in chunks]) for name in (*_FIELD_DTYPES, "counts")}
         weights = reconstruction_weights(view, samples, settings.num_neighbours, position_weight)
         payloads.append(bake.payload(stem, f"{lobe}Neighbours", weights.neighbours.astype(np.int32)))
@@ -200,17 +250,22 @@ def bake_gather(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, su
     return bake.finish(payloads + _shared_point_payloads(bake, stem, clustered, cell_size))
 
 
-def _shared_point_payloads(bake: IndirectBake, stem: str, clustered: dict[str, dict[str, np.ndarray]],
-                           cell_size: float) -> list[Payload]:
+def _shared_point_payloads(
+    bake: IndirectBake, stem: str, clustered: dict[str, dict[str, np.ndarray]], cell_size: float
+) -> list[Payload]:
     """Both sets' clustered gathers (chunk fields, concatenated) -> shared points and CSR payloads."""
     fields = {name: np.concatenate([c[name] for c in clustered.values()]) for name in _FIELD_DTYPES}
     points, index = share_points(fields["position"], fields["normal"], fields["albedo"], fields["object"], cell_size)
-    payloads = [bake.payload(stem, f"gather{name.capitalize()}", getattr(points, name).astype(_FIELD_DTYPES[name]))
-                for name in ("position", "normal", "albedo", "object")]
+    payloads = [
+        bake.payload(stem, f"gather{name.capitalize()}", getattr(points, name).astype(_FIELD_DTYPES[name]))
+        for name in ("position", "normal", "albedo", "object")
+    ]
     sizes = [c["object"].size for c in clustered.values()]
-    for (lobe, arrays), part in zip(clustered.items(), np.split(index, np.cumsum(sizes)[:-1])):
+    for (lobe, arrays), part in zip(clustered.items(), np.split(index, np.cumsum(sizes)[:-1]), strict=True):
         offsets, columns, weight = merge_entries(arrays["counts"], part, arrays["weight"], points.object.size)
-        payloads += [bake.payload(stem, f"{lobe}Offsets", offsets),
-                     bake.payload(stem, f"{lobe}Index", columns.astype(np.int32)),
-                     bake.payload(stem, f"{lobe}Weight", weight)]
+        payloads += [
+            bake.payload(stem, f"{lobe}Offsets", offsets),
+            bake.payload(stem, f"{lobe}Index", columns.astype(np.int32)),
+            bake.payload(stem, f"{lobe}Weight", weight),
+        ]
     return payloads

@@ -46,8 +46,16 @@ class GatherPoints:
     valid: torch.Tensor
 
 
-def gather(scene: Scene, tracer: Tracer, tangents: np.ndarray, view: GBuffer, samples: torch.Tensor,
-           lobe: str, directions_u: torch.Tensor, shifts: torch.Tensor) -> GatherPoints:
+def gather(
+    scene: Scene,
+    tracer: Tracer,
+    tangents: np.ndarray,
+    view: GBuffer,
+    samples: torch.Tensor,
+    lobe: str,
+    directions_u: torch.Tensor,
+    shifts: torch.Tensor,
+) -> GatherPoints:
     """Trace the hemisphere gathers of the view samples `samples`.
 
     Args:
@@ -91,10 +99,14 @@ def gather(scene: Scene, tracer: Tracer, tangents: np.ndarray, view: GBuffer, sa
 
     object_id = torch.zeros(num_reps * num_directions, dtype=torch.int64)
     object_id[torch.from_numpy(hits.hit)] = torch.from_numpy(points.object_id.astype(np.int64))
-    return GatherPoints(position=scatter(points.position), normal=scatter(points.normal),
-                        albedo=scatter(preview_surface.diffuse_albedo(points.params)),
-                        weight=torch.where(valid.unsqueeze(-1), weight, 0.0).float(),
-                        object_id=object_id.reshape(num_reps, num_directions), valid=valid)
+    return GatherPoints(
+        position=scatter(points.position),
+        normal=scatter(points.normal),
+        albedo=scatter(preview_surface.diffuse_albedo(points.params)),
+        weight=torch.where(valid.unsqueeze(-1), weight, 0.0).float(),
+        object_id=object_id.reshape(num_reps, num_directions),
+        valid=valid,
+    )
 
 
 @dataclass(frozen=True)
@@ -119,14 +131,21 @@ def cluster_gathers(points: GatherPoints, num_clusters: int, position_weight: fl
     """Cluster each representative's gathers to at most `num_clusters` points (empty ones dropped)."""
     labels = cluster(features(points.position, points.normal, position_weight), points.valid, num_clusters)
     _, counts = cluster_means(points.weight, points.valid, labels, num_clusters)
-    sums = {name: cluster_means(getattr(points, name), points.valid, labels, num_clusters)[0]
-            for name in ("normal", "albedo", "weight")}
+    sums = {
+        name: cluster_means(getattr(points, name), points.valid, labels, num_clusters)[0]
+        for name in ("normal", "albedo", "weight")
+    }
     normal = torch.nn.functional.normalize(sums["normal"], dim=-1)
     weight = sums["weight"] * counts.unsqueeze(-1)
     member = nearest_members(points.position, points.valid, labels, num_clusters)
     position = points.position.gather(1, member.clamp(min=0).unsqueeze(-1).expand(-1, -1, 3))
     object_id = points.object_id.gather(1, member.clamp(min=0))
     kept = counts > 0
-    return ClusteredGathers(position=position[kept].numpy(), normal=normal[kept].numpy(),
-                            albedo=sums["albedo"][kept].numpy(), weight=weight[kept].numpy(),
-                            object=object_id[kept].numpy().astype(np.int32), counts=kept.sum(1).numpy().astype(np.int64))
+    return ClusteredGathers(
+        position=position[kept].numpy(),
+        normal=normal[kept].numpy(),
+        albedo=sums["albedo"][kept].numpy(),
+        weight=weight[kept].numpy(),
+        object=object_id[kept].numpy().astype(np.int32),
+        counts=kept.sum(1).numpy().astype(np.int64),
+    )

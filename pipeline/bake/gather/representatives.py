@@ -52,7 +52,7 @@ def glossy_share(view: GBuffer) -> float:
 
 def _tiles(view: GBuffer, tile: int) -> tuple[np.ndarray, np.ndarray]:
     """(num_tiles, tile^2) sample index per tile slot (-1 where empty) and the tiles' ids."""
-    height, width = view.image_size
+    _height, width = view.image_size
     row, col = np.divmod(view.pixel_index.numpy(), width)
     tiles_across = -(-width // tile)
     tile_id = (row // tile) * tiles_across + col // tile
@@ -63,8 +63,9 @@ def _tiles(view: GBuffer, tile: int) -> tuple[np.ndarray, np.ndarray]:
     return table, used
 
 
-def choose_representatives(view: GBuffer, clusters_per_tile: int, tile: int, position_weight: float,
-                           tiles_per_batch: int = 256) -> np.ndarray:
+def choose_representatives(
+    view: GBuffer, clusters_per_tile: int, tile: int, position_weight: float, tiles_per_batch: int = 256
+) -> np.ndarray:
     """(R,) sorted indices of the view samples chosen as representatives.
 
     Args:
@@ -77,7 +78,7 @@ def choose_representatives(view: GBuffer, clusters_per_tile: int, tile: int, pos
     points = view_features(view, position_weight)
     chosen = []
     for start in range(0, table.shape[0], tiles_per_batch):
-        block = torch.from_numpy(table[start:start + tiles_per_batch])
+        block = torch.from_numpy(table[start : start + tiles_per_batch])
         valid = block >= 0
         safe = block.clamp(min=0)
         labels = cluster(points[safe], valid, clusters_per_tile)
@@ -87,14 +88,16 @@ def choose_representatives(view: GBuffer, clusters_per_tile: int, tile: int, pos
     return np.sort(np.concatenate(chosen)) if chosen else np.zeros(0, np.int64)
 
 
-def reconstruction_weights(view: GBuffer, sample_index: np.ndarray, num_neighbours: int,
-                           position_weight: float) -> Representatives:
+def reconstruction_weights(
+    view: GBuffer, sample_index: np.ndarray, num_neighbours: int, position_weight: float
+) -> Representatives:
     """Each view sample's nearest representatives in the 6-D metric and their RBF weights."""
     points = view_features(view, position_weight).numpy().astype(np.float64)
     num_kept = min(num_neighbours, sample_index.size)
     if num_kept == 0:  # no view sample (a camera that sees only sky): nothing to reconstruct
-        return Representatives(sample_index, np.zeros((points.shape[0], 0), np.int64),
-                               np.zeros((points.shape[0], 0), np.float32))
+        return Representatives(
+            sample_index, np.zeros((points.shape[0], 0), np.int64), np.zeros((points.shape[0], 0), np.float32)
+        )
     distances, neighbours = cKDTree(points[sample_index]).query(points, k=num_kept)
     distances = np.asarray(distances, np.float64).reshape(points.shape[0], num_kept)
     neighbours = np.asarray(neighbours, np.int64).reshape(points.shape[0], num_kept)

@@ -44,8 +44,9 @@ def _group_first(inverse: np.ndarray, order_key: np.ndarray, num_groups: int) ->
     return order[starts]
 
 
-def share_points(position: np.ndarray, normal: np.ndarray, albedo: np.ndarray, object_id: np.ndarray,
-                 cell_size: float) -> tuple[SurfacePoints, np.ndarray]:
+def share_points(
+    position: np.ndarray, normal: np.ndarray, albedo: np.ndarray, object_id: np.ndarray, cell_size: float
+) -> tuple[SurfacePoints, np.ndarray]:
     """Merge G gathers into U shared surface points.
 
     Args:
@@ -77,14 +78,18 @@ def share_points(position: np.ndarray, normal: np.ndarray, albedo: np.ndarray, o
     nearest = _group_first(inverse, np.linalg.norm(position - mean_position[inverse], axis=-1), num_points)
     normal_sum = group_sum(normal)
     unit_normal = normal_sum / np.maximum(np.linalg.norm(normal_sum, axis=-1, keepdims=True), 1e-12)
-    points = SurfacePoints(position=position[nearest], normal=unit_normal.astype(np.float32),
-                           albedo=(group_sum(albedo) / np.maximum(counts, 1.0)).astype(np.float32),
-                           object=np.asarray(object_id, np.int32)[nearest])
+    points = SurfacePoints(
+        position=position[nearest],
+        normal=unit_normal.astype(np.float32),
+        albedo=(group_sum(albedo) / np.maximum(counts, 1.0)).astype(np.float32),
+        object=np.asarray(object_id, np.int32)[nearest],
+    )
     return points, inverse.astype(np.int64)
 
 
-def merge_entries(counts: np.ndarray, index: np.ndarray, weight: np.ndarray,
-                  num_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def merge_entries(
+    counts: np.ndarray, index: np.ndarray, weight: np.ndarray, num_points: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sum the weights of each representative's entries that share a point (CSR in, CSR out).
 
     Args:

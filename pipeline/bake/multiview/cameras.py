@@ -13,8 +13,16 @@ CUBE_FORWARD = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]
 """The six view directions of an omni-directional (cube map) camera: +x, -x, +y, -y, +z, -z."""
 
 
-def look_camera(path: str, position: np.ndarray, forward: np.ndarray, up: np.ndarray, fov_degrees: float,
-                resolution: int, near: float, far: float) -> Camera:
+def look_camera(
+    path: str,
+    position: np.ndarray,
+    forward: np.ndarray,
+    up: np.ndarray,
+    fov_degrees: float,
+    resolution: int,
+    near: float,
+    far: float,
+) -> Camera:
     """A square pinhole camera at `position` looking along `forward` with full field of view `fov_degrees`.
 
     `up` need only not be parallel to `forward`; the camera's +Y is its part orthogonal to it.
@@ -29,29 +37,56 @@ def look_camera(path: str, position: np.ndarray, forward: np.ndarray, up: np.nda
     matrix = np.eye(4)
     matrix[:3, 0], matrix[:3, 1], matrix[:3, 2], matrix[:3, 3] = right, true_up, -forward, position
     aperture = 2.0 * FOCAL_LENGTH * np.tan(np.radians(fov_degrees) / 2.0)
-    return Camera(path=path, world_from_camera=matrix, focal_length=FOCAL_LENGTH, horizontal_aperture=aperture,
-                  vertical_aperture=aperture, horizontal_aperture_offset=0.0, vertical_aperture_offset=0.0,
-                  clipping_range=(float(near), float(far)), width=int(resolution), height=int(resolution))
+    return Camera(
+        path=path,
+        world_from_camera=matrix,
+        focal_length=FOCAL_LENGTH,
+        horizontal_aperture=aperture,
+        vertical_aperture=aperture,
+        horizontal_aperture_offset=0.0,
+        vertical_aperture_offset=0.0,
+        clipping_range=(float(near), float(far)),
+        width=int(resolution),
+        height=int(resolution),
+    )
 
 
 def camera_row(camera: Camera, kind: int, group: int) -> np.ndarray:
     """(C,) float64 row of the camera table (`relight_torch.multiview.views.CAMERA_COLUMNS`)."""
-    return np.concatenate([np.asarray(camera.world_from_camera, np.float64).reshape(-1), [
-        camera.focal_length, camera.horizontal_aperture, camera.vertical_aperture,
-        camera.horizontal_aperture_offset, camera.vertical_aperture_offset, *camera.clipping_range,
-        camera.width, camera.height, kind, group]])
+    return np.concatenate(
+        [
+            np.asarray(camera.world_from_camera, np.float64).reshape(-1),
+            [
+                camera.focal_length,
+                camera.horizontal_aperture,
+                camera.vertical_aperture,
+                camera.horizontal_aperture_offset,
+                camera.vertical_aperture_offset,
+                *camera.clipping_range,
+                camera.width,
+                camera.height,
+                kind,
+                group,
+            ],
+        ]
+    )
 
 
 def camera_from_row(row: np.ndarray, path: str) -> Camera:
     """The `Camera` of one camera-table row."""
-    values = dict(zip(CAMERA_COLUMNS, row.tolist()))
-    return Camera(path=path, world_from_camera=world_from_camera(row[None])[0],
-                  focal_length=values["focalLength"], horizontal_aperture=values["horizontalAperture"],
-                  vertical_aperture=values["verticalAperture"],
-                  horizontal_aperture_offset=values["horizontalApertureOffset"],
-                  vertical_aperture_offset=values["verticalApertureOffset"],
-                  clipping_range=(values["near"], values["far"]), width=int(values["width"]),
-                  height=int(values["height"]))
+    values = dict(zip(CAMERA_COLUMNS, row.tolist(), strict=True))
+    return Camera(
+        path=path,
+        world_from_camera=world_from_camera(row[None])[0],
+        focal_length=values["focalLength"],
+        horizontal_aperture=values["horizontalAperture"],
+        vertical_aperture=values["verticalAperture"],
+        horizontal_aperture_offset=values["horizontalApertureOffset"],
+        vertical_aperture_offset=values["verticalApertureOffset"],
+        clipping_range=(values["near"], values["far"]),
+        width=int(values["width"]),
+        height=int(values["height"]),
+    )
 
 
 def resolution_from_coverage(covered_share: float, min_resolution: int, max_resolution: int) -> int:

@@ -24,8 +24,8 @@ from pipeline.errors import RelightError
 from pipeline.scene.camera import read_camera
 from pipeline.scene.load import load_scene
 from pipeline.scene.surface import triangle_tangents
-from pipeline.tracing import Tracer
 from pipeline.scene.types import Camera, Scene
+from pipeline.tracing import Tracer
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.io.preview import write_png
 from relight_torch.multiview.holes import HoleReport
@@ -42,8 +42,9 @@ class Frame:
     patched_pixels: int
 
 
-def read_view_camera(source: str, lights_layer: str | os.PathLike | None, path: str, time: float | None,
-                     width: int, height: int) -> Camera:
+def read_view_camera(
+    source: str, lights_layer: str | os.PathLike | None, path: str, time: float | None, width: int, height: int
+) -> Camera:
     """Camera prim `path` of the shot (with `lights_layer` over it) at `time`.
 
     Raises:
@@ -59,8 +60,9 @@ def read_view_camera(source: str, lights_layer: str | os.PathLike | None, path: 
 class FrameRenderer:
     """Renders frames of a multiview relighter, loading the shot only when a hole needs baking."""
 
-    def __init__(self, relighter: MultiviewRelighter, lights_layer: str | os.PathLike | None = None,
-                 fill_holes: bool = False):
+    def __init__(
+        self, relighter: MultiviewRelighter, lights_layer: str | os.PathLike | None = None, fill_holes: bool = False
+    ):
         self.relighter = relighter
         self.lights_layer = lights_layer
         self.fill_holes = fill_holes
@@ -69,20 +71,26 @@ class FrameRenderer:
 
     def render(self, camera: Camera) -> Frame:
         relighter = self.relighter
-        view = view_points(relighter.caster, relighter.occluder_objects, camera, relighter.supersampling,
-                           relighter.corner_normals)
+        view = view_points(
+            relighter.caster, relighter.occluder_objects, camera, relighter.supersampling, relighter.corner_normals
+        )
         report = relighter.set_view(view, exposure_scale=camera.exposure_scale)
         patched = 0
         if self.fill_holes and report.num_large_holes:
             if self._shot is None:
                 description = relighter.description
-                scene = load_scene(description.source, time=description.parameters.get("time"),
-                                   lights_layer=self.lights_layer)
-                self._shot = (scene, Tracer.for_scene(scene),
-                              triangle_tangents(scene.geometry.positions, scene.geometry.uvs))
+                scene = load_scene(
+                    description.source, time=description.parameters.get("time"), lights_layer=self.lights_layer
+                )
+                self._shot = (
+                    scene,
+                    Tracer.for_scene(scene),
+                    triangle_tangents(scene.geometry.positions, scene.geometry.uvs),
+                )
             scene, tracer, tangents = self._shot
-            patch = hole_patch(scene, camera, relighter.supersampling, report.large_pixel_index.cpu().numpy(),
-                               tracer, tangents)
+            patch = hole_patch(
+                scene, camera, relighter.supersampling, report.large_pixel_index.cpu().numpy(), tracer, tangents
+            )
             relighter.set_view(view, patch=patch, exposure_scale=camera.exposure_scale)
             patched = patch.num_samples
         return Frame(relighter.render().cpu().numpy(), report, patched)
@@ -97,10 +105,18 @@ def frame_path(out: str | os.PathLike, time: float | None, num_frames: int) -> P
     return out.with_name(f"{out.stem}.{label}{out.suffix}")
 
 
-def render_frames(relighter: MultiviewRelighter, camera_path: str, times: list[float | None], out: str,
-                  width: int, height: int, lights_layer: str | None = None, png: str | None = None,
-                  fill_holes: bool = False,
-                  aov_layers: Callable[[MultiviewRelighter], dict[str, np.ndarray]] | None = None) -> list[Frame]:
+def render_frames(
+    relighter: MultiviewRelighter,
+    camera_path: str,
+    times: list[float | None],
+    out: str,
+    width: int,
+    height: int,
+    lights_layer: str | None = None,
+    png: str | None = None,
+    fill_holes: bool = False,
+    aov_layers: Callable[[MultiviewRelighter], dict[str, np.ndarray]] | None = None,
+) -> list[Frame]:
     """Render `camera_path` at each time code into OUT (per-frame names when several); print a line per frame."""
     renderer = FrameRenderer(relighter, lights_layer, fill_holes)
     frames = []
@@ -112,9 +128,11 @@ def render_frames(relighter: MultiviewRelighter, camera_path: str, times: list[f
         if png:
             write_png(frame_path(png, time, len(times)), frame.image)
         report = frame.report
-        print(f"{path}: {camera_path} at {width}x{height}, {len(relighter.lights)} lights; holes "
-              f"{100 * report.hole_fraction_before:.2f}% of covered pixels, {100 * report.hole_fraction_after:.2f}% "
-              f"after filling, {report.num_large_holes} large"
-              + (f" ({frame.patched_pixels} sub-samples baked on demand)" if frame.patched_pixels else ""))
+        print(
+            f"{path}: {camera_path} at {width}x{height}, {len(relighter.lights)} lights; holes "
+            f"{100 * report.hole_fraction_before:.2f}% of covered pixels, {100 * report.hole_fraction_after:.2f}% "
+            f"after filling, {report.num_large_holes} large"
+            + (f" ({frame.patched_pixels} sub-samples baked on demand)" if frame.patched_pixels else "")
+        )
         frames.append(frame)
     return frames

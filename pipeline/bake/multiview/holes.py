@@ -19,8 +19,14 @@ from pipeline.tracing import Tracer
 from relight_torch.gbuffer import GBuffer
 
 
-def hole_patch(scene: Scene, camera: Camera, supersampling: int, pixel_index: np.ndarray,
-               tracer: Tracer | None = None, tangents: np.ndarray | None = None) -> GBuffer:
+def hole_patch(
+    scene: Scene,
+    camera: Camera,
+    supersampling: int,
+    pixel_index: np.ndarray,
+    tracer: Tracer | None = None,
+    tangents: np.ndarray | None = None,
+) -> GBuffer:
     """The G-buffer of `camera`'s sub-samples at `pixel_index` (M,) flat indices of its (H s, W s) image.
 
     Sub-samples whose rays hit nothing are left out. `tracer` and `tangents` (T, 3, 3) (the scene's
@@ -37,7 +43,15 @@ def hole_patch(scene: Scene, camera: Camera, supersampling: int, pixel_index: np
     forward = -camera.world_from_camera[:3, 2] / np.linalg.norm(camera.world_from_camera[:3, 2])
     return GBuffer.from_numpy(
         image_size=(camera.height * supersampling, camera.width * supersampling),
-        pixel_index=pixel_index[hits.hit], position=points.position, normal=points.normal, tangent=points.tangent,
-        bitangent=points.bitangent, geometric_normal=points.geometric_normal, params=points.params,
-        material_id=points.material_id, object_id=points.object_id,
-        depth=((points.position - centre) @ forward).astype(np.float32), camera_position=centre)
+        pixel_index=pixel_index[hits.hit],
+        position=points.position,
+        normal=points.normal,
+        tangent=points.tangent,
+        bitangent=points.bitangent,
+        geometric_normal=points.geometric_normal,
+        params=points.params,
+        material_id=points.material_id,
+        object_id=points.object_id,
+        depth=((points.position - centre) @ forward).astype(np.float32),
+        camera_position=centre,
+    )

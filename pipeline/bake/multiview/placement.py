@@ -77,8 +77,11 @@ class PlacementSettings:
             raise ValueError(f"coverage must be in [0, 1), got {self.coverage}")
         if not 0.0 < self.min_fov <= self.max_fov <= 120.0:
             raise ValueError(f"need 0 < min_fov <= max_fov <= 120 degrees, got {self.min_fov}, {self.max_fov}")
-        if min(self.num_samples, self.patience, self.grid_size, self.num_rays, self.max_voters,
-               self.min_resolution) < 1 or self.max_resolution < self.min_resolution:
+        if (
+            min(self.num_samples, self.patience, self.grid_size, self.num_rays, self.max_voters, self.min_resolution)
+            < 1
+            or self.max_resolution < self.min_resolution
+        ):
             raise ValueError(f"sample, ray, grid and resolution settings must be positive: {self}")
 
 
@@ -122,8 +125,9 @@ class Placement:
         return sum(c.kind == SECONDARY for c in self.cameras)
 
 
-def _unreachable(tracer: Tracer, samples: SurfaceSamples, reach: float, box: tuple[np.ndarray, np.ndarray],
-                 rng: np.random.Generator) -> np.ndarray:
+def _unreachable(
+    tracer: Tracer, samples: SurfaceSamples, reach: float, box: tuple[np.ndarray, np.ndarray], rng: np.random.Generator
+) -> np.ndarray:
     """(M,) bool: samples facing out of the box, or whose 16 hemisphere rays are all blocked within `reach`."""
     ahead = samples.position + reach * samples.normal
     outward = np.any((ahead < box[0]) | (ahead > box[1]), axis=-1)
@@ -160,17 +164,26 @@ def _primary(tracer, samples, spheres, total, covered, settings) -> list[Caching
             face_seen = seen & (face == f)
             if not face_seen.any():
                 continue
-            resolution = resolution_from_coverage(samples.weight[face_seen].sum() / total,
-                                                  settings.min_resolution, settings.max_resolution)
-            camera = look_camera(f"/Caching/Primary{group}_{f}", sphere.centre, CUBE_FORWARD[f], CUBE_UP[f], 90.0,
-                                 resolution, *_clip_range(samples, face_seen, sphere.centre))
+            resolution = resolution_from_coverage(
+                samples.weight[face_seen].sum() / total, settings.min_resolution, settings.max_resolution
+            )
+            camera = look_camera(
+                f"/Caching/Primary{group}_{f}",
+                sphere.centre,
+                CUBE_FORWARD[f],
+                CUBE_UP[f],
+                90.0,
+                resolution,
+                *_clip_range(samples, face_seen, sphere.centre),
+            )
             cameras.append(CachingCamera(camera, PRIMARY, group, int(face_seen.sum())))
         covered |= seen
     return cameras
 
 
-def _secondary(tracer, samples, candidates, total, up, box, settings, rng,
-               index) -> tuple[CachingCamera | None, np.ndarray]:
+def _secondary(
+    tracer, samples, candidates, total, up, box, settings, rng, index
+) -> tuple[CachingCamera | None, np.ndarray]:
     """One secondary camera for the uncovered `candidates` (indices) and the samples it covers;
     (None, empty) when the vote finds none."""
     voters = candidates
@@ -184,24 +197,36 @@ def _secondary(tracer, samples, candidates, total, up, box, settings, rng,
     if not seen.any():
         return None, np.zeros(0, np.int64)
     weight = uncovered.weight[seen]
-    target = (weight[:, None] * uncovered.position[seen]).sum(0) / weight.sum()             # eq. 3
+    target = (weight[:, None] * uncovered.position[seen]).sum(0) / weight.sum()  # eq. 3
     axis = target - centre
     axis /= np.linalg.norm(axis)
     rays = uncovered.position - centre
     angle = np.degrees(np.arccos(np.clip(rays @ axis / np.linalg.norm(rays, axis=-1), -1.0, 1.0)))
-    half = min(float(angle[seen].max()), settings.max_fov / 2)                             # eq. 4
+    half = min(float(angle[seen].max()), settings.max_fov / 2)  # eq. 4
     inside = seen & (angle <= half)
     if not inside.any():
         return None, np.zeros(0, np.int64)
-    resolution = resolution_from_coverage(uncovered.weight[inside].sum() / total, settings.min_resolution,
-                                          settings.max_resolution)
-    camera = look_camera(f"/Caching/Secondary{index}", centre, axis, up, max(2 * half, settings.min_fov),
-                         resolution, *_clip_range(uncovered, inside, centre))
+    resolution = resolution_from_coverage(
+        uncovered.weight[inside].sum() / total, settings.min_resolution, settings.max_resolution
+    )
+    camera = look_camera(
+        f"/Caching/Secondary{index}",
+        centre,
+        axis,
+        up,
+        max(2 * half, settings.min_fov),
+        resolution,
+        *_clip_range(uncovered, inside, centre),
+    )
     return CachingCamera(camera, SECONDARY, index, int(inside.sum())), candidates[inside]
 
 
-def place_cameras(scene: Scene, settings: PlacementSettings = PlacementSettings(),
-                  box: tuple[np.ndarray, np.ndarray] | None = None, tracer: Tracer | None = None) -> Placement:
+def place_cameras(
+    scene: Scene,
+    settings: PlacementSettings = PlacementSettings(),
+    box: tuple[np.ndarray, np.ndarray] | None = None,
+    tracer: Tracer | None = None,
+) -> Placement:
     """Place the caching cameras of `scene` within `box` (default: the scene's bounds)."""
     settings.check()
     tracer = tracer or Tracer.for_scene(scene)
@@ -221,13 +246,17 @@ def place_cameras(scene: Scene, settings: PlacementSettings = PlacementSettings(
     for index in range(settings.max_secondary):
         if samples.weight[~covered].sum() < settings.coverage * total:
             break
-        camera, newly = _secondary(tracer, samples, np.flatnonzero(~covered), total, up, (lo, hi), settings, rng,
-                                   index)
+        camera, newly = _secondary(tracer, samples, np.flatnonzero(~covered), total, up, (lo, hi), settings, rng, index)
         if camera is None:
             break
         cameras.append(camera)
         covered[newly] = True
-    return Placement(cameras=cameras, num_samples=samples.num_samples, num_unreachable=int(unreachable.sum()),
-                     primary_fraction=primary_fraction,
-                     uncovered_fraction=float(samples.weight[~covered].sum()) / total,
-                     num_spheres=len(spheres), box=(lo, hi))
+    return Placement(
+        cameras=cameras,
+        num_samples=samples.num_samples,
+        num_unreachable=int(unreachable.sum()),
+        primary_fraction=primary_fraction,
+        uncovered_fraction=float(samples.weight[~covered].sum()) / total,
+        num_spheres=len(spheres),
+        box=(lo, hi),
+    )

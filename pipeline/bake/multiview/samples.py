@@ -44,7 +44,7 @@ class SurfaceSamples:
     def num_samples(self) -> int:
         return int(self.position.shape[0])
 
-    def subset(self, keep: np.ndarray) -> "SurfaceSamples":
+    def subset(self, keep: np.ndarray) -> SurfaceSamples:
         return SurfaceSamples(self.position[keep], self.normal[keep], self.weight[keep], self.object_id[keep])
 
 
@@ -78,8 +78,13 @@ def object_importance(scene: Scene, stage: Usd.Stage | None = None) -> np.ndarra
     return np.array([importance(obj.path) for obj in scene.objects], np.float64)
 
 
-def sample_surfaces(scene: Scene, num_samples: int, rng: np.random.Generator, importance: np.ndarray,
-                    box: tuple[np.ndarray, np.ndarray] | None = None) -> SurfaceSamples:
+def sample_surfaces(
+    scene: Scene,
+    num_samples: int,
+    rng: np.random.Generator,
+    importance: np.ndarray,
+    box: tuple[np.ndarray, np.ndarray] | None = None,
+) -> SurfaceSamples:
     """`num_samples` points by eq. 2, restricted to triangles whose centroid lies in `box` (lo, hi).
 
     Args:
@@ -105,8 +110,12 @@ def sample_surfaces(scene: Scene, num_samples: int, rng: np.random.Generator, im
     tri = corners[triangle]
     position = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
     normal = cross[triangle] / double_area[triangle, None]
-    return SurfaceSamples(position.astype(np.float32), normal.astype(np.float32), weight[triangle],
-                          scene.geometry.object_ids[triangle].astype(np.int32))
+    return SurfaceSamples(
+        position.astype(np.float32),
+        normal.astype(np.float32),
+        weight[triangle],
+        scene.geometry.object_ids[triangle].astype(np.int32),
+    )
 
 
 def seen_from(tracer: Tracer, samples: SurfaceSamples, point: np.ndarray) -> np.ndarray:

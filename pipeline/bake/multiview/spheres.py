@@ -52,8 +52,13 @@ def _escape_direction(units: np.ndarray) -> np.ndarray | None:
     if norm > 1e-9 and np.all(units @ (mean / norm) < -1e-3):
         return mean / norm
     # Variables (d_x, d_y, d_z, t): minimise -t subject to u_i . d + t <= 0.
-    result = linprog(c=[0, 0, 0, -1], A_ub=np.hstack([units, np.ones((len(units), 1))]), b_ub=np.zeros(len(units)),
-                     bounds=[(-1, 1)] * 3 + [(0, 1)], method="highs")
+    result = linprog(
+        c=[0, 0, 0, -1],
+        A_ub=np.hstack([units, np.ones((len(units), 1))]),
+        b_ub=np.zeros(len(units)),
+        bounds=[(-1, 1)] * 3 + [(0, 1)],
+        method="highs",
+    )
     if not result.success or result.x[3] <= 1e-6:
         return None
     return result.x[:3] / np.linalg.norm(result.x[:3])
@@ -68,8 +73,16 @@ def _known(centre: np.ndarray, radius: float, known: list[Sphere]) -> bool:
     return bool(np.any(np.linalg.norm(centres - centre, axis=-1) < 0.5 * np.maximum(radii, radius)))
 
 
-def grow_sphere(tree: cKDTree, points: np.ndarray, start: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                delta: float, max_steps: int, known: list[Sphere] = ()) -> Sphere | None:
+def grow_sphere(
+    tree: cKDTree,
+    points: np.ndarray,
+    start: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    delta: float,
+    max_steps: int,
+    known: list[Sphere] = (),
+) -> Sphere | None:
     """One search from `start`: grow, move off the contacts by delta, until maximal (or max_steps).
 
     Returns None as soon as the sphere enters one of `known` (it would converge to it).
@@ -93,8 +106,16 @@ def grow_sphere(tree: cKDTree, points: np.ndarray, start: np.ndarray, lo: np.nda
     return Sphere(centre, float(min(nearest, np.min(centre - lo), np.min(hi - centre))))
 
 
-def maximal_spheres(samples: SurfaceSamples, lo: np.ndarray, hi: np.ndarray, delta: float, patience: int,
-                    rng: np.random.Generator, max_steps: int = 400, max_searches: int = 1000) -> list[Sphere]:
+def maximal_spheres(
+    samples: SurfaceSamples,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    delta: float,
+    patience: int,
+    rng: np.random.Generator,
+    max_steps: int = 400,
+    max_searches: int = 1000,
+) -> list[Sphere]:
     """Maximal empty spheres, largest first (see the module docstring).
 
     Args:
@@ -114,8 +135,11 @@ def maximal_spheres(samples: SurfaceSamples, lo: np.ndarray, hi: np.ndarray, del
         i = int(rng.integers(samples.num_samples))
         sphere = grow_sphere(tree, points, points[i] + delta * samples.normal[i], lo, hi, delta, max_steps, spheres)
         largest = max((s.radius for s in spheres), default=0.0)
-        if sphere is None or sphere.radius <= max(delta, MIN_RADIUS_FRACTION * largest) or _known(
-                sphere.centre, sphere.radius, spheres):
+        if (
+            sphere is None
+            or sphere.radius <= max(delta, MIN_RADIUS_FRACTION * largest)
+            or _known(sphere.centre, sphere.radius, spheres)
+        ):
             misses += 1
             continue
         spheres.append(sphere)

@@ -17,8 +17,13 @@ from relight_torch.multiview.correspondence import ViewPoints
 from relight_torch.visibility.embree import EmbreeCaster
 
 
-def view_points(caster: EmbreeCaster, occluder_objects: np.ndarray, camera: Camera, supersampling: int = 1,
-                corner_normals: np.ndarray | None = None) -> ViewPoints:
+def view_points(
+    caster: EmbreeCaster,
+    occluder_objects: np.ndarray,
+    camera: Camera,
+    supersampling: int = 1,
+    corner_normals: np.ndarray | None = None,
+) -> ViewPoints:
     """The surfaces `camera` sees, one per covered sub-sample of its (H s, W s) image (CPU tensors).
 
     Args:
@@ -42,8 +47,11 @@ def view_points(caster: EmbreeCaster, occluder_objects: np.ndarray, camera: Came
     normal *= side
     shading = None
     if corner_normals is not None:
-        smooth = np.einsum("nc,nck->nk", np.concatenate([1.0 - u - v, u, v], -1),
-                           np.asarray(corner_normals)[triangle].astype(np.float64))
+        smooth = np.einsum(
+            "nc,nck->nk",
+            np.concatenate([1.0 - u - v, u, v], -1),
+            np.asarray(corner_normals)[triangle].astype(np.float64),
+        )
         length = np.linalg.norm(smooth, axis=-1, keepdims=True)
         smooth = np.where(length > 1e-12, smooth / np.maximum(length, 1e-12), normal * side) * side
         shading = torch.from_numpy(smooth.astype(np.float32))

@@ -38,8 +38,16 @@ def _box_exit(origins: np.ndarray, directions: np.ndarray, lo: np.ndarray, hi: n
     return np.maximum(far.min(axis=-1), 0.0)
 
 
-def vote(tracer: Tracer, samples: SurfaceSamples, lo: np.ndarray, hi: np.ndarray, grid_size: int, num_rays: int,
-         rng: np.random.Generator, alpha: float = 1.0) -> tuple[np.ndarray, float]:
+def vote(
+    tracer: Tracer,
+    samples: SurfaceSamples,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    grid_size: int,
+    num_rays: int,
+    rng: np.random.Generator,
+    alpha: float = 1.0,
+) -> tuple[np.ndarray, float]:
     """The best secondary camera position for `samples` (the uncovered ones).
 
     Returns:
@@ -52,8 +60,10 @@ def vote(tracer: Tracer, samples: SurfaceSamples, lo: np.ndarray, hi: np.ndarray
     starts = np.repeat(samples.position, num_rays, axis=0)
     origins = tracer.offset_origins(starts, np.repeat(samples.normal, num_rays, axis=0), directions)
     weights = np.repeat(samples.weight * alpha, num_rays)
-    length = np.minimum(tracer.intersect(origins, directions).distance,
-                        _box_exit(origins.astype(np.float64), directions.astype(np.float64), lo, hi))
+    length = np.minimum(
+        tracer.intersect(origins, directions).distance,
+        _box_exit(origins.astype(np.float64), directions.astype(np.float64), lo, hi),
+    )
     votes = np.zeros(int(np.prod(dims)), np.float64)
     step = 0.5 * cell
     num_steps = int(np.ceil(np.linalg.norm(hi - lo) / step))

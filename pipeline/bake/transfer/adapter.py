@@ -11,8 +11,8 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from pipeline.bake.transfer.bake import F_PREFIX, TransferSettings, bake_transfer, matrix_payloads
 from pipeline.bake.adapter import Variant
+from pipeline.bake.transfer.bake import F_PREFIX, TransferSettings, bake_transfer, matrix_payloads
 from pipeline.scene.types import Camera, Scene
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.transfer.encoding import decode_rows, encode_rows
@@ -31,11 +31,12 @@ def settings(point: dict[str, object]) -> TransferSettings:
     """The bake settings of a point (keys gathers, coefficients, bounces, bounceCoefficients), keeping the
     most coefficients."""
     defaults = TransferSettings()
-    return TransferSettings(num_gathers=int(point.get("gathers", defaults.num_gathers)),
-                            num_coefficients=kept_counts(point)[-1],
-                            num_bounces=int(point.get("bounces", defaults.num_bounces)),
-                            num_bounce_coefficients=int(point.get("bounceCoefficients",
-                                                                  defaults.num_bounce_coefficients)))
+    return TransferSettings(
+        num_gathers=int(point.get("gathers", defaults.num_gathers)),
+        num_coefficients=kept_counts(point)[-1],
+        num_bounces=int(point.get("bounces", defaults.num_bounces)),
+        num_bounce_coefficients=int(point.get("bounceCoefficients", defaults.num_bounce_coefficients)),
+    )
 
 
 class TransferAdapter:
@@ -47,31 +48,54 @@ class TransferAdapter:
     def grid(self, quick: bool) -> list[dict[str, object]]:
         if quick:
             return [{"gathers": 1024, "coefficients": (10, 50), "bounces": 1}]
-        return [{"gathers": gathers, "coefficients": (10, 25, 50, 100, 200), "bounces": 1}
-                for gathers in (1024, 4096, 16384)]
+        return [
+            {"gathers": gathers, "coefficients": (10, 25, 50, 100, 200), "bounces": 1}
+            for gathers in (1024, 4096, 16384)
+        ]
 
     def bounces(self, point: dict[str, object]) -> int:
         return settings(point).num_bounces
 
-    def bake(self, scene: Scene, camera: Camera, directory: Path, stem: str, point: dict[str, object],
-             supersampling: int, texture_samples: int, time_code: float | None = None) -> Path:
+    def bake(
+        self,
+        scene: Scene,
+        camera: Camera,
+        directory: Path,
+        stem: str,
+        point: dict[str, object],
+        supersampling: int,
+        texture_samples: int,
+        time_code: float | None = None,
+    ) -> Path:
         supersampling = int(point.get("supersampling", supersampling))
-        return bake_transfer(scene, camera, directory, stem, supersampling, texture_samples, time_code=time_code,
-                             settings=settings(point), progress=False)
+        return bake_transfer(
+            scene,
+            camera,
+            directory,
+            stem,
+            supersampling,
+            texture_samples,
+            time_code=time_code,
+            settings=settings(point),
+            progress=False,
+        )
 
     def variants(self, layer: Path, point: dict[str, object], device: str) -> list[Variant]:
         baked = open_transfer_relighter(layer, device=device)
         return culled_variants(layer, baked, settings(point), kept_counts(point))
 
 
-def culled_variants(layer: Path, baked: TransferRelighter, baked_settings: TransferSettings,
-                    counts: list[int]) -> list[Variant]:
+def culled_variants(
+    layer: Path, baked: TransferRelighter, baked_settings: TransferSettings, counts: list[int]
+) -> list[Variant]:
     """One variant per kept coefficient count of the cache `layer` opened as `baked`: its F rows
     culled to that count and encoded as the bake would (parts written under `<cache>/culled`,
     counted in the variant's cache bytes)."""
     description = read_cache_layer(layer)
     # The settings as baked: the indirect scale sized from the image is the layer's.
-    parameters = dataclasses.replace(baked_settings, indirect_scale=int(description.parameters["indirectScale"])).parameters()
+    parameters = dataclasses.replace(
+        baked_settings, indirect_scale=int(description.parameters["indirectScale"])
+    ).parameters()
     base_bytes = sum(p.num_bytes for p in description.payloads if not p.name.startswith(F_PREFIX))
     stored = baked.final_gather.to("cpu", baked.final_gather.values.dtype)
     device = baked.final_gather.values.device
@@ -82,10 +106,20 @@ def culled_variants(layer: Path, baked: TransferRelighter, baked_settings: Trans
         encoded = encode_rows(cull(stored, num_kept), baked_settings.encoding)
         payloads = matrix_payloads(culled_dir, f"{layer.name.split('.')[0]}-{num_kept}", F_PREFIX, encoded)
         final_gather = decode_rows(encoded).to(device, stored.values.dtype)
-        relighter = TransferRelighter(baked.direct, baked.gathers, baked.view_pixels, final_gather, baked.bounce,
-                                      baked.num_bounces, upsampler=baked.upsampler)
-        out.append(Variant({**parameters, "coefficients": num_kept}, relighter,
-                           base_bytes + sum(p.num_bytes for p in payloads)))
+        relighter = TransferRelighter(
+            baked.direct,
+            baked.gathers,
+            baked.view_pixels,
+            final_gather,
+            baked.bounce,
+            baked.num_bounces,
+            upsampler=baked.upsampler,
+        )
+        out.append(
+            Variant(
+                {**parameters, "coefficients": num_kept}, relighter, base_bytes + sum(p.num_bytes for p in payloads)
+            )
+        )
     return out
 
 

@@ -23,26 +23,34 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
 
-from pipeline.bake.indirect import start_indirect_bake, view_samples
 from pipeline.bake.direct.bake import shot_tracer, write_npy
 from pipeline.bake.gather_cloud import create_gathers
+from pipeline.bake.indirect import start_indirect_bake, view_samples
+from pipeline.bake.scheduler import (
+    ChunkSpec,
+    ShotSpec,
+    chunk_ranges,
+    chunk_threads,
+    load_chunk,
+    load_shot,
+    per_process,
+    run_chunks,
+)
 from pipeline.bake.transfer.rows import bounce_rows, final_gather_rows
-from pipeline.bake.scheduler import (ChunkSpec, ShotSpec, chunk_ranges, chunk_threads, load_chunk, load_shot,
-                                     per_process, run_chunks)
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.cache.layer import Payload
 from relight_torch.gbuffer import GBuffer
-from relight_torch.transfer.encoding import ENCODINGS, EncodedRows, EncodedValues, encode_rows
 from relight_torch.indirect_samples import GatherSamples, gather_payload_name
+from relight_torch.transfer.encoding import ENCODINGS, EncodedRows, EncodedValues, encode_rows
 from relight_torch.transfer.haar import haar2d
 from relight_torch.transfer.sparse import SparseRows, concatenate, factor_colour, keep_top_k
 
@@ -89,7 +97,7 @@ class TransferSettings:
     num_threads: int | None = None
     indirect_scale: int | None = None
 
-    def for_view(self, camera: Camera) -> "TransferSettings":
+    def for_view(self, camera: Camera) -> TransferSettings:
         """These settings with the indirect scale resolved for `camera`'s image."""
         if self.indirect_scale is not None:
             return self
@@ -116,9 +124,16 @@ class TransferSettings:
         resolved: see `for_view`)."""
         if self.indirect_scale is None:
             raise ValueError("the indirect scale is sized from the image: resolve it with for_view(camera)")
-        return {"gathers": self.num_gathers, "coefficients": self.num_coefficients, "bounces": self.num_bounces,
-                "bounceCoefficients": self.num_bounce_coefficients, "encoding": self.encoding,
-                "rowColour": int(self.factor_colour), "gatherSeed": self.seed, "indirectScale": self.indirect_scale}
+        return {
+            "gathers": self.num_gathers,
+            "coefficients": self.num_coefficients,
+            "bounces": self.num_bounces,
+            "bounceCoefficients": self.num_bounce_coefficients,
+            "encoding": self.encoding,
+            "rowColour": int(self.factor_colour),
+            "gatherSeed": self.seed,
+            "indirectScale": self.indirect_scale,
+        }
 
 
 def auto_indirect_scale(width: int, height: int) -> int:
@@ -144,8 +159,9 @@ def compress_rows(dense: torch.Tensor, num_kept: int, factor: bool) -> SparseRow
 
 
 @per_process
-def transfer_inputs(shot: ShotSpec, texture_samples: int, num_gathers: int, seed: int) -> tuple[Tracer, GBuffer,
-                                                                                                GatherSamples]:
+def transfer_inputs(
+    shot: ShotSpec, texture_samples: int, num_gathers: int, seed: int
+) -> tuple[Tracer, GBuffer, GatherSamples]:
     """The shot's BVH, view samples (one per pixel centre) and gathers, built once per process."""
     scene, _ = load_shot(shot)
     return shot_tracer(shot), view_samples(shot, texture_samples), create_gathers(scene, num_gathers, seed)
@@ -154,15 +170,19 @@ def transfer_inputs(shot: ShotSpec, texture_samples: int, num_gathers: int, seed
 def _bake_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
     """Evaluate, transform, cull and encode rows [start, stop) of matrix `spec.name` (F_PREFIX or
     M_PREFIX); arrays named as the payload parts. Batches of rows run on `chunk_threads()` threads."""
-    tracer, view, gathers = transfer_inputs(spec.shot, spec.param("textureSamples"), spec.param("gathers"),
-                                            spec.param("gatherSeed"))
+    tracer, view, gathers = transfer_inputs(
+        spec.shot, spec.param("textureSamples"), spec.param("gathers"), spec.param("gatherSeed")
+    )
     side, num_kept = gathers.side, spec.param("coefficients")
     batch = max(1, spec.option("pairsPerBatch", TransferSettings.pairs_per_batch) // (side * side))
 
     def work(start: int) -> SparseRows:
         rows = slice(start, min(start + batch, spec.stop))
-        block = (final_gather_rows(view, rows, gathers, tracer) if spec.name == F_PREFIX
-                 else bounce_rows(rows, gathers, tracer))
+        block = (
+            final_gather_rows(view, rows, gathers, tracer)
+            if spec.name == F_PREFIX
+            else bounce_rows(rows, gathers, tracer)
+        )
         return compress_rows(block.reshape(-1, side, side, 3), num_kept, bool(spec.param("rowColour")))
 
     with ThreadPoolExecutor(spec.option("threads") or chunk_threads()) as pool:
@@ -171,8 +191,16 @@ def _bake_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
     return encode_rows(concatenate(parts), spec.param("encoding")).arrays()
 
 
-def bake_rows(shot: ShotSpec, name: str, num_rows: int, num_kept: int, texture_samples: int,
-              settings: TransferSettings, chunk_dir: Path, progress: bool | None = None) -> EncodedRows:
+def bake_rows(
+    shot: ShotSpec,
+    name: str,
+    num_rows: int,
+    num_kept: int,
+    texture_samples: int,
+    settings: TransferSettings,
+    chunk_dir: Path,
+    progress: bool | None = None,
+) -> EncodedRows:
     """All rows of matrix `name` (F_PREFIX or M_PREFIX) in chunks on the ambient scheduler
     (`pipeline.bake.scheduler`), reusing the valid chunks `chunk_dir` already holds.
 
@@ -182,31 +210,43 @@ def bake_rows(shot: ShotSpec, name: str, num_rows: int, num_kept: int, texture_s
         texture_samples: of the view samples.
         chunk_dir: where finished chunks are saved.
     """
-    parameters = (("textureSamples", texture_samples), ("gathers", settings.num_gathers),
-                  ("gatherSeed", settings.seed), ("coefficients", num_kept), ("encoding", settings.encoding),
-                  ("rowColour", settings.factor_colour))
+    parameters = (
+        ("textureSamples", texture_samples),
+        ("gathers", settings.num_gathers),
+        ("gatherSeed", settings.seed),
+        ("coefficients", num_kept),
+        ("encoding", settings.encoding),
+        ("rowColour", settings.factor_colour),
+    )
     options = (("pairsPerBatch", settings.pairs_per_batch), ("threads", settings.num_threads))
-    specs = [ChunkSpec(shot, name, parameters, start, stop, options)
-             for start, stop in chunk_ranges(num_rows, settings.rows_per_chunk)]
+    specs = [
+        ChunkSpec(shot, name, parameters, start, stop, options)
+        for start, stop in chunk_ranges(num_rows, settings.rows_per_chunk)
+    ]
     num_gathers = settings.num_gathers
-    chunks = [EncodedRows.from_arrays(load_chunk(path), num_gathers)
-              for path in run_chunks(_bake_chunk, specs, chunk_dir, f"{name} rows", "rows", progress)]
+    chunks = [
+        EncodedRows.from_arrays(load_chunk(path), num_gathers)
+        for path in run_chunks(_bake_chunk, specs, chunk_dir, f"{name} rows", "rows", progress)
+    ]
     starts = np.cumsum([0] + [int(c.offsets[-1]) for c in chunks[:-1]])
-    offsets = torch.cat([chunks[0].offsets[:1]] + [c.offsets[1:] + int(s) for c, s in zip(chunks, starts)])
+    offsets = torch.cat([chunks[0].offsets[:1]] + [c.offsets[1:] + int(s) for c, s in zip(chunks, starts, strict=True)])
 
     def join(get: Callable[[EncodedRows], torch.Tensor]) -> torch.Tensor:
         return torch.cat([get(c) for c in chunks])
 
     colour = None if chunks[0].row_colour is None else join(lambda c: c.row_colour)
-    values = EncodedValues(join(lambda c: c.values.stored), join(lambda c: c.values.scale),
-                           join(lambda c: c.values.low))
+    values = EncodedValues(
+        join(lambda c: c.values.stored), join(lambda c: c.values.scale), join(lambda c: c.values.low)
+    )
     return EncodedRows(values, join(lambda c: c.indices), offsets, num_gathers, colour)
 
 
 def matrix_payloads(out_dir: Path, stem: str, prefix: str, rows: EncodedRows) -> list[Payload]:
     """Write the parts of one matrix as `<stem>.<prefix><Part>.npy`; their payload records."""
-    return [write_npy(Path(out_dir) / f"{stem}.{prefix}{part}.npy", np.ascontiguousarray(array), name=prefix + part)
-            for part, array in rows.arrays().items()]
+    return [
+        write_npy(Path(out_dir) / f"{stem}.{prefix}{part}.npy", np.ascontiguousarray(array), name=prefix + part)
+        for part, array in rows.arrays().items()
+    ]
 
 
 def reduced_view(scene: Scene, camera: Camera, scale: int) -> tuple[Scene, Camera]:
@@ -220,14 +260,24 @@ def reduced_view(scene: Scene, camera: Camera, scale: int) -> tuple[Scene, Camer
         return scene, camera
     if camera.width % scale or camera.height % scale:
         raise ValueError(f"the indirect scale {scale} must divide the image size {camera.width}x{camera.height}")
-    cameras = {path: dataclasses.replace(c, width=c.width // scale, height=c.height // scale)
-               for path, c in scene.cameras.items()}
+    cameras = {
+        path: dataclasses.replace(c, width=c.width // scale, height=c.height // scale)
+        for path, c in scene.cameras.items()
+    }
     return dataclasses.replace(scene, cameras=cameras), cameras[camera.path]
 
 
-def bake_transfer(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, supersampling: int = 2,
-                  texture_samples: int = 2, time_code: float | None = None,
-                  settings: TransferSettings = TransferSettings(), progress: bool | None = None) -> Path:
+def bake_transfer(
+    scene: Scene,
+    camera: Camera,
+    out_dir: str | Path,
+    stem: str,
+    supersampling: int = 2,
+    texture_samples: int = 2,
+    time_code: float | None = None,
+    settings: TransferSettings = TransferSettings(),
+    progress: bool | None = None,
+) -> Path:
     """Bake the transfer cache of `camera`; returns the cache layer's path.
 
     Args:
@@ -243,24 +293,38 @@ def bake_transfer(scene: Scene, camera: Camera, out_dir: str | Path, stem: str, 
     settings = settings.for_view(camera)
     settings.check()
     reduced_view(scene, camera, settings.indirect_scale)
-    bake = start_indirect_bake(scene, camera, out_dir, stem, "transfer", settings.parameters(), supersampling,
-                               texture_samples, time_code)
+    bake = start_indirect_bake(
+        scene, camera, out_dir, stem, "transfer", settings.parameters(), supersampling, texture_samples, time_code
+    )
     chunk_dir = bake.chunk_dir
 
     shot = ShotSpec.of(*reduced_view(scene, camera, settings.indirect_scale), time_code)
     _, view, gathers = transfer_inputs(shot, texture_samples, settings.num_gathers, settings.seed)
     payloads = [bake.payload(stem, "viewPixels", view.pixel_index.numpy())]
     if settings.indirect_scale > 1:  # what the edge-aware upsampling weighs the coarse samples by
-        payloads += [bake.payload(stem, "viewPosition", view.position.numpy()),
-                     bake.payload(stem, "viewNormal", view.geometric_normal.numpy()),
-                     bake.payload(stem, "viewObjectId", view.object_id.numpy())]
-    payloads += [bake.payload(stem, gather_payload_name(name), getattr(gathers, name).numpy())
-                 for name in (f.name for f in dataclasses.fields(GatherSamples))]
-    final_gather = bake_rows(shot, F_PREFIX, view.num_samples, settings.num_coefficients, texture_samples,
-                             settings, chunk_dir, progress)
+        payloads += [
+            bake.payload(stem, "viewPosition", view.position.numpy()),
+            bake.payload(stem, "viewNormal", view.geometric_normal.numpy()),
+            bake.payload(stem, "viewObjectId", view.object_id.numpy()),
+        ]
+    payloads += [
+        bake.payload(stem, gather_payload_name(name), getattr(gathers, name).numpy())
+        for name in (f.name for f in dataclasses.fields(GatherSamples))
+    ]
+    final_gather = bake_rows(
+        shot, F_PREFIX, view.num_samples, settings.num_coefficients, texture_samples, settings, chunk_dir, progress
+    )
     payloads += matrix_payloads(bake.out_dir, stem, F_PREFIX, final_gather)
     if settings.num_bounces > 1:
-        bounce = bake_rows(shot, M_PREFIX, gathers.num_gathers, settings.num_bounce_coefficients, texture_samples,
-                           settings, chunk_dir, progress)
+        bounce = bake_rows(
+            shot,
+            M_PREFIX,
+            gathers.num_gathers,
+            settings.num_bounce_coefficients,
+            texture_samples,
+            settings,
+            chunk_dir,
+            progress,
+        )
         payloads += matrix_payloads(bake.out_dir, stem, M_PREFIX, bounce)
     return bake.finish(payloads)

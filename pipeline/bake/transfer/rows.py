@@ -27,12 +27,11 @@ import numpy as np
 import torch
 
 from relight_torch.gbuffer import GBuffer
+from relight_torch.indirect_samples import GatherSamples
 from relight_torch.math.frame import orthonormal_basis, to_local
 from relight_torch.math.sampling import concentric_disk
 from relight_torch.shading import reflected_radiance
-from relight_torch.indirect_samples import GatherSamples
 from relight_torch.visibility.rays import RayCaster
-
 
 NEAR_RADII = 6.0
 """Receiver-gather pairs closer than this many gather disc radii sqrt(A_g / pi) are integrated over the disc."""
@@ -48,18 +47,24 @@ def _disc_pattern(num_points: int, dtype: torch.dtype) -> torch.Tensor:
     return concentric_disk(grid)[0]
 
 
-def _shadowed(caster: RayCaster, points: torch.Tensor, normals: torch.Tensor, wi_world: torch.Tensor,
-              distance: torch.Tensor) -> torch.Tensor:
+def _shadowed(
+    caster: RayCaster, points: torch.Tensor, normals: torch.Tensor, wi_world: torch.Tensor, distance: torch.Tensor
+) -> torch.Tensor:
     """(N,) bool: the segment from each receiver to its target (N, 3 each; `distance` (N,)) is blocked."""
     directions = wi_world.numpy().astype(np.float32)
-    origins = caster.offset_origins(points.numpy().astype(np.float32), normals.numpy().astype(np.float32),
-                                    directions)
+    origins = caster.offset_origins(points.numpy().astype(np.float32), normals.numpy().astype(np.float32), directions)
     t_far = (distance.numpy() - 2.0 * caster.epsilon).astype(np.float32)
     return torch.from_numpy(caster.occluded(origins, directions, np.maximum(t_far, 0.0)))
 
 
-def _disc_transport(points: torch.Tensor, normals: torch.Tensor, gathers: GatherSamples, rows: torch.Tensor,
-                    cols: torch.Tensor, caster: RayCaster) -> tuple[torch.Tensor, torch.Tensor]:
+def _disc_transport(
+    points: torch.Tensor,
+    normals: torch.Tensor,
+    gathers: GatherSamples,
+    rows: torch.Tensor,
+    cols: torch.Tensor,
+    caster: RayCaster,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Near-field pairs integrated over the gather's disc.
 
     Args:
@@ -89,8 +94,9 @@ def _disc_transport(points: torch.Tensor, normals: torch.Tensor, gathers: Gather
     weight = torch.where(live, cos_gather * part / (squared + part / math.pi), 0.0)
     pair, point = torch.nonzero(live, as_tuple=True)
     if pair.numel():
-        blocked = _shadowed(caster, points[rows[pair]], normals[rows[pair]], wi_points[pair, point],
-                            distance[pair, point])
+        blocked = _shadowed(
+            caster, points[rows[pair]], normals[rows[pair]], wi_points[pair, point], distance[pair, point]
+        )
         weight[pair[blocked], point[blocked]] = 0.0
     tiny = torch.finfo(points.dtype).tiny
     cos_receiver = (wi_points * normals[rows].unsqueeze(1)).sum(-1)
@@ -102,8 +108,9 @@ def _disc_transport(points: torch.Tensor, normals: torch.Tensor, gathers: Gather
     return mean, (weight * cos_receiver).sum(1) / cos_mean
 
 
-def gather_transport(points: torch.Tensor, normals: torch.Tensor, gathers: GatherSamples,
-                     caster: RayCaster) -> tuple[torch.Tensor, torch.Tensor]:
+def gather_transport(
+    points: torch.Tensor, normals: torch.Tensor, gathers: GatherSamples, caster: RayCaster
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Directions to every gather and the clamped, shadowed geometric term.
 
     Args:
@@ -143,8 +150,9 @@ def final_gather_rows(view: GBuffer, rows: slice, gathers: GatherSamples, caster
     frame = (view.tangent[rows, None], view.bitangent[rows, None], view.normal[rows, None])
     wo_local = to_local(view.wo_world()[rows], *(f[:, 0] for f in frame))
     wi_local = to_local(wi_world, *frame)
-    return reflected_radiance(view.params.index(rows).with_sample_axis(), wo_local.unsqueeze(1), wi_local,
-                              weight.unsqueeze(-1))
+    return reflected_radiance(
+        view.params.index(rows).with_sample_axis(), wo_local.unsqueeze(1), wi_local, weight.unsqueeze(-1)
+    )
 
 
 def bounce_rows(rows: slice, gathers: GatherSamples, caster: RayCaster) -> torch.Tensor:

@@ -1,12 +1,12 @@
 """The bench's charts, PNG files a person can read without the CSV.
 
-    speed_accuracy.png      per scene: PSNR under the shot's lights against relight ms on a log axis,
-                            every point of every method, each method's Pareto front as a line, and
-                            the path tracer rows (hollow: same time; cross: same PSNR, labelled with
-                            the best speed-up; both are measured under the shot's lights)
-    params_<method>.png     per scene: PSNR and relight ms against the method's swept parameter
-                            (`chart_axes[0]` of its adapter), one curve per combination of the other
-                            parameters that vary (`chart_axes[1]` named first)
+speed_accuracy.png      per scene: PSNR under the shot's lights against relight ms on a log axis,
+                        every point of every method, each method's Pareto front as a line, and
+                        the path tracer rows (hollow: same time; cross: same PSNR, labelled with
+                        the best speed-up; both are measured under the shot's lights)
+params_<method>.png     per scene: PSNR and relight ms against the method's swept parameter
+                        (`chart_axes[0]` of its adapter), one curve per combination of the other
+                        parameters that vary (`chart_axes[1]` named first)
 """
 
 from __future__ import annotations
@@ -90,25 +90,38 @@ def speed_accuracy_chart(rows: list[SweepRow], path: Path) -> Path:
             compared = [r for r in rows if r.scene == scene and r.parameters().get("vs") == method]
             same_time = [r for r in compared if r.method == "reference-equal-time"]
             same_psnr = [r for r in compared if r.method == "reference-full"]
-            axes.scatter([r.relight_ms for r in same_time], [r.psnr_db for r in same_time], facecolors="none",
-                         edgecolors=colour, s=36)
-            axes.scatter([r.relight_ms for r in same_psnr], [r.psnr_db for r in same_psnr], marker="x",
-                         color=colour, s=36)
+            axes.scatter(
+                [r.relight_ms for r in same_time],
+                [r.psnr_db for r in same_time],
+                facecolors="none",
+                edgecolors=colour,
+                s=36,
+            )
+            axes.scatter(
+                [r.relight_ms for r in same_psnr], [r.psnr_db for r in same_psnr], marker="x", color=colour, s=36
+            )
             if same_psnr:
                 best = max(same_psnr, key=lambda r: float(r.parameters()["speedup"]))
                 bound = ">= " if best.parameters()["bound"] == "lower" else ""
                 speedup = float(best.parameters()["speedup"])
-                axes.annotate(f"{bound}{speedup:.0f}x" if speedup >= 10 else f"{bound}{speedup:.1f}x",
-                              (best.relight_ms, best.psnr_db),
-                              textcoords="offset points", xytext=(4, 4), fontsize=8, color=colour)
+                axes.annotate(
+                    f"{bound}{speedup:.0f}x" if speedup >= 10 else f"{bound}{speedup:.1f}x",
+                    (best.relight_ms, best.psnr_db),
+                    textcoords="offset points",
+                    xytext=(4, 4),
+                    fontsize=8,
+                    color=colour,
+                )
         _log_axis(axes, "x")
         axes.set_xlabel(f"relight time per light move, ms (log; {first.device})")
         axes.set_ylabel("PSNR against the path tracer, dB (shot's lights)")
         axes.set_title(f"{scene} {first.width}x{first.height}: line = Pareto front, faint = other points")
         axes.grid(True, which="both", alpha=0.3)
         handles, labels = axes.get_legend_handles_labels()
-        handles += [Line2D([], [], ls="", marker="o", mfc="none", color="grey"),
-                    Line2D([], [], ls="", marker="x", color="grey")]
+        handles += [
+            Line2D([], [], ls="", marker="o", mfc="none", color="grey"),
+            Line2D([], [], ls="", marker="x", color="grey"),
+        ]
         labels += ["path tracer in the method's time", "path tracer to the method's PSNR (speed-up)"]
         axes.legend(handles, labels, fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     return _save(figure, path)
@@ -120,8 +133,10 @@ def parameter_chart(rows: list[SweepRow], method: str, x_key: str, series_key: s
     scenes = [scene for scene in dict.fromkeys(row.scene for row in rows) if (scene, method) in by_method]
     figure = Figure(figsize=(5.6 * len(scenes), 7.2))
     for index, scene in enumerate(scenes):
-        measured = [(dict(item.split("=", 1) for item in params.split()), mean_psnr, ms)
-                    for params, mean_psnr, ms in by_method[(scene, method)]]
+        measured = [
+            (dict(item.split("=", 1) for item in params.split()), mean_psnr, ms)
+            for params, mean_psnr, ms in by_method[(scene, method)]
+        ]
         # One curve per combination of the other parameters that vary (series_key first).
         varying = [key for key in measured[0][0] if key != x_key and len({v.get(key) for v, _, _ in measured}) > 1]
         varying.sort(key=lambda key: key != series_key)

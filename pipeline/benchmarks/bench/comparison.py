@@ -82,8 +82,17 @@ def measure_spp_curve(references: References, bounces: int, spp: tuple[int, ...]
     seconds = np.asarray([render.seconds for render in renders])
     counts = np.asarray(spp, float)
     per_spp, fixed = np.polyfit(counts, seconds, 1) if len(set(spp)) > 1 else (seconds.mean() / counts[0], 0.0)
-    return SppCurve(bounces, tuple(spp), tuple(float(s) for s in seconds), tuple(float(m) for m in mse),
-                    references.spp, reference.seconds, noise, max(float(per_spp), 1e-12), float(fixed))
+    return SppCurve(
+        bounces,
+        tuple(spp),
+        tuple(float(s) for s in seconds),
+        tuple(float(m) for m in mse),
+        references.spp,
+        reference.seconds,
+        noise,
+        max(float(per_spp), 1e-12),
+        float(fixed),
+    )
 
 
 def comparison_rows(rows: list[SweepRow], curves: dict[tuple[str, int], SppCurve]) -> list[SweepRow]:
@@ -100,35 +109,74 @@ def comparison_rows(rows: list[SweepRow], curves: dict[tuple[str, int], SppCurve
         curve = curves[(row.scene, int(row.parameters()["bounces"]))]
         base = {"vs": row.method, **row.parameters()}
         equal_spp = row.relight_ms / 1e3 / curve.seconds_per_spp
-        out.append(SweepRow("reference-equal-time", row.scene, row.width, row.height, row.light_edit,
-                            format_params({**base, "spp": f"{equal_spp:.4g}"}),
-                            psnr_from_mse(curve.mse_at(equal_spp)), NAN, NAN, NAN, NAN, row.relight_ms, "cpu"))
+        out.append(
+            SweepRow(
+                "reference-equal-time",
+                row.scene,
+                row.width,
+                row.height,
+                row.light_edit,
+                format_params({**base, "spp": f"{equal_spp:.4g}"}),
+                psnr_from_mse(curve.mse_at(equal_spp)),
+                NAN,
+                NAN,
+                NAN,
+                NAN,
+                row.relight_ms,
+                "cpu",
+            )
+        )
         needed = curve.spp_for(10 ** (-row.psnr_db / 10))
         bound = "lower" if math.isinf(needed) else "fit"
         needed = curve.reference_spp if math.isinf(needed) else needed
         full_ms = 1e3 * needed * curve.seconds_per_spp
-        out.append(SweepRow("reference-full", row.scene, row.width, row.height, row.light_edit,
-                            format_params({**base, "spp": f"{needed:.4g}", "bound": bound,
-                                           "speedup": f"{full_ms / row.relight_ms:.4g}"}),
-                            row.psnr_db, NAN, NAN, NAN, NAN, full_ms, "cpu"))
+        out.append(
+            SweepRow(
+                "reference-full",
+                row.scene,
+                row.width,
+                row.height,
+                row.light_edit,
+                format_params(
+                    {**base, "spp": f"{needed:.4g}", "bound": bound, "speedup": f"{full_ms / row.relight_ms:.4g}"}
+                ),
+                row.psnr_db,
+                NAN,
+                NAN,
+                NAN,
+                NAN,
+                full_ms,
+                "cpu",
+            )
+        )
     return out
 
 
 def summary(rows: list[SweepRow]) -> str:
     """One line per (scene, method): its point with the largest speed-up over the path tracer at
     equal PSNR, with the path tracer's PSNR in the method's time beside it."""
-    lines = [f"{'scene':12} {'method':10} {'PSNR dB':>8} {'relight ms':>11} {'tracer spp':>11} {'tracer ms':>11} "
-             f"{'speed-up':>9} {'tracer dB at equal time':>24}  params"]
+    lines = [
+        f"{'scene':12} {'method':10} {'PSNR dB':>8} {'relight ms':>11} {'tracer spp':>11} {'tracer ms':>11} "
+        f"{'speed-up':>9} {'tracer dB at equal time':>24}  params"
+    ]
     full = [r for r in rows if r.method == "reference-full"]
     for key in dict.fromkeys((r.scene, r.parameters()["vs"]) for r in full):
-        best = max((r for r in full if (r.scene, r.parameters()["vs"]) == key),
-                   key=lambda r: float(r.parameters()["speedup"]))
+        best = max(
+            (r for r in full if (r.scene, r.parameters()["vs"]) == key), key=lambda r: float(r.parameters()["speedup"])
+        )
         parameters = best.parameters()
         method_params = best.params.split(" spp=")[0]
-        equal = next(r for r in rows if r.method == "reference-equal-time" and r.scene == best.scene
-                     and r.params.split(" spp=")[0] == method_params)
+        equal = next(
+            r
+            for r in rows
+            if r.method == "reference-equal-time"
+            and r.scene == best.scene
+            and r.params.split(" spp=")[0] == method_params
+        )
         bound = ">=" if parameters["bound"] == "lower" else ""
-        lines.append(f"{best.scene:12} {key[1]:10} {best.psnr_db:8.2f} {equal.relight_ms:11.1f} "
-                     f"{bound + parameters['spp']:>11} {best.relight_ms:11.0f} {bound + parameters['speedup'] + 'x':>9} "
-                     f"{equal.psnr_db:24.2f}  {method_params.split(' ', 1)[1]}")
+        lines.append(
+            f"{best.scene:12} {key[1]:10} {best.psnr_db:8.2f} {equal.relight_ms:11.1f} "
+            f"{bound + parameters['spp']:>11} {best.relight_ms:11.0f} {bound + parameters['speedup'] + 'x':>9} "
+            f"{equal.psnr_db:24.2f}  {method_params.split(' ', 1)[1]}"
+        )
     return "\n".join(lines)

@@ -23,9 +23,9 @@ from pipeline.benchmarks.bench.methods import BenchScene
 from pipeline.benchmarks.rows import NAN, SweepRow, format_params
 from pipeline.tracing_bench import median_seconds
 from relight_torch.cache.layer import read_cache_layer
+from relight_torch.direct.relighter import shot_lights
 from relight_torch.lights.light import Light
 from relight_torch.metrics import psnr, rel_mse
-from relight_torch.direct.relighter import shot_lights
 
 
 def moved(light: Light, fraction: float) -> Light:
@@ -76,8 +76,16 @@ def device_name(device: str) -> str:
     return "cpu"
 
 
-def relit_rows(relighter, layer: Path, scene: BenchScene, method: str, parameters: dict[str, object],
-               bounces: int, num_bytes: float, bake_s: float) -> list[SweepRow]:
+def relit_rows(
+    relighter,
+    layer: Path,
+    scene: BenchScene,
+    method: str,
+    parameters: dict[str, object],
+    bounces: int,
+    num_bytes: float,
+    bake_s: float,
+) -> list[SweepRow]:
     """Relight under every edit of `scene` and compare with the `bounces`-bounce reference.
 
     Args:
@@ -99,13 +107,30 @@ def relit_rows(relighter, layer: Path, scene: BenchScene, method: str, parameter
         relighter.set_lights(shot_lights(description, lights_layer))
         image = relighter.render().cpu().numpy()
         reference = scene.references.full(edit, bounces)
-        indirect = (psnr(relighter.indirect_image().cpu().numpy(), scene.references.indirect(edit, bounces))
-                    if bounces > 0 else NAN)
+        indirect = (
+            psnr(relighter.indirect_image().cpu().numpy(), scene.references.indirect(edit, bounces))
+            if bounces > 0
+            else NAN
+        )
         if edit == "shot":
             timing = relight_ms(relighter, scene.repeats, scene.device)
-        rows.append(SweepRow(method, scene.name, scene.width, scene.height, edit, params,
-                             psnr(image, reference), indirect, rel_mse(image, reference), float(num_bytes),
-                             bake_s, timing, device_name(scene.device)))
+        rows.append(
+            SweepRow(
+                method,
+                scene.name,
+                scene.width,
+                scene.height,
+                edit,
+                params,
+                psnr(image, reference),
+                indirect,
+                rel_mse(image, reference),
+                float(num_bytes),
+                bake_s,
+                timing,
+                device_name(scene.device),
+            )
+        )
     return rows
 
 
@@ -117,6 +142,17 @@ def run_point(adapter: MethodAdapter, scene: BenchScene, point: dict[str, object
     start = time.perf_counter()
     layer = adapter.bake(stage, camera, directory, scene.name, point, scene.supersampling, scene.texture_samples)
     bake_s = time.perf_counter() - start
-    return [row for variant in adapter.variants(layer, point, scene.device)
-            for row in relit_rows(variant.relighter, layer, scene, adapter.name, variant.parameters,
-                                  adapter.bounces(point), variant.cache_bytes, bake_s)]
+    return [
+        row
+        for variant in adapter.variants(layer, point, scene.device)
+        for row in relit_rows(
+            variant.relighter,
+            layer,
+            scene,
+            adapter.name,
+            variant.parameters,
+            adapter.bounces(point),
+            variant.cache_bytes,
+            bake_s,
+        )
+    ]

@@ -60,8 +60,9 @@ class BenchScene:
 
     def cache_dir(self, method: str, point: dict[str, object]) -> Path:
         """`directory / '<method>-<key>-<value>-...'`: one cache directory per bake configuration."""
-        parts = [method] + [f"{key}-{'_'.join(map(str, value)) if isinstance(value, tuple) else value}"
-                            for key, value in point.items()]
+        parts = [method] + [
+            f"{key}-{'_'.join(map(str, value)) if isinstance(value, tuple) else value}" for key, value in point.items()
+        ]
         return self.directory / "-".join(parts)
 
 

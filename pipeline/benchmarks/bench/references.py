@@ -30,18 +30,27 @@ class References:
         seed: the reference's sampling seed.
     """
 
-    def __init__(self, shot: Path, camera: str, width: int, height: int, edits: dict[str, Path | None],
-                 spp: int, directory: Path, seed: int = 0):
+    def __init__(
+        self,
+        shot: Path,
+        camera: str,
+        width: int,
+        height: int,
+        edits: dict[str, Path | None],
+        spp: int,
+        directory: Path,
+        seed: int = 0,
+    ):
         self.shot, self.camera, self.width, self.height = shot, camera, width, height
         self.edits, self.spp, self.directory, self.seed = edits, spp, Path(directory), seed
         self._images: dict[tuple[str, int, int, int], ReferenceImage] = {}
 
     def path(self, edit: str, bounces: int, spp: int, seed: int) -> Path:
-        return (self.directory / f"{self.shot.stem}-{edit}-{self.width}x{self.height}-b{bounces}-spp{spp}"
-                f"-seed{seed}.npz")
+        return self.directory / f"{self.shot.stem}-{edit}-{self.width}x{self.height}-b{bounces}-spp{spp}-seed{seed}.npz"
 
-    def render(self, edit: str, bounces: int, spp: int | None = None, seed: int | None = None,
-               fresh: bool = False) -> ReferenceImage:
+    def render(
+        self, edit: str, bounces: int, spp: int | None = None, seed: int | None = None, fresh: bool = False
+    ) -> ReferenceImage:
         """The path tracer's image of `edit` with `bounces` indirect bounces.
 
         Args:
@@ -57,14 +66,26 @@ class References:
             if fresh or not path.is_file():
                 scene = load_scene(self.shot, lights_layer=self.edits[edit], width=self.width, height=self.height)
                 image = PathTracer(scene, ReferenceSettings(spp=spp, max_bounces=bounces, seed=seed)).render(
-                    find_camera(scene, self.camera))
+                    find_camera(scene, self.camera)
+                )
                 self.directory.mkdir(parents=True, exist_ok=True)
                 with atomic_path(path) as temp, open(temp, "wb") as handle:
-                    np.savez(handle, mean=image.mean, variance=image.variance, seconds=np.float64(image.seconds),
-                             num_paths=np.int64(image.num_paths), num_vertices=np.int64(image.num_vertices))
+                    np.savez(
+                        handle,
+                        mean=image.mean,
+                        variance=image.variance,
+                        seconds=np.float64(image.seconds),
+                        num_paths=np.int64(image.num_paths),
+                        num_vertices=np.int64(image.num_vertices),
+                    )
             with np.load(path, allow_pickle=False) as saved:
-                self._images[key] = ReferenceImage(saved["mean"], saved["variance"], float(saved["seconds"]),
-                                                   int(saved["num_paths"]), int(saved["num_vertices"]))
+                self._images[key] = ReferenceImage(
+                    saved["mean"],
+                    saved["variance"],
+                    float(saved["seconds"]),
+                    int(saved["num_paths"]),
+                    int(saved["num_vertices"]),
+                )
         return self._images[key]
 
     def full(self, edit: str, bounces: int) -> np.ndarray:

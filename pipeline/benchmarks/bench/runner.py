@@ -59,8 +59,9 @@ class BenchConfig:
     @classmethod
     def quick_run(cls, out: Path, **overrides) -> BenchConfig:
         """The `--quick` configuration: the Cornell box at 24x24, small grids and references."""
-        settings = dict(out=out, quick=True, scenes=("cornell_box",), width=24, height=24, spp=32,
-                        curve_spp=(1, 4), repeats=3)
+        settings = dict(
+            out=out, quick=True, scenes=("cornell_box",), width=24, height=24, spp=32, curve_spp=(1, 4), repeats=3
+        )
         return cls(**{**settings, **overrides})
 
 
@@ -80,19 +81,33 @@ def prepare_scene(name: str, config: BenchConfig) -> BenchScene:
     shot = bundled.write(directory)
     edits = light_edit_layers(name, directory)
     edits = {edit: layer for edit, layer in edits.items() if config.edits is None or edit in {"shot", *config.edits}}
-    references = References(shot, bundled.camera, config.width, config.height, edits, config.spp,
-                            config.out / "references")
-    return BenchScene(name, shot, bundled.camera, config.width, config.height, edits, config.out / "caches" / name,
-                      config.device, config.repeats, references)
+    references = References(
+        shot, bundled.camera, config.width, config.height, edits, config.spp, config.out / "references"
+    )
+    return BenchScene(
+        name,
+        shot,
+        bundled.camera,
+        config.width,
+        config.height,
+        edits,
+        config.out / "caches" / name,
+        config.device,
+        config.repeats,
+        references,
+    )
 
 
 def context(config: BenchConfig) -> dict[str, object]:
     """What the rows were measured on (the JSON's context). The output folder is left out: the JSON
     lies in it, and its absolute path would only name the machine the bench ran on."""
     settings = {key: value for key, value in asdict(config).items() if key != "out"}
-    return {**{key: str(value) if isinstance(value, Path) else value for key, value in settings.items()},
-            "torch_threads": torch.get_num_threads(), "machine": platform.machine(),
-            "processor": platform.processor() or platform.machine()}
+    return {
+        **{key: str(value) if isinstance(value, Path) else value for key, value in settings.items()},
+        "torch_threads": torch.get_num_threads(),
+        "machine": platform.machine(),
+        "processor": platform.processor() or platform.machine(),
+    }
 
 
 def run_bench(config: BenchConfig, log=print) -> BenchResult:
@@ -115,8 +130,11 @@ def run_bench(config: BenchConfig, log=print) -> BenchResult:
         result.rows += method_rows + comparison_rows(method_rows, result.curves)
     csv_path, json_path = config.out / "bench.csv", config.out / "bench.json"
     write_csv(result.rows, csv_path)
-    write_json(result.rows, json_path, {**context(config),
-                                        "spp_curves": {f"{s}/b{b}": asdict(c) for (s, b), c in result.curves.items()}})
+    write_json(
+        result.rows,
+        json_path,
+        {**context(config), "spp_curves": {f"{s}/b{b}": asdict(c) for (s, b), c in result.curves.items()}},
+    )
     summary_path = config.out / "summary.txt"
     write_text_atomic(summary_path, summary(result.rows) + "\n")
     result.files = [csv_path, json_path, summary_path, *write_charts(result.rows, config.out)]
