@@ -9,6 +9,7 @@ the base scales and sums them, per light for the image and per light group for t
 from __future__ import annotations
 
 import dataclasses
+from typing import Generic, TypeVar
 
 import numpy as np
 import torch
@@ -17,6 +18,9 @@ from relight_torch.direct.relighter import Relighter, colour_scale, light_group
 from relight_torch.lights.emission import is_delta_light
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.protocol import refuse_material_edit
+
+StateT = TypeVar("StateT")
+"""A subclass's cached indirect work per light."""
 
 
 def light_snapshot(value: object) -> object:
@@ -34,7 +38,7 @@ def gather_light_key(unit: Light) -> object:
     return light_snapshot(dataclasses.replace(unit, light_group="", specular=1.0))
 
 
-class IndirectRelighter:
+class IndirectRelighter(Generic[StateT]):
     """Base of `TransferRelighter` and `GatherRelighter`.
 
     Subclasses set `self.view_pixels` ((R,) int64 pixel row * W + col of each view sample of the
@@ -51,7 +55,7 @@ class IndirectRelighter:
 
     def __init__(self, direct: Relighter):
         self.direct = direct
-        self._per_light: dict[str, object] = {}
+        self._per_light: dict[str, StateT] = {}
 
     @property
     def lights(self) -> list[Light]:

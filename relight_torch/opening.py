@@ -13,10 +13,10 @@ from relight_torch.protocol import CacheRelighter
 
 
 def open_cache(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     device: str | torch.device = "cpu",
     shadows: str = "embree",
-    lights_layer: str | os.PathLike | None = None,
+    lights_layer: str | os.PathLike[str] | None = None,
     settings: RelightSettings = RelightSettings(),
 ) -> CacheRelighter:
     """The relighter of a cache layer, by the method the layer records (`relight_torch.methods`).

@@ -116,7 +116,7 @@ class CacheDescription:
         )
 
 
-def file_sha256(path: str | os.PathLike) -> str:
+def file_sha256(path: str | os.PathLike[str]) -> str:
     """Hex sha256 of a file's bytes, read in 1 MB blocks."""
     digest = hashlib.sha256()
     with open(path, "rb") as handle:
@@ -154,7 +154,7 @@ def _anchored(relative: str) -> str:
     return f"./{relative}"
 
 
-def shot_units(source: str | os.PathLike) -> tuple[str, float]:
+def shot_units(source: str | os.PathLike[str]) -> tuple[str, float]:
     """(upAxis, metersPerUnit) of a shot, from its root layer's metadata (USD's fallbacks if unset).
 
     Raises:
@@ -174,7 +174,7 @@ def shot_units(source: str | os.PathLike) -> tuple[str, float]:
     return str(up_axis), float(meters_per_unit)
 
 
-def write_cache_layer(path: str | os.PathLike, description: CacheDescription) -> None:
+def write_cache_layer(path: str | os.PathLike[str], description: CacheDescription) -> None:
     """Author the cache layer atomically. Payload files must already be written beside it.
 
     Raises:
@@ -226,7 +226,7 @@ def write_cache_layer(path: str | os.PathLike, description: CacheDescription) ->
             raise OSError(f"{path}: could not write the cache layer")
 
 
-def is_cache_layer(path: str | os.PathLike) -> bool:
+def is_cache_layer(path: str | os.PathLike[str]) -> bool:
     """True when `path` is a USD layer defining a RelightCache prim at CACHE_PRIM (by content, not name)."""
     try:
         layer = Sdf.Layer.FindOrOpen(os.fspath(path))
@@ -316,7 +316,7 @@ def _read_payload(prim: Usd.Prim, path: Path) -> Payload:
     return payload
 
 
-def read_cache_layer(path: str | os.PathLike) -> CacheDescription:
+def read_cache_layer(path: str | os.PathLike[str]) -> CacheDescription:
     """Read a cache layer (payload files are not opened here).
 
     Raises:

@@ -58,7 +58,7 @@ class CacheStatus:
         return "stale" if self.stale_inputs else "valid"
 
 
-def cache_status(path: str | os.PathLike) -> CacheStatus:
+def cache_status(path: str | os.PathLike[str]) -> CacheStatus:
     """Check a cache layer's payloads and inputs without loading the payloads' pixels.
 
     Raises:

@@ -20,10 +20,10 @@ _POINT_FIELDS = {"position": "Position", "normal": "Normal", "albedo": "Albedo",
 
 
 def open_cuts_relighter(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     device: str | torch.device = "cpu",
     shadows: str = "embree",
-    lights_layer: str | os.PathLike | None = None,
+    lights_layer: str | os.PathLike[str] | None = None,
     settings: RelightSettings = RelightSettings(),
     cuts_settings: CutsRelightSettings = CutsRelightSettings(),
 ) -> CutsRelighter:
@@ -35,6 +35,7 @@ def open_cuts_relighter(
     layer_path = Path(path)
     direct = open_relighter(layer_path, device, shadows, lights_layer, settings)
     description = direct.description
+    assert description is not None, "open_relighter sets the layer's description"
     dtype = direct.gbuffer.position.dtype
 
     def load(name: str, tensor_dtype: torch.dtype) -> torch.Tensor:
@@ -44,20 +45,19 @@ def open_cuts_relighter(
         )
 
     try:
+        leaf_directions = leaf_weights = None
+        leaf_points = None
         if description.parameters.get("cutsMode", "env") == "env":
-            leaves = {
-                "leaf_directions": load("cutsLeafDirections", dtype),
-                "leaf_weights": load("cutsLeafWeights", dtype),
-            }
-            num_leaves = leaves["leaf_directions"].shape[0]
+            leaf_directions = load("cutsLeafDirections", dtype)
+            leaf_weights = load("cutsLeafWeights", dtype)
+            num_leaves = leaf_directions.shape[0]
             scale = 1.0 / MEAN_LEVELS
         else:
-            points = GatherSamples(
+            leaf_points = GatherSamples(
                 **{field: load(f"cutsLeaf{name}", dtype) for field, name in _POINT_FIELDS.items()},
                 object_id=load("cutsLeafObjectId", torch.int64),
             )
-            leaves = {"leaf_points": points}
-            num_leaves = points.num_gathers
+            num_leaves = leaf_points.num_gathers
             scale = indirect_scale(num_leaves)
         tree = LightTree.of(num_leaves, device)
         visibility = Cuts(
@@ -65,7 +65,13 @@ def open_cuts_relighter(
         )
         visibility.check(tree)
         cuts = CutsCache(
-            tree, visibility, load("cutsSampleVertices", torch.int64), load("cutsSampleWeights", dtype), **leaves
+            tree,
+            visibility,
+            load("cutsSampleVertices", torch.int64),
+            load("cutsSampleWeights", dtype),
+            leaf_directions,
+            leaf_weights,
+            leaf_points,
         )
         if cuts.sample_vertices.numel() and int(cuts.sample_vertices.max()) >= visibility.num_cuts:
             raise ValueError("a sub-sample names a lattice vertex without a cut")

@@ -416,10 +416,10 @@ class Relighter:
     @classmethod
     def from_cache(
         cls,
-        path: str | os.PathLike,
+        path: str | os.PathLike[str],
         device: str | torch.device = "cpu",
         shadows: str = "embree",
-        lights_layer: str | os.PathLike | None = None,
+        lights_layer: str | os.PathLike[str] | None = None,
         settings: RelightSettings = RelightSettings(),
     ) -> Relighter:
         """The direct relighter of a cache layer, checked before loading: see `open_relighter`."""
@@ -965,10 +965,10 @@ def load_opacity(layer_path: Path, description: CacheDescription) -> OpacityTabl
 
 
 def open_relighter(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     device: str | torch.device = "cpu",
     shadows: str = "embree",
-    lights_layer: str | os.PathLike | None = None,
+    lights_layer: str | os.PathLike[str] | None = None,
     settings: RelightSettings = RelightSettings(),
 ) -> Relighter:
     """A Relighter for a cache layer, with the shot's lights (and `lights_layer`'s edits over them).
@@ -1018,7 +1018,7 @@ def open_relighter(
     return relighter
 
 
-def shot_lights(description: CacheDescription, lights_layer: str | os.PathLike | None = None) -> list[Light]:
+def shot_lights(description: CacheDescription, lights_layer: str | os.PathLike[str] | None = None) -> list[Light]:
     """The lights of the cache's shot, at the baked time, with `lights_layer` composed over them.
 
     Raises:

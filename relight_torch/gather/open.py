@@ -15,10 +15,10 @@ from relight_torch.gather.relighter import DEFAULT_GATHER_SAMPLES, SET_NAMES, Ga
 
 
 def open_gather_relighter(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     device: str | torch.device = "cpu",
     shadows: str = "embree",
-    lights_layer: str | os.PathLike | None = None,
+    lights_layer: str | os.PathLike[str] | None = None,
     settings: RelightSettings = RelightSettings(),
     gather_samples: int = DEFAULT_GATHER_SAMPLES,
 ) -> GatherRelighter:
@@ -31,6 +31,7 @@ def open_gather_relighter(
     layer_path = Path(path)
     direct = open_relighter(layer_path, device, shadows, lights_layer, settings)
     description = direct.description
+    assert description is not None, "open_relighter sets the layer's description"
     dtype = direct.gbuffer.position.dtype
     names = {payload.name for payload in description.payloads}
 
@@ -39,7 +40,7 @@ def open_gather_relighter(
 
     try:
         points = SurfacePoints(
-            *(load(f"gather{field}") for field in ("Position", "Normal", "Albedo")), object_id=load("gatherObject")
+            load("gatherPosition"), load("gatherNormal"), load("gatherAlbedo"), object_id=load("gatherObject")
         ).to(device, dtype)
         sets = {
             lobe: GatherSet(

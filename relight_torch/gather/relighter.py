@@ -23,8 +23,6 @@ from __future__ import annotations
 import collections
 import dataclasses
 import functools
-from typing import cast
-
 import torch
 
 from relight_torch.diffuse_light import diffuse_radiance
@@ -194,7 +192,7 @@ class GatherSet:
         return self.weight.t().contiguous()
 
 
-class GatherRelighter(IndirectRelighter):
+class GatherRelighter(IndirectRelighter[tuple[object, torch.Tensor]]):
     """Direct + clustered-gather indirect relighting of one 'gather' cache.
 
     Args:
@@ -296,8 +294,7 @@ class GatherRelighter(IndirectRelighter):
     def _unit_indirect(self, light: Light) -> torch.Tensor:
         unit = unit_light(light)
         key = gather_light_key(unit)
-        # IndirectRelighter types its per-light cache as objects; this subclass stores only these pairs.
-        cached = cast("tuple[object, torch.Tensor] | None", self._per_light.get(light.path))
+        cached = self._per_light.get(light.path)
         if cached is None or cached[0] != key:
             self.counters["gather_light"] += 1
             cached = (key, self.reconstruct(self.surface_radiance(unit)))

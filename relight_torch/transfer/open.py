@@ -42,10 +42,10 @@ def load_sparse_rows(layer_path: Path, description: CacheDescription, prefix: st
 
 
 def open_transfer_relighter(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     device: str | torch.device = "cpu",
     shadows: str = "embree",
-    lights_layer: str | os.PathLike | None = None,
+    lights_layer: str | os.PathLike[str] | None = None,
     settings: RelightSettings = RelightSettings(),
     cull_tolerance: float = 0.0,
 ) -> TransferRelighter:
@@ -54,6 +54,7 @@ def open_transfer_relighter(
     layer_path = Path(path)
     direct = open_relighter(layer_path, device, shadows, lights_layer, settings)
     description = direct.description
+    assert description is not None, "open_relighter sets the layer's description"
     stored = {payload.name for payload in description.payloads}
     gathers = GatherSamples(
         **{
@@ -79,10 +80,9 @@ def open_transfer_relighter(
             direct.supersampling,
             scale,
             view_pixels,
-            *(
-                _load(layer_path, description, name).to(device)
-                for name in ("viewPosition", "viewNormal", "viewObjectId")
-            ),
+            _load(layer_path, description, "viewPosition").to(device),
+            _load(layer_path, description, "viewNormal").to(device),
+            _load(layer_path, description, "viewObjectId").to(device),
         )
     try:
         return TransferRelighter(

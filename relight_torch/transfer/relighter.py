@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-from typing import cast
-
 import torch
 
 from relight_torch.diffuse_light import link_mask
@@ -39,7 +37,7 @@ class _IndirectState:
     unit_indirect: torch.Tensor | None = None  # (R, 3) its indirect radiance at the F rows
 
 
-class TransferRelighter(IndirectRelighter):
+class TransferRelighter(IndirectRelighter[_IndirectState]):
     """Direct + indirect relighting of one transfer cache.
 
     Args:
@@ -163,8 +161,7 @@ class TransferRelighter(IndirectRelighter):
         unit = unit_light(light)
         gather_light = dataclasses.replace(unit, light_link=None)
         key = gather_light_key(gather_light)
-        # IndirectRelighter types its per-light cache as objects; this subclass stores only these.
-        state = cast("_IndirectState | None", self._per_light.get(light.path))
+        state = self._per_light.get(light.path)
         if state is None or state.gather_key != key:
             settings = self.direct.settings
             num_samples = self._gather_samples(unit, self.gather_samples)
