@@ -28,9 +28,9 @@ def payload_file_path(prim: Usd.Prim) -> str:
     if not asset or not asset.path:
         return ""
     if asset.resolvedPath:
-        return asset.resolvedPath
+        return str(asset.resolvedPath)
     layer = attribute.GetPropertyStack(Usd.TimeCode.Default())[0].layer
-    return layer.ComputeAbsolutePath(asset.path)
+    return str(layer.ComputeAbsolutePath(asset.path))
 
 
 def _error(prim: Usd.Prim, name: str, message: str) -> UsdValidation.ValidationError:
@@ -38,7 +38,7 @@ def _error(prim: Usd.Prim, name: str, message: str) -> UsdValidation.ValidationE
     return UsdValidation.ValidationError(name, UsdValidation.ValidationErrorType.Error, [site], message)
 
 
-def _check_payload_file(prim: Usd.Prim, time_range) -> list[UsdValidation.ValidationError]:
+def _check_payload_file(prim: Usd.Prim, time_range: UsdValidation.ValidationTimeRange) -> list[UsdValidation.ValidationError]:
     """Prim task of PAYLOAD_FILE_VALIDATOR (the time range is unused: nothing is animated)."""
     if prim.GetTypeName() != "RelightPayload":
         return []

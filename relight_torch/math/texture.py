@@ -10,13 +10,19 @@ and torch with 1 thread 1.7x faster than numpy, but setting torch's thread count
 
 from __future__ import annotations
 
+from typing import Any, TypeVar
+
 import numpy as np
+import numpy.typing as npt
 import torch
 
 WRAP_MODES = ("black", "clamp", "repeat", "mirror")
 
+Array = TypeVar("Array", npt.NDArray[Any], torch.Tensor)
+"""A numpy array or a torch tensor: each function here keeps its argument's array type."""
 
-def sample_bilinear(pixels, st, wrap_s: str, wrap_t: str):
+
+def sample_bilinear(pixels: Array, st: Array, wrap_s: str, wrap_t: str) -> Array:
     """Bilinear texture lookup as UsdUVTexture and Storm define it.
 
     st (0, 0) is the lower-left corner of the image; texel (i, j) (column i, row j counted from
@@ -42,27 +48,27 @@ def sample_bilinear(pixels, st, wrap_s: str, wrap_t: str):
     fx = _cast(x - x0, pixels)[:, None]
     fy = _cast(y - y0, pixels)[:, None]
     x0, y0 = _integers(x0), _integers(y0)
-    sampled = 0.0  # the sum of the four taps below
+    taps: list[Array] = []  # the four bilinear taps, summed in order
     for dx, weight_x in ((0, 1.0 - fx), (1, fx)):
         column, column_inside = _wrap_indices(x0 + dx, width, wrap_s)
         for dy, weight_y in ((0, 1.0 - fy), (1, fy)):
             row_from_bottom, row_inside = _wrap_indices(y0 + dy, height, wrap_t)
             texels = pixels[height - 1 - row_from_bottom, column]
-            sampled = sampled + weight_x * weight_y * texels * _cast(column_inside & row_inside, pixels)[:, None]
-    return sampled
+            taps.append(weight_x * weight_y * texels * _cast(column_inside & row_inside, pixels)[:, None])
+    return sum(taps[1:], taps[0])
 
 
-def _cast(values, like):
+def _cast(values: Array, like: Array) -> Array:
     """`values` in `like`'s float dtype (numpy or torch)."""
     return values.to(like.dtype) if isinstance(values, torch.Tensor) else values.astype(like.dtype)
 
 
-def _integers(values):
+def _integers(values: Array) -> Array:
     """Integral float values as int64 indices (numpy or torch)."""
     return values.long() if isinstance(values, torch.Tensor) else values.astype(np.int64)
 
 
-def _wrap_indices(index, size: int, mode: str):
+def _wrap_indices(index: Array, size: int, mode: str) -> tuple[Array, Array]:
     """Wrap integer texel indices into [0, size); (index, inside), inside False only for 'black'
     taps outside the image (numpy or torch)."""
     xp = torch if isinstance(index, torch.Tensor) else np

@@ -125,6 +125,7 @@ class EmbreeCaster:
         limit = np.full(num_rays, np.inf, np.float32) if t_far is None else t_far
         triangle_id, distance, barycentrics = self._closest(self._scene, origins, directions, limit)
         if self.opacity is not None:
+            assert self._opaque_ids is not None  # split off with the opacity table in __init__
             hit = triangle_id >= 0
             triangle_id[hit] = self._opaque_ids[triangle_id[hit]]
             found, clear_id, clear_distance, clear_barycentrics = self._first_present(
@@ -195,6 +196,8 @@ class EmbreeCaster:
             (found (N,) bool, and for the found rays: triangle ids (F,) int64, distances (F,)
             float32, barycentrics (F, 2) float32).
         """
+        # Only called with an opacity table, which __init__ splits the clear triangles off with.
+        assert self.opacity is not None and self._clear_ids is not None
         num_rays = origins.shape[0]
         found = np.zeros(num_rays, bool)
         triangle_id = np.full(num_rays, -1, np.int64)
