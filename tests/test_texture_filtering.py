@@ -10,7 +10,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from relight_torch.direct.relighter import open_relighter
+from relight_torch.relighter import open_relighter
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer, texel_density
 from pipeline.bake.direct import bake_direct
