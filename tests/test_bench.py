@@ -6,11 +6,12 @@ import math
 
 import pytest
 
+from pipeline.bake.adapter import format_params
 from pipeline.benchmarks.bench.chart import pareto_front
 from pipeline.benchmarks.bench.comparison import SppCurve
 from pipeline.benchmarks.bench.methods import adapters
 from pipeline.benchmarks.bench.runner import BenchConfig, run_bench
-from pipeline.benchmarks.rows import COLUMNS, SweepRow, format_params, parse_params, read_csv, read_json
+from pipeline.benchmarks.rows import COLUMNS, SweepRow, parse_params, read_csv, read_json
 from pipeline.cli import main
 
 COMPARISONS = ("reference-equal-time", "reference-full")

@@ -276,6 +276,13 @@ def test_a_huge_declared_shape_is_refused_before_allocating(baked, tmp_path):
     assert peak < 1 << 20
 
 
+def test_an_exr_payload_loaded_as_npy_is_one_line(baked):
+    """load_npy of the deep framebuffer used to unpack the EXR header as a .npy one (TypeError)."""
+    description = read_cache_layer(baked["gather"])
+    with pytest.raises(RelightError, match="payload deepFramebuffer is an EXR image, not a .npy array"):
+        load_npy(baked["gather"], description, "deepFramebuffer")
+
+
 @pytest.mark.parametrize("file", ["../scene/cornell_box.usda", "/etc/hostname", "./sub/../../direct/x.npy", "..", "."])
 def test_a_payload_path_out_of_the_cache_folder_is_refused(baked, tmp_path, file):
     layer = copy_cache(baked["direct"], tmp_path)

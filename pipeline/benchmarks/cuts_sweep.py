@@ -46,12 +46,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.bake.adapter import cache_bytes
+from pipeline.bake.adapter import cache_bytes, format_params
 from pipeline.bake.cuts.bake import CutsSettings, bake_cuts
 from pipeline.benchmarks.bench.measure import device_name, moved, relight_ms
 from pipeline.benchmarks.bench.references import References
 from pipeline.benchmarks.reuse import reusable_bake
-from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, format_params, write_csv
+from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, write_csv
 from pipeline.benchmarks.stopwatch import Stopwatch
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers

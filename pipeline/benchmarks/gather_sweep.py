@@ -38,11 +38,11 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from pipeline.bake.adapter import cache_bytes
+from pipeline.bake.adapter import cache_bytes, format_params
 from pipeline.bake.gather.bake import GatherSettings, bake_gather
 from pipeline.benchmarks.bench.measure import moved, relight_ms
 from pipeline.benchmarks.bench.references import References
-from pipeline.benchmarks.rows import COLUMNS, SweepRow, csv_line, format_params, write_csv
+from pipeline.benchmarks.rows import COLUMNS, SweepRow, csv_line, write_csv
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import read_cache_layer

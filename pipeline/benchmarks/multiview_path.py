@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.bake.adapter import cache_bytes
+from pipeline.bake.adapter import cache_bytes, format_params
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
 from pipeline.bake.multiview.bake import bake_multiview
 from pipeline.bake.multiview.frames import FrameRenderer
@@ -51,7 +51,7 @@ from pipeline.bake.multiview.placement import PlacementSettings
 from pipeline.bake.multiview.view import view_points
 from pipeline.benchmarks.bench.measure import relight_ms
 from pipeline.benchmarks.reuse import reusable_bake
-from pipeline.benchmarks.rows import SweepRow, format_params, write_csv
+from pipeline.benchmarks.rows import SweepRow, write_csv
 from pipeline.benchmarks.stopwatch import Stopwatch
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene

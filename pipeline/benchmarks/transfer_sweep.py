@@ -35,13 +35,14 @@ from pathlib import Path
 
 import torch
 
+from pipeline.bake.adapter import format_params
 from pipeline.bake.direct.bake import bake_direct
 from pipeline.bake.gather_cloud import create_gathers
 from pipeline.bake.transfer.adapter import culled_variants
 from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
 from pipeline.benchmarks.bench.measure import relight_ms
 from pipeline.benchmarks.bench.references import References
-from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line, format_params
+from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import CacheDescription

@@ -18,7 +18,10 @@ a value exceeds HALF's range (65504, e.g. a bright emissiveColor), then FLOAT.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
+import numpy.typing as npt
 
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.errors import RelightError
@@ -69,7 +72,7 @@ def gbuffer_to_channels(gbuffer: GBuffer) -> tuple[dict[str, np.ndarray], dict[s
     height, width = gbuffer.image_size
     index = gbuffer.pixel_index.cpu().numpy()
 
-    def image(column: np.ndarray, dtype) -> np.ndarray:
+    def image(column: np.ndarray, dtype: npt.DTypeLike) -> np.ndarray:
         full = np.zeros(height * width, dtype)
         full[index] = column.astype(dtype)
         return full.reshape(height, width)
@@ -107,20 +110,21 @@ def check_channel_types(types: dict[str, np.dtype], source: str) -> None:
     Raises:
         RelightError: one line naming the channel, its type and the expected one.
     """
-    expected = {"coverage": (np.dtype(np.float16),)}
+    expected: dict[str, tuple[np.dtype[Any], ...]] = {"coverage": (np.dtype(np.float16),)}
     for layer, _, components, dtype in GEOMETRY_CHANNELS:
         expected.update({channel: (np.dtype(dtype),) for channel in _names(layer, components)})
     for layer, _, components in MATERIAL_CHANNELS:
         expected.update(
             {channel: (np.dtype(np.float16), np.dtype(np.float32)) for channel in _names(layer, components)}
         )
-    for channel, dtype in sorted(types.items()):
+    for channel, channel_type in sorted(types.items()):
         if channel not in expected:
             raise RelightError(f"{source}: unexpected deep framebuffer channel {channel}")
-        if np.dtype(dtype) not in expected[channel]:
+        if np.dtype(channel_type) not in expected[channel]:
             names = " or ".join(PIXEL_TYPE_NAMES[d] for d in expected[channel])
             raise RelightError(
-                f"{source}: channel {channel} is {PIXEL_TYPE_NAMES.get(np.dtype(dtype), dtype)}, expected {names}"
+                f"{source}: channel {channel} is {PIXEL_TYPE_NAMES.get(np.dtype(channel_type), channel_type)},"
+                f" expected {names}"
             )
 
 
@@ -149,14 +153,14 @@ def gbuffer_from_channels(
         if not np.isfinite(value):
             raise RelightError(f"{source}: constant channel {name} = {value} is not finite")
 
-    def column(channel: str, dtype) -> np.ndarray:
+    def column(channel: str, dtype: npt.DTypeLike) -> np.ndarray:
         if channel in channels:
             return channels[channel].reshape(-1)[pixel_index].astype(dtype)
         if channel in constants:
             return np.full(pixel_index.size, constants[channel], dtype)
         raise RelightError(f"{source}: deep framebuffer channel {channel} is missing")
 
-    def gather(layer: str, components: tuple[str, ...], dtype) -> np.ndarray:
+    def gather(layer: str, components: tuple[str, ...], dtype: npt.DTypeLike) -> np.ndarray:
         columns = [column(c, dtype) for c in _names(layer, components)]
         return np.stack(columns, axis=-1) if components else columns[0]
 

@@ -26,6 +26,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
@@ -135,7 +136,7 @@ def content_hash(inputs: dict[str, str], parameters: dict[str, object], code_ver
     return digest.hexdigest()
 
 
-def _sdf_type(value) -> Sdf.ValueTypeName:
+def _sdf_type(value: object) -> Sdf.ValueTypeName:
     if isinstance(value, bool):
         return Sdf.ValueTypeNames.Bool
     if isinstance(value, int):
@@ -236,8 +237,8 @@ def is_cache_layer(path: str | os.PathLike[str]) -> bool:
     return spec is not None and spec.typeName == "RelightCache"
 
 
-def _get(prim: Usd.Prim, name: str, path: Path):
-    """The authored value of `name`, checked against its schema type."""
+def _get(prim: Usd.Prim, name: str, path: Path) -> Any:
+    """The authored value of `name`, checked against its schema type (its Python type varies with it)."""
     attribute = prim.GetAttribute(name)
     if not attribute or not attribute.HasAuthoredValue():
         raise RelightError(f"{path}: {prim.GetPath()}.{name} is missing (the layer was edited; re-bake)")
@@ -361,7 +362,8 @@ def read_cache_layer(path: str | os.PathLike[str]) -> CacheDescription:
         cache,
         f"relight:cameraPath {camera_path!r} is not an absolute prim path",
     )
-    resolution = tuple(int(v) for v in _get(cache, "relight:resolution", path))
+    width, height = _get(cache, "relight:resolution", path)  # an int2 (Gf.Vec2i), checked by _get
+    resolution = (int(width), int(height))
     _require(min(resolution) > 0, path, cache, f"relight:resolution {list(resolution)} must be positive")
     supersampling = int(_get(cache, "relight:supersampling", path))
     _require(supersampling >= 1, path, cache, f"relight:supersampling = {supersampling} must be >= 1")

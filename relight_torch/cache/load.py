@@ -21,7 +21,7 @@ import math
 import os
 from collections.abc import Iterator
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -85,6 +85,14 @@ def sub_sample_size(description: CacheDescription) -> tuple[int, int]:
     return height * description.supersampling, width * description.supersampling
 
 
+def _exr_image_size(payload: Payload, description: CacheDescription) -> tuple[int, int]:
+    """(H, W) of an EXR payload: its recorded shape, else the cache's sub-sample size."""
+    if not payload.shape:
+        return sub_sample_size(description)
+    height, width = payload.shape  # empty or (H, W): `read_cache_layer` refuses any other EXR shape
+    return height, width
+
+
 def check_exr_header(path: Path, payload: Payload, header: ExrHeader, image_size: tuple[int, int]) -> None:
     """Refuse an EXR payload whose size, channel names or pixel types differ from the layer's.
 
@@ -120,8 +128,11 @@ MAX_NPY_HEADER = 10_000
 """Longest .npy header read (numpy's own default limit): ours are under 200 bytes."""
 _NPY_KEYS = {"descr", "fortran_order", "shape"}
 
+NpyHeader = tuple[tuple[int, ...], np.dtype[Any], bool, int]
+"""(shape, dtype, fortran_order, data offset) of a .npy file (`read_npy_header`)."""
 
-def _npy_header_dict(handle: BinaryIO, path: Path) -> dict:
+
+def _npy_header_dict(handle: BinaryIO, path: Path) -> dict[str, Any]:
     """The header dictionary of an open .npy file, its handle left at the first data byte.
 
     Parsed here, not by numpy's reader: that one runs Python's tokenizer over the header and lets
@@ -150,7 +161,7 @@ def _npy_header_dict(handle: BinaryIO, path: Path) -> dict:
     return header
 
 
-def read_npy_header(path: Path, handle: BinaryIO | None = None) -> tuple[tuple[int, ...], np.dtype, bool, int]:
+def read_npy_header(path: Path, handle: BinaryIO | None = None) -> NpyHeader:
     """(shape, dtype, fortran_order, data offset) from a .npy file's header, without reading the array.
 
     Args:
@@ -189,7 +200,7 @@ def read_npy_header(path: Path, handle: BinaryIO | None = None) -> tuple[tuple[i
     return shape, dtype, fortran_order, data_offset
 
 
-def check_npy_header(path: Path, payload: Payload, header: tuple[tuple[int, ...], np.dtype]) -> None:
+def check_npy_header(path: Path, payload: Payload, header: NpyHeader) -> None:
     """Refuse a .npy payload whose shape or dtype (`header`, from `read_npy_header`) differ from the layer's."""
     shape, dtype = header[:2]
     if shape != payload.shape or dtype.name != payload.dtype:
@@ -202,7 +213,7 @@ def check_npy_header(path: Path, payload: Payload, header: tuple[tuple[int, ...]
 @contextlib.contextmanager
 def opened_payload(
     layer_path: Path, description: CacheDescription, payload: Payload, image_size: tuple[int, int] | None = None
-) -> Iterator[tuple[Path, BinaryIO, object]]:
+) -> Iterator[tuple[Path, BinaryIO, ExrHeader | NpyHeader]]:
     """Open one payload file and make every check short of decoding it; yields (path, handle, header).
 
     The header and bytes checked are those of the open handle's file, so what is decoded from the
@@ -225,13 +236,15 @@ def opened_payload(
         raise RelightError(f"{path}: payload {payload.name} cannot be opened ({error.strerror})") from None
     with handle:
         try:
-            header = read_exr_header(path) if payload.format == "exr" else read_npy_header(path, handle)
+            header: ExrHeader | NpyHeader = (
+                read_exr_header(path) if payload.format == "exr" else read_npy_header(path, handle)
+            )
         except RelightError:
             if os.fstat(handle.fileno()).st_size < payload.num_bytes:
                 check_payload_bytes(path, payload, handle)
             raise
-        if payload.format == "exr":
-            check_exr_header(path, payload, header, image_size or payload.shape or sub_sample_size(description))
+        if isinstance(header, ExrHeader):
+            check_exr_header(path, payload, header, image_size or _exr_image_size(payload, description))
         else:
             check_npy_header(path, payload, header)
         check_payload_bytes(path, payload, handle)
@@ -303,7 +316,9 @@ def load_npy(layer_path: Path, description: CacheDescription, name: str) -> np.n
     An empty array is returned as such (there is nothing to map).
     """
     payload = description.payload(name)
-    with opened_payload(layer_path, description, payload) as (_, handle, header):
+    with opened_payload(layer_path, description, payload) as (path, handle, header):
+        if isinstance(header, ExrHeader):
+            raise RelightError(f"{path}: payload {name} is an EXR image, not a .npy array")
         shape, dtype, fortran_order, offset = header
         if math.prod(shape) == 0:
             return np.empty(shape, dtype, order="F" if fortran_order else "C")

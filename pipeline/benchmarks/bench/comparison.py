@@ -31,8 +31,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.bake.adapter import format_params
 from pipeline.benchmarks.bench.references import References
-from pipeline.benchmarks.rows import NAN, SweepRow, format_params
+from pipeline.benchmarks.rows import NAN, SweepRow
 from relight_torch.metrics import psnr, psnr_from_mse
 
 CURVE_SEED = 1

@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.bake.adapter import MethodAdapter
+from pipeline.bake.adapter import MethodAdapter, format_params
 from pipeline.benchmarks.bench.methods import BenchScene
-from pipeline.benchmarks.rows import NAN, SweepRow, format_params
+from pipeline.benchmarks.rows import NAN, SweepRow
 from pipeline.tracing_bench import median_seconds
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.direct.relighter import shot_lights
