@@ -32,7 +32,8 @@ METHOD_NAMES = ("direct", "transfer", "gather", "cuts", "multiview")
 """Every relighting method of this build, in the order the bench runs them."""
 
 Opener = Callable[
-    [str | os.PathLike[str], str | torch.device, str, str | os.PathLike[str] | None, "RelightSettings"], "CacheRelighter"
+    [str | os.PathLike[str], str | torch.device, str, str | os.PathLike[str] | None, "RelightSettings"],
+    "CacheRelighter",
 ]
 """(cache layer path, device, shadows ('embree' or 'shadowmaps'), lights layer or None, direct
 relight settings) -> the cache's relighter, with the shot's lights; raises RelightError."""

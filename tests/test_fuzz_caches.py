@@ -279,7 +279,7 @@ def test_a_huge_declared_shape_is_refused_before_allocating(baked, tmp_path):
 def test_an_exr_payload_loaded_as_npy_is_one_line(baked):
     """load_npy of the deep framebuffer used to unpack the EXR header as a .npy one (TypeError)."""
     description = read_cache_layer(baked["gather"])
-    with pytest.raises(RelightError, match="payload deepFramebuffer is an EXR image, not a .npy array"):
+    with pytest.raises(RelightError, match=r"payload deepFramebuffer is an EXR image, not a \.npy array"):
         load_npy(baked["gather"], description, "deepFramebuffer")
 
 

@@ -38,7 +38,9 @@ def _error(prim: Usd.Prim, name: str, message: str) -> UsdValidation.ValidationE
     return UsdValidation.ValidationError(name, UsdValidation.ValidationErrorType.Error, [site], message)
 
 
-def _check_payload_file(prim: Usd.Prim, time_range: UsdValidation.ValidationTimeRange) -> list[UsdValidation.ValidationError]:
+def _check_payload_file(
+    prim: Usd.Prim, time_range: UsdValidation.ValidationTimeRange
+) -> list[UsdValidation.ValidationError]:
     """Prim task of PAYLOAD_FILE_VALIDATOR (the time range is unused: nothing is animated)."""
     if prim.GetTypeName() != "RelightPayload":
         return []

@@ -62,7 +62,7 @@ from relight_torch.lights.shaping import emission_factor
 from relight_torch.lights.usd import read_stage_lights
 from relight_torch.math.frame import dot, to_local
 from relight_torch.parallel import parallel_map, tile_threads
-from relight_torch.protocol import refuse_material_edit
+from relight_torch.protocol import CacheRelighter, refuse_material_edit
 from relight_torch.stage import check_composition, defining_layer, open_stage, time_code
 from relight_torch.visibility import Visibility
 from relight_torch.visibility.embree import EmbreeCaster, ShadowLinkCasters
@@ -187,9 +187,9 @@ def box_filter(image: torch.Tensor, s: int) -> torch.Tensor:
     return total / (s * s)
 
 
-def _key(light: Light, names: tuple[str, ...]) -> tuple:
+def _key(light: Light, names: tuple[str, ...]) -> tuple[object, ...]:
     """A hashable snapshot of some fields of a light (arrays by content)."""
-    values = []
+    values: list[object] = []
     for name in names:
         value = getattr(light, name)
         if isinstance(value, np.ndarray):
@@ -206,13 +206,13 @@ def _geometry_fields() -> tuple[str, ...]:
 _GEOMETRY_FIELDS = _geometry_fields()
 
 
-def geometry_key(light: Light) -> tuple:
+def geometry_key(light: Light) -> tuple[object, ...]:
     """A hashable snapshot of what a light's shadow rays and light samples depend on (not its
     colour, shaping, path, group or link)."""
     return _key(light, _GEOMETRY_FIELDS)
 
 
-def replace_rig(relighter, lights: list[Light]) -> None:
+def replace_rig(relighter: CacheRelighter, lights: list[Light]) -> None:
     """Make `lights` a relighter's whole rig through its `remove_light` and `set_light` (lights
     matched by path), so that unchanged lights keep their cached work."""
     for path in {light.path for light in relighter.lights} - {light.path for light in lights}:
@@ -237,7 +237,8 @@ def colour_scale(light: Light) -> np.ndarray:
     """(3,) factor turning the light's unit image into its image (see the module doc)."""
     unit = light_radiance_scale(unit_light(light))
     full = light_radiance_scale(light)
-    return np.divide(full, unit, out=np.zeros(3), where=unit != 0)
+    scale: np.ndarray = np.divide(full, unit, out=np.zeros(3), where=unit != 0)
+    return scale
 
 
 @dataclass
@@ -299,6 +300,7 @@ class _Transport:
         """`emission_local` for the light the transport was traced for (its transform)."""
         if self.emission_local is None:
             directions = self.directions
+            assert directions is not None, "a transport without emission_local keeps its directions (shapeable)"
             self.emission_local = torch.nn.functional.normalize(
                 LightFrame.of(light, directions).vector_to_local(-directions), dim=-1
             )
@@ -309,8 +311,8 @@ class _Transport:
 @dataclass
 class _LightState:
     light: Light
-    geometry_key: tuple
-    shading_key: tuple
+    geometry_key: tuple[object, ...]
+    shading_key: tuple[object, ...]
     transports: list[_Transport] | None = None  # one per sample group (`Relighter._sample_groups`)
     images: torch.Tensor | None = None  # (2, N, 3) diffuse and specular unit images
     edited: int = 0  # when it was last set (`Relighter._edits`): the budget drops the oldest first
@@ -362,7 +364,9 @@ class Relighter:
         self.object_paths = object_paths
         self._lights: dict[str, _LightState] = {}
         self._masks: dict[tuple[str, ...], torch.Tensor] = {}
-        self._viewer: tuple[torch.Tensor, ...] | None = None  # made on first use (`_view_directions`)
+        self._viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = (
+            None  # made on first use (`_view_directions`)
+        )
         # Whether the transport factors carry the clearcoat lobe: one answer for every chunk.
         self._coat = bool(gbuffer.params.clearcoat.any())
         # The glossy and the matte points, or None for both when the image is all one kind.
@@ -650,27 +654,28 @@ class Relighter:
         tensor is scattered to all N points (zeros elsewhere, ratio 1) and the list dropped.
         """
         n = self.gbuffer.num_samples
+
+        def reached(chunk: slice | torch.Tensor, part: _Transport) -> torch.Tensor:
+            if part.points is not None:
+                return part.points
+            assert isinstance(chunk, slice), "only a transport of a slice of all points drops its point list"
+            return torch.arange(chunk.start, chunk.stop, device=self.gbuffer.device)
+
         points = None
         if any(part.points is not None for part in parts):
-            points = torch.cat(
-                [
-                    torch.arange(chunk.start, chunk.stop, device=self.gbuffer.device)
-                    if part.points is None
-                    else part.points
-                    for chunk, part in zip(chunks, parts, strict=True)
-                ]
-            )
-        dense = points is not None and 2 * points.shape[0] > n
+            points = torch.cat([reached(chunk, part) for chunk, part in zip(chunks, parts, strict=True)])
+        dense_points = points if points is not None and 2 * points.shape[0] > n else None
+        dense = dense_points is not None
 
         def join(name: str, dim: int, fill: float) -> torch.Tensor | None:
             values = [getattr(part, name) for part in parts]
             if values[0] is None:
                 return None
             joined = torch.cat(values, dim=dim)
-            if dense:
+            if dense_points is not None:
                 shape = list(joined.shape)
                 shape[dim] = n
-                joined = joined.new_full(shape, fill).index_copy_(dim, points, joined)
+                joined = joined.new_full(shape, fill).index_copy_(dim, dense_points, joined)
             return joined
 
         return _Transport(
@@ -690,6 +695,7 @@ class Relighter:
         g = self.gbuffer
         sums = g.position.new_zeros(g.num_samples, 2)
         for transport in transports:
+            assert transport.shadow_sums is not None, "every transport of a filtered light keeps its sums"
             if transport.points is None:
                 sums += transport.shadow_sums
             else:
@@ -697,6 +703,7 @@ class Relighter:
         visibility = self._filtered_visibility(sums)
         for transport in transports:
             points = transport.points
+            assert transport.diffuse_ratio is not None, "a filtered light has a closed form, hence ratios"
             transport.diffuse_ratio = transport.diffuse_ratio * (visibility if points is None else visibility[points])
             transport.shadow_sums = None
 
@@ -736,15 +743,18 @@ class Relighter:
         exact = closed_form(light, g.position[chunk], g.normal[chunk])
         filtered = exact is not None and self.filter_radius > 0
         if filtered:  # lit by the closed form even where no sample is (see `uncovered` below)
+            assert exact is not None  # filtered implies a closed form
             lit |= exact > 0
         wo, cos_e, inverse_norm = viewer
         lit &= cos_e[chunk] > 0
-        subset = not isinstance(chunk, slice)
+        local: slice | torch.Tensor
+        rows: slice | torch.Tensor
+        points: torch.Tensor | None
         if 2 * int(lit.sum()) > lit.shape[0]:
-            local, rows, points = slice(None), chunk, chunk if subset else None
+            local, rows, points = slice(None), chunk, None if isinstance(chunk, slice) else chunk
         else:
             local = torch.nonzero(lit).squeeze(-1)
-            rows = points = chunk[local] if subset else local + chunk.start
+            rows = points = local + chunk.start if isinstance(chunk, slice) else chunk[local]
         direction, cosine = direction[:, local], cosine[:, local]
         scalar, radiance = scalar[:, local], radiance[:, local]
         distance = self.visibility.occluder_distance(
@@ -777,6 +787,7 @@ class Relighter:
             factors[2:] *= weight
             sums = None
             if filtered:
+                assert exact is not None  # filtered implies a closed form
                 sums = torch.stack((weight.sum(0), unshadowed.sum(0)), dim=-1)
                 # Points whose samples all fall below their horizon (a tangent plane cutting the
                 # light) take the closed form as their unshadowed diffuse sum (Fresnel's s taken
@@ -873,7 +884,7 @@ class Relighter:
             chunks = self._chunks(num_samples, points, threads)
             u, viewer = self._fixed_u(num_samples), self._view_directions()
 
-            def tile(chunk):
+            def tile(chunk: slice | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
                 part = self._chunk_transport(light, chunk, u, viewer)
                 if part.points is None:  # the whole tile: name its points, as `_joined` does
                     part.points = (
@@ -898,6 +909,7 @@ class Relighter:
         if transport.factors is not None:
             per_point = self._combined(transport, factor)
         else:
+            assert transport.lobes is not None, "a transport keeps either scalar factors or lobes"
             lobes = transport.lobes if factor is None else transport.lobes * factor
             per_point = lobes[:, 0] if lobes.shape[1] == 1 else lobes.sum(1)
             if transport.diffuse_ratio is not None and lobes.shape[1] == 1:
@@ -910,6 +922,7 @@ class Relighter:
         """(2, P, 3) diffuse and specular sums of a transport kept as scalar factors, each sample
         times its shaping `factor` (S, P, 3) when given."""
         factors = transport.factors
+        assert factors is not None and transport.colour is not None, "a factor transport has both"
         if factor is None:  # scalar sums (F, P, 1): the light's colour multiplies the result
             sums = (factors[:, 0] if factors.shape[1] == 1 else factors.sum(1)).unsqueeze(-1)
         else:  # one sample at a time: (F, P, 3) slabs, never an (F, S, P, 3) temporary
@@ -944,11 +957,10 @@ def embree_visibility(
     caster per shadow-link set when the (T,) occluder objects and their paths are given; shadow
     rays pass through the holes of the occluders' `opacity` table (`load_opacity`)."""
     caster = EmbreeCaster(occluders, opacity=opacity)
-    links = (
-        None
-        if occluder_objects is None
-        else ShadowLinkCasters(occluders, occluder_objects, object_paths, caster.epsilon, opacity=opacity)
-    )
+    links = None
+    if occluder_objects is not None:
+        assert object_paths is not None, "occluder objects come with the paths they index"
+        links = ShadowLinkCasters(occluders, occluder_objects, object_paths, caster.epsilon, opacity=opacity)
     return caster, RayVisibility(caster, links)
 
 
@@ -991,6 +1003,7 @@ def open_relighter(
     occluders = np.array(load_npy(layer_path, description, "occluders"), dtype=np.float32)
     linking = {payload.name for payload in description.payloads} >= {"objectPaths", "occluderObjects"}
     object_paths = decode_paths(load_npy(layer_path, description, "objectPaths")) if linking else None
+    visibility: Visibility
     if shadows == "embree":
         occluder_objects = np.asarray(load_npy(layer_path, description, "occluderObjects")) if linking else None
         _, visibility = embree_visibility(
@@ -1025,10 +1038,10 @@ def shot_lights(description: CacheDescription, lights_layer: str | os.PathLike[s
         RelightError: a file cannot be opened, or a light has a bad value (naming prim and attribute).
     """
     stage = open_stage(description.source, lights_layer)
-    check_composition(stage, lights_layer or description.source)
+    shot = os.fspath(lights_layer or description.source)
+    check_composition(stage, shot)
+    time = description.parameters.get("time")
     try:
-        return read_stage_lights(stage, time_code(stage, description.parameters.get("time")))
+        return read_stage_lights(stage, time_code(stage, None if time is None else float(time)))
     except ValueError as error:
-        raise RelightError(
-            f"{defining_layer(stage, str(error), lights_layer or description.source)}: {error}"
-        ) from None
+        raise RelightError(f"{defining_layer(stage, str(error), shot)}: {error}") from None

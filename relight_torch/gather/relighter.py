@@ -23,6 +23,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import functools
+
 import torch
 
 from relight_torch.diffuse_light import diffuse_radiance

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+
 import torch
 
 from relight_torch.diffuse_light import link_mask
