@@ -364,9 +364,8 @@ class Relighter:
         self.object_paths = object_paths
         self._lights: dict[str, _LightState] = {}
         self._masks: dict[tuple[str, ...], torch.Tensor] = {}
-        self._viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = (
-            None  # made on first use (`_view_directions`)
-        )
+        # (wo, N.E / |N|, 1 / |N|) of every point, made on first use (`_view_directions`).
+        self._viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
         # Whether the transport factors carry the clearcoat lobe: one answer for every chunk.
         self._coat = bool(gbuffer.params.clearcoat.any())
         # The glossy and the matte points, or None for both when the image is all one kind.
