@@ -42,7 +42,8 @@ class IndirectRelighter(Generic[StateT]):
     """Base of `TransferRelighter` and `GatherRelighter`.
 
     Subclasses set `self.view_pixels` ((R,) int64 pixel row * W + col of each view sample of the
-    indirect image) and `self._per_light` (light path -> cached indirect work), and implement
+    indirect image) and `self._per_light` (light path -> cached indirect work, the `StateT` a
+    subclass names: `IndirectRelighter[_IndirectState]`), and implement
     `_unit_indirect(light)`; they may override `_emission_rows()` (light-independent indirect
     light, zero by default).
 
