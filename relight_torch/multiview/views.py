@@ -365,7 +365,7 @@ class CachingViews:
                 row, size, g.pixel_index, torch.arange(offset, offset + g.num_samples, device=device), pool.object_id
             )
             for row, size, g, offset in zip(
-                rows, sizes, gbuffers, np.cumsum([0] + [g.num_samples for g in gbuffers]).tolist(), strict=True
+                rows, sizes, gbuffers, np.cumsum([0] + [g.num_samples for g in gbuffers]).tolist()[:-1], strict=True
             )
         ]
         packed = pack_blend_table(pool)
