@@ -192,7 +192,8 @@ def write_exterior_shot(
             "            color3f inputs:color = ({:.4f}, {:.4f}, {:.4f})".format(*colour),
             "            float inputs:intensity = 6",
             "            float inputs:radius = 0.05",
-            f"            double3 xformOp:translate = ({1.2 * math.cos(angle):.4f}, 0.7, {1.2 * math.sin(angle) - 0.5:.4f})",
+            f"            double3 xformOp:translate = "
+            f"({1.2 * math.cos(angle):.4f}, 0.7, {1.2 * math.sin(angle) - 0.5:.4f})",
             '            uniform token[] xformOpOrder = ["xformOp:translate"]',
             "        }",
         ]

@@ -162,5 +162,5 @@ def test_directions_and_params_are_checked():
         brdf.LambertParams(torch.ones(2, 4))
     with pytest.raises(ValueError, match=r"PhongParams.exponent has rows \(3,\); the fields before it have \(2,\)"):
         brdf.PhongParams(torch.ones(2, 3), torch.ones(3))
-    with pytest.raises(ValueError, match="must be a torch.Tensor"):
+    with pytest.raises(ValueError, match=r"must be a torch\.Tensor"):
         brdf.PhongParams([[1.0, 1.0, 1.0]], torch.ones(1))

@@ -25,9 +25,9 @@ class _PartialWriteFailure(Exception):
     """Raised by the sabotaged writers after writing some bytes."""
 
 
-def _write_part_then_fail(path, error: BaseException = _PartialWriteFailure("disk full")):
+def _write_part_then_fail(path):
     Path(path).write_bytes(b"partial contents")
-    raise error
+    raise _PartialWriteFailure("disk full")
 
 
 class _FailingExrFile:

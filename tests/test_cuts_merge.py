@@ -103,8 +103,8 @@ def test_batched_merge_matches_the_paper_loop(num_sources):
     counts = torch.tensor([len(c) for c in cut_lists])
     cuts = Cuts(
         torch.cat((torch.zeros(1, dtype=torch.int64), counts.cumsum(0))),
-        torch.tensor(sum(cut_lists, [])),
-        torch.tensor(sum(value_lists, []), dtype=torch.float64),
+        torch.tensor([index for cut in cut_lists for index in cut]),
+        torch.tensor([value for values in value_lists for value in values], dtype=torch.float64),
     )
     cuts.check(tree)
     rows = torch.from_numpy(rng.integers(0, num_cuts, (num_rows, num_sources)))

@@ -277,7 +277,7 @@ def test_bad_shapes_raise():
     light = AREA_LIGHTS[1]
     with pytest.raises(ValueError, match=r"points must have shape \(\.\.\., 3\); got \(3, 2\)"):
         sample_light(light, torch.zeros(3, 2), uniform(3, 4, 0))
-    with pytest.raises(ValueError, match="u must be .N, S, 2. of the points' dtype"):
+    with pytest.raises(ValueError, match=r"u must be \(N, S, 2\) of the points' dtype"):
         sample_light(light, torch.zeros(3, 3, dtype=torch.float64), uniform(2, 4, 0))
     with pytest.raises(ValueError, match="directions must have shape"):
         light_pdf(light, torch.zeros(3), torch.zeros(4))

@@ -139,7 +139,8 @@ def test_missing_mtlx_document_is_a_warning_naming_the_material_and_the_fallback
     [
         ('<materialx version="1.39"><standard_surface', "is not readable"),
         (
-            '<?xml version="1.0"?><materialx version="1.39"><surfacematerial name="Other" type="material"/></materialx>',
+            '<?xml version="1.0"?><materialx version="1.39">'
+            '<surfacematerial name="Other" type="material"/></materialx>',
             "has no material 'Gold' (it has: Other)",
         ),
     ],

@@ -38,7 +38,7 @@ def test_every_name_has_one_relight_and_one_bake_entry():
 
 
 def test_unknown_method_is_one_error_line():
-    with pytest.raises(RelightError, match="no relighting method 'nope'.*direct"):
+    with pytest.raises(RelightError, match=r"no relighting method 'nope'.*direct"):
         relight_method("nope")
 
 

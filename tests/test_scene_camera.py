@@ -141,7 +141,7 @@ def test_resolution_from_render_settings_and_overrides():
 
 @pytest.mark.parametrize("width, height", [(0, 10), (10, -1), (2.5, 10)])
 def test_bad_image_size_is_a_relight_error(width, height):
-    with pytest.raises(RelightError, match="width|height"):
+    with pytest.raises(RelightError, match=r"width|height"):
         image_resolution(_stage_with_camera(), width, height)
 
 

@@ -289,7 +289,7 @@ def test_dome_light_raises(scene):
     dome = Light("/Lights/Dome", LightKind.DOME)
     visibility = ShadowMapVisibility(torch.from_numpy(corners), resolution=8)
     directions = torch.tensor([0.0, 0.0, 1.0]).expand(len(points), 1, 3)
-    with pytest.raises(RelightError, match="/Lights/Dome.*Embree"):
+    with pytest.raises(RelightError, match=r"/Lights/Dome.*Embree"):
         visibility.occluder_distance(dome, points, normals, directions, torch.full((len(points), 1), math.inf))
 
 

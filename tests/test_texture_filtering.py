@@ -10,14 +10,14 @@ import dataclasses
 
 import numpy as np
 import pytest
-from relight_torch.relighter import open_relighter
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer, texel_density
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.benchmarks.texture_filtering import CLASSES, pixel_classes
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
+from relight_torch.direct.relighter import open_relighter
 from relight_torch.io.exr import write_rgb_exr
 
 

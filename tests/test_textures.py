@@ -74,11 +74,11 @@ def test_jpeg_is_read_as_srgb(tmp_path):
 
 
 def test_missing_and_corrupt_files_raise_naming_the_file(tmp_path):
-    with pytest.raises(RelightError, match="nope.png"):
+    with pytest.raises(RelightError, match=r"nope\.png"):
         read_image(str(tmp_path / "nope.png"))
     corrupt = tmp_path / "corrupt.png"
     corrupt.write_bytes(b"this is not a png" * 10)
-    with pytest.raises(RelightError, match="corrupt.png"):
+    with pytest.raises(RelightError, match=r"corrupt\.png"):
         read_image(str(corrupt))
 
 

@@ -156,7 +156,7 @@ def test_occluded_requires_t_far(triangle_tracer):
 
 def test_bad_geometry_raises_naming_the_array():
     geometry = make_geometry([CORNERS])
-    with pytest.raises(ValueError, match="Geometry.uvs"):
+    with pytest.raises(ValueError, match=r"Geometry\.uvs"):
         Tracer(
             Geometry(
                 geometry.positions,

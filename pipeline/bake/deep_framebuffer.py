@@ -256,7 +256,10 @@ def _average_samples(
             continue
         filtered[name] = average(fine_fields[name], values)
         second = average(np.square(fine_fields[name].astype(np.float64)), np.square(values.astype(np.float64)))
-        variance = (second - np.square(filtered[name].astype(np.float64))).reshape(pixel_index.size, -1)
+        # Channels spelt out: with no covered sample (a chunk of sky rows) -1 is ambiguous.
+        variance = (second - np.square(filtered[name].astype(np.float64))).reshape(
+            pixel_index.size, int(np.prod(values.shape[1:]))
+        )
         varies |= np.any(variance > VARIATION**2, axis=-1)
     # The shading model is zero where the shading normal faces away from the viewer (the view is
     # fixed here), so such samples are black: they add nothing to the sums below.

@@ -163,7 +163,7 @@ class Scheduler:
     progress: bool | None = None
 
 
-_SCHEDULER: contextvars.ContextVar[Scheduler] = contextvars.ContextVar("relight_scheduler", default=Scheduler())
+_SCHEDULER: contextvars.ContextVar[Scheduler | None] = contextvars.ContextVar("relight_scheduler", default=None)
 _POOLS: contextvars.ContextVar[_Pools | None] = contextvars.ContextVar("relight_pools", default=None)
 _THREADS: contextvars.ContextVar[int | None] = contextvars.ContextVar("relight_chunk_threads", default=None)
 
@@ -184,7 +184,8 @@ def using(scheduler: Scheduler) -> Iterator[Scheduler]:
 
 def current() -> Scheduler:
     """The ambient scheduler (`Scheduler()` unless inside `using`)."""
-    return _SCHEDULER.get()
+    scheduler = _SCHEDULER.get()
+    return Scheduler() if scheduler is None else scheduler
 
 
 def available_cpus() -> int:

@@ -4,28 +4,30 @@
         [--sigmas 1.5 2 3] [--cut-sizes 128 256 512] [--betas 1 0.5] [--mode env|indirect]
         [--spp N] [--repeats R] [--csv FILE] [--out DIR [--reuse]]
 
-Per scene, light count, sigma and tree blend beta (1 = geometric tree, < 1 data-driven) it bakes once (bake_s, cache_bytes: that bake's payloads) and
-relights with every illumination cut size, under the shot's lights and every example light edit,
-against `PathTracer(max_bounces=0)` (PSNR, relMSE; indirect mode: `max_bounces=1`, and
-psnr_indirect_db against its 1-bounce minus 0-bounce part). relight_ms is the median of the first
-light moved and re-rendered (`pipeline.benchmarks.bench.measure.relight_ms`; env mode: a dome
-translated, whose light does not change: its illumination cut is made again, nothing else of
-the cuts' light; see `edit_timings` for edits that change more). params also record what the cost follows: `vis` = mean visibility
-cut size per lattice vertex, and per sub-sample `inputs` = visibility cut entries merged (its
-three vertices'), `merged` = merged-cut entries shaded or tested and `dark` = dark visibility
-clusters dropped before the illumination cut is merged in, so relight_ms can be read against the
-cut sizes at different light counts. One CSV row per (scene, lights, sigma, cut size, light edit), the
-columns shared with the other methods' sweeps (`pipeline.benchmarks.rows`).
+Per scene, light count, sigma and tree blend beta (1 = geometric tree, < 1 data-driven) it bakes
+once (bake_s, cache_bytes: that bake's payloads) and relights with every illumination cut size,
+under the shot's lights and every example light edit, against `PathTracer(max_bounces=0)` (PSNR,
+relMSE; indirect mode: `max_bounces=1`, and psnr_indirect_db against its 1-bounce minus 0-bounce
+part). relight_ms is the median of the first light moved and re-rendered
+(`pipeline.benchmarks.bench.measure.relight_ms`; env mode: a dome translated, whose light does not
+change: its illumination cut is made again, nothing else of the cuts' light; see `edit_timings` for
+edits that change more). params also record what the cost follows: `vis` = mean visibility cut size
+per lattice vertex, and per sub-sample `inputs` = visibility cut entries merged (its three
+vertices'), `merged` = merged-cut entries shaded or tested and `dark` = dark visibility clusters
+dropped before the illumination cut is merged in, so relight_ms can be read against the cut sizes at
+different light counts. One CSV row per (scene, lights, sigma, cut size, light edit), the columns
+shared with the other methods' sweeps (`pipeline.benchmarks.rows`).
 
-With `--timing` only the shot's lights are relit (no references: PSNR columns NaN): for the
-640 x 480, cut size 256 figure of the issue, one row per kind of edit (`edit_timings`: the dome
-moved, turned, a material's colour, its roughness, a small object's roughness; params add `cpu_ms`, the median CPU time, and
-`evaluated`, the merged entries per sub-sample whose BRDF factors the edit recomputed, and
-`kept_mb`, `CutsRelighter.kept_bytes`; with `--compiled` also `warmup_cpu_s`, one round of every
-edit run first, which compiles the variants the edits use). With `--cost` (implies --timing) the bakes are timed
-round-robin instead, `--repeats` rounds of the cuts' light fully evaluated per bake, so that a
-shared machine's load changes affect every bake alike: for reading relight_ms against `merged` as the
-number of point lights grows (Cheslack-Postava et al. 2008: the cost follows the merged cut size, not the lights).
+With `--timing` only the shot's lights are relit (no references: PSNR columns NaN): for the 640 x
+480, cut size 256 figure of the issue, one row per kind of edit (`edit_timings`: the dome moved,
+turned, a material's colour, its roughness, a small object's roughness; params add `cpu_ms`, the
+median CPU time, and `evaluated`, the merged entries per sub-sample whose BRDF factors the edit
+recomputed, and `kept_mb`, `CutsRelighter.kept_bytes`; with `--compiled` also `warmup_cpu_s`, one
+round of every edit run first, which compiles the variants the edits use). With `--cost` (implies
+--timing) the bakes are timed round-robin instead, `--repeats` rounds of the cuts' light fully
+evaluated per bake, so that a shared machine's load changes affect every bake alike: for reading
+relight_ms against `merged` as the number of point lights grows (Cheslack-Postava et al. 2008: the
+cost follows the merged cut size, not the lights).
 
 With `--reuse` the caches already baked in `--out` with the same size and bake parameters are
 relit instead of baked again (bake_s NaN): for timing relighter changes at 640 x 480.

@@ -7,15 +7,15 @@ shared-point grid, against the one-bounce reference.
         [--shadow-map-resolution R] [--out DIR] [--csv FILE]
     python -m pipeline.benchmarks.gather_sweep SCENE --timing --width 400 --height 400 [...]
 
-Per scene and (clusters, representatives, point cells) it bakes once (bake_s) and relights the
-cache under the shot's lights and every example light edit (`pipeline.scenes.write_light_edits`),
-once per `--gather-samples` count, comparing with `PathTracer(max_bounces=1)`: psnr_db on the full
-image, psnr_indirect_db on the indirect part against the reference's 1-bounce minus 0-bounce
-image (references are kept on disk under OUT and re-used, `bench.references`). cache_bytes counts every payload of the layer (the direct part included); relight_ms is the
-median time of re-rendering (direct + indirect) after a light move (`bench.measure.relight_ms`, as
-in `relight bench`). Representatives 0 means the
-default (40,000 at 400 x 400, scaled with the pixel count). One CSV row per (scene, setting,
-edit), in the columns every method's sweep shares (`pipeline.benchmarks.rows`).
+Per scene and (clusters, representatives, point cells) it bakes once (bake_s) and relights the cache
+under the shot's lights and every example light edit (`pipeline.scenes.write_light_edits`), once per
+`--gather-samples` count, comparing with `PathTracer(max_bounces=1)`: psnr_db on the full image,
+psnr_indirect_db on the indirect part against the reference's 1-bounce minus 0-bounce image
+(references are kept on disk under OUT and re-used, `bench.references`). cache_bytes counts every
+payload of the layer (the direct part included); relight_ms is the median time of re-rendering
+(direct + indirect) after a light move (`bench.measure.relight_ms`, as in `relight bench`).
+Representatives 0 means the default (40,000 at 400 x 400, scaled with the pixel count). One CSV row
+per (scene, setting, edit), in the columns every method's sweep shares (`pipeline.benchmarks.rows`).
 
 With `--timing` it bakes one cache per scene with the first value of each setting (or, with
 `--reuse`, relights the one already in OUT) and prints the median ms of each kind of edit

@@ -26,15 +26,15 @@ import time
 from pathlib import Path
 
 import numpy as np
-from relight_torch.relighter import open_relighter, shot_lights
 
 from pipeline.bake.deep_framebuffer import grid_rays, texel_density
-from pipeline.bake.direct import bake_direct
+from pipeline.bake.direct.bake import bake_direct
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scene.types import Camera, Scene
 from pipeline.scenes import SCENES, light_edit_layers
 from pipeline.tracing import Tracer
+from relight_torch.direct.relighter import open_relighter, shot_lights
 
 CLASSES = ("edge", "textured", "plain")
 CLASS_GRID = 4

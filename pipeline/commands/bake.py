@@ -143,7 +143,8 @@ def _bake_method(args: argparse.Namespace, stem: str) -> Path:
         )
         print(
             f"{result.layer}: {args.method} cache sized for {args.quality:g} dB: {result.point} (pilot "
-            f"{result.predicted_db:.1f} dB, measured {result.measured_db:.1f} dB) in {time.perf_counter() - start:.1f} s"
+            f"{result.predicted_db:.1f} dB, measured {result.measured_db:.1f} dB) "
+            f"in {time.perf_counter() - start:.1f} s"
         )
         return result.layer
     settings = method.settings_from_args(args, scene, camera)

@@ -18,8 +18,8 @@ def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "reference",
         help="render a reference image with the path tracer",
-        description="Unbiased path tracing (NEE + MIS) of a USD shot's full frame (every bounce by default) to a linear float EXR with R, G, B "
-        "and the per-pixel variance of the estimate as variance.R/G/B.",
+        description="Unbiased path tracing (NEE + MIS) of a USD shot's full frame (every bounce by default) "
+        "to a linear float EXR with R, G, B and the per-pixel variance of the estimate as variance.R/G/B.",
     )
     parser.add_argument("scene", metavar="SCENE", help="USD stage (.usda, .usdc, .usdz)")
     add_camera_options(parser)
@@ -64,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
     rate = image.num_paths / max(image.seconds, 1e-9)
     print(
         f"{args.out}: {camera.width}x{camera.height}, {settings.spp} spp, max bounces {settings.max_bounces}, "
-        f"{image.seconds:.1f} s ({rate / 1e6:.2f} M paths/s), mean noise sigma {float(np.sqrt(image.variance).mean()):.4g}"
+        f"{image.seconds:.1f} s ({rate / 1e6:.2f} M paths/s), "
+        f"mean noise sigma {float(np.sqrt(image.variance).mean()):.4g}"
     )
     return 0

@@ -77,8 +77,7 @@ def evaluate_materials(materials: list[Material], material_ids: np.ndarray, uvs:
     # Group points by material once (sort) instead of one full mask per material.
     order = np.argsort(material_ids, kind="stable")
     unique_ids, starts = np.unique(material_ids[order], return_index=True)
-    # Not strict: np.split of no points is one empty piece, with no material id to pair it with.
-    for material_id, rows in zip(unique_ids, np.split(order, starts[1:]), strict=False):
+    for material_id, rows in zip(unique_ids, np.split(order, starts)[1:], strict=True):
         material = materials[material_id]
         material_uvs = uvs[rows]
         for key, (field_name, num_channels) in _TEXTURED_FIELDS.items():

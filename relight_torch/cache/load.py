@@ -230,11 +230,11 @@ def opened_payload(
         RelightError: one line naming the file and what is wrong with it.
     """
     path = payload_file(layer_path, payload)
-    try:
-        handle = open(path, "rb")
-    except OSError as error:
-        raise RelightError(f"{path}: payload {payload.name} cannot be opened ({error.strerror})") from None
-    with handle:
+    with contextlib.ExitStack() as stack:
+        try:
+            handle = stack.enter_context(open(path, "rb"))
+        except OSError as error:
+            raise RelightError(f"{path}: payload {payload.name} cannot be opened ({error.strerror})") from None
         try:
             header: ExrHeader | NpyHeader = (
                 read_exr_header(path) if payload.format == "exr" else read_npy_header(path, handle)

@@ -1,4 +1,4 @@
-"""The cut merge of Cheslack-Postava et al. 2008 (section 3.2), batched over many rows (pixels) with sorted sparse arrays.
+"""The cut merge of Cheslack-Postava et al. 2008 (section 3.2), batched over rows (pixels) with sorted sparse arrays.
 
 The paper merges N cuts in one traversal: it repeatedly takes the smallest current index, and
 where all current nodes overlap (max leftleaf <= min index) emits the deepest of them, the one

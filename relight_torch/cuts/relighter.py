@@ -11,18 +11,18 @@ that (as `merge.refine_nodes`, batched in `CutsRelighter._factor_columns`), then
 
     B = sum_k |C_k| <l_k> f_r(wo, <x_k>) cos(<x_k>) (w1 <v1_k> + w2 <v2_k> + w3 <v3_k>)
 
-with <x_k> the direction to the merged cluster (its mean direction, or its mean position in
-indirect mode, where <v_k> is visibility times the leaves' solid angle), f_r UsdPreviewSurface from the
-sub-sample's current parameters (a dome's diffuse and specular multipliers apply per lobe),
-computed as the scalars f_r is linear in (`preview_surface.split_factors`, evaluated in place
-from dot products by `preview_surface.split_factors_cosines`) summed per illumination-cut node,
-times the nodes' light, combined with the current colours (`preview_surface.combine_factors`).
-What each edit recomputes (`FactorColumns`): a light edit that keeps the illumination cut's
-nodes, the products with the light (none if the nodes' light is unchanged); one that changes them, the entries of the new nodes too; a
-colour edit of a material, only the combination; a roughness edit, the lobes' factors of that
-material's sub-samples (the next edit of the same rows without their grid's bookkeeping,
-`FactorColumns.grids`); none of them the visibility merge.
-Everything else is the direct relighter's.
+with <x_k> the direction to the merged cluster (its mean direction, or its mean position in indirect
+mode, where <v_k> is visibility times the leaves' solid angle), f_r UsdPreviewSurface from the
+sub-sample's current parameters (a dome's diffuse and specular multipliers apply per lobe), computed
+as the scalars f_r is linear in (`preview_surface.split_factors`, evaluated in place from dot
+products by `preview_surface.split_factors_cosines`) summed per illumination-cut node, times the
+nodes' light, combined with the current colours (`preview_surface.combine_factors`). What each edit
+recomputes (`FactorColumns`): a light edit that keeps the illumination cut's nodes, the products
+with the light (none if the nodes' light is unchanged); one that changes them, the entries of the
+new nodes too; a colour edit of a material, only the combination; a roughness edit, the lobes'
+factors of that material's sub-samples (the next edit of the same rows without their grid's
+bookkeeping, `FactorColumns.grids`); none of them the visibility merge. Everything else is the
+direct relighter's.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The light tree of Cheslack-Postava et al. 2008: a complete binary tree over L = 2^k point lights, nodes in post-order.
+"""The light tree of Cheslack-Postava et al. 2008: a complete binary tree over L = 2^k point lights in post-order.
 
 Leaves are the point lights in tree order (the bake permutes them so that sibling subtrees hold
 coherent lights). A node of height h (leaves: h = 0) covers 2^h consecutive leaves; numbered in

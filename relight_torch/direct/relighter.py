@@ -618,7 +618,9 @@ class Relighter:
         for points, num_samples in self._sample_groups(light):
             chunks = self._chunks(num_samples, points, threads)
             u, viewer = self._fixed_u(num_samples), self._view_directions()  # made here, shared by the tiles
-            parts = parallel_map(lambda chunk: self._chunk_transport(light, chunk, u, viewer), chunks, threads)
+            parts = parallel_map(
+                lambda chunk, u=u, viewer=viewer: self._chunk_transport(light, chunk, u, viewer), chunks, threads
+            )
             state.transports.append(parts[0] if len(parts) == 1 else self._joined(parts, chunks))
         if state.transports[0].shadow_sums is not None:
             self._filter_visibility(state.transports)
@@ -883,7 +885,11 @@ class Relighter:
             chunks = self._chunks(num_samples, points, threads)
             u, viewer = self._fixed_u(num_samples), self._view_directions()
 
-            def tile(chunk: slice | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+            def tile(
+                chunk: slice | torch.Tensor,
+                u: torch.Tensor = u,
+                viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor] = viewer,
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
                 part = self._chunk_transport(light, chunk, u, viewer)
                 if part.points is None:  # the whole tile: name its points, as `_joined` does
                     part.points = (

@@ -88,18 +88,18 @@ def check_transform(light: Light) -> None:
     scale = np.sqrt(np.diag(gram))
     cosines = gram / np.outer(scale, scale)
     orthogonal = np.abs(cosines - np.eye(3)).max() <= _ORTHOGONALITY_TOLERANCE
-    if light.kind in (LightKind.SPHERE, LightKind.DOME):
-        if not (orthogonal and np.ptp(scale) <= _ORTHOGONALITY_TOLERANCE * scale.max()):
-            raise ValueError(
-                f"{light.path}: {light.kind.value} needs a rotation and one uniform scale; "
-                f"its transform scales the axes by {np.round(scale, 6).tolist()} or shears"
-            )
-    if light.kind is LightKind.CYLINDER:
-        if not (orthogonal and abs(scale[1] - scale[2]) <= _ORTHOGONALITY_TOLERANCE * scale.max()):
-            raise ValueError(
-                f"{light.path}: CylinderLight needs orthogonal axes with Y and Z scaled equally "
-                f"(a circular cross-section); its axes scale by {np.round(scale, 6).tolist()}"
-            )
+    uniform = orthogonal and np.ptp(scale) <= _ORTHOGONALITY_TOLERANCE * scale.max()
+    if light.kind in (LightKind.SPHERE, LightKind.DOME) and not uniform:
+        raise ValueError(
+            f"{light.path}: {light.kind.value} needs a rotation and one uniform scale; "
+            f"its transform scales the axes by {np.round(scale, 6).tolist()} or shears"
+        )
+    circular = orthogonal and abs(scale[1] - scale[2]) <= _ORTHOGONALITY_TOLERANCE * scale.max()
+    if light.kind is LightKind.CYLINDER and not circular:
+        raise ValueError(
+            f"{light.path}: CylinderLight needs orthogonal axes with Y and Z scaled equally "
+            f"(a circular cross-section); its axes scale by {np.round(scale, 6).tolist()}"
+        )
 
 
 def axis_scales(light: Light) -> np.ndarray:

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
-class LightKind(str, enum.Enum):
+class LightKind(enum.StrEnum):
     """The UsdLux light types, valued by their USD type names."""
 
     SPHERE = "SphereLight"

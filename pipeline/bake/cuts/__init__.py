@@ -1,1 +1,1 @@
-"""`relight bake --method cuts`: light points, light tree and per-vertex visibility cuts (Cheslack-Postava et al. 2008)."""
+"""`relight bake --method cuts` (Cheslack-Postava et al. 2008): light points, light tree, per-vertex visibility cuts."""

@@ -1,4 +1,4 @@
-"""Bench adapter of the cuts method (Cheslack-Postava et al. 2008, environment mode): lights x sigma, cut sizes per bake.
+"""Bench adapter of the cuts method (Cheslack-Postava et al. 2008, env mode): lights x sigma, cut sizes per bake.
 
 Dome lights are relit by cuts, every other light by the direct relighter: on a scene without a
 dome the rows measure the direct part alone (the `dome` bundled scene is the one this method is for).

@@ -14,10 +14,10 @@ method on why the method fails there.
 Adding a method: add its sentence to the `why` of the cases that apply to it and its bound to
 `min_psnr` (its stability point is its registry entry's, `pipeline.bake.methods`); a case that only
 makes sense for one method is a new `StabilityCase` in CASES (cuts: 'dome_short_cuts'). A case
-judged from another camera than the baked one (multiview: 'far_camera') sets `view` (baked camera -> the camera to judge from); the
-runner then renders with `adapter.relight_view(variant, camera)`, which only the adapters that
-support novel views define. Cases run in CASES order and share bakes, so a `view` case comes after
-the cases judged from the baked camera.
+judged from another camera than the baked one (multiview: 'far_camera') sets `view` (baked camera ->
+the camera to judge from); the runner then renders with `adapter.relight_view(variant, camera)`,
+which only the adapters that support novel views define. Cases run in CASES order and share bakes,
+so a `view` case comes after the cases judged from the baked camera.
 """
 
 from __future__ import annotations
