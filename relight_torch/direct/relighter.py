@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import math
 import os
 from dataclasses import dataclass
@@ -618,9 +619,8 @@ class Relighter:
         for points, num_samples in self._sample_groups(light):
             chunks = self._chunks(num_samples, points, threads)
             u, viewer = self._fixed_u(num_samples), self._view_directions()  # made here, shared by the tiles
-            parts = parallel_map(
-                lambda chunk, u=u, viewer=viewer: self._chunk_transport(light, chunk, u, viewer), chunks, threads
-            )
+            shade = functools.partial(self._chunk_transport, light, u=u, viewer=viewer)
+            parts = parallel_map(shade, chunks, threads)
             state.transports.append(parts[0] if len(parts) == 1 else self._joined(parts, chunks))
         if state.transports[0].shadow_sums is not None:
             self._filter_visibility(state.transports)
