@@ -70,7 +70,8 @@ def _paper_merge_loop(
     light_nodes: list[int],
     light_values: list[float],
 ) -> float:
-    """Seed 004's merge loop, transcribed: sum over merged clusters of |C| <l> (sum_j w_j <v_j>) f(node),
+    """Cheslack-Postava et al. 2008's merge loop, transcribed: sum over merged clusters of
+    |C| <l> (sum_j w_j <v_j>) f(node),
     with f(node) = 1 + node / 1000 standing in for the BRDF at the cluster's mean direction."""
     leftleaf, size = tree.leftleaf.tolist(), tree.size.tolist()
     all_cuts = cuts + [light_nodes]

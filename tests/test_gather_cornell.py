@@ -140,7 +140,7 @@ def _small_strong_lights(path: Path) -> Path:
 
 
 def test_small_strong_secondary_sources_are_the_methods_failure_mode(cornell, tmp_path):
-    """The seed paper's failure mode, measured: a point light near a wall and a narrow spot light
+    """The clustered-gather paper's failure mode, measured: a point light near a wall and a narrow spot light
     a few gathers brightly; clustering averages them with dim neighbours, so the indirect part's
     error is many times the area lamp's. Bounds: measured, less ~1 dB."""
     layer, _ = cornell

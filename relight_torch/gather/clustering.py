@@ -1,4 +1,4 @@
-"""Two-phase clustering of sample sets (the seed paper's section 3.3.1), batched over sets.
+"""Two-phase clustering of sample sets (the clustered-gather paper's section 3.3.1), batched over sets.
 
 Each of B sets holds M samples with features in R^D (the paper's 6-D metric: weighted position
 and normal, `features`). Phase one seeds the clusters hierarchically: starting from one cluster,

@@ -1,6 +1,6 @@
 """Radial-basis reconstruction of per-pixel values from the nearest view representatives.
 
-The seed paper interpolates the indirect light of every view sample from its 10 closest
+The clustered-gather paper interpolates the indirect light of every view sample from its 10 closest
 clustered view samples (equation 3's c_ik). The weights here are Gaussians of the feature-space
 distance, their width set per pixel by its farthest kept neighbour, normalised to sum to one.
 """

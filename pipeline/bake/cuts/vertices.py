@@ -1,6 +1,6 @@
 """Where visibility cuts are stored: the vertices of the seen triangles, refined where too coarse.
 
-Seed 004 stores a visibility cut per mesh vertex and interpolates the three cuts of a pixel's
+Cheslack-Postava et al. 2008 store a visibility cut per mesh vertex and interpolates the three cuts of a pixel's
 triangle with its barycentric weights. Meshes may be far too coarse for that (the glossy floor is
 two triangles), so every triangle the camera sees is subdivided into an n x n lattice of
 sub-triangles, n = ceil(longest edge / target edge) (capped), and each lattice vertex gets a cut.

@@ -1,4 +1,4 @@
-"""`relight bake --method gather`: the direct cache plus clustered gathers (seed paper, eq. 2-3).
+"""`relight bake --method gather`: the direct cache plus clustered gathers (the clustered-gather paper, eq. 2-3).
 
 Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct.bake`):
     <stem>.viewPixels.npy             (P,) int64 pixel (row * W + col) of each view sample (one

@@ -1,4 +1,4 @@
-"""Hemisphere gathers of view representatives, clustered (seed paper, equations 2 and 3).
+"""Hemisphere gathers of view representatives, clustered (the clustered-gather paper, equations 2 and 3).
 
 Each representative v shoots N quasi-Monte Carlo directions (one scrambled Sobol set, shifted
 per representative by a Cranley-Patterson rotation) importance-sampled by its UsdPreviewSurface

@@ -1,4 +1,4 @@
-"""View representatives: the view samples the indirect light is gathered at (seed paper, 3.3.2).
+"""View representatives: the view samples the indirect light is gathered at (the clustered-gather paper, 3.3.2).
 
 The view samples are split into two sets sized by the ratio of diffuse to specular energy the
 camera sees (`glossy_share`), each clustered with the paper's two-phase clustering in its 6-D

@@ -1,7 +1,7 @@
 """Shared surface points of the clustered gathers: light each surface point once, index it many times.
 
 The clustered gathers of neighbouring representatives land on the same surfaces, so lighting each
-of them (the seed paper's D(g)) repeats nearly the same work hundreds of times. Here they are
+of them (the clustered-gather paper's D(g)) repeats nearly the same work hundreds of times. Here they are
 snapped to a world grid: gathers in the same cell, normal bin (`NORMAL_BINS` per axis, so the two
 sides of a thin wall or the walls meeting at a corner stay apart) and object (light links act per
 object) share one surface point -- the member nearest their mean position, so that visibility is
