@@ -10,7 +10,8 @@ from __future__ import annotations
 import errno
 import math
 import os
-import tracemalloc
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -267,7 +268,7 @@ def test_cache_edited_by_hand(cache, tmp_path, capsys):
     assert not image.exists()
 
 
-def test_cache_header_claiming_a_huge_shape_is_refused_before_allocating(cache, tmp_path, capsys):
+def test_cache_header_claiming_a_huge_shape_is_refused_before_allocating(cache, tmp_path):
     # A consistent forgery: the .npy header and the layer's record both claim 10^12 triangles.
     occluders = cache.parent / "shot.occluders.npy"
     data = occluders.read_bytes()
@@ -285,15 +286,25 @@ def test_cache_header_claiming_a_huge_shape_is_refused_before_allocating(cache, 
         for p in description.payloads
     )
     write_cache_layer(cache, type(description)(**{**vars(description), "payloads": payloads}))
-    tracemalloc.start()
-    tracemalloc.reset_peak()  # the peak of this render alone, whoever traced before in this process
-    try:
-        status = main(["render", str(cache), "-o", str(tmp_path / "relit.exr")])
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    # In a fresh process: a test worker's threads left by earlier tests would count in the trace too.
+    script = (
+        "import sys, tracemalloc\n"
+        "from pipeline.cli import main\n"
+        "tracemalloc.start()\n"
+        "status = main(sys.argv[1:])\n"
+        "print('peak', tracemalloc.get_traced_memory()[1])\n"
+        "sys.exit(status)\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script, "render", str(cache), "-o", str(tmp_path / "relit.exr")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
+    )
+    status, peak = result.returncode, int(result.stdout.split("peak")[-1])
     assert status == 2
-    line = _error_line(capsys.readouterr().err)
+    line = _error_line(result.stderr)
     assert str(occluders) in line and "refused before reading" in line
     assert peak < 64 * 2**20 < math.prod((10**12, 3, 3)) * 4  # nothing near the claimed 36 TB
 
