@@ -50,7 +50,7 @@ assert (schema_dir() / "plugInfo.json").is_file() and site in schema_dir().paren
 PY
 "$bin/relight" scenes list
 "$bin/relight" scenes write scenes > /dev/null
-"$bin/relight" bake scenes/cornell_box.usda --camera /World/Camera --width 16 --height 16 \
+"$bin/relight" bake scenes/cornell_box.usda --camera /World/Camera --width 16 --height 16 --method direct \
     --supersampling 1 --texture-samples 1 --out cache
 "$bin/relight" render cache/cornell_box.relight.usda -o frame.exr --png frame.png
 "$bin/python" - <<'PY'
