@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from pipeline.bake.cuts.adapter import ADAPTER
 from pipeline.bake.cuts.bake import MODES, CutsSettings, bake_cuts
@@ -64,27 +63,12 @@ def settings_from_args(args: argparse.Namespace, scene: Scene, camera: Camera) -
     return settings
 
 
-def _bake(
-    scene: Scene,
-    camera: Camera,
-    out_dir: Path,
-    stem: str,
-    supersampling: int,
-    texture_samples: int,
-    time_code: float | None,
-    settings: CutsSettings,
-) -> Path:
-    return bake_cuts(
-        scene, camera, out_dir, stem, supersampling, texture_samples, time_code=time_code, settings=settings
-    )
-
-
 METHOD = BakeMethod(
     relight=RELIGHT,
     settings=CutsSettings,
     add_options=add_options,
     settings_from_args=settings_from_args,
-    bake=_bake,
+    bake=bake_cuts,  # its positional order is the registry's `Bake`
     adapter=ADAPTER,
     # A smaller sigma refines the visibility cuts (bytes); the illumination cut sizes cost relight
     # time only and come from one bake, so the cheapest passing one is kept.

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from pipeline.bake.gather.adapter import ADAPTER
 from pipeline.bake.gather.bake import GatherSettings, bake_gather
@@ -59,27 +58,12 @@ def settings_from_args(args: argparse.Namespace, scene: Scene, camera: Camera) -
     return settings
 
 
-def _bake(
-    scene: Scene,
-    camera: Camera,
-    out_dir: Path,
-    stem: str,
-    supersampling: int,
-    texture_samples: int,
-    time_code: float | None,
-    settings: GatherSettings,
-) -> Path:
-    return bake_gather(
-        scene, camera, out_dir, stem, supersampling, texture_samples, time_code=time_code, settings=settings
-    )
-
-
 METHOD = BakeMethod(
     relight=RELIGHT,
     settings=GatherSettings,
     add_options=add_options,
     settings_from_args=settings_from_args,
-    bake=_bake,
+    bake=bake_gather,  # its positional order is the registry's `Bake`
     adapter=ADAPTER,
     ladder=tuple(
         {"clusters": c, "representativeScale": f}

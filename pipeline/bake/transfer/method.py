@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from pipeline.bake.methods import BakeMethod, checked
 from pipeline.bake.transfer.adapter import ADAPTER
@@ -74,27 +73,12 @@ def settings_from_args(args: argparse.Namespace, scene: Scene, camera: Camera) -
     return settings
 
 
-def _bake(
-    scene: Scene,
-    camera: Camera,
-    out_dir: Path,
-    stem: str,
-    supersampling: int,
-    texture_samples: int,
-    time_code: float | None,
-    settings: TransferSettings,
-) -> Path:
-    return bake_transfer(
-        scene, camera, out_dir, stem, supersampling, texture_samples, time_code=time_code, settings=settings
-    )
-
-
 METHOD = BakeMethod(
     relight=RELIGHT,
     settings=TransferSettings,
     add_options=add_options,
     settings_from_args=settings_from_args,
-    bake=_bake,
+    bake=bake_transfer,  # its positional order is the registry's `Bake`
     adapter=ADAPTER,
     ladder=tuple({"gathers": g, "coefficients": (10, 25, 50, 100, 200)} for g in (1024, 4096, 16384)),
     stability_point={"gathers": 1024, "coefficients": 50, "bounces": 1},
