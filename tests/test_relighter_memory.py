@@ -21,7 +21,7 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.direct.relighter import MEMORY_BUDGET_FRACTION, Relighter, RelightSettings, default_memory_budget
 from relight_torch.io.exr import read_exr
-from tests.test_relighter_cache_counters import SETTINGS, assert_same_image, baked, low_rect, moved, spot  # noqa: F401
+from test_relighter_cache_counters import SETTINGS, assert_same_image, baked, low_rect, moved, spot  # noqa: F401
 
 FILTERED = dataclasses.replace(SETTINGS, shadow_filter_radius=1)  # the rect light's visibility filtered
 

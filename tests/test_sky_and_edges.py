@@ -18,7 +18,7 @@ from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
 from pipeline.cli import main
 from pipeline.scene import find_camera, load_scene
 from relight_torch.io.exr import read_exr
-from tests.sky_support import write_exterior_shot
+from sky_support import write_exterior_shot
 
 # Small settings per method: each bakes in about a second at these sizes.
 METHOD_OPTIONS = {
