@@ -1,0 +1,114 @@
+"""Placing a light by where it should land: a pixel of the frame -> the surface point it sees -> a
+light transform aimed at that point, or set along its normal (as DCC tools' "place by target").
+
+The surface point comes from the cache's deep framebuffer (`relight_torch.gbuffer.GBuffer`): the
+covered sub-sample nearest the pixel's centre, its world position and geometric normal (turned
+towards the camera). Transforms are (4, 4) float64 column-vector `world_from_light`; a light shines
+along its local -Z axis (UsdLux), and placement keeps the light's own axis scales.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from relight_torch.gbuffer import GBuffer
+
+
+@dataclass(frozen=True)
+class SurfacePoint:
+    """What a pixel sees: world `position` (3,) and unit `normal` (3,) on the camera's side."""
+
+    position: np.ndarray
+    normal: np.ndarray
+
+
+class SurfaceLookup:
+    """Pixel -> `SurfacePoint` of one deep framebuffer.
+
+    Args:
+        gbuffer: the cache's deep framebuffer, sub-sample image (H * s, W * s).
+        supersampling: s, sub-samples per pixel side.
+    """
+
+    def __init__(self, gbuffer: GBuffer, supersampling: int):
+        height, width = gbuffer.image_size
+        self.supersampling = supersampling
+        self.size = (width // supersampling, height // supersampling)
+        # (H * s * W * s,) sample index of each sub-sample, -1 where uncovered.
+        self._sample_at = np.full(height * width, -1, np.int64)
+        self._sample_at[gbuffer.pixel_index.cpu().numpy()] = np.arange(gbuffer.num_samples)
+        self._position = gbuffer.position.cpu().numpy().astype(np.float64)
+        self._normal = gbuffer.geometric_normal.cpu().numpy().astype(np.float64)
+        s = supersampling
+        offsets = np.stack(np.meshgrid(np.arange(s), np.arange(s), indexing="ij"), -1).reshape(-1, 2)
+        # Sub-samples of a pixel, nearest its centre first.
+        self._offsets = offsets[np.argsort(np.abs(offsets - (s - 1) / 2).sum(-1), kind="stable")]
+
+    def at(self, x: int, y: int) -> SurfacePoint | None:
+        """The surface seen at pixel column `x`, row `y` (row 0 at the top); None for sky.
+
+        Raises:
+            ValueError: the pixel is outside the image.
+        """
+        width, height = self.size
+        if not (0 <= x < width and 0 <= y < height):
+            raise ValueError(f"pixel ({x}, {y}) is outside the {width}x{height} image")
+        s = self.supersampling
+        rows, cols = y * s + self._offsets[:, 0], x * s + self._offsets[:, 1]
+        samples = self._sample_at[rows * width * s + cols]
+        covered = samples[samples >= 0]
+        if covered.size == 0:
+            return None
+        sample = covered[0]
+        return SurfacePoint(self._position[sample], self._normal[sample])
+
+
+def aimed_at(world_from_light: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """The light turned in place so that its -Z axis points at world point `target` (3,).
+
+    Args:
+        up: (3,) world direction the light's +Y should lean towards (the camera's up).
+
+    Raises:
+        ValueError: the target is the light's own position.
+    """
+    position = world_from_light[:3, 3]
+    forward = target - position
+    if not np.linalg.norm(forward) > 0.0:
+        raise ValueError("the target point is the light's own position")
+    return oriented(position, forward, _axis_scales(world_from_light), up)
+
+
+def along_normal(
+    world_from_light: np.ndarray, point: SurfacePoint, distance: float, up: np.ndarray
+) -> np.ndarray:
+    """The light moved to `distance` (world units) from the surface point along its normal, facing it."""
+    position = point.position + distance * point.normal
+    return oriented(position, -point.normal, _axis_scales(world_from_light), up)
+
+
+def facing(world_from_light: np.ndarray, direction: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """The light turned in place so that its -Z axis is `direction` (3,) (a distant light's travel)."""
+    return oriented(world_from_light[:3, 3], direction, _axis_scales(world_from_light), up)
+
+
+def oriented(position: np.ndarray, forward: np.ndarray, scales: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """(4, 4) world_from_light at `position` whose -Z is `forward`, axes scaled by `scales` (3,)."""
+    z_axis = -forward / np.linalg.norm(forward)
+    for lean in (up, np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0])):
+        x_axis = np.cross(lean, z_axis)
+        if np.linalg.norm(x_axis) > 1e-6:  # `lean` not parallel to the light's axis
+            break
+    x_axis /= np.linalg.norm(x_axis)
+    y_axis = np.cross(z_axis, x_axis)
+    world_from_light = np.eye(4)
+    world_from_light[:3, :3] = np.stack([x_axis, y_axis, z_axis], axis=1) * scales
+    world_from_light[:3, 3] = position
+    return world_from_light
+
+
+def _axis_scales(world_from_light: np.ndarray) -> np.ndarray:
+    scales: np.ndarray = np.linalg.norm(world_from_light[:3, :3], axis=0)
+    return scales
