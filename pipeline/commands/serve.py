@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import ipaddress
 import logging
 import secrets
-import socket
 from pathlib import Path
 
 from pipeline.commands.common import add_device_option, add_lights_option
@@ -45,9 +43,9 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import uvicorn
-
+    # Imported here: the server's packages load only for this command (`relight --help` stays quick).
     from pipeline.serve.app import LOOPBACK_NAMES, create_app
+    from pipeline.serve.server import bind, is_loopback, server
     from pipeline.serve.session import Session
 
     if not 0 <= args.port <= 65535:
@@ -62,34 +60,7 @@ def run(args: argparse.Namespace) -> int:
         log.warning("serving on %s: reachable from the network (every request still needs the token)", args.host)
     print(f"relight serve: {args.cache}: http://{shown}:{port}/?token={token}", flush=True)
     try:
-        uvicorn.Server(uvicorn.Config(app, log_level="warning", ws="websockets")).run(sockets=[listener])
+        server(app).run(sockets=[listener])
     finally:
         session.close()
     return 0
-
-
-def bind(host: str, port: int) -> socket.socket:
-    """A listening socket on host:port (port 0: a free one), so the URL can name the real port."""
-    try:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-    except socket.gaierror as error:
-        raise RelightError(f"--host {host}: {error.strerror}") from None
-    family, kind, proto, _, address = infos[0]
-    listener = socket.socket(family, kind, proto)
-    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    try:
-        listener.bind(address)
-    except OSError as error:
-        listener.close()
-        raise RelightError(f"--host {host} --port {port}: cannot listen there: {error.strerror}") from None
-    listener.listen(64)
-    return listener
-
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False

@@ -40,7 +40,9 @@ class SurfaceLookup:
         self._sample_at = np.full(height * width, -1, np.int64)
         self._sample_at[gbuffer.pixel_index.cpu().numpy()] = np.arange(gbuffer.num_samples)
         self._position = gbuffer.position.cpu().numpy().astype(np.float64)
-        self._normal = gbuffer.geometric_normal.cpu().numpy().astype(np.float64)
+        normal = gbuffer.geometric_normal.cpu().numpy().astype(np.float64)
+        # Renormalised: the cache may store normals in half precision.
+        self._normal = normal / np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-30)
         s = supersampling
         offsets = np.stack(np.meshgrid(np.arange(s), np.arange(s), indexing="ij"), -1).reshape(-1, 2)
         # Sub-samples of a pixel, nearest its centre first.

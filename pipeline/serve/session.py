@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pxr import Sdf
+from pxr import Sdf, Tf
 
 from pipeline.errors import RelightError
 from pipeline.serve.attributes import edited_light, light_attributes
@@ -40,6 +40,7 @@ from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.overrides import light_overrides_text, write_light_overrides
 from relight_torch.methods import relight_method
 from relight_torch.protocol import CacheRelighter
+from relight_torch.stage import usd_error_line
 
 MAX_UNDO = 1000
 """Undo steps kept (a step is a tuple of references to frozen lights)."""
@@ -348,7 +349,7 @@ class Session:
         if (path is None) == (text is None):
             raise RelightError("load: give either a layer path or a layer's text")
         if text is not None:
-            if not isinstance(text, str) or not Sdf.Layer.CreateAnonymous(".usda").ImportFromString(text):
+            if not isinstance(text, str) or not _parses(text):
                 raise RelightError("load: the text is not a USD layer (.usda)")
             scratch = Path(tempfile.mkstemp(suffix=".usda", dir=self._scratch.name)[1])
             scratch.write_text(text)
@@ -499,7 +500,10 @@ class Session:
     def _check_layer_files(self, layer_path: Path) -> None:
         """Refuse a client's layer that would make USD open files outside the output directory and the
         shot's folder."""
-        layer = Sdf.Layer.OpenAsAnonymous(str(layer_path))
+        try:
+            layer = Sdf.Layer.OpenAsAnonymous(str(layer_path))
+        except Tf.ErrorException as error:
+            raise RelightError(f"load: {layer_path.name}: not a USD layer ({usd_error_line(error)})") from None
         if layer is None:
             raise RelightError(f"load: {layer_path.name}: not a USD layer")
         if layer.GetCompositionAssetDependencies():
@@ -517,3 +521,11 @@ class Session:
         layer.Traverse(Sdf.Path.absoluteRootPath, visit)
         if outside:
             raise RelightError(f"load: {outside[0]} names a file outside the output directory and the shot's folder")
+
+
+def _parses(text: str) -> bool:
+    """Whether `text` is a .usda layer."""
+    try:
+        return bool(Sdf.Layer.CreateAnonymous(".usda").ImportFromString(text))
+    except Tf.ErrorException:
+        return False
