@@ -49,8 +49,8 @@ def is_loopback(host: str) -> bool:
 
 
 def server(app: object) -> uvicorn.Server:
-    """A uvicorn server of `app` (its WebSocket protocol from the websockets package)."""
-    return uvicorn.Server(uvicorn.Config(app, log_level="warning", ws="websockets"))  # type: ignore[arg-type]
+    """A uvicorn server of `app` (its WebSocket protocol from the websockets package, sans-I/O implementation)."""
+    return uvicorn.Server(uvicorn.Config(app, log_level="warning", ws="websockets-sansio"))  # type: ignore[arg-type]
 
 
 @contextlib.contextmanager
