@@ -12,8 +12,8 @@ from pathlib import Path
 
 import hypothesis
 import numpy as np
-from hypothesis import strategies as st
 import pytest
+from hypothesis import strategies as st
 from PIL import Image
 from starlette.websockets import WebSocketDisconnect
 
@@ -69,17 +69,20 @@ def test_every_request_needs_the_token(served):
     assert test_client.get(f"/?token={TOKEN}").status_code == 200
     assert "<title>relight serve</title>" in test_client.get(f"/?token={TOKEN}").text
     assert test_client.get("/api/lights", headers=AUTH).status_code == 200
-    with pytest.raises(WebSocketDisconnect):
-        with test_client.websocket_connect("ws://127.0.0.1:8000/api/frames") as socket:
-            socket.receive_json()
+    with pytest.raises(WebSocketDisconnect), test_client.websocket_connect("ws://127.0.0.1:8000/api/frames") as socket:
+        socket.receive_json()
 
 
 def test_websocket_from_a_foreign_origin_is_refused(served):
     test_client, _ = served
     for origin in ("http://evil.example:8000", "http://127.0.0.1:9999", "null", "file://"):
-        with pytest.raises(WebSocketDisconnect) as refused:
-            with test_client.websocket_connect(f"ws://127.0.0.1:8000/api/frames?token={TOKEN}", headers={"Origin": origin}) as socket:
-                socket.receive_json()
+        with (
+            pytest.raises(WebSocketDisconnect) as refused,
+            test_client.websocket_connect(
+                f"ws://127.0.0.1:8000/api/frames?token={TOKEN}", headers={"Origin": origin}
+            ) as socket,
+        ):
+            socket.receive_json()
         assert refused.value.code == 4403
     with test_client.websocket_connect(
         f"ws://127.0.0.1:8000/api/frames?token={TOKEN}", headers={"Origin": "http://127.0.0.1:8000"}
@@ -186,8 +189,14 @@ def test_click_places_along_the_normal_and_aims(served, layer):
     aimed = np.array(first_light(test_client)["attributes"]["xformOp:transform"]).T
     np.testing.assert_allclose(aimed[:3, 3], world_from_light[:3, 3], atol=1e-12)  # aiming turns in place
     towards = target.position - aimed[:3, 3]
-    np.testing.assert_allclose(-aimed[:3, 2] / np.linalg.norm(aimed[:3, 2]), towards / np.linalg.norm(towards), atol=1e-9)
-    for body in ({"path": path, "x": 32, "y": 0}, {"path": path, "x": 1.5, "y": 0}, {"path": path, "x": 0, "y": 0, "mode": "x"}):
+    np.testing.assert_allclose(
+        -aimed[:3, 2] / np.linalg.norm(aimed[:3, 2]), towards / np.linalg.norm(towards), atol=1e-9
+    )
+    for body in (
+        {"path": path, "x": 32, "y": 0},
+        {"path": path, "x": 1.5, "y": 0},
+        {"path": path, "x": 0, "y": 0, "mode": "x"},
+    ):
         assert test_client.post("/api/place", json=body, headers=AUTH).status_code == 400
 
 
@@ -199,8 +208,14 @@ def test_saved_layer_renders_the_session_frame(served, layer, tmp_path):
         f"/api/lights{lights[0]['path']}", json={"inputs:intensity": 0.5, "inputs:color": [1, 0.8, 0.6]}, headers=AUTH
     )
     added = test_client.post("/api/lights", json={"type": "SphereLight"}, headers=AUTH).json()["path"]
-    test_client.post("/api/place", json={"path": added, "x": 16, "y": 28, "mode": "normal", "distance": 0.2}, headers=AUTH)
-    test_client.patch(f"/api/lights{added}", json={"inputs:colorTemperature": 3000, "inputs:enableColorTemperature": True}, headers=AUTH)
+    test_client.post(
+        "/api/place", json={"path": added, "x": 16, "y": 28, "mode": "normal", "distance": 0.2}, headers=AUTH
+    )
+    test_client.patch(
+        f"/api/lights{added}",
+        json={"inputs:colorTemperature": 3000, "inputs:enableColorTemperature": True},
+        headers=AUTH,
+    )
     if len(lights) > 1:
         test_client.delete(f"/api/lights{lights[1]['path']}", headers=AUTH)
     response = test_client.post("/api/save", json={"path": "session.usda"}, headers=AUTH)
@@ -228,7 +243,7 @@ def test_client_paths_stay_in_the_output_directory(served, tmp_path):
     assert not outside.exists()
     for path in ("../x.usda", "/etc/passwd", "link/x.usda", "nope.usda"):
         assert test_client.post("/api/load", json={"path": path}, headers=AUTH).status_code == 400
-    sublayer = '#usda 1.0\n(\n    subLayers = [@/etc/hosts@]\n)\n'
+    sublayer = "#usda 1.0\n(\n    subLayers = [@/etc/hosts@]\n)\n"
     response = test_client.post("/api/load", json={"text": sublayer}, headers=AUTH)
     assert response.status_code == 400 and "sublayers" in response.json()["error"]
     texture = '#usda 1.0\ndef DomeLight "D"\n{\n    asset inputs:texture:file = @/etc/hosts@\n}\n'
@@ -252,20 +267,29 @@ def test_reference_view_and_psnr(layer, tmp_path):
         assert header["psnr"] is not None and header["psnr"] > 10
 
 
+LIGHT = "/api/lights/World/Lights/CeilingLight"
 MALFORMED = [
-    ("PATCH", "/api/lights/World/Lights/CeilingLight", b"{not json"),
-    ("PATCH", "/api/lights/World/Lights/CeilingLight", b"[1, 2]"),
-    ("PATCH", "/api/lights/World/Lights/CeilingLight", b"{}"),
-    ("PATCH", "/api/lights/World/Lights/CeilingLight", b'{"inputs:intensity": "1"}'),
-    ("PATCH", "/api/lights/World/Lights/CeilingLight", b'{"inputs:intensity": true}'),
-    ("PATCH", "/api/lights/World/Lights/CeilingLight", b'{"inputs:intensity": 1' + b"0" * 400 + b"}"),
-    ("PATCH", "/api/lights/World/Lights/CeilingLight", b'{"inputs:intensity": -Infinity}'),
-    ("PATCH", "/api/lights/World/Lights/CeilingLight", b'{"xformOp:transform": [[1e300, 0, 0, 0]]}'),
-    ("PATCH", "/api/lights/World/Lights/CeilingLight", b'{"xformOp:transform": [[0,0,0,0],[0,0,0,0],[0,0,0,0],[0,0,0,1]]}'),
-    ("PATCH", "/api/lights/World/Lights/CeilingLight", b'{"enabled": "yes"}'),
-    ("PATCH", "/api/lights/World/Lights/CeilingLight", b'{"relight:lightGroup": 5}'),
-    ("PATCH", "/api/lights/World/Lights/CeilingLight", b'{"ShapingAPI": 1}'),
-    ("PATCH", "/api/lights/World/Lights/CeilingLight", b'{"relight:barzel:near:start": 5, "relight:barzel:near:end": 1}'),
+    ("PATCH", LIGHT, b"{not json"),
+    ("PATCH", LIGHT, b"[1, 2]"),
+    ("PATCH", LIGHT, b"{}"),
+    ("PATCH", LIGHT, b'{"inputs:intensity": "1"}'),
+    ("PATCH", LIGHT, b'{"inputs:intensity": true}'),
+    ("PATCH", LIGHT, b'{"inputs:intensity": 1' + b"0" * 400 + b"}"),
+    ("PATCH", LIGHT, b'{"inputs:intensity": -Infinity}'),
+    ("PATCH", LIGHT, b'{"xformOp:transform": [[1e300, 0, 0, 0]]}'),
+    (
+        "PATCH",
+        "/api/lights/World/Lights/CeilingLight",
+        b'{"xformOp:transform": [[0,0,0,0],[0,0,0,0],[0,0,0,0],[0,0,0,1]]}',
+    ),
+    ("PATCH", LIGHT, b'{"enabled": "yes"}'),
+    ("PATCH", LIGHT, b'{"relight:lightGroup": 5}'),
+    ("PATCH", LIGHT, b'{"ShapingAPI": 1}'),
+    (
+        "PATCH",
+        "/api/lights/World/Lights/CeilingLight",
+        b'{"relight:barzel:near:start": 5, "relight:barzel:near:end": 1}',
+    ),
     ("PATCH", "/api/lights/" + "x" * 5000, b'{"inputs:intensity": 1}'),
     ("PATCH", "/api/lights/", b'{"inputs:intensity": 1}'),
     ("DELETE", "/api/lights/World/Nothing", b""),
@@ -277,7 +301,7 @@ MALFORMED = [
     ("POST", "/api/place", b'{"path": "/World/Lights/CeilingLight", "x": 0, "y": 0, "distance": -1}'),
     ("POST", "/api/place", b'{"x": 0, "y": 0}'),
     ("POST", "/api/save", b'{"path": 5}'),
-    ("POST", "/api/load", b'{}'),
+    ("POST", "/api/load", b"{}"),
     ("POST", "/api/load", b'{"text": "not usd at all"}'),
     ("POST", "/api/load", b'{"text": "#usda 1.0\\ndef SphereLight \\"S\\" { float inputs:radius = -1 }"}'),
     ("GET", "/api/frame.png?exposure=nan", b""),
@@ -339,8 +363,10 @@ def test_two_clients_editing_at_once(served):
         test_client.websocket_connect(f"ws://127.0.0.1:8000/api/frames?token={TOKEN}") as one,
         test_client.websocket_connect(f"ws://127.0.0.1:8000/api/frames?token={TOKEN}") as two,
     ):
-        threads = [threading.Thread(target=drag, args=(first, "inputs:exposure")),
-                   threading.Thread(target=drag, args=(second, "inputs:intensity"))]
+        threads = [
+            threading.Thread(target=drag, args=(first, "inputs:exposure")),
+            threading.Thread(target=drag, args=(second, "inputs:intensity")),
+        ]
         for thread in threads:
             thread.start()
         for thread in threads:

@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import contextlib
 import io
-from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 
+from pipeline.benchmarks.browser import CHROMIUM, WAIT_MS, chromium_page
 from pipeline.cli import main as relight_main
 from pipeline.serve.app import create_app
 from pipeline.serve.display import png_bytes
@@ -24,19 +24,7 @@ from relight_torch.cache.load import load_gbuffer
 from relight_torch.io.exr import read_rgb_exr
 from serve_support import TOKEN, bake
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 RENDER_TOLERANCE = 1e-3
-WAIT_MS = 30_000
 # The displayed frame's pixels, read back through a canvas (the page's own <img>).
 PIXELS_JS = """() => { const img = document.getElementById('frame'); const c = document.createElement('canvas');
   c.width = img.naturalWidth; c.height = img.naturalHeight; const g = c.getContext('2d'); g.drawImage(img, 0, 0);
@@ -44,21 +32,11 @@ PIXELS_JS = """() => { const img = document.getElementById('frame'); const c = d
 
 
 @contextlib.contextmanager
-def chromium_page(url: str):
-    """A headless chromium page at `url` (Playwright on the system chromium)."""
-    if not CHROMIUM.is_file():
-        pytest.fail(f"{CHROMIUM} is missing: install Debian's 'chromium' package (apt-get install chromium; .ci/run does)")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        try:
-            page = browser.new_page(viewport={"width": 1100, "height": 700})
-            page.goto(url)
-            page.wait_for_function("window.relight.displayedVersion >= 0", timeout=WAIT_MS)
-            yield page
-        finally:
-            browser.close()
+def page_at(url: str):
+    if not CHROMIUM.is_file():  # CI installs chromium: its absence is a failure, not a skip
+        pytest.fail(f"{CHROMIUM} is missing: install Debian's 'chromium' package (apt-get install chromium)")
+    with chromium_page(url) as page:
+        yield page
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +48,7 @@ def layer(tmp_path_factory):
 def served(layer, tmp_path):
     session = Session.open(layer, out_dir=tmp_path)
     try:
-        with serving(create_app(session, TOKEN)) as base, chromium_page(f"{base}/?token={TOKEN}") as page:
+        with serving(create_app(session, TOKEN)) as base, page_at(f"{base}/?token={TOKEN}") as page:
             yield page, session
     finally:
         session.close()

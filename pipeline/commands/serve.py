@@ -36,9 +36,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument(
         "-o", "--out", default=".", metavar="DIR", help="the folder saved and loaded layers live in (default: .)"
     )
-    parser.add_argument(
-        "--shadows", default="embree", choices=("embree", "shadowmaps"), help="as for `relight render`"
-    )
+    parser.add_argument("--shadows", default="embree", choices=("embree", "shadowmaps"), help="as for `relight render`")
     parser.set_defaults(run=run)
 
 

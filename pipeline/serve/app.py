@@ -13,8 +13,8 @@ import contextlib
 import hmac
 import json
 import logging
-from importlib import resources
 from collections.abc import AsyncIterator
+from importlib import resources
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
@@ -30,8 +30,8 @@ from starlette.websockets import WebSocket, WebSocketDisconnect
 from pipeline.errors import RelightError
 from pipeline.serve.attributes import attribute_checks
 from pipeline.serve.display import Display, exr_bytes, frame_psnr, png_bytes, view_image
-from pipeline.serve.session import Frame, Session
 from pipeline.serve.rig import UnknownLight
+from pipeline.serve.session import Frame, Session
 from pipeline.serve.stream import FrameStream
 from relight_torch.lights.light import LightKind
 
@@ -137,9 +137,7 @@ def create_app(session: Session, token: str, hosts: tuple[str, ...] = LOOPBACK_N
         return JSONResponse({"version": version})
 
     async def frame_png(request: Request) -> Response:
-        display = Display.parse(
-            request.query_params.get("view", "beauty"), request.query_params.get("exposure", "0")
-        )
+        display = Display.parse(request.query_params.get("view", "beauty"), request.query_params.get("exposure", "0"))
         frame = await _frame(display)
         image = view_image(frame, display, session.reference)
         data = await run_in_threadpool(png_bytes, image, display.exposure)
@@ -309,8 +307,10 @@ class _Guard:
         if scope["type"] == "websocket" and "origin" in headers:
             origin = urlsplit(headers["origin"])
             host = headers.get("host", "")
-            if origin.scheme not in ("http", "https") or origin.netloc.lower() != host.lower() or (
-                (origin.hostname or "").lower() not in self.hosts
+            if (
+                origin.scheme not in ("http", "https")
+                or origin.netloc.lower() != host.lower()
+                or ((origin.hostname or "").lower() not in self.hosts)
             ):
                 return 403, f"WebSocket from a foreign origin {headers['origin']!r:.80} refused"
         return None
@@ -358,4 +358,6 @@ def _json_error(status: int, message: str) -> JSONResponse:
 
 def _internal_error(request: Request, error: Exception) -> Response:
     log.error("internal error serving %s %s", request.method, request.url.path, exc_info=error)
-    return _json_error(500, f"internal error: {type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}")
+    return _json_error(
+        500, f"internal error: {type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+    )

@@ -83,9 +83,7 @@ def aimed_at(world_from_light: np.ndarray, target: np.ndarray, up: np.ndarray) -
     return oriented(position, forward, _axis_scales(world_from_light), up)
 
 
-def along_normal(
-    world_from_light: np.ndarray, point: SurfacePoint, distance: float, up: np.ndarray
-) -> np.ndarray:
+def along_normal(world_from_light: np.ndarray, point: SurfacePoint, distance: float, up: np.ndarray) -> np.ndarray:
     """The light moved to `distance` (world units) from the surface point along its normal, facing it."""
     position = point.position + distance * point.normal
     return oriented(position, -point.normal, _axis_scales(world_from_light), up)

@@ -88,9 +88,11 @@ class FrameStream:
             version = self.session.version
             self.session.changed.notify_all()
             done = self.session.changed.wait_for(
-                lambda: self._stopped
-                or (self.latest is not None and self.latest.final and self.latest.version >= version)
-                or (self.error is not None and self.error[0] >= version),
+                lambda: (
+                    self._stopped
+                    or (self.latest is not None and self.latest.final and self.latest.version >= version)
+                    or (self.error is not None and self.error[0] >= version)
+                ),
                 timeout,
             )
             if self.error is not None and self.error[0] >= version:
