@@ -30,17 +30,14 @@ SCENE = "cornell_box"
 TOKEN = "benchmark"
 # One timed edit from inside the page: PATCH, then wait until the frame of the returned version is
 # on screen. Resolves to milliseconds.
-EDIT_JS = (
-    """async ([path, values]) => {
+EDIT_JS = """async ([path, values]) => {
   const start = performance.now();
   const response = await fetch(`/api/lights${path}`, { method: "PATCH", body: JSON.stringify(values),
     headers: { "Authorization": "Bearer TOKEN", "Content-Type": "application/json" } });
   const { version } = await response.json();
   while (window.relight.displayedVersion < version) await new Promise((r) => setTimeout(r, 0));
   return window.relight.displayedAt - start;
-}"""
-    % TOKEN
-)
+}""".replace("TOKEN", TOKEN)
 
 
 def edits(kind: str, light: dict, count: int) -> list[dict]:
