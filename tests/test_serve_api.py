@@ -6,10 +6,15 @@ from __future__ import annotations
 
 import io
 import json
+import os
+import subprocess
+import sys
 import tempfile
 import threading
 from pathlib import Path
+from urllib.parse import parse_qs, urlsplit
 
+import httpx2
 import hypothesis
 import numpy as np
 import pytest
@@ -419,3 +424,34 @@ def test_edits_made_while_rendering_coalesce_into_the_latest():
         assert session.rendered in ([0, 5], [5])  # never the stale versions 1..4
     finally:
         stream.stop()
+
+
+def test_the_command_prints_a_tokened_loopback_url_and_serves(layer, tmp_path):
+    process = subprocess.Popen(
+        [sys.executable, "-m", "pipeline.cli", "serve", str(layer), "--out", str(tmp_path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=os.environ | {"PYTHONPATH": os.pathsep.join(sys.path)},
+    )
+    try:
+        line = process.stdout.readline()
+        url = urlsplit(line.split(": ", 2)[-1].strip())
+        assert url.hostname == "127.0.0.1" and url.port, line
+        token = parse_qs(url.query)["token"][0]
+        assert len(token) >= 32
+        base = f"http://127.0.0.1:{url.port}"
+        assert httpx2.get(f"{base}/api/lights", timeout=30).status_code == 401
+        response = httpx2.get(f"{base}/api/lights", headers={"Authorization": f"Bearer {token}"}, timeout=30)
+        assert response.status_code == 200 and response.json()["lights"]
+    finally:
+        process.terminate()
+        process.wait(30)
+
+
+def test_the_command_refuses_bad_arguments_in_one_line(layer, tmp_path, capsys):
+    assert relight_main(["serve", str(tmp_path / "missing.relight.usda")]) == 2
+    assert relight_main(["serve", str(layer), "--port", "70000"]) == 2
+    assert relight_main(["serve", str(layer), "--out", str(tmp_path / "nowhere")]) == 2
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert len(errors) == 3 and all(line.startswith("relight: error: ") for line in errors)
