@@ -23,9 +23,11 @@ def bake(directory: Path) -> Path:
 
 
 @contextlib.contextmanager
-def client(layer: Path, out_dir: Path, reference: Path | None = None) -> Iterator[tuple[TestClient, Session]]:
+def client(
+    layer: Path, out_dir: Path, reference: Path | None = None, lights: Path | None = None
+) -> Iterator[tuple[TestClient, Session]]:
     """A TestClient of a fresh session over `layer` (lifespan run: the render thread is up)."""
-    session = Session.open(layer, reference=reference, out_dir=out_dir)
+    session = Session.open(layer, lights_layer=lights, reference=reference, out_dir=out_dir)
     try:
         with TestClient(create_app(session, TOKEN), base_url="http://127.0.0.1:8000") as test_client:
             yield test_client, session

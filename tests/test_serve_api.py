@@ -238,6 +238,24 @@ def test_saved_layer_renders_the_session_frame(served, layer, tmp_path):
     assert test_client.post("/api/load", json={"text": saved.read_text()}, headers=AUTH).status_code == 200
 
 
+def test_a_session_opened_with_a_lights_layer_saves_against_the_shot(layer, tmp_path):
+    """--lights LAYER edits are part of the session's rig: a layer saved at once holds them, since
+    `relight render --lights SAVED` composes SAVED over the shot alone."""
+    edits = tmp_path / "edits.usda"
+    edits.write_text(
+        '#usda 1.0\nover "World"\n{\n    over "Lights"\n    {\n        over "CeilingLight"\n'
+        "        {\n            float inputs:intensity = 5\n        }\n    }\n}\n"
+    )
+    with client(layer, tmp_path, lights=edits) as (test_client, _):
+        frame = exr_frame(test_client)
+        saved = test_client.post("/api/save", json={"path": "saved.usda"}, headers=AUTH).json()
+    assert "float inputs:intensity = 5" in saved["text"]
+    assert relight_main(["render", str(layer), "--lights", str(edits), "-o", str(tmp_path / "edits.exr")]) == 0
+    assert relight_main(["render", str(layer), "--lights", saved["path"], "-o", str(tmp_path / "saved.exr")]) == 0
+    np.testing.assert_allclose(read_rgb_exr(tmp_path / "edits.exr"), frame, atol=RENDER_TOLERANCE)
+    np.testing.assert_allclose(read_rgb_exr(tmp_path / "saved.exr"), frame, atol=RENDER_TOLERANCE)
+
+
 def test_client_paths_stay_in_the_output_directory(served, tmp_path):
     test_client, _ = served
     outside = tmp_path.parent / f"{tmp_path.name}-outside.usda"

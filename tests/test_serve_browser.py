@@ -126,3 +126,37 @@ def test_save_writes_a_layer_that_renders_the_last_frame(served, layer, tmp_path
     # What the page shows is that frame through the display transform.
     shown = np.asarray(Image.open(io.BytesIO(png_bytes(frame))).convert("RGB"), np.int32)
     np.testing.assert_array_equal(displayed(page), shown)
+
+
+def wait_for_frames_after(page, frames: int) -> None:
+    page.wait_for_function(f"window.relight.frames > {frames}", timeout=WAIT_MS)
+
+
+def test_exposure_group_view_and_the_light_buttons(served):
+    page, session = served
+    before, frames = displayed(page), page.evaluate("window.relight.frames")
+    page.locator("#exposure").fill("1")
+    wait_for_frames_after(page, frames)
+    brighter = displayed(page)
+    assert brighter.sum() > before.sum()
+    count = page.locator("#lights .light").count()
+    version = page.evaluate("window.relight.displayedVersion")
+    page.select_option("#add-type", "DiskLight")
+    page.click("#add")
+    version = wait_for_version_after(page, version)
+    page.wait_for_function(f"document.querySelectorAll('#lights .light').length === {count + 1}", timeout=WAIT_MS)
+    group = session.state()["lights"][-1]["group"]
+    frames = page.evaluate("window.relight.frames")
+    page.select_option("#view-select", f"group:{group}")
+    wait_for_frames_after(page, frames)
+    page.wait_for_function(
+        f"document.getElementById('status').textContent.startsWith('version {version}')", timeout=WAIT_MS
+    )
+    groups = next(iter(session.frames(groups=True))).groups
+    shown = np.asarray(Image.open(io.BytesIO(png_bytes(groups[group], exposure=1.0))).convert("RGB"), np.int32)
+    np.testing.assert_array_equal(displayed(page), shown)
+    page.click("#remove")
+    page.wait_for_function(f"document.querySelectorAll('#lights .light').length === {count}", timeout=WAIT_MS)
+    page.click("#undo")
+    page.wait_for_function(f"document.querySelectorAll('#lights .light').length === {count + 1}", timeout=WAIT_MS)
+    assert [light["path"] for light in session.state()["lights"]][-1].endswith("DiskLight1")
