@@ -81,7 +81,7 @@ def create_app(session: Session, token: str, hosts: tuple[str, ...] = LOOPBACK_N
                 "width": session.width,
                 "height": session.height,
                 "reference": session.reference is not None,
-                "outDir": str(session.out_dir),
+                "outDir": str(session.files.out_dir),
                 "types": [kind.value for kind in LightKind],
                 "attributes": {kind.value: attribute_checks(kind) for kind in LightKind},
             }

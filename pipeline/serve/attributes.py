@@ -69,7 +69,7 @@ def edited_light(light: Light, values: dict[str, Any], asset_path: Callable[[str
         light: the light before the edit.
         values: attribute name -> JSON value (see the module doc).
         asset_path: turns a client's image path into a readable file it may open, raising
-            RelightError otherwise (`Session.asset_path`).
+            RelightError otherwise (`SessionFiles.image_path`).
 
     Raises:
         RelightError: one line naming the light and attribute: an unknown attribute, a value of the

@@ -9,11 +9,27 @@ along its local -Z axis (UsdLux), and placement keeps the light's own axis scale
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from relight_torch.gbuffer import GBuffer
+from relight_torch.lights.light import Light, LightKind
+
+# Intensity of a new light with `normalize` on, over its distance squared, for an irradiance of
+# about 1 where it faces (disk and rect: E = I / d^2; sphere: I / 4 d^2; cylinder: I / pi d^2);
+# distant: E = I; dome (not normalised): radiance I.
+_NEW_LIGHT_INTENSITY = {
+    LightKind.SPHERE: 4.0,
+    LightKind.DISK: 1.0,
+    LightKind.RECT: 1.0,
+    LightKind.CYLINDER: math.pi,
+    LightKind.DISTANT: 1.0,
+    LightKind.DOME: 0.3,
+}
+_NEW_LIGHT_SIZE = 0.1
+"""A new area light's radius (or half-width) as a fraction of its distance to what it lights."""
 
 
 @dataclass(frozen=True)
@@ -112,3 +128,35 @@ def oriented(position: np.ndarray, forward: np.ndarray, scales: np.ndarray, up: 
 def _axis_scales(world_from_light: np.ndarray) -> np.ndarray:
     scales: np.ndarray = np.linalg.norm(world_from_light[:3, :3], axis=0)
     return scales
+
+
+def new_light(kind: LightKind, path: str, lookup: SurfaceLookup, world_from_camera: np.ndarray) -> Light:
+    """A light of `kind` at prim `path` facing the surface seen at the image centre from half the
+    camera's distance along its normal, sized and bright enough to be seen (`_NEW_LIGHT_INTENSITY`).
+
+    Args:
+        world_from_camera: (4, 4) column-vector camera transform (the camera looks along -Z).
+    """
+    up, camera = world_from_camera[:3, 1], world_from_camera[:3, 3]
+    width, height = lookup.size
+    point = lookup.at(width // 2, height // 2)
+    if point is None:  # sky at the centre: one unit in front of the camera, facing along its view
+        forward = -world_from_camera[:3, 2] / np.linalg.norm(world_from_camera[:3, 2])
+        distance, position, normal = 1.0, camera + forward, -forward
+    else:
+        distance = 0.5 * float(np.linalg.norm(point.position - camera)) or 1.0
+        position, normal = point.position + distance * point.normal, point.normal
+    size = _NEW_LIGHT_SIZE * distance
+    area = kind not in (LightKind.DISTANT, LightKind.DOME)
+    return Light(
+        path=path,
+        kind=kind,
+        world_from_light=oriented(position, -normal, np.ones(3), up),
+        intensity=_NEW_LIGHT_INTENSITY[kind] * (distance**2 if area else 1.0),
+        normalize=kind is not LightKind.DOME,
+        radius=size if kind is not LightKind.CYLINDER else size / 2,
+        width=2 * size,
+        height=2 * size,
+        length=2 * size,
+        light_group=path.rsplit("/", 1)[-1],
+    )

@@ -15,9 +15,7 @@ rig. Client paths (save, load, textures) are confined to the session's output di
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
-import tempfile
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -25,11 +23,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pxr import Sdf, Tf
+from pxr import Sdf
 
 from pipeline.errors import RelightError
 from pipeline.serve.attributes import edited_light, light_attributes
-from pipeline.serve.placement import SurfaceLookup, aimed_at, along_normal, facing, oriented
+from pipeline.serve.files import SessionFiles
+from pipeline.serve.placement import SurfaceLookup, aimed_at, along_normal, facing, new_light
 from pipeline.serve.rig import SWITCHES, Rig, RigLight, silenced
 from relight_torch import open_cache
 from relight_torch.cache.layer import CacheDescription, read_cache_layer
@@ -40,24 +39,9 @@ from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.overrides import light_overrides_text, write_light_overrides
 from relight_torch.methods import relight_method
 from relight_torch.protocol import CacheRelighter
-from relight_torch.stage import usd_error_line
 
 MAX_UNDO = 1000
 """Undo steps kept (a step is a tuple of references to frozen lights)."""
-LAYER_SUFFIXES = (".usda", ".usdc", ".usd")
-# Intensity of a new light with `normalize` on, times its distance squared, for an irradiance of
-# about 1 at the point it faces (disk and rect: E = I / d^2; sphere: I / 4 d^2; cylinder: I / pi d^2;
-# distant: E = I; dome: radiance I).
-_NEW_LIGHT_INTENSITY = {
-    LightKind.SPHERE: 4.0,
-    LightKind.DISK: 1.0,
-    LightKind.RECT: 1.0,
-    LightKind.CYLINDER: math.pi,
-    LightKind.DISTANT: 1.0,
-    LightKind.DOME: 0.3,
-}
-_NEW_LIGHT_SIZE = 0.1
-"""A new area light's radius (or half-width) as a fraction of its distance to what it lights."""
 
 
 @dataclass(frozen=True)
@@ -86,7 +70,7 @@ class Session:
         description: the cache layer's record.
         shot: the shot's own lights (what a saved layer is relative to).
         lookup: the deep framebuffer's pixel -> surface lookup (click placement).
-        out_dir: the only folder client paths may name.
+        files: the paths clients may name.
         reference: (H, W, 3) float32 image to compare against, or None.
     """
 
@@ -96,11 +80,11 @@ class Session:
         description: CacheDescription,
         shot: list[Light],
         lookup: SurfaceLookup,
-        out_dir: Path,
+        files: SessionFiles,
         reference: np.ndarray | None = None,
     ):
         self.description = description
-        self.out_dir = out_dir.resolve()
+        self.files = files
         self.reference = reference
         self.width, self.height = lookup.size
         self._relighter = relighter
@@ -116,7 +100,6 @@ class Session:
         self._redo: list[Rig] = []
         self._gesture: str | None = None
         self.version = 0
-        self._scratch = tempfile.TemporaryDirectory(prefix="relight-serve-")
 
     @classmethod
     def open(
@@ -152,10 +135,11 @@ class Session:
                 raise RelightError(
                     f"--reference {reference}: {image.shape[1]}x{image.shape[0]}, the cache renders {width}x{height}"
                 )
-        return cls(relighter, description, shot_lights(description), lookup, Path(out_dir), image)
+        files = SessionFiles(Path(out_dir), Path(description.source).parent)
+        return cls(relighter, description, shot_lights(description), lookup, files, image)
 
     def close(self) -> None:
-        self._scratch.cleanup()
+        self.files.close()
 
     # --- reading -------------------------------------------------------------------------------
 
@@ -207,7 +191,7 @@ class Session:
                 if not isinstance(value, bool):
                     raise RelightError(f"{path}: {name} = {value!r:.80} is not a bool")
             attributes = {name: value for name, value in values.items() if name not in SWITCHES}
-            light = edited_light(entry.light, attributes, self.asset_path) if attributes else entry.light
+            light = edited_light(entry.light, attributes, self.files.image_path) if attributes else entry.light
             return self._commit(self._rig.replaced(dataclasses.replace(entry, light=light, **switches)), gesture)
 
     def add(self, kind: str, path: str | None = None, values: dict[str, Any] | None = None) -> str:
@@ -228,9 +212,9 @@ class Session:
             raise RelightError(f"type {kind!r:.80} is not a UsdLux light type ({', '.join(kinds)})")
         with self._lock:
             path = self._new_path(kinds[kind]) if path is None else self._checked_new_path(path)
-            light = self._new_light(kinds[kind], path)
+            light = new_light(kinds[kind], path, self._lookup, self.description.world_from_camera)
             if values:
-                light = edited_light(light, values, self.asset_path)
+                light = edited_light(light, values, self.files.image_path)
             self._commit(self._rig.replaced(RigLight(light)))
             return path
 
@@ -323,9 +307,7 @@ class Session:
             RelightError: a path outside the output directory, of another suffix than .usda,
                 .usdc or .usd, or that cannot be written.
         """
-        target = self.client_path(path, must_exist=False)
-        if target.suffix not in LAYER_SUFFIXES:
-            raise RelightError(f"save: {path!r:.120} must end in {', '.join(LAYER_SUFFIXES)}")
+        target = self.files.layer_path(path, must_exist=False)
         with self._lock:
             rig = self._rig
         try:
@@ -343,65 +325,15 @@ class Session:
 
         Raises:
             RelightError: neither or both given, a path outside the output directory, a layer that
-                does not parse, names other files (sublayers, references, payloads, or images
-                outside the output directory), or holds a bad light.
+                does not parse or names other files (`SessionFiles.check_layer`), or a bad light.
         """
         if (path is None) == (text is None):
             raise RelightError("load: give either a layer path or a layer's text")
-        if text is not None:
-            if not isinstance(text, str) or not _parses(text):
-                raise RelightError("load: the text is not a USD layer (.usda)")
-            scratch = Path(tempfile.mkstemp(suffix=".usda", dir=self._scratch.name)[1])
-            scratch.write_text(text)
-            layer_path = scratch
-        else:
-            if not isinstance(path, str):
-                raise RelightError(f"load: path must be a string, got {path!r:.80}")
-            layer_path = self.client_path(path)
-            if layer_path.suffix not in LAYER_SUFFIXES:
-                raise RelightError(f"load: {path!r:.120} must end in {', '.join(LAYER_SUFFIXES)}")
-            existing = Sdf.Layer.Find(str(layer_path))
-            if existing is not None:  # USD keeps opened layers: read the file as it is now
-                existing.Reload(force=True)
-        self._check_layer_files(layer_path)
+        layer_path = self.files.layer_from_text(text) if text is not None else self.files.layer_path(path)
+        self.files.check_layer(layer_path)
         lights = shot_lights(self.description, layer_path)
         with self._lock:
             return self._commit(Rig.of(lights))
-
-    def client_path(self, path: str, must_exist: bool = True) -> Path:
-        """A client's path as a file inside the output directory (relative paths start there).
-
-        Raises:
-            RelightError: not a string, outside the output directory (after resolving links), or
-                missing when `must_exist`.
-        """
-        if not isinstance(path, str) or not path or "\0" in path or len(path) > 4096:
-            raise RelightError(f"path {path!r:.120} is not a file name")
-        resolved = (self.out_dir / path).resolve()
-        if not resolved.is_relative_to(self.out_dir):
-            raise RelightError(f"path {path!r:.120} is outside the session's output directory {self.out_dir}")
-        if must_exist and not resolved.is_file():
-            raise RelightError(f"path {path!r:.120}: no such file in the session's output directory")
-        if not must_exist and not resolved.parent.is_dir():
-            raise RelightError(f"path {path!r:.120}: its folder does not exist in the output directory")
-        return resolved
-
-    def asset_path(self, path: str) -> Path:
-        """A client's image path (texture, cookie): an existing file inside the output directory or
-        the shot's folder (where the shot's own images are).
-
-        Raises:
-            RelightError: any other path.
-        """
-        if not isinstance(path, str) or not path or "\0" in path or len(path) > 4096:
-            raise RelightError(f"image {path!r:.120} is not a file name")
-        resolved = (self.out_dir / path).resolve()
-        if not any(resolved.is_relative_to(root) for root in self._asset_roots()) or not resolved.is_file():
-            raise RelightError(f"image {path!r:.120}: no such file in the output directory or the shot's folder")
-        return resolved
-
-    def _asset_roots(self) -> tuple[Path, Path]:
-        return self.out_dir, Path(self.description.source).resolve().parent
 
     # --- frames ---------------------------------------------------------------------------------
 
@@ -469,63 +401,3 @@ class Session:
         if str(prim_path) in self._rig.paths():
             raise RelightError(f"{path}: a light already exists at this prim")
         return str(prim_path)
-
-    def _new_light(self, kind: LightKind, path: str) -> Light:
-        """A light of `kind` facing the surface at the image centre, from half the camera's distance,
-        sized and bright enough to be seen (see `_NEW_LIGHT_INTENSITY`)."""
-        up = self.description.world_from_camera[:3, 1]
-        camera = self.description.world_from_camera[:3, 3]
-        point = self._lookup.at(self.width // 2, self.height // 2)
-        if point is None:  # sky at the centre: one unit in front of the camera, facing along its view
-            forward = -self.description.world_from_camera[:3, 2]
-            distance, position, normal = 1.0, camera + forward, -forward
-        else:
-            distance = 0.5 * float(np.linalg.norm(point.position - camera)) or 1.0
-            position, normal = point.position + distance * point.normal, point.normal
-        size = _NEW_LIGHT_SIZE * distance
-        intensity = _NEW_LIGHT_INTENSITY[kind] * (distance**2 if kind not in (LightKind.DISTANT, LightKind.DOME) else 1)
-        return Light(
-            path=path,
-            kind=kind,
-            world_from_light=oriented(position, -normal, np.ones(3), up),
-            intensity=intensity,
-            normalize=kind is not LightKind.DOME,
-            radius=size if kind is not LightKind.CYLINDER else size / 2,
-            width=2 * size,
-            height=2 * size,
-            length=2 * size,
-            light_group=path.rsplit("/", 1)[-1],
-        )
-
-    def _check_layer_files(self, layer_path: Path) -> None:
-        """Refuse a client's layer that would make USD open files outside the output directory and the
-        shot's folder."""
-        try:
-            layer = Sdf.Layer.OpenAsAnonymous(str(layer_path))
-        except Tf.ErrorException as error:
-            raise RelightError(f"load: {layer_path.name}: not a USD layer ({usd_error_line(error)})") from None
-        if layer is None:
-            raise RelightError(f"load: {layer_path.name}: not a USD layer")
-        if layer.GetCompositionAssetDependencies():
-            raise RelightError("load: a lights layer may not name sublayers, references or payloads")
-        outside: list[str] = []
-
-        def visit(spec_path: Sdf.Path) -> None:
-            spec = layer.GetObjectAtPath(spec_path)
-            value = getattr(spec, "default", None) if isinstance(spec, Sdf.AttributeSpec) else None
-            if isinstance(value, Sdf.AssetPath) and value.path:
-                resolved = Path(Sdf.ComputeAssetPathRelativeToLayer(layer, value.path)).resolve()
-                if not any(resolved.is_relative_to(root) for root in self._asset_roots()):
-                    outside.append(f"{spec_path} = @{value.path}@")
-
-        layer.Traverse(Sdf.Path.absoluteRootPath, visit)
-        if outside:
-            raise RelightError(f"load: {outside[0]} names a file outside the output directory and the shot's folder")
-
-
-def _parses(text: str) -> bool:
-    """Whether `text` is a .usda layer."""
-    try:
-        return bool(Sdf.Layer.CreateAnonymous(".usda").ImportFromString(text))
-    except Tf.ErrorException:
-        return False
