@@ -473,3 +473,19 @@ def test_the_command_refuses_bad_arguments_in_one_line(layer, tmp_path, capsys):
     assert relight_main(["serve", str(layer), "--out", str(tmp_path / "nowhere")]) == 2
     errors = capsys.readouterr().err.strip().splitlines()
     assert len(errors) == 3 and all(line.startswith("relight: error: ") for line in errors)
+
+
+def test_malformed_websocket_messages_are_answered_and_the_stream_goes_on(served):
+    test_client, _ = served
+    with test_client.websocket_connect(f"ws://127.0.0.1:8000/api/frames?token={TOKEN}") as socket:
+        assert socket.receive_json()["type"] == "frame"
+        socket.receive_bytes()
+        for message in ("not json", "[1]", '{"type": "other"}', '{"type": "display", "exposure": "NaN"}'):
+            socket.send_text(message)
+            assert socket.receive_json()["type"] == "error", message
+        socket.send_bytes(b"\x00\x01")
+        assert socket.receive_json()["type"] == "error"
+        socket.send_text('{"type": "display", "exposure": 2}')
+        header = socket.receive_json()
+        assert header["type"] == "frame" and header["exposure"] == 2
+        assert png_pixels(socket.receive_bytes()).shape == (32, 32, 3)

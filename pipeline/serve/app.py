@@ -172,14 +172,18 @@ def create_app(session: Session, token: str, hosts: tuple[str, ...] = LOOPBACK_N
         sender = asyncio.create_task(_send_frames(websocket, viewer, session))
         try:
             while True:
-                message = await websocket.receive_text()
+                message = await websocket.receive()
+                if message["type"] == "websocket.disconnect":
+                    break
                 try:
-                    settings = json.loads(message)
+                    if message.get("text") is None:
+                        raise RelightError("messages are JSON text")
+                    settings = json.loads(message["text"])
                     if not isinstance(settings, dict) or settings.get("type") != "display":
                         raise RelightError('a message is {"type": "display", "view": ..., "exposure": ...}')
                     viewer.set_display(Display.parse(settings.get("view", "beauty"), settings.get("exposure", 0.0)))
                     stream.poke()
-                except (ValueError, RelightError) as error:
+                except (ValueError, RecursionError, RelightError) as error:
                     await websocket.send_json({"type": "error", "error": str(error).splitlines()[0]})
         except WebSocketDisconnect:
             pass
