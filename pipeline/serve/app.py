@@ -50,8 +50,8 @@ class BadRequest(Exception):
         self.status = status
 
 
-def create_app(session: Session, token: str, hosts: tuple[str, ...] = LOOPBACK_NAMES) -> Starlette:
-    """The application serving `session`.
+def create_app(session: Session, token: str, hosts: tuple[str, ...] = LOOPBACK_NAMES) -> ASGIApp:
+    """The application serving `session`: its Starlette routes behind the token and Origin guard.
 
     Args:
         token: the secret every request must carry.
@@ -215,7 +215,7 @@ def create_app(session: Session, token: str, hosts: tuple[str, ...] = LOOPBACK_N
         Exception: _internal_error,
     }
     app = Starlette(routes=routes, exception_handlers=handlers, lifespan=lifespan)  # type: ignore[arg-type]
-    return _Guard(app, token, hosts)  # type: ignore[return-value]
+    return _Guard(app, token, hosts)
 
 
 class _Viewer:
