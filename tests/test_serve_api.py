@@ -20,12 +20,14 @@ import numpy as np
 import pytest
 from hypothesis import strategies as st
 from PIL import Image
+from starlette.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from pipeline.cli import main as relight_main
+from pipeline.serve.app import create_app
 from pipeline.serve.display import png_bytes
 from pipeline.serve.placement import SurfaceLookup
-from pipeline.serve.session import Frame
+from pipeline.serve.session import Frame, Session
 from pipeline.serve.stream import FrameStream
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.cache.load import load_gbuffer
@@ -95,6 +97,22 @@ def test_websocket_from_a_foreign_origin_is_refused(served):
         header = socket.receive_json()
         assert header["type"] == "frame"
         assert png_pixels(socket.receive_bytes()).shape == (32, 32, 3)
+
+
+def test_a_server_on_every_interface_takes_same_origin_websockets_by_any_name(layer, tmp_path):
+    session = Session.open(layer, out_dir=tmp_path)
+    try:
+        with TestClient(create_app(session, TOKEN, hosts=None), base_url="http://10.1.2.3:8000") as test_client:
+            url = f"ws://10.1.2.3:8000/api/frames?token={TOKEN}"
+            with test_client.websocket_connect(url, headers={"Origin": "http://10.1.2.3:8000"}) as socket:
+                assert socket.receive_json()["type"] == "frame"
+            with (
+                pytest.raises(WebSocketDisconnect),
+                test_client.websocket_connect(url, headers={"Origin": "http://evil.example:8000"}) as socket,
+            ):
+                socket.receive_json()
+    finally:
+        session.close()
 
 
 def test_an_edit_changes_the_frame_and_bad_values_are_refused(served):

@@ -51,7 +51,9 @@ def run(args: argparse.Namespace) -> int:
     listener = bind(args.host, args.port)
     session = Session.open(args.cache, args.lights, args.reference, Path(args.out), args.device, args.shadows)
     token = secrets.token_urlsafe(32)
-    app = create_app(session, token, (*LOOPBACK_NAMES, args.host))
+    # Bound to every interface, the page may be reached by any of the machine's names.
+    everywhere = args.host in ("0.0.0.0", "::")
+    app = create_app(session, token, None if everywhere else (*LOOPBACK_NAMES, args.host))
     host, port = listener.getsockname()[:2]
     shown = f"[{host}]" if ":" in host else host
     if not is_loopback(args.host):

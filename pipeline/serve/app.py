@@ -50,13 +50,14 @@ class BadRequest(Exception):
         self.status = status
 
 
-def create_app(session: Session, token: str, hosts: tuple[str, ...] = LOOPBACK_NAMES) -> ASGIApp:
+def create_app(session: Session, token: str, hosts: tuple[str, ...] | None = LOOPBACK_NAMES) -> ASGIApp:
     """The application serving `session`: its Starlette routes behind the token and Origin guard.
 
     Args:
         token: the secret every request must carry.
         hosts: host names the page may be loaded from (the bound host and the loopback names): a
-            WebSocket's Origin must name one of them with the port the request came in on.
+            WebSocket's Origin must name one of them, and be the address the request came in on
+            (its Host). None (a server bound to every interface): any name, same origin only.
     """
     stream = FrameStream(session)
 
@@ -282,10 +283,10 @@ async def _send_frames(websocket: WebSocket, viewer: _Viewer, session: Session) 
 class _Guard:
     """ASGI middleware: the token on every request, and a WebSocket Origin check."""
 
-    def __init__(self, app: ASGIApp, token: str, hosts: tuple[str, ...]):
+    def __init__(self, app: ASGIApp, token: str, hosts: tuple[str, ...] | None):
         self.app = app
         self.token = token
-        self.hosts = {host.lower() for host in hosts}
+        self.hosts = None if hosts is None else {host.lower() for host in hosts}
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] not in ("http", "websocket"):
@@ -311,11 +312,8 @@ class _Guard:
         if scope["type"] == "websocket" and "origin" in headers:
             origin = urlsplit(headers["origin"])
             host = headers.get("host", "")
-            if (
-                origin.scheme not in ("http", "https")
-                or origin.netloc.lower() != host.lower()
-                or ((origin.hostname or "").lower() not in self.hosts)
-            ):
+            known = self.hosts is None or (origin.hostname or "").lower() in self.hosts
+            if origin.scheme not in ("http", "https") or origin.netloc.lower() != host.lower() or not known:
                 return 403, f"WebSocket from a foreign origin {headers['origin']!r:.80} refused"
         return None
 
