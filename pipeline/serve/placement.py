@@ -55,10 +55,9 @@ class SurfaceLookup:
         # (H * s * W * s,) sample index of each sub-sample, -1 where uncovered.
         self._sample_at = np.full(height * width, -1, np.int64)
         self._sample_at[gbuffer.pixel_index.cpu().numpy()] = np.arange(gbuffer.num_samples)
-        self._position = gbuffer.position.cpu().numpy().astype(np.float64)
-        normal = gbuffer.geometric_normal.cpu().numpy().astype(np.float64)
-        # Renormalised: the cache may store normals in half precision.
-        self._normal = normal / np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-30)
+        # Kept as the G-buffer holds them (float32); the one sample looked up is widened.
+        self._position = gbuffer.position.cpu().numpy()
+        self._normal = gbuffer.geometric_normal.cpu().numpy()
         s = supersampling
         offsets = np.stack(np.meshgrid(np.arange(s), np.arange(s), indexing="ij"), -1).reshape(-1, 2)
         # Sub-samples of a pixel, nearest its centre first.
@@ -80,7 +79,9 @@ class SurfaceLookup:
         if covered.size == 0:
             return None
         sample = covered[0]
-        return SurfacePoint(self._position[sample], self._normal[sample])
+        normal = self._normal[sample].astype(np.float64)
+        # Renormalised: the cache may store normals in half precision.
+        return SurfacePoint(self._position[sample].astype(np.float64), normal / np.linalg.norm(normal))
 
 
 def aimed_at(world_from_light: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:

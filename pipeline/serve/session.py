@@ -9,7 +9,8 @@ coalesced (the latest wins) and no stale frame is queued.
 
 A saved layer holds only what changed against the shot's own lights
 (`relight_torch.lights.overrides`), so `relight render CACHE --lights SAVED` renders the session's
-rig. Client paths (save, load, textures) are confined to the session's output directory.
+rig. Client paths (save, load, textures) are confined to the session's output directory (images
+also to the shot's folder; `pipeline.serve.files`).
 """
 
 from __future__ import annotations
