@@ -2,7 +2,7 @@
 # Packaging smoke check: build the wheel from the tracked files (what a clean clone holds), install it
 # with its pinned dependencies into a fresh virtual environment that sees no system site-packages,
 # then, from an empty directory with no source tree on the path, run the CLI: version, bundled
-# scenes, a 16x16 bake of the Cornell box and a render of it.
+# scenes, a 16x16 bake of the Cornell box, a render of it and a `relight serve` session of it.
 #
 # Environment: PYTHON (default python3.11); TORCH_INDEX_URL (empty: pip's configured index; set it
 # to PyTorch's CPU-only wheel index to avoid the CUDA build, as the README says).
@@ -61,5 +61,23 @@ from relight_torch.io.exr import read_rgb_exr
 rgb = read_rgb_exr("frame.exr")
 assert rgb.shape == (16, 16, 3), rgb.shape
 assert np.isfinite(rgb).all() and float(rgb.mean()) > 0, "the rendered frame is black or not finite"
+PY
+step "serving the cache: the page and a frame"
+"$bin/python" - "$bin/relight" <<'PY'
+import subprocess
+import sys
+import urllib.request
+
+server = subprocess.Popen([sys.argv[1], "serve", "cache/cornell_box.relight.usda"], stdout=subprocess.PIPE, text=True)
+try:
+    url = server.stdout.readline().split(": ", 2)[-1].strip()
+    assert "/?token=" in url, url
+    page = urllib.request.urlopen(url, timeout=60).read().decode()
+    assert "<title>relight serve</title>" in page, page[:200]
+    frame = urllib.request.urlopen(url.replace("/?token=", "/api/frame.png?token="), timeout=60).read()
+    assert frame.startswith(b"\x89PNG"), frame[:8]
+finally:
+    server.terminate()
+    server.wait(30)
 PY
 step "ok"

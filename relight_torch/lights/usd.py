@@ -45,7 +45,7 @@ _LATLONG_FORMATS = ("automatic", "latlong")
 
 
 @dataclass(frozen=True)
-class _Input:
+class LightInput:
     """One USD attribute <-> one dataclass field, with the check its values must pass.
 
     check: 'flag' (bool), 'finite', 'nonnegative', 'positive', 'colour' (3 finite >= 0),
@@ -58,66 +58,81 @@ class _Input:
 
 
 _LIGHT_INPUTS = (
-    _Input("intensity", "inputs:intensity", "nonnegative"),
-    _Input("exposure", "inputs:exposure", "finite"),
-    _Input("color", "inputs:color", "colour"),
-    _Input("enable_color_temperature", "inputs:enableColorTemperature", "flag"),
-    _Input("color_temperature", "inputs:colorTemperature", "positive"),
-    _Input("normalize", "inputs:normalize", "flag"),
-    _Input("diffuse", "inputs:diffuse", "nonnegative"),
-    _Input("specular", "inputs:specular", "nonnegative"),
+    LightInput("intensity", "inputs:intensity", "nonnegative"),
+    LightInput("exposure", "inputs:exposure", "finite"),
+    LightInput("color", "inputs:color", "colour"),
+    LightInput("enable_color_temperature", "inputs:enableColorTemperature", "flag"),
+    LightInput("color_temperature", "inputs:colorTemperature", "positive"),
+    LightInput("normalize", "inputs:normalize", "flag"),
+    LightInput("diffuse", "inputs:diffuse", "nonnegative"),
+    LightInput("specular", "inputs:specular", "nonnegative"),
 )
 _KIND_INPUTS = {
     LightKind.SPHERE: (
-        _Input("radius", "inputs:radius", "nonnegative"),
-        _Input("treat_as_point", "treatAsPoint", "flag"),
+        LightInput("radius", "inputs:radius", "nonnegative"),
+        LightInput("treat_as_point", "treatAsPoint", "flag"),
     ),
     LightKind.RECT: (
-        _Input("width", "inputs:width", "nonnegative"),
-        _Input("height", "inputs:height", "nonnegative"),
-        _Input("texture_file", "inputs:texture:file", "asset"),
+        LightInput("width", "inputs:width", "nonnegative"),
+        LightInput("height", "inputs:height", "nonnegative"),
+        LightInput("texture_file", "inputs:texture:file", "asset"),
     ),
-    LightKind.DISK: (_Input("radius", "inputs:radius", "nonnegative"),),
+    LightKind.DISK: (LightInput("radius", "inputs:radius", "nonnegative"),),
     LightKind.CYLINDER: (
-        _Input("length", "inputs:length", "nonnegative"),
-        _Input("radius", "inputs:radius", "nonnegative"),
-        _Input("treat_as_line", "treatAsLine", "flag"),
+        LightInput("length", "inputs:length", "nonnegative"),
+        LightInput("radius", "inputs:radius", "nonnegative"),
+        LightInput("treat_as_line", "treatAsLine", "flag"),
     ),
-    LightKind.DISTANT: (_Input("angle", "inputs:angle", "nonnegative"),),
-    LightKind.DOME: (_Input("texture_file", "inputs:texture:file", "asset"),),
+    LightKind.DISTANT: (LightInput("angle", "inputs:angle", "nonnegative"),),
+    LightKind.DOME: (LightInput("texture_file", "inputs:texture:file", "asset"),),
 }
 _SHAPING_INPUTS = (
-    _Input("focus", "inputs:shaping:focus", "finite"),
-    _Input("focus_tint", "inputs:shaping:focusTint", "colour"),
-    _Input("cone_angle", "inputs:shaping:cone:angle", "nonnegative"),
-    _Input("cone_softness", "inputs:shaping:cone:softness", "finite"),
+    LightInput("focus", "inputs:shaping:focus", "finite"),
+    LightInput("focus_tint", "inputs:shaping:focusTint", "colour"),
+    LightInput("cone_angle", "inputs:shaping:cone:angle", "nonnegative"),
+    LightInput("cone_softness", "inputs:shaping:cone:softness", "finite"),
 )
 _SHADOW_INPUTS = (
-    _Input("enable", "inputs:shadow:enable", "flag"),
-    _Input("color", "inputs:shadow:color", "colour"),
-    _Input("distance", "inputs:shadow:distance", "finite"),
-    _Input("falloff", "inputs:shadow:falloff", "finite"),
-    _Input("falloff_gamma", "inputs:shadow:falloffGamma", "nonnegative"),
+    LightInput("enable", "inputs:shadow:enable", "flag"),
+    LightInput("color", "inputs:shadow:color", "colour"),
+    LightInput("distance", "inputs:shadow:distance", "finite"),
+    LightInput("falloff", "inputs:shadow:falloff", "finite"),
+    LightInput("falloff_gamma", "inputs:shadow:falloffGamma", "nonnegative"),
 )
 _BARZEL_INPUTS = (
-    _Input("window_enable", "relight:barzel:window:enable", "flag"),
-    _Input("window_width", "relight:barzel:window:width", "positive"),
-    _Input("window_height", "relight:barzel:window:height", "positive"),
-    _Input("window_edge", "relight:barzel:window:edge", "finite"),
-    _Input("window_roundness", "relight:barzel:window:roundness", "nonnegative"),
-    _Input("barn_door_left", "relight:barzel:barnDoor:left", "nonnegative"),
-    _Input("barn_door_right", "relight:barzel:barnDoor:right", "nonnegative"),
-    _Input("barn_door_top", "relight:barzel:barnDoor:top", "nonnegative"),
-    _Input("barn_door_bottom", "relight:barzel:barnDoor:bottom", "nonnegative"),
-    _Input("cookie_file", "relight:barzel:cookie:file", "asset"),
-    _Input("cookie_scale", "relight:barzel:cookie:scale", "positive_pair"),
-    _Input("cookie_offset", "relight:barzel:cookie:offset", "pair"),
-    _Input("near_start", "relight:barzel:near:start", "finite"),
-    _Input("near_end", "relight:barzel:near:end", "finite"),
-    _Input("far_start", "relight:barzel:far:start", "finite"),
-    _Input("far_end", "relight:barzel:far:end", "finite"),
-    _Input("falloff_smooth", "relight:barzel:falloff:smooth", "flag"),
+    LightInput("window_enable", "relight:barzel:window:enable", "flag"),
+    LightInput("window_width", "relight:barzel:window:width", "positive"),
+    LightInput("window_height", "relight:barzel:window:height", "positive"),
+    LightInput("window_edge", "relight:barzel:window:edge", "finite"),
+    LightInput("window_roundness", "relight:barzel:window:roundness", "nonnegative"),
+    LightInput("barn_door_left", "relight:barzel:barnDoor:left", "nonnegative"),
+    LightInput("barn_door_right", "relight:barzel:barnDoor:right", "nonnegative"),
+    LightInput("barn_door_top", "relight:barzel:barnDoor:top", "nonnegative"),
+    LightInput("barn_door_bottom", "relight:barzel:barnDoor:bottom", "nonnegative"),
+    LightInput("cookie_file", "relight:barzel:cookie:file", "asset"),
+    LightInput("cookie_scale", "relight:barzel:cookie:scale", "positive_pair"),
+    LightInput("cookie_offset", "relight:barzel:cookie:offset", "pair"),
+    LightInput("near_start", "relight:barzel:near:start", "finite"),
+    LightInput("near_end", "relight:barzel:near:end", "finite"),
+    LightInput("far_start", "relight:barzel:far:start", "finite"),
+    LightInput("far_end", "relight:barzel:far:end", "finite"),
+    LightInput("falloff_smooth", "relight:barzel:falloff:smooth", "flag"),
 )
+
+
+def light_inputs(kind: LightKind) -> dict[str, tuple[LightInput, ...]]:
+    """The USD inputs a light of `kind` is read from and written to, by the part of `Light` they fill.
+
+    Returns:
+        '' (fields of `Light` itself), 'shaping' (`Light.shaping`), 'shadow' (`Light.shadow`) and
+        'barzel' (`Light.barzel`) -> their inputs, in authoring order.
+    """
+    return {
+        "": _LIGHT_INPUTS + _KIND_INPUTS[kind],
+        "shaping": _SHAPING_INPUTS,
+        "shadow": _SHADOW_INPUTS,
+        "barzel": _BARZEL_INPUTS,
+    }
 
 
 def light_kind(prim: Usd.Prim) -> LightKind | None:
@@ -203,7 +218,7 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode = Usd.TimeCode.Default()) -> L
     return light
 
 
-def _read_inputs(prim: Usd.Prim, time: Usd.TimeCode, inputs: tuple[_Input, ...]) -> dict[str, Any]:
+def _read_inputs(prim: Usd.Prim, time: Usd.TimeCode, inputs: tuple[LightInput, ...]) -> dict[str, Any]:
     """field -> checked value of every input that has a value (authored or schema fallback).
 
     Typed `Any`: each value's type follows its input's `check`, which the dataclass fields mirror.
@@ -218,27 +233,46 @@ def _read_inputs(prim: Usd.Prim, time: Usd.TimeCode, inputs: tuple[_Input, ...])
 
 
 def _checked(
-    prim: Usd.Prim, spec: _Input, attribute: Usd.Attribute, value: Any, time: Usd.TimeCode
+    prim: Usd.Prim, spec: LightInput, attribute: Usd.Attribute, value: Any, time: Usd.TimeCode
 ) -> bool | str | float | tuple[float, ...]:
     """Convert a USD value to the dataclass field's Python type, raising ValueError when out of range."""
     where = f"{prim.GetPath()}: {spec.attribute}"
     stack = attribute.GetPropertyStack(time)
     authored = f"{where} = {value!r} (authored as {stack[0].typeName if stack else attribute.GetTypeName()})"
-    if spec.check == "flag":
-        if not isinstance(value, (bool, int)):
-            raise ValueError(f"{authored} is not a bool")
-        return bool(value)
     if spec.check == "asset":
         if not isinstance(value, Sdf.AssetPath):
             raise ValueError(f"{authored} is not an asset path")
         return _resolve_asset(attribute, value, where, time)
+    return checked_value(spec, value, where, authored)
+
+
+def checked_value(spec: LightInput, value: Any, where: str, described: str = "") -> bool | float | tuple[float, ...]:
+    """A flag or number input's value as its dataclass field's Python type (not 'asset' inputs).
+
+    Args:
+        spec: the input; its `check` says what the value must be.
+        value: a bool, a number, or a sequence of numbers (USD's or JSON's).
+        where: '<prim>: <attribute>', the start of the error message.
+        described: how the value is named in a type error (default: where = value).
+
+    Raises:
+        ValueError: one line naming `where`, for a value of the wrong type, non-finite or out of range.
+    """
+    described = described or f"{where} = {value!r}"
+    if spec.check == "flag":
+        if not isinstance(value, (bool, int)):
+            raise ValueError(f"{described} is not a bool")
+        return bool(value)
     # A layer may author an input with another type than the schema's (a string, an int array):
     # refused here, not left to fail in a conversion below.
     count = {"colour": 3, "pair": 2, "positive_pair": 2}.get(spec.check, 1)
     items = [value] if count == 1 else (list(value) if hasattr(value, "__len__") and not isinstance(value, str) else [])
     if len(items) != count or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in items):
-        raise ValueError(f"{authored} is not {'a number' if count == 1 else f'{count} numbers'}")
-    numbers = tuple(float(x) for x in items)
+        raise ValueError(f"{described} is not {'a number' if count == 1 else f'{count} numbers'}")
+    try:
+        numbers = tuple(float(x) for x in items)
+    except OverflowError:  # an integer beyond float range (JSON has no limit)
+        numbers = (math.inf,)
     minimum, strict = {
         "nonnegative": (0.0, False),
         "colour": (0.0, False),
@@ -348,7 +382,7 @@ def _author_api_schemas(prim: Usd.Prim, applied: dict[str, bool]) -> None:
     spec.SetInfo("apiSchemas", operation)
 
 
-def _write_inputs(prim: Usd.Prim, values: object, inputs: tuple[_Input, ...]) -> None:
+def _write_inputs(prim: Usd.Prim, values: object, inputs: tuple[LightInput, ...]) -> None:
     """Author each input's attribute from the same-named field of `values` (a dataclass)."""
     for spec in inputs:
         value = getattr(values, spec.field)
