@@ -274,7 +274,7 @@ def bake_for_quality(
         shutil.rmtree(pilot_dir, ignore_errors=True)
     if ladder_spent:
         log.warning(
-            "quality target %g dB not reached: measured %.2f dB at the largest %s size (%s)",
+            "quality target %g dB not reached: measured %.2f dB with the best %s size of the ladder (%s)",
             target_db,
             measured_db,
             method,
@@ -285,7 +285,16 @@ def bake_for_quality(
     target_met = measured_db >= target_db
     reference_spp = round(full_reference.num_paths / (camera.width * camera.height))
     _record(
-        layer, point, target_db, chosen.psnr_db, measured_db, raw_db, target_met, energy_ratio, reference_spp, (width, height)
+        layer,
+        point,
+        target_db,
+        chosen.psnr_db,
+        measured_db,
+        raw_db,
+        target_met,
+        energy_ratio,
+        reference_spp,
+        (width, height),
     )
     return QualityResult(
         layer,
