@@ -83,7 +83,7 @@ def _shadowed(
     return torch.from_numpy(caster.occluded(origins, directions, np.maximum(t_far, 0.0)))
 
 
-def _disc_targets(gathers: GatherSamples, cols: torch.Tensor) -> torch.Tensor:
+def disc_points(gathers: GatherSamples, cols: torch.Tensor) -> torch.Tensor:
     """(N, P, 3) the `DISC_POINTS` points of the discs of gathers `cols` (N,)."""
     pattern = _disc_pattern(DISC_POINTS, gathers.position.dtype)
     normal = gathers.normal[cols]
@@ -103,7 +103,7 @@ def disc_support(gathers: GatherSamples, caster: RayCaster) -> torch.Tensor:
     disc, so that its area is never dropped.
     """
     cols = torch.arange(gathers.num_gathers)
-    targets = _disc_targets(gathers, cols)
+    targets = disc_points(gathers, cols)
     reach = PROBE_RADII * (gathers.area / math.pi).sqrt()
     normal = gathers.normal.unsqueeze(1).expand_as(targets)
     origins = (targets + reach[:, None, None] * normal).reshape(-1, 3).numpy().astype(np.float32)
@@ -137,7 +137,7 @@ def _disc_transport(
         receiver's cosine too).
     """
     normal = gathers.normal[cols]
-    targets = _disc_targets(gathers, cols)
+    targets = disc_points(gathers, cols)
     on_surface = torch.ones(cols.shape[0], DISC_POINTS, dtype=torch.bool) if support is None else support[cols]
     offset = targets - points[rows].unsqueeze(1)
     squared = (offset * offset).sum(-1)
