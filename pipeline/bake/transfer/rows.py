@@ -238,7 +238,7 @@ def covered_projected_solid_angle(
     face_normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     front = np.zeros(hit.shape[0], dtype=bool)
     front[hit] = np.einsum("nk,nk->n", face_normal, directions[hit]) < 0
-    return math.pi * torch.from_numpy(front.reshape(num_rows, -1)).to(points.dtype).mean(1)
+    return math.pi * torch.from_numpy(front.reshape(num_rows, side * side)).to(points.dtype).mean(1)
 
 
 def normalised_rows(
