@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from pipeline.bake.gather_cloud import flatten_order, refine_triangles, split_budget, triangle_areas
-from pipeline.bake.transfer.rows import gather_transport
+from pipeline.bake.transfer.rows import disc_points, disc_support, gather_transport
 from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.transfer.encoding import EncodedRows, decode, decode_rows, encode, encode_rows
@@ -344,3 +344,14 @@ def test_gather_radiance_under_a_point_light():
     torch.testing.assert_close(radiance[0], torch.full((3,), expected_0))
     torch.testing.assert_close(radiance[1], torch.full((3,), 0.5 / math.pi * intensity * cos_1 / d2_1))
     assert radiance[2].abs().max() == 0.0  # faces away
+
+
+def test_disc_support_clips_a_gather_disc_to_its_surface():
+    # A gather on the edge x = 0 of a floor quad [0, 1]^2 (z = 0): the half of its disc over x < 0
+    # stands for area that does not exist, the half over the quad for the floor.
+    floor = np.array([[[0.0, 0, 0], [1, 0, 0], [1, 1, 0]], [[0.0, 0, 0], [1, 1, 0], [0, 1, 0]]], np.float32)
+    gathers = _gathers([[0.0, 0.5, 0], [0.5, 0.5, 0], [0.5, 0.2, 0], [0.3, 0.6, 0]], [[0.0, 0, 1]] * 4, [0.04] * 4)
+    support = disc_support(gathers, EmbreeCaster(floor))
+    pattern_x = disc_points(gathers, torch.tensor([0]))[0, :, 0]
+    assert torch.equal(support[0], pattern_x > 0)  # no pattern point lies on the edge itself
+    assert support[1:].all()  # discs inside the quad are whole

@@ -16,8 +16,8 @@
 4. The cache layer's parameters record the choice (the method's own parameters hold the bake
    sizes; qualityChoice all of them, relight-time ones such as the illumination cut size included)
    and: qualityTarget, qualityPredicted (pilot PSNR), qualityMeasured (full size), qualityRawPsnr,
-   qualityEnergyRatio (mean(image) / mean(reference) at full size),
-   qualityReferenceSpp and qualityPilot ('WxH').
+   qualityEnergyRatio (mean(image) / mean(reference) at full size), qualityTargetMet (1 when the
+   full-size PSNR reaches the target, else 0), qualityReferenceSpp and qualityPilot ('WxH').
 
 PSNRs here are noise-corrected: the reference's variance (`ReferenceImage.variance`, over pixels
 it does not saturate) is subtracted from the squared error, which it adds on average; the raw
@@ -69,6 +69,7 @@ class QualityResult:
         point: the chosen sizes (the adapter's bake point).
         predicted_db: the pilot's PSNR of that point.
         measured_db: the full-size PSNR (noise-corrected); raw_db: without the correction.
+        target_met: measured_db reaches the target.
         energy_ratio: mean(image) / mean(reference) at full size.
         reference_spp: spp of the full-size reference.
         pilot: (width, height) of the pilot.
@@ -80,6 +81,7 @@ class QualityResult:
     predicted_db: float
     measured_db: float
     raw_db: float
+    target_met: bool
     energy_ratio: float
     reference_spp: int
     pilot: tuple[int, int]
@@ -175,6 +177,7 @@ def bake_for_quality(
     reference_bounces: int | None = None,
     ladder: list[dict[str, object]] | None = None,
     measure_headroom_db: float = NOISE_HEADROOM_DB,
+    best_effort: bool = False,
 ) -> QualityResult:
     """Bake `method` sized to reach `target_db` PSNR on the shot (see the module doc).
 
@@ -189,9 +192,11 @@ def bake_for_quality(
         ladder: the bake points to try, cheapest first (default: the method's registered ladder).
         measure_headroom_db: the full-size reference's noise floor above the target (its noise is
             subtracted from the measured error, so a lower floor costs precision, not bias).
+        best_effort: when no step reaches the target on the pilot, bake the best one measured
+            (with a warning and qualityTargetMet = 0) instead of failing.
 
     Raises:
-        RelightError: the method has no ladder, or no step reaches the target.
+        RelightError: the method has no ladder, or (without `best_effort`) no step reaches the target.
     """
     entry = bake_method(method)
     if ladder is None and not entry.ladder:
@@ -207,12 +212,15 @@ def bake_for_quality(
     candidates: list[Candidate] = []
     steps = iter(enumerate(ladder))
 
-    def cheapest_passing(threshold: float) -> Candidate:
-        """The smallest measured candidate reaching `threshold`, measuring further steps until one does."""
+    def cheapest_passing(threshold: float) -> Candidate | None:
+        """The smallest measured candidate reaching `threshold`, measuring further steps until one
+        does; None when the ladder is spent without one and `best_effort` is set."""
         passing = [c for c in candidates if c.psnr_db >= threshold]
         while not passing:
             index, step = next(steps, (None, None))
             if step is None:
+                if best_effort:
+                    return None
                 best = max(candidates, key=lambda c: c.psnr_db)
                 raise RelightError(
                     f"bake --quality {target_db:g}: no {method} size reaches it on the pilot "
@@ -244,6 +252,9 @@ def bake_for_quality(
 
     try:
         chosen = cheapest_passing(target_db + margin_db)
+        ladder_spent = chosen is None
+        if chosen is None:  # best_effort: no step reached the target on the pilot
+            chosen = max(candidates, key=lambda c: c.psnr_db)
         full_reference = reference_for(scene, camera, bounces, target_db, measure_headroom_db)
         for attempt in range(2):
             point = chosen.point
@@ -251,23 +262,47 @@ def bake_for_quality(
                 adapter, scene, camera, out_dir, stem, point, full_reference, supersampling, texture_samples, time_code
             )
             log.info("quality: %s measured %.2f dB at full size (pilot %.2f dB)", point, measured_db, chosen.psnr_db)
-            if measured_db >= target_db or attempt == 1:
+            if measured_db >= target_db or attempt == 1 or ladder_spent:
                 break
             # Missed: ask the pilot for the miss more than the chosen point gave, among the others.
             candidates.remove(chosen)
-            chosen = cheapest_passing(chosen.psnr_db + (target_db - measured_db) + margin_db)
+            retry = cheapest_passing(chosen.psnr_db + (target_db - measured_db) + margin_db)
+            if retry is None:  # best_effort and nothing better on the ladder: keep what was measured
+                break
+            chosen = retry
     finally:
         shutil.rmtree(pilot_dir, ignore_errors=True)
-    if measured_db < target_db:
+    if ladder_spent:
+        log.warning(
+            "quality target %g dB not reached: measured %.2f dB with the best %s size of the ladder (%s)",
+            target_db,
+            measured_db,
+            method,
+            format_params(point),
+        )
+    elif measured_db < target_db:
         log.warning("bake --quality %g: %s measured %.2f dB at full size after a retry", target_db, point, measured_db)
+    target_met = measured_db >= target_db
     reference_spp = round(full_reference.num_paths / (camera.width * camera.height))
-    _record(layer, point, target_db, chosen.psnr_db, measured_db, raw_db, energy_ratio, reference_spp, (width, height))
+    _record(
+        layer,
+        point,
+        target_db,
+        chosen.psnr_db,
+        measured_db,
+        raw_db,
+        target_met,
+        energy_ratio,
+        reference_spp,
+        (width, height),
+    )
     return QualityResult(
         layer,
         point,
         chosen.psnr_db,
         measured_db,
         raw_db,
+        target_met,
         energy_ratio,
         reference_spp,
         (width, height),
@@ -282,6 +317,7 @@ def _record(
     predicted_db: float,
     measured_db: float,
     raw_db: float,
+    target_met: bool,
     energy_ratio: float,
     reference_spp: int,
     pilot: tuple[int, int],
@@ -295,6 +331,7 @@ def _record(
             "qualityPredicted": float(predicted_db),
             "qualityMeasured": float(measured_db),
             "qualityRawPsnr": float(raw_db),
+            "qualityTargetMet": int(target_met),
             "qualityEnergyRatio": round(energy_ratio, 4),
             "qualityReferenceSpp": int(reference_spp),
             "qualityPilot": f"{pilot[0]}x{pilot[1]}",

@@ -12,7 +12,8 @@ full-GI path tracer (every bounce) to a quality target, deciding by measurement 
    terms, would change the image by less than `BOUNCE_TAIL_FRACTION` of the target's error (MSE)
    and its mean by less than `ENERGY_FRACTION`.
 3. Sizes. `bake_for_quality` sizes the chosen method along its ladder against the full-GI reference
-   (pilot), bakes it at full size and measures it there.
+   (pilot), bakes it at full size and measures it there; where no size reaches the target, the best
+   one is baked and the layer says so (qualityTargetMet = 0).
 
 The layer is that method's cache (opened by its relighter), with the shot's choice recorded in its
 parameters: shotComponents, shotBounces, shotBounceTailDb (the PSNR of the estimated rest, against
@@ -183,8 +184,8 @@ def bake_shot(
     Returns:
         (the pilot's choice, the sizing result of `bake_for_quality`, whose layer is the cache).
 
-    Raises:
-        RelightError: no size of the chosen method reaches the target on the pilot.
+    A shot none of whose sizes reaches the target (a tiny image: its pixels are too coarse for any
+    size) is baked at the best size of the ladder, with a warning and `qualityTargetMet` = 0.
     """
     out_dir = Path(out_dir)
     work = out_dir / f".{stem}.shot-pilot"
@@ -211,6 +212,7 @@ def bake_shot(
         reference_bounces=FULL_FRAME_BOUNCES,
         ladder=ladder,
         measure_headroom_db=MEASURE_HEADROOM_DB,
+        best_effort=True,
     )
     _record(result.layer, choice)
     return choice, result

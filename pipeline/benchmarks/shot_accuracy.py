@@ -36,9 +36,11 @@ from pipeline.tracing_bench import median_seconds
 from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.direct.relighter import shot_lights
+from relight_torch.indirect import IndirectRelighter
 from relight_torch.io.atomic import write_text_atomic
 from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr, rel_mse
+from relight_torch.protocol import CacheRelighter
 
 REFERENCE_BOUNCES = 8
 
@@ -68,6 +70,16 @@ def _reference(
     return np.load(path)
 
 
+def _indirect_image(relighter: CacheRelighter, components: str, layer: Path, image: np.ndarray) -> np.ndarray:
+    """(H, W, 3) the indirect part of a shot cache's render: none for a 'direct' shot, the indirect
+    relighter's own for 'direct+transfer' (`shotComponents`, `pipeline.bake.shot`)."""
+    if components == "direct":
+        return np.zeros_like(image)
+    if not isinstance(relighter, IndirectRelighter):
+        raise TypeError(f"{layer}: shotComponents {components!r}, but its relighter is a {type(relighter).__name__}")
+    return relighter.indirect_image().numpy()
+
+
 def accuracy_rows(
     name: str,
     layer: Path,
@@ -82,12 +94,12 @@ def accuracy_rows(
     camera = SCENES[name].camera
     description = read_cache_layer(layer)
     relighter = open_cache(layer)
+    components = str(description.parameters["shotComponents"])
     rows = []
     for edit, lights_layer in edits.items():
         relighter.set_lights(shot_lights(description, lights_layer))
         image = relighter.render().numpy()
-        indirect_image = getattr(relighter, "indirect_image", None)
-        indirect = np.zeros_like(image) if indirect_image is None else indirect_image().numpy()
+        indirect = _indirect_image(relighter, components, layer, image)
         full = _reference(scene_path, camera, width, height, lights_layer, REFERENCE_BOUNCES, spp, directory)
         zero = _reference(scene_path, camera, width, height, lights_layer, 0, spp, directory)
         reference_indirect = full - zero

@@ -19,7 +19,13 @@ from relight_torch.math.frame import dot
 
 
 class RayCaster(Protocol):
+    """Ray queries over a triangle soup (`embree.EmbreeCaster`): `corners` (T, 3, 3) are the
+    triangles `intersect`'s triangle ids index."""
+
     epsilon: float
+    corners: np.ndarray
+
+    def offset_origins(self, points: np.ndarray, normals: np.ndarray, directions: np.ndarray) -> np.ndarray: ...
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray) -> np.ndarray: ...
 

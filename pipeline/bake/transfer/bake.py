@@ -44,7 +44,7 @@ from pipeline.bake.scheduler import (
     per_process,
     run_chunks,
 )
-from pipeline.bake.transfer.rows import bounce_rows, final_gather_rows
+from pipeline.bake.transfer.rows import bounce_rows, disc_support, final_gather_rows
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.cache.layer import Payload
@@ -161,16 +161,19 @@ def compress_rows(dense: torch.Tensor, num_kept: int, factor: bool) -> SparseRow
 @per_process
 def transfer_inputs(
     shot: ShotSpec, texture_samples: int, num_gathers: int, seed: int
-) -> tuple[Tracer, GBuffer, GatherSamples]:
-    """The shot's BVH, view samples (one per pixel centre) and gathers, built once per process."""
+) -> tuple[Tracer, GBuffer, GatherSamples, torch.Tensor]:
+    """The shot's BVH, view samples (one per pixel centre), gathers and their discs' support on the
+    surfaces (`rows.disc_support`), built once per process."""
     scene, _ = load_shot(shot)
-    return shot_tracer(shot), view_samples(shot, texture_samples), create_gathers(scene, num_gathers, seed)
+    tracer = shot_tracer(shot)
+    gathers = create_gathers(scene, num_gathers, seed)
+    return tracer, view_samples(shot, texture_samples), gathers, disc_support(gathers, tracer)
 
 
 def _bake_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
     """Evaluate, transform, cull and encode rows [start, stop) of matrix `spec.name` (F_PREFIX or
     M_PREFIX); arrays named as the payload parts. Batches of rows run on `chunk_threads()` threads."""
-    tracer, view, gathers = transfer_inputs(
+    tracer, view, gathers, support = transfer_inputs(
         spec.shot, spec.param("textureSamples"), spec.param("gathers"), spec.param("gatherSeed")
     )
     side, num_kept = gathers.side, spec.param("coefficients")
@@ -179,9 +182,9 @@ def _bake_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
     def work(start: int) -> SparseRows:
         rows = slice(start, min(start + batch, spec.stop))
         block = (
-            final_gather_rows(view, rows, gathers, tracer)
+            final_gather_rows(view, rows, gathers, tracer, support)
             if spec.name == F_PREFIX
-            else bounce_rows(rows, gathers, tracer)
+            else bounce_rows(rows, gathers, tracer, support)
         )
         return compress_rows(block.reshape(-1, side, side, 3), num_kept, bool(spec.param("rowColour")))
 
@@ -299,7 +302,7 @@ def bake_transfer(
     chunk_dir = bake.chunk_dir
 
     shot = ShotSpec.of(*reduced_view(scene, camera, settings.indirect_scale), time_code)
-    _, view, gathers = transfer_inputs(shot, texture_samples, settings.num_gathers, settings.seed)
+    _, view, gathers, _ = transfer_inputs(shot, texture_samples, settings.num_gathers, settings.seed)
     payloads = [bake.payload(stem, "viewPixels", view.pixel_index.numpy())]
     if settings.indirect_scale > 1:  # what the edge-aware upsampling weighs the coarse samples by
         payloads += [
