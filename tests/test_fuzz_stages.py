@@ -143,6 +143,35 @@ def test_bad_lights_layer_is_one_line_or_a_finite_render(baked, tmp_path, method
         shutil.rmtree(directory)
 
 
+@pytest.mark.parametrize("method", ["direct", "transfer"])
+@pytest.mark.parametrize(
+    "kind, declarations, named",
+    [
+        # Found by the nightly profile: OverflowError in the light's area (radius 1e300, a huge
+        # cylinder) and in 2^exposure; inf pixels for a light moved to 1e30 or a diffuse of 1e300.
+        ("SphereLight", ["double inputs:radius = 1e300"], "inputs:radius = 1e+300 (authored as double) overflows"),
+        ("CylinderLight", ["float inputs:radius = 1e30", "float inputs:length = 1e30"], "inputs:length gives"),
+        (
+            "RectLight",
+            ["double3 xformOp:translate = (1e30, 0, 0)", 'uniform token[] xformOpOrder = ["xformOp:translate"]'],
+            "xformOp (world transform) puts the light at (1e+30, 0, 0)",
+        ),
+        ("SphereLight", ["double inputs:exposure = 1e30"], "inputs:exposure"),
+        ("SphereLight", ["float inputs:diffuse = 1e30"], "emits 1e+30 nits"),
+    ],
+)
+def test_a_light_beyond_float32_arithmetic_is_one_line(baked, tmp_path, method, kind, declarations, named):
+    lines = "\n".join(f"            {line}" for line in declarations)
+    layer = tmp_path / "lights.usda"
+    layer.write_text(
+        '#usda 1.0\nover "World"\n{\n    over "Lights"\n    {\n'
+        f'        def {kind} "Huge"\n        {{\n{lines}\n        }}\n    }}\n}}\n'
+    )
+    outcome = render(baked[method], tmp_path / "out" / "relit.exr", "--lights", str(layer))
+    assert outcome.status == 2 and f"{layer}: /World/Lights/Huge: " in outcome.error, outcome
+    assert named in outcome.error, outcome.error
+
+
 WALL = "[(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]"
 SHOT = """#usda 1.0
 (

@@ -42,6 +42,7 @@ _KIND_FROM_TYPE = {
     "DomeLight_1": LightKind.DOME,
 }
 _LATLONG_FORMATS = ("automatic", "latlong")
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 @dataclass(frozen=True)
@@ -239,6 +240,10 @@ def _checked(
     if len(items) != count or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in items):
         raise ValueError(f"{authored} is not {'a number' if count == 1 else f'{count} numbers'}")
     numbers = tuple(float(x) for x in items)
+    # Light inputs are floats in the schema: a double authored beyond float32's range (1e300) is
+    # finite here but inf in every kernel.
+    if any(math.isfinite(x) and abs(x) > _FLOAT32_MAX for x in numbers):
+        raise ValueError(f"{authored} overflows a float (the schema's type, largest {_FLOAT32_MAX:.4g})")
     minimum, strict = {
         "nonnegative": (0.0, False),
         "colour": (0.0, False),
