@@ -301,6 +301,8 @@ def test_lights_layer_sublayer_cycle_is_one_line(baked, tmp_path):
         'string inputs:color = "x"',
         "float3 inputs:width = (1, 2, 3)",
         'string inputs:normalize = "yes"',
+        # pxr's Tf.ErrorException (a traceback naming no prim) from the light's world transform.
+        'string xformOp:translate = "x"',
     ],
 )
 def test_a_light_input_authored_with_another_type_is_one_line(baked, tmp_path, declaration):
@@ -354,3 +356,64 @@ def test_a_mesh_of_empty_faces_is_an_empty_mesh(tmp_path):
     )
     errors = [line for line in stderr.splitlines() if line.startswith("relight: error: ")]
     assert status == 2 and errors == [f"relight: error: stage {shot} has no renderable meshes or gprims"], stderr
+
+
+
+def _write_shot(path: Path, **changes: str) -> Path:
+    """SHOT (a wall, a camera, a sphere light) with `changes` to its fields, written to `path`."""
+    fields = {
+        "meters": "1",
+        "counts": "[4]",
+        "indices": "[0, 1, 2, 3]",
+        "points": WALL,
+        "scale": "(1, 1, 1)",
+        "camera": "(0, 0, 5)",
+        "focal": "50",
+        "kind": "SphereLight",
+        "intensity": "10",
+        "radius": "0.5",
+        "light": "(0, 0, 3)",
+        **changes,
+    }
+    path.write_text(SHOT.format(**fields))
+    return path
+
+
+def _bake(shot: Path, out: Path, *options: str) -> tuple[int, str, list[str]]:
+    """`relight bake` of `shot` at 8 x 6: (status, stderr, its error lines)."""
+    arguments = ["--width", "8", "--height", "6", "--supersampling", "1", "--texture-samples", "1", *options]
+    status, stderr = quiet_main(["bake", str(shot), "--camera", "/World/Camera", "--out", str(out), *arguments])
+    return status, stderr, [line for line in stderr.splitlines() if line.startswith("relight: error: ")]
+
+
+def test_a_mesh_of_zero_scale_is_skipped_with_a_warning(tmp_path):
+    # The subdivision dicing inverted its transform: numpy's LinAlgError ended the bake.
+    shot = _write_shot(tmp_path / "shot.usda", scale="(0, 0, 0)")
+    status, stderr, errors = _bake(shot, tmp_path / "out")
+    warning = "/World/Wall: world transform of 1 of 1 placements is not finite and invertible (a zero scale?); skipped"
+    assert status == 2 and len(errors) == 1 and warning in errors[0], stderr
+    assert errors[0].startswith(f"relight: error: stage {shot} has no renderable meshes"), stderr
+
+
+def test_an_xform_op_of_another_type_is_one_line(tmp_path):
+    # pxr's Tf.ErrorException ended the bake in a traceback naming no prim (the mesh's, the camera's op).
+    text = _write_shot(tmp_path / "shot.usda").read_text()
+    shot = tmp_path / "mesh.usda"
+    shot.write_text(text.replace("double3 xformOp:scale = (1, 1, 1)", 'string xformOp:scale = "x"'))
+    status, stderr, errors = _bake(shot, tmp_path / "mesh", "--method", "direct")
+    assert status == 2 and len(errors) == 1, stderr
+    assert "/World/Wall: xformOp:scale = 'x' (authored as string) is not a transform; skipped" in stderr, stderr
+    shot = tmp_path / "camera.usda"
+    shot.write_text(text.replace("double3 xformOp:translate = (0, 0, 5)", 'string xformOp:translate = "x"'))
+    status, stderr, errors = _bake(shot, tmp_path / "camera", "--method", "direct")
+    assert status == 2 and errors == [
+        f"relight: error: {shot}: camera /World/Camera: xformOp:translate = 'x' (authored as string) is not a transform"
+    ], stderr
+
+
+@pytest.mark.slow
+def test_a_shot_no_quality_reaches_names_the_shot(tmp_path):
+    # The camera on the wall's plane: the default bake's refusal named no file.
+    shot = _write_shot(tmp_path / "shot.usda", camera="(0, 0, 0)")
+    status, stderr, errors = _bake(shot, tmp_path / "out")
+    assert status == 2 and len(errors) == 1 and str(shot) in errors[0], stderr

@@ -26,6 +26,7 @@ from relight_torch.lights.image import read_linear_rgb
 from relight_torch.lights.light import BarzelShaping, Light, LightKind, Shadow, Shaping
 from relight_torch.lights.linking import read_link, write_link
 from relight_torch.schema import register_schemas
+from relight_torch.xform import world_from_local
 
 log = logging.getLogger("relight")
 
@@ -279,7 +280,7 @@ def _pole_axis(prim: Usd.Prim) -> str:
 
 def _world_from_light(prim: Usd.Prim, time: Usd.TimeCode) -> np.ndarray:
     """(4, 4) float64 column-vector world_from_light; ValueError if not finite and invertible."""
-    world_from_light = np.array(UsdGeom.XformCache(time).GetLocalToWorldTransform(prim), np.float64).T
+    world_from_light = world_from_local(UsdGeom.XformCache(time), prim)
     if not np.isfinite(world_from_light).all() or abs(np.linalg.det(world_from_light[:3, :3])) < 1e-300:
         raise ValueError(f"{prim.GetPath()}: world transform is not finite and invertible")
     return world_from_light
