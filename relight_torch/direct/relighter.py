@@ -39,6 +39,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import functools
+import logging
 import math
 import os
 from dataclasses import dataclass
@@ -64,7 +65,7 @@ from relight_torch.lights.usd import read_stage_lights
 from relight_torch.math.frame import dot, to_local
 from relight_torch.parallel import parallel_map, tile_threads
 from relight_torch.protocol import CacheRelighter, refuse_material_edit
-from relight_torch.stage import check_composition, defining_layer, open_stage, time_code
+from relight_torch.stage import check_composition, defining_layer, open_stage, outside_reads, time_code
 from relight_torch.visibility import Visibility
 from relight_torch.visibility.embree import EmbreeCaster, ShadowLinkCasters
 from relight_torch.visibility.opacity import OPACITY_PAYLOADS, OpacityTable
@@ -1045,6 +1046,8 @@ def shot_lights(description: CacheDescription, lights_layer: str | os.PathLike[s
     stage = open_stage(description.source, lights_layer)
     shot = os.fspath(lights_layer or description.source)
     check_composition(stage, shot)
+    for line in outside_reads(description.source, lights_layer) if lights_layer is not None else []:
+        logging.getLogger("relight").warning(line)
     time = description.parameters.get("time")
     try:
         return read_stage_lights(stage, time_code(stage, None if time is None else float(time)))
