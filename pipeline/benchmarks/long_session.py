@@ -9,16 +9,19 @@ checkpoints the image is compared with a freshly opened relighter's render of th
 
 bakes tiny caches of every method (16 x 12) into a temporary folder, runs the session on each and
 writes the memory curve (method, edit, RSS bytes) to OUT; it prints per method the growth of the
-RSS after the first tenth of the edits and the largest checkpoint difference.
+RSS after the first tenth of the edits and the largest checkpoint difference
+(`pipeline.benchmarks.fault_figures --part sessions` writes them into docs/ERRORS.md).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import random
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -153,17 +156,26 @@ class SessionReport:
         rss: (edit number, RSS bytes) samples, the first before any edit.
         checkpoint_errors: at each checkpoint, max |image - fresh image| / max |fresh image|.
         kinds: edits made of each kind.
+        seconds: wall time of the edits and their renders (checkpoints' fresh relighters excluded).
     """
 
     rss: list[tuple[int, int]]
     checkpoint_errors: list[float]
     kinds: dict[str, int]
+    seconds: float
+
+    def rss_at(self, edit: int) -> int:
+        """RSS bytes of the first sample at or after `edit`."""
+        return next(bytes_ for sampled, bytes_ in self.rss if sampled >= edit)
+
+    def growth_after_edit(self, edit: int) -> float:
+        """Relative RSS growth from the sample at `edit` (`rss_at`) to the last."""
+        start = self.rss_at(edit)
+        return (self.rss[-1][1] - start) / start
 
     def growth_after(self, fraction: float = 0.1) -> float:
         """Relative RSS growth from the first sample at or after `fraction` of the edits to the last."""
-        last = self.rss[-1][0]
-        start = next(bytes_ for edit, bytes_ in self.rss if edit >= fraction * last)
-        return (self.rss[-1][1] - start) / start
+        return self.growth_after_edit(math.ceil(fraction * self.rss[-1][0]))
 
 
 def run_session(
@@ -186,6 +198,8 @@ def run_session(
     rss, errors, kinds = [(0, resident_bytes())], [], dict.fromkeys(EDIT_KINDS, 0)
     checkpoints = {round(num_edits * (k + 1) / num_checkpoints) for k in range(num_checkpoints)}
     every = max(1, num_edits // num_rss_samples)
+    seconds = 0.0
+    start = time.perf_counter()
     for edit in range(1, num_edits + 1):
         kind = rng.choice(EDIT_KINDS)
         kinds[kind] += 1
@@ -195,16 +209,18 @@ def run_session(
         else:
             relighter.set_light(light)
         image = relighter.render()
-        if edit % every == 0:
+        if edit % every == 0 or edit == num_edits:
             rss.append((edit, resident_bytes()))
         if edit in checkpoints:
+            seconds += time.perf_counter() - start
             fresh = open_session(layer)
             fresh.set_lights(list(rig.lights.values()))
             expected = fresh.render()
             del fresh
             scale = float(expected.abs().max()) or 1.0
             errors.append(float((image - expected).abs().max()) / scale)
-    return SessionReport(rss, errors, kinds)
+            start = time.perf_counter()
+    return SessionReport(rss, errors, kinds, seconds)
 
 
 def run_sessions(num_edits: int, methods: tuple[str, ...] = METHODS, seed: int = 0) -> dict[str, SessionReport]:
