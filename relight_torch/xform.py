@@ -11,9 +11,7 @@ import numpy as np
 from pxr import Usd, UsdGeom
 
 
-def world_from_local(
-    cache: UsdGeom.XformCache, prim: Usd.Prim, relative_to: Usd.Prim | None = None
-) -> np.ndarray:
+def world_from_local(cache: UsdGeom.XformCache, prim: Usd.Prim, relative_to: Usd.Prim | None = None) -> np.ndarray:
     """(4, 4) float64 column-vector transform of `prim` to the world (or to `relative_to`'s space).
 
     Raises:

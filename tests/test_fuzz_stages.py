@@ -358,7 +358,6 @@ def test_a_mesh_of_empty_faces_is_an_empty_mesh(tmp_path):
     assert status == 2 and errors == [f"relight: error: stage {shot} has no renderable meshes or gprims"], stderr
 
 
-
 def _write_shot(path: Path, **changes: str) -> Path:
     """SHOT (a wall, a camera, a sphere light) with `changes` to its fields, written to `path`."""
     fields = {

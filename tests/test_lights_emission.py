@@ -291,7 +291,6 @@ def test_transforms_the_samplers_cannot_honour_are_rejected():
     validate_light(Light("/C", LightKind.CYLINDER, world_from_light=transform(scale=(4, 2, 2), rotate_x_deg=30)))
 
 
-
 @pytest.mark.parametrize(
     "light, message",
     [

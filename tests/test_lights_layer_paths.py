@@ -34,7 +34,7 @@ def _layers(root: Path) -> tuple[Path, Path, Path]:
         "#usda 1.0\n(\n    subLayers = [@../elsewhere/far.usda@, @./near.usda@]\n)\n"
         'over "World"\n{\n    over "Lights"\n    {\n'
         '        def RectLight "Key"\n        {\n            asset inputs:texture:file = @../shot/tex/key.exr@\n'
-        '            asset relight:barzel:cookie:file = @/etc/hostname@\n        }\n'
+        "            asset relight:barzel:cookie:file = @/etc/hostname@\n        }\n"
         '        def Xform "Rig" (prepend references = @../elsewhere/rig.usda@</Rig>)\n        {\n        }\n'
         "    }\n}\n"
     )
@@ -58,7 +58,8 @@ def test_a_lights_layer_within_the_folders_says_nothing(tmp_path):
     shot, lights, _ = _layers(tmp_path)
     lights.write_text(
         "#usda 1.0\n(\n    subLayers = [@./near.usda@]\n)\n"
-        'over "World"\n{\n    def DomeLight "Sky"\n    {\n        asset inputs:texture:file = @../shot/sky.exr@\n    }\n}\n'
+        'over "World"\n{\n    def DomeLight "Sky"\n    {\n'
+        "        asset inputs:texture:file = @../shot/sky.exr@\n    }\n}\n"
     )
     assert outside_reads(shot, lights) == []
 

@@ -46,14 +46,16 @@ def test_a_worker_killed_mid_chunk_still_gives_the_local_bake(tmp_path, monkeypa
     local, remote = tmp_path / "local" / "out", tmp_path / "dask" / "out"
     assert main(production_support.bake_arguments(shot, local)) == 0
     marker = tmp_path / "killed-worker.pid"
-    with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None, protocol="tcp"
-    ) as cluster:
-        with distributed.Client(cluster) as client:
-            before = client.run(os.getpid)
-            client.run(production_support.die_inside_the_first_chunk, str(marker))
-            arguments = [*production_support.bake_arguments(shot, remote), "--scheduler", cluster.scheduler_address]
-            assert main(arguments) == 0
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None, protocol="tcp"
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        before = client.run(os.getpid)
+        client.run(production_support.die_inside_the_first_chunk, str(marker))
+        arguments = [*production_support.bake_arguments(shot, remote), "--scheduler", cluster.scheduler_address]
+        assert main(arguments) == 0
     killed = int(marker.read_text())
     assert killed in before.values()
     with pytest.raises(ProcessLookupError):  # it died (the nanny started another worker)

@@ -66,7 +66,9 @@ def commit_staged(staged_layer: Path, out_dir: str | os.PathLike[str]) -> Path:
         try:
             os.replace(staging / payload.file, out_dir / payload.file)
         except OSError as error:
-            raise RelightError(f"{out_dir / payload.file}: could not be committed ({error.strerror or error})") from None
+            raise RelightError(
+                f"{out_dir / payload.file}: could not be committed ({error.strerror or error})"
+            ) from None
     _fsync_directory(out_dir)
     write_cache_layer(target, description)
     for name in old_files - {payload.file for payload in description.payloads}:
@@ -103,4 +105,3 @@ def _fsync_directory(directory: Path) -> None:
         os.fsync(descriptor)
     finally:
         os.close(descriptor)
-

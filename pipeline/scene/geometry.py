@@ -78,7 +78,9 @@ class _Walker:
         """(4, 4) transform from the prim's space to the world, or to its prototype root's space."""
         return xform.world_from_local(self.xform_cache, prim, prototype_root)
 
-    def _placed(self, prim: Usd.Prim, world_from_base: np.ndarray, prototype_root: Usd.Prim | None) -> np.ndarray | None:
+    def _placed(
+        self, prim: Usd.Prim, world_from_base: np.ndarray, prototype_root: Usd.Prim | None
+    ) -> np.ndarray | None:
         """(I, 4, 4) world transforms of `prim`'s placements; None, with a warning, when an xformOp
         of it or an ancestor is not a transform (the prim is skipped, as a mesh with bad indices is)."""
         try:
@@ -160,7 +162,9 @@ def _invertible(placement: _Placement, warnings: list[str]) -> _Placement | None
     )
     if not keep.any():
         return None
-    return _Placement(placement.prim, placement.world_from_local[keep], [p for p, k in zip(placement.paths, keep) if k])
+    return _Placement(
+        placement.prim, placement.world_from_local[keep], [p for p, k in zip(placement.paths, keep, strict=True) if k]
+    )
 
 
 def _place(surface: Surface, world_from_local: np.ndarray):
