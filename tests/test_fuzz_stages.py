@@ -319,45 +319,6 @@ def test_a_light_input_authored_with_another_type_is_one_line(baked, tmp_path, d
     assert str(layer) in outcome.error, outcome.error
 
 
-def test_a_mesh_of_empty_faces_is_an_empty_mesh(tmp_path):
-    # faceVertexCounts = [0] and no indices ended the bake in numpy's "zero-size array to reduction".
-    fields = {
-        "meters": "1",
-        "counts": "[0]",
-        "indices": "[]",
-        "points": WALL,
-        "scale": "(1, 1, 1)",
-        "camera": "(0, 0, 5)",
-        "focal": "50",
-        "kind": "SphereLight",
-        "intensity": "10",
-        "radius": "0.5",
-        "light": "(0, 0, 3)",
-    }
-    shot = tmp_path / "shot.usda"
-    shot.write_text(SHOT.format(**fields))
-    status, stderr = quiet_main(
-        [
-            "bake",
-            str(shot),
-            "--camera",
-            "/World/Camera",
-            "--out",
-            str(tmp_path / "out"),
-            "--width",
-            "8",
-            "--height",
-            "6",
-            "--supersampling",
-            "1",
-            "--texture-samples",
-            "1",
-        ]
-    )
-    errors = [line for line in stderr.splitlines() if line.startswith("relight: error: ")]
-    assert status == 2 and errors == [f"relight: error: stage {shot} has no renderable meshes or gprims"], stderr
-
-
 def _write_shot(path: Path, **changes: str) -> Path:
     """SHOT (a wall, a camera, a sphere light) with `changes` to its fields, written to `path`."""
     fields = {
@@ -383,6 +344,13 @@ def _bake(shot: Path, out: Path, *options: str) -> tuple[int, str, list[str]]:
     arguments = ["--width", "8", "--height", "6", "--supersampling", "1", "--texture-samples", "1", *options]
     status, stderr = quiet_main(["bake", str(shot), "--camera", "/World/Camera", "--out", str(out), *arguments])
     return status, stderr, [line for line in stderr.splitlines() if line.startswith("relight: error: ")]
+
+
+def test_a_mesh_of_empty_faces_is_an_empty_mesh(tmp_path):
+    # faceVertexCounts = [0] and no indices ended the bake in numpy's "zero-size array to reduction".
+    shot = _write_shot(tmp_path / "shot.usda", counts="[0]", indices="[]")
+    status, stderr, errors = _bake(shot, tmp_path / "out")
+    assert status == 2 and errors == [f"relight: error: stage {shot} has no renderable meshes or gprims"], stderr
 
 
 def test_a_mesh_of_zero_scale_is_skipped_with_a_warning(tmp_path):
