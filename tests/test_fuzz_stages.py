@@ -9,16 +9,19 @@ HYPOTHESIS_PROFILE=nightly runs many more (tests/fuzz_support.py).
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
 from fuzz_support import RENDER_SECONDS, assert_refused_or_finite, bake_all, bounded, quiet_main, render, tally
+from relight_torch import open_cache
 from relight_torch.io.exr import read_exr
 
 LIGHT = "/World/Lights/CeilingLight"
@@ -170,6 +173,17 @@ def test_a_light_beyond_float32_arithmetic_is_one_line(baked, tmp_path, method, 
     outcome = render(baked[method], tmp_path / "out" / "relit.exr", "--lights", str(layer))
     assert outcome.status == 2 and f"{layer}: /World/Lights/Huge: " in outcome.error, outcome
     assert named in outcome.error, outcome.error
+
+
+@pytest.mark.parametrize("method", ["direct", "transfer"])
+def test_set_light_refuses_a_light_beyond_float32_arithmetic(baked, method):
+    # Lights edited from Python are validated as lights read from USD are (an OverflowError at render before).
+    relighter = open_cache(baked[method])
+    before = relighter.render()
+    key = next(light for light in relighter.lights if light.path == LIGHT)
+    with pytest.raises(ValueError, match=f"^{LIGHT}: inputs:width gives a world-space size of 1e\\+300"):
+        relighter.set_light(dataclasses.replace(key, width=1e300))
+    assert torch.equal(relighter.render(), before)
 
 
 WALL = "[(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]"

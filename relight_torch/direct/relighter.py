@@ -54,7 +54,7 @@ from relight_torch.cache.load import check_inputs, load_gbuffer, load_npy
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.light_samples import adaptive_sample_count, angular_radius, fixed_light_samples
-from relight_torch.lights.emission import is_delta_light, light_radiance_scale, sample_light
+from relight_torch.lights.emission import is_delta_light, light_radiance_scale, sample_light, validate_light
 from relight_torch.lights.geometry import LightFrame
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import decode_paths, linked_points
@@ -403,7 +403,12 @@ class Relighter:
         replace_rig(self, lights)
 
     def set_light(self, light: Light) -> None:
-        """Add a light or edit one (matched by path); invalidates only what the edit touches."""
+        """Add a light or edit one (matched by path); invalidates only what the edit touches.
+
+        Raises:
+            ValueError: the light is one the kernels cannot honour (`emission.validate_light`).
+        """
+        validate_light(light)
         transport_key = geometry_key(light)
         shading_key = transport_key + _key(light, _SHADING_FIELDS)
         state = self._lights.get(light.path)
