@@ -36,7 +36,7 @@ MARKERS = {
     "sessions": ("<!-- long-session:start -->", "<!-- long-session:end -->"),
 }
 CURVE_POINTS = 10
-"""The memory curve's table samples the RSS at every tenth of the edits."""
+"""The memory curve's table samples the anonymous RSS at every tenth of the edits."""
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -113,24 +113,25 @@ def session_table(reports: dict[str, SessionReport], edits: int) -> list[str]:
     """Markdown rows of the long sessions: memory, its growth once settled, checkpoint differences."""
     settled = settled_edit(edits)
     rows = [
-        f"| Method | Edits | RSS at start | RSS at edit {settled:,} | RSS at end | Growth after edit {settled:,} | "
-        "Edits per second | Largest checkpoint difference |",
-        "|---|---|---|---|---|---|---|---|",
+        f"| Method | Edits | Anonymous RSS at start | at edit {settled:,} | at end | Growth after edit {settled:,} | "
+        "Total RSS at start, end | Edits per second | Largest checkpoint difference |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for method, report in reports.items():
         rows.append(
             f"| {method} | {edits:,} | {report.rss[0][1] / 2**20:.1f} MiB | {report.rss_at(settled) / 2**20:.1f} MiB | "
             f"{report.rss[-1][1] / 2**20:.1f} MiB | {100 * report.growth_after_edit(settled):+.2f} % | "
+            f"{report.total_rss[0][1] / 2**20:.0f}, {report.total_rss[-1][1] / 2**20:.0f} MiB | "
             f"{edits / report.seconds:.0f} | {max(report.checkpoint_errors):.1e} |"
         )
     return rows
 
 
 def curve_table(reports: dict[str, SessionReport], edits: int) -> list[str]:
-    """Markdown rows of the memory curve: RSS (MiB) of each method at every tenth of the edits."""
+    """Markdown rows of the memory curve: anonymous RSS (MiB) of each method at every tenth of the edits."""
     points = [round(edits * k / CURVE_POINTS) for k in range(CURVE_POINTS + 1)]
     rows = [
-        "| RSS (MiB) after edit | " + " | ".join(f"{point:,}" for point in points) + " |",
+        "| Anonymous RSS (MiB) after edit | " + " | ".join(f"{point:,}" for point in points) + " |",
         "|---|" + "---|" * len(points),
     ]
     for method, report in reports.items():
