@@ -89,6 +89,11 @@ def fault_table(records: list[dict]) -> list[str]:
                 f"| {record['test']} (file-size limit) | {record['method']} | 1 | one line, exit 2, nothing "
                 f"left behind{'; the re-run bakes the same bytes' if 'bake' in record['test'] else ''} |"
             )
+        elif record["test"] == "failed re-bake over a cache":
+            rows.append(
+                f"| a re-bake failing on a full disk over a good cache | {record['method']} | 1 | one line, exit 2; "
+                "the old cache unchanged, valid, same image; the re-run replaces it |"
+            )
         elif "kills" in record:
             rows.append(
                 f"| SIGKILL at random moments of a bake | {record['method']} | {record['kills']} kill "
