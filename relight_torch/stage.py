@@ -207,3 +207,68 @@ def check_composition(stage: Usd.Stage, path: str | Path) -> list[str]:
         for prim, asset, message in problems.material
         if not asset.lower().endswith(".mtlx")
     ]
+
+
+def outside_reads(shot: str | os.PathLike[str], lights_layer: str | os.PathLike[str]) -> list[str]:
+    """Files a lights layer names outside the shot's and the lights layer's folders, one line each.
+
+    Walks the lights layer and every layer it brings in (sublayers, references, payloads) and
+    lists each of those arcs and each asset-valued attribute (textures, cookies, IES profiles...)
+    whose file lies outside both folders (and their subfolders): a lights layer handed over with a
+    shot should not make the relighter read files elsewhere without a word. Missing files are not
+    reported here (`check_composition` and the light reader refuse them).
+
+    Returns:
+        '<layer>: <prim>: <what> names <file>, outside the shot's folder <dir> and the lights
+        layer's folder <dir>; read all the same' lines, in the order found.
+    """
+    roots = [Path(shot).resolve().parent, Path(lights_layer).resolve().parent]
+    lines: list[str] = []
+    seen: set[str] = set()
+    pending = [str(Path(lights_layer).resolve())]
+    while pending:
+        file = pending.pop(0)
+        if file in seen:
+            continue
+        seen.add(file)
+        try:
+            layer = Sdf.Layer.FindOrOpen(file)
+        except Tf.ErrorException:
+            layer = None
+        if layer is None:
+            continue
+        for where, asset, arc in _named_files(layer):
+            resolved = Path(layer.ComputeAbsolutePath(asset)).resolve()
+            if not any(resolved.is_relative_to(root) for root in roots):
+                lines.append(
+                    f"{layer.realPath}: {where} names {resolved}, outside the shot's folder {roots[0]} and the "
+                    f"lights layer's folder {roots[1]}; read all the same"
+                )
+            if arc:
+                pending.append(str(resolved))
+    return lines
+
+
+def _named_files(layer: Sdf.Layer) -> list[tuple[str, str, bool]]:
+    """(where, authored asset path, is a composition arc) of every file `layer` names."""
+    named: list[tuple[str, str, bool]] = [("subLayers", path, True) for path in layer.subLayerPaths if path]
+
+    def visit(path: Sdf.Path) -> None:
+        if path.IsPrimPath():
+            spec = layer.GetPrimAtPath(path)
+            for kind, items in (("references", spec.referenceList), ("payload", spec.payloadList)):
+                for item in {*items.explicitItems, *items.prependedItems, *items.appendedItems, *items.addedItems}:
+                    if item.assetPath:
+                        named.append((f"{path}: {kind}", item.assetPath, True))
+        elif path.IsPropertyPath():
+            spec = layer.GetAttributeAtPath(path)
+            if spec is None or spec.typeName not in (Sdf.ValueTypeNames.Asset, Sdf.ValueTypeNames.AssetArray):
+                return
+            values = [spec.default] + [layer.QueryTimeSample(path, t) for t in layer.ListTimeSamplesForPath(path)]
+            for value in values:
+                for asset in value if isinstance(value, (list, tuple, Sdf.AssetPathArray)) else [value]:
+                    if isinstance(asset, Sdf.AssetPath) and asset.path:
+                        named.append((f"{path.GetPrimPath()}: {path.name}", asset.path, False))
+
+    layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+    return named

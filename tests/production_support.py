@@ -92,6 +92,33 @@ def _arm(kill_at: str) -> None:
         raise ValueError(f"unknown kill point {kill_at!r}")
 
 
+def die_inside_the_first_chunk(marker: str) -> None:
+    """Make this process (a Dask worker: `client.run`) SIGKILL itself inside the first chunk that any
+    worker of the cluster runs, after the chunk's work and before its file is written.
+
+    The first chunk is the one that creates `marker` (exclusively); the dying worker writes its pid
+    there. Workers look `run_chunk` up by name when a task arrives, so the patch applies to them.
+    """
+    from pipeline.bake import scheduler
+
+    real_run_chunk = scheduler.run_chunk
+
+    def run_chunk(compute, spec, chunk_dir, threads=None):
+        def compute_then_die(chunk):
+            arrays = compute(chunk)
+            try:
+                descriptor = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            except FileExistsError:
+                return arrays
+            os.write(descriptor, str(os.getpid()).encode())
+            os.close(descriptor)
+            _die()
+
+        return real_run_chunk(compute_then_die, spec, chunk_dir, threads)
+
+    scheduler.run_chunk = run_chunk
+
+
 if __name__ == "__main__":
     from pipeline.cli import main
 

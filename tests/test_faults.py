@@ -10,6 +10,7 @@ runs every method, KILLS_NIGHTLY kill points each.
 
 from __future__ import annotations
 
+import filecmp
 import os
 import random
 import shutil
@@ -103,6 +104,32 @@ def test_disk_full_during_a_bake_leaves_no_cache_and_a_rerun_bakes_the_same(shot
     assert status == 0, stderr
     assert tree_hash(out) == clean_hash
     tally("disk full during a bake", method=method, refused=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", METHODS if NIGHTLY else ("transfer",))
+def test_a_failed_rebake_leaves_the_old_cache_usable(shot, clean, tmp_path, method):
+    """A re-bake (another resolution) into the folder of a good cache fails midway on a full disk:
+    the old cache is untouched (same files, valid) and renders the same image."""
+    out = _beside_clean(shot, tmp_path, method)
+    shutil.copytree(clean[method][0], out)
+    layer = out / f"{SCENE}.relight.usda"
+    before = render(layer, tmp_path / "before.exr").image
+    arguments = [*bake_arguments(shot, out, method), "--width", "8", "--height", "6"]  # the last --width wins
+    status, stderr = run_relight(arguments, file_size_limit=2048)
+    assert status == 2 and "could not be written" in _one_error_line(stderr), stderr
+    # Before bakes ran in a staging folder, the failed re-bake had already removed the old layer.
+    visible = sorted(p.name for p in clean[method][0].iterdir())
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == visible
+    assert all(filecmp.cmp(clean[method][0] / name, out / name, shallow=False) for name in visible)
+    assert cache_status(layer).verdict == "valid"
+    assert np.array_equal(render(layer, tmp_path / "after.exr").image, before)
+    # Space freed: the re-bake resumes from its chunks and replaces the cache.
+    status, stderr = run_relight(arguments)
+    assert status == 0, stderr
+    assert render(layer, tmp_path / "new.exr").image.shape[1:3] == (6, 8)
+    assert sorted(p.name for p in out.iterdir()) == visible  # no staging folder, no payload of the old cache
+    tally("failed re-bake over a cache", method=method, refused=True)
 
 
 @pytest.mark.parametrize("method", METHODS if NIGHTLY else ("multiview",))

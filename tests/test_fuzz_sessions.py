@@ -16,7 +16,7 @@ from pipeline.benchmarks.long_session import EDIT_KINDS, run_session
 
 NUM_EDITS = 2000 if os.environ.get("HYPOTHESIS_PROFILE") == "nightly" else 300
 MAX_GROWTH = 0.05
-"""RSS growth allowed after the first tenth of the edits."""
+"""Anonymous RSS growth allowed after the first tenth of the edits."""
 MAX_DIFFERENCE = 1e-5
 """Largest |kept - fresh| pixel difference, relative to the image's peak: float32 rounding of sums
 taken in another order (measured near 7e-8)."""

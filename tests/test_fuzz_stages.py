@@ -9,16 +9,19 @@ HYPOTHESIS_PROFILE=nightly runs many more (tests/fuzz_support.py).
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
 from fuzz_support import RENDER_SECONDS, assert_refused_or_finite, bake_all, bounded, quiet_main, render, tally
+from relight_torch import open_cache
 from relight_torch.io.exr import read_exr
 
 LIGHT = "/World/Lights/CeilingLight"
@@ -141,6 +144,46 @@ def test_bad_lights_layer_is_one_line_or_a_finite_render(baked, tmp_path, method
         tally("bad lights layer", method=method, refused=outcome.status != 0)
     finally:
         shutil.rmtree(directory)
+
+
+@pytest.mark.parametrize("method", ["direct", "transfer"])
+@pytest.mark.parametrize(
+    "kind, declarations, named",
+    [
+        # Found by the nightly profile: OverflowError in the light's area (radius 1e300, a huge
+        # cylinder) and in 2^exposure; inf pixels for a light moved to 1e30 or a diffuse of 1e300.
+        ("SphereLight", ["double inputs:radius = 1e300"], "inputs:radius = 1e+300 (authored as double) overflows"),
+        ("CylinderLight", ["float inputs:radius = 1e30", "float inputs:length = 1e30"], "inputs:length gives"),
+        (
+            "RectLight",
+            ["double3 xformOp:translate = (1e30, 0, 0)", 'uniform token[] xformOpOrder = ["xformOp:translate"]'],
+            "xformOp (world transform) puts the light at (1e+30, 0, 0)",
+        ),
+        ("SphereLight", ["double inputs:exposure = 1e30"], "inputs:exposure"),
+        ("SphereLight", ["float inputs:diffuse = 1e30"], "emits 1e+30 nits"),
+    ],
+)
+def test_a_light_beyond_float32_arithmetic_is_one_line(baked, tmp_path, method, kind, declarations, named):
+    lines = "\n".join(f"            {line}" for line in declarations)
+    layer = tmp_path / "lights.usda"
+    layer.write_text(
+        '#usda 1.0\nover "World"\n{\n    over "Lights"\n    {\n'
+        f'        def {kind} "Huge"\n        {{\n{lines}\n        }}\n    }}\n}}\n'
+    )
+    outcome = render(baked[method], tmp_path / "out" / "relit.exr", "--lights", str(layer))
+    assert outcome.status == 2 and f"{layer}: /World/Lights/Huge: " in outcome.error, outcome
+    assert named in outcome.error, outcome.error
+
+
+@pytest.mark.parametrize("method", ["direct", "transfer"])
+def test_set_light_refuses_a_light_beyond_float32_arithmetic(baked, method):
+    # Lights edited from Python are validated as lights read from USD are (an OverflowError at render before).
+    relighter = open_cache(baked[method])
+    before = relighter.render()
+    key = next(light for light in relighter.lights if light.path == LIGHT)
+    with pytest.raises(ValueError, match=f"^{LIGHT}: inputs:width gives a world-space size of 1e\\+300"):
+        relighter.set_light(dataclasses.replace(key, width=1e300))
+    assert torch.equal(relighter.render(), before)
 
 
 WALL = "[(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]"
@@ -272,6 +315,8 @@ def test_lights_layer_sublayer_cycle_is_one_line(baked, tmp_path):
         'string inputs:color = "x"',
         "float3 inputs:width = (1, 2, 3)",
         'string inputs:normalize = "yes"',
+        # pxr's Tf.ErrorException (a traceback naming no prim) from the light's world transform.
+        'string xformOp:translate = "x"',
     ],
 )
 def test_a_light_input_authored_with_another_type_is_one_line(baked, tmp_path, declaration):
@@ -288,12 +333,12 @@ def test_a_light_input_authored_with_another_type_is_one_line(baked, tmp_path, d
     assert str(layer) in outcome.error, outcome.error
 
 
-def test_a_mesh_of_empty_faces_is_an_empty_mesh(tmp_path):
-    # faceVertexCounts = [0] and no indices ended the bake in numpy's "zero-size array to reduction".
+def _write_shot(path: Path, **changes: str) -> Path:
+    """SHOT (a wall, a camera, a sphere light) with `changes` to its fields, written to `path`."""
     fields = {
         "meters": "1",
-        "counts": "[0]",
-        "indices": "[]",
+        "counts": "[4]",
+        "indices": "[0, 1, 2, 3]",
         "points": WALL,
         "scale": "(1, 1, 1)",
         "camera": "(0, 0, 5)",
@@ -302,26 +347,54 @@ def test_a_mesh_of_empty_faces_is_an_empty_mesh(tmp_path):
         "intensity": "10",
         "radius": "0.5",
         "light": "(0, 0, 3)",
+        **changes,
     }
-    shot = tmp_path / "shot.usda"
-    shot.write_text(SHOT.format(**fields))
-    status, stderr = quiet_main(
-        [
-            "bake",
-            str(shot),
-            "--camera",
-            "/World/Camera",
-            "--out",
-            str(tmp_path / "out"),
-            "--width",
-            "8",
-            "--height",
-            "6",
-            "--supersampling",
-            "1",
-            "--texture-samples",
-            "1",
-        ]
-    )
-    errors = [line for line in stderr.splitlines() if line.startswith("relight: error: ")]
+    path.write_text(SHOT.format(**fields))
+    return path
+
+
+def _bake(shot: Path, out: Path, *options: str) -> tuple[int, str, list[str]]:
+    """`relight bake` of `shot` at 8 x 6: (status, stderr, its error lines)."""
+    arguments = ["--width", "8", "--height", "6", "--supersampling", "1", "--texture-samples", "1", *options]
+    status, stderr = quiet_main(["bake", str(shot), "--camera", "/World/Camera", "--out", str(out), *arguments])
+    return status, stderr, [line for line in stderr.splitlines() if line.startswith("relight: error: ")]
+
+
+def test_a_mesh_of_empty_faces_is_an_empty_mesh(tmp_path):
+    # faceVertexCounts = [0] and no indices ended the bake in numpy's "zero-size array to reduction".
+    shot = _write_shot(tmp_path / "shot.usda", counts="[0]", indices="[]")
+    status, stderr, errors = _bake(shot, tmp_path / "out")
     assert status == 2 and errors == [f"relight: error: stage {shot} has no renderable meshes or gprims"], stderr
+
+
+def test_a_mesh_of_zero_scale_is_skipped_with_a_warning(tmp_path):
+    # The subdivision dicing inverted its transform: numpy's LinAlgError ended the bake.
+    shot = _write_shot(tmp_path / "shot.usda", scale="(0, 0, 0)")
+    status, stderr, errors = _bake(shot, tmp_path / "out")
+    warning = "/World/Wall: world transform of 1 of 1 placements is not finite and invertible (a zero scale?); skipped"
+    assert status == 2 and len(errors) == 1 and warning in errors[0], stderr
+    assert errors[0].startswith(f"relight: error: stage {shot} has no renderable meshes"), stderr
+
+
+def test_an_xform_op_of_another_type_is_one_line(tmp_path):
+    # pxr's Tf.ErrorException ended the bake in a traceback naming no prim (the mesh's, the camera's op).
+    text = _write_shot(tmp_path / "shot.usda").read_text()
+    shot = tmp_path / "mesh.usda"
+    shot.write_text(text.replace("double3 xformOp:scale = (1, 1, 1)", 'string xformOp:scale = "x"'))
+    status, stderr, errors = _bake(shot, tmp_path / "mesh", "--method", "direct")
+    assert status == 2 and len(errors) == 1, stderr
+    assert "/World/Wall: xformOp:scale = 'x' (authored as string) is not a transform; skipped" in stderr, stderr
+    shot = tmp_path / "camera.usda"
+    shot.write_text(text.replace("double3 xformOp:translate = (0, 0, 5)", 'string xformOp:translate = "x"'))
+    status, stderr, errors = _bake(shot, tmp_path / "camera", "--method", "direct")
+    assert status == 2 and errors == [
+        f"relight: error: {shot}: camera /World/Camera: xformOp:translate = 'x' (authored as string) is not a transform"
+    ], stderr
+
+
+@pytest.mark.slow
+def test_a_shot_no_quality_reaches_names_the_shot(tmp_path):
+    # The camera on the wall's plane: the default bake's refusal named no file.
+    shot = _write_shot(tmp_path / "shot.usda", camera="(0, 0, 0)")
+    status, stderr, errors = _bake(shot, tmp_path / "out")
+    assert status == 2 and len(errors) == 1 and str(shot) in errors[0], stderr

@@ -291,6 +291,45 @@ def test_transforms_the_samplers_cannot_honour_are_rejected():
     validate_light(Light("/C", LightKind.CYLINDER, world_from_light=transform(scale=(4, 2, 2), rotate_x_deg=30)))
 
 
+@pytest.mark.parametrize(
+    "light, message",
+    [
+        # 1e300 passed the 'finite' checks, then overflowed once squared (OverflowError in surface_area).
+        (Light("/S", LightKind.SPHERE, radius=1e300), r"/S: inputs:radius gives a world-space size of 1e\+300"),
+        (Light("/D", LightKind.DISK, radius=1e300), r"/D: inputs:radius gives a world-space size"),
+        (Light("/C", LightKind.CYLINDER, radius=1e300, length=1e300), r"/C: inputs:length gives a world-space size"),
+        (Light("/R", LightKind.RECT, width=1e30), r"/R: inputs:width gives a world-space size of 1e\+30"),
+        # A light moved to 1e30 rendered non-finite pixels (squared distances overflow float32).
+        (
+            Light("/T", LightKind.RECT, world_from_light=transform(translate=(1e30, 0, 0))),
+            r"/T: xformOp \(world transform\) puts the light at \(1e\+30, 0, 0\)",
+        ),
+        (Light("/X", LightKind.SPHERE, world_from_light=transform(scale=(1e20,) * 3)), r"/X: xformOp .* scales"),
+        # exposure 1e30 raised OverflowError in 2.0**exposure; a diffuse of 1e300 rendered inf pixels.
+        (Light("/E", LightKind.SPHERE, exposure=1e30), r"/E: inputs:intensity \* 2\^inputs:exposure .* emits inf nits"),
+        (Light("/F", LightKind.SPHERE, diffuse=1e300), r"/F: inputs:intensity .* emits 1e\+300 nits, beyond 1e\+20"),
+        (
+            Light("/N", LightKind.RECT, normalize=True, width=1e-30, height=1e-30),
+            r"/N: inputs:intensity .* emits 1e\+60 nits",
+        ),
+    ],
+)
+def test_lights_beyond_float32_arithmetic_are_refused_naming_the_input(light, message):
+    with pytest.raises(ValueError, match=message):
+        validate_light(light)
+
+
+def test_largest_accepted_lights_render_finite_radiance():
+    # At the bounds (MAX_EXTENT, MAX_RADIANCE) the float32 sampler still gives finite weights.
+    big = Light("/B", LightKind.SPHERE, radius=1e15, intensity=1e20, world_from_light=transform(translate=(1e15, 0, 0)))
+    bright = Light("/L", LightKind.SPHERE, radius=1e-3, intensity=1e20)
+    for light in (big, bright):
+        validate_light(light)
+        points = torch.tensor([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [5e14, 3.0, 0.0]], dtype=torch.float32)
+        sample = sample_light(light, points, uniform(3, 8, 0, dtype=torch.float32))
+        assert torch.isfinite(sample.weight()).all() and torch.isfinite(sample.pdf).all()
+
+
 # ---------------------------------------------------------------------------------------------
 # Dome light.
 

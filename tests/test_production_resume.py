@@ -62,7 +62,7 @@ def test_bake_killed_at_several_points_resumes_to_the_uninterrupted_cache(tmp_pa
     third = _bake_killed_at("layer-write", arguments)
     assert third.returncode == -signal.SIGKILL, third.stderr
     assert "deep framebuffer: 1 of 1 chunks already baked" in third.stderr
-    assert not list(killed.glob("*.relight.usda")) and len(list(killed.glob(".*.relight.tmp-*"))) == 1
+    assert not list(killed.glob("*.relight.usda")) and len(list(killed.rglob(".*.relight.tmp-*"))) == 1
 
     last = _bake_killed_at("none", arguments)
     assert last.returncode == 0, last.stderr

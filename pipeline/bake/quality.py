@@ -223,7 +223,7 @@ def bake_for_quality(
                     return None
                 best = max(candidates, key=lambda c: c.psnr_db)
                 raise RelightError(
-                    f"bake --quality {target_db:g}: no {method} size reaches it on the pilot "
+                    f"{scene.source}: bake --quality {target_db:g}: no {method} size reaches it on the pilot "
                     f"(best {best.psnr_db:.1f} dB with {best.point})"
                 )
             measured = _measure(

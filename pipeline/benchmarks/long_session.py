@@ -2,23 +2,28 @@
 
 Every edit kind a lighting artist makes (intensity, colour, move, resize, cone and focus, light
 link, shadow on/off, a light added, a light removed) is drawn at random and applied to one open
-relighter, which renders after each. The resident memory (RSS) is sampled along the way; at
+relighter, which renders after each. The resident memory is sampled along the way (anonymous
+RSS, what a leak grows, and the total RSS, whose file-backed pages such as shared libraries the
+kernel drops and re-reads when other processes need memory); at
 checkpoints the image is compared with a freshly opened relighter's render of the same lights.
 
     python -m pipeline.benchmarks.long_session --edits 10000 --out docs/long_session.csv
 
 bakes tiny caches of every method (16 x 12) into a temporary folder, runs the session on each and
-writes the memory curve (method, edit, RSS bytes) to OUT; it prints per method the growth of the
-RSS after the first tenth of the edits and the largest checkpoint difference.
+writes the memory curve (method, edit, anonymous and total RSS bytes) to OUT; it prints per method the growth of the
+RSS after the first tenth of the edits and the largest checkpoint difference
+(`pipeline.benchmarks.fault_figures --part sessions` writes them into docs/ERRORS.md).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import random
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,6 +49,13 @@ def resident_bytes() -> int:
     """This process's resident memory (RSS) now, from /proc/self/statm."""
     with open("/proc/self/statm") as statm:
         return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def anonymous_resident_bytes() -> int:
+    """This process's anonymous resident memory now (heap, tensors: RssAnon of /proc/self/status)."""
+    with open("/proc/self/status") as status:
+        line = next(line for line in status if line.startswith("RssAnon:"))
+    return int(line.split()[1]) * 1024
 
 
 def open_session(layer: Path):
@@ -150,20 +162,31 @@ class SessionReport:
     """What a session measured.
 
     Attributes:
-        rss: (edit number, RSS bytes) samples, the first before any edit.
+        rss: (edit number, anonymous RSS bytes) samples, the first before any edit.
+        total_rss: (edit number, total RSS bytes) samples at the same edits.
         checkpoint_errors: at each checkpoint, max |image - fresh image| / max |fresh image|.
         kinds: edits made of each kind.
+        seconds: wall time of the edits and their renders (checkpoints' fresh relighters excluded).
     """
 
     rss: list[tuple[int, int]]
+    total_rss: list[tuple[int, int]]
     checkpoint_errors: list[float]
     kinds: dict[str, int]
+    seconds: float
+
+    def rss_at(self, edit: int) -> int:
+        """Anonymous RSS bytes of the first sample at or after `edit`."""
+        return next(bytes_ for sampled, bytes_ in self.rss if sampled >= edit)
+
+    def growth_after_edit(self, edit: int) -> float:
+        """Relative anonymous RSS growth from the sample at `edit` (`rss_at`) to the last."""
+        start = self.rss_at(edit)
+        return (self.rss[-1][1] - start) / start
 
     def growth_after(self, fraction: float = 0.1) -> float:
-        """Relative RSS growth from the first sample at or after `fraction` of the edits to the last."""
-        last = self.rss[-1][0]
-        start = next(bytes_ for edit, bytes_ in self.rss if edit >= fraction * last)
-        return (self.rss[-1][1] - start) / start
+        """Relative anonymous RSS growth from the first sample at or after `fraction` of the edits to the last."""
+        return self.growth_after_edit(math.ceil(fraction * self.rss[-1][0]))
 
 
 def run_session(
@@ -183,9 +206,12 @@ def run_session(
     objects = decode_paths(load_npy(layer, description, "objectPaths"))
     rig = Rig({light.path: light for light in relighter.lights}, 0.5 * (low + high), high - low, objects)
     relighter.render()
-    rss, errors, kinds = [(0, resident_bytes())], [], dict.fromkeys(EDIT_KINDS, 0)
+    rss, total_rss = [(0, anonymous_resident_bytes())], [(0, resident_bytes())]
+    errors, kinds = [], dict.fromkeys(EDIT_KINDS, 0)
     checkpoints = {round(num_edits * (k + 1) / num_checkpoints) for k in range(num_checkpoints)}
     every = max(1, num_edits // num_rss_samples)
+    seconds = 0.0
+    start = time.perf_counter()
     for edit in range(1, num_edits + 1):
         kind = rng.choice(EDIT_KINDS)
         kinds[kind] += 1
@@ -195,16 +221,19 @@ def run_session(
         else:
             relighter.set_light(light)
         image = relighter.render()
-        if edit % every == 0:
-            rss.append((edit, resident_bytes()))
+        if edit % every == 0 or edit == num_edits:
+            rss.append((edit, anonymous_resident_bytes()))
+            total_rss.append((edit, resident_bytes()))
         if edit in checkpoints:
+            seconds += time.perf_counter() - start
             fresh = open_session(layer)
             fresh.set_lights(list(rig.lights.values()))
             expected = fresh.render()
             del fresh
             scale = float(expected.abs().max()) or 1.0
             errors.append(float((image - expected).abs().max()) / scale)
-    return SessionReport(rss, errors, kinds)
+            start = time.perf_counter()
+    return SessionReport(rss, total_rss, errors, kinds, seconds)
 
 
 def run_sessions(num_edits: int, methods: tuple[str, ...] = METHODS, seed: int = 0) -> dict[str, SessionReport]:
@@ -216,9 +245,11 @@ def run_sessions(num_edits: int, methods: tuple[str, ...] = METHODS, seed: int =
 
 
 def curve_csv(reports: dict[str, SessionReport]) -> str:
-    """The memory curves as CSV: method, edit, rss_bytes."""
-    rows = ["method,edit,rss_bytes"] + [
-        f"{method},{edit},{rss}" for method, report in reports.items() for edit, rss in report.rss
+    """The memory curves as CSV: method, edit, anonymous and total RSS bytes."""
+    rows = ["method,edit,anonymous_rss_bytes,rss_bytes"] + [
+        f"{method},{edit},{anonymous},{total}"
+        for method, report in reports.items()
+        for (edit, anonymous), (_, total) in zip(report.rss, report.total_rss, strict=True)
     ]
     return "\n".join(rows) + "\n"
 
@@ -234,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
     reports = run_sessions(args.edits, tuple(args.methods), args.seed)
     for method, report in reports.items():
         print(
-            f"{method}: {args.edits} edits, RSS {report.rss[0][1] / 2**20:.1f} -> "
+            f"{method}: {args.edits} edits, anonymous RSS {report.rss[0][1] / 2**20:.1f} -> "
             f"{report.rss[-1][1] / 2**20:.1f} MiB, growth after the first 10 %: "
             f"{100 * report.growth_after(0.1):+.2f} %, largest checkpoint difference "
             f"{max(report.checkpoint_errors):.2e} of the image's peak"

@@ -11,6 +11,7 @@ from pipeline.bake.inputs import record_request, request_digest, up_to_date
 from pipeline.bake.methods import bake_method, bake_methods
 from pipeline.bake.quality import bake_for_quality
 from pipeline.bake.shot import DEFAULT_TARGET_DB, bake_shot
+from pipeline.bake.staging import commit_staged, staged_bake
 from pipeline.commands.common import add_camera_options
 from pipeline.errors import RelightError
 from pipeline.scene import find_camera, load_scene
@@ -22,7 +23,8 @@ def add_parser(subparsers) -> None:
         "bake",
         help="bake a relighting cache for a shot and camera",
         description="Trace the shot once and write OUT/<stem>.relight.usda with its payload files "
-        "(deep framebuffer EXR, occluders). Files are written atomically.",
+        "(deep framebuffer EXR, occluders). The bake runs in OUT/.<stem>.staging and replaces an older "
+        "cache only once it has finished; files are written atomically.",
     )
     parser.add_argument("scene", metavar="SCENE", help="USD stage (.usda, .usdc, .usdz)")
     add_camera_options(parser)
@@ -110,29 +112,33 @@ def _bake(args: argparse.Namespace) -> int:
     if up_to_date(layer_path, digest):
         print(f"{layer_path}: up to date (same request, inputs and code; payloads verified), nothing baked")
         return 0
-    record_request(_bake_method(args, stem), digest)
+    # Baked aside and committed only when finished: a failed re-bake leaves the old cache usable.
+    with staged_bake(args.out, stem) as staging:
+        staged, summary = _bake_method(args, stem, staging)
+        record_request(staged, digest)
+        layer_path = commit_staged(staged, Path(args.out))
+    print(f"{layer_path}: {summary}")
     return 0
 
 
-def _bake_method(args: argparse.Namespace, stem: str) -> Path:
-    """Run the bake `args` asks for; the cache layer's path."""
+def _bake_method(args: argparse.Namespace, stem: str, out: Path) -> tuple[Path, str]:
+    """Run the bake `args` asks for into `out`; the cache layer's path and a summary line."""
     start = time.perf_counter()
     scene = load_scene(args.scene, time=args.time, width=args.width, height=args.height)
     camera = find_camera(scene, args.camera)
     if args.method is None:
-        choice, result = bake_shot(scene, camera, args.out, stem, args.quality, args.texture_samples, args.time)
-        print(
-            f"{result.layer}: shot cache ({choice.components}, {choice.bounces} bounces, {result.point}) for "
+        choice, result = bake_shot(scene, camera, out, stem, args.quality, args.texture_samples, args.time)
+        return result.layer, (
+            f"shot cache ({choice.components}, {choice.bounces} bounces, {result.point}) for "
             f"{args.quality:g} dB against the full frame: pilot {result.predicted_db:.1f} dB, measured "
             f"{result.measured_db:.1f} dB, in {time.perf_counter() - start:.1f} s"
         )
-        return result.layer
     method = bake_method(args.method)
     if args.quality is not None:
         result = bake_for_quality(
             scene,
             camera,
-            args.out,
+            out,
             stem,
             args.method,
             args.quality,
@@ -141,20 +147,16 @@ def _bake_method(args: argparse.Namespace, stem: str) -> Path:
             args.time,
             fixed=method.quality_fixed(args) if method.quality_fixed else None,
         )
-        print(
-            f"{result.layer}: {args.method} cache sized for {args.quality:g} dB: {result.point} (pilot "
+        return result.layer, (
+            f"{args.method} cache sized for {args.quality:g} dB: {result.point} (pilot "
             f"{result.predicted_db:.1f} dB, measured {result.measured_db:.1f} dB) "
             f"in {time.perf_counter() - start:.1f} s"
         )
-        return result.layer
     settings = method.settings_from_args(args, scene, camera)
-    layer = method.bake(
-        scene, camera, Path(args.out), stem, args.supersampling, args.texture_samples, args.time, settings
-    )
+    layer = method.bake(scene, camera, out, stem, args.supersampling, args.texture_samples, args.time, settings)
     if method.report is not None:
         print(method.report(layer))
-    print(
-        f"{layer}: {args.method} cache of {args.camera} at {camera.width}x{camera.height} "
+    return layer, (
+        f"{args.method} cache of {args.camera} at {camera.width}x{camera.height} "
         f"(supersampling {args.supersampling}) in {time.perf_counter() - start:.1f} s"
     )
-    return layer

@@ -25,6 +25,7 @@ from pxr import Usd, UsdGeom, UsdRender
 
 from pipeline.errors import RelightError, warn
 from pipeline.scene.types import Camera
+from relight_torch import xform
 
 DEFAULT_RESOLUTION = (640, 480)
 
@@ -59,7 +60,10 @@ def image_resolution(stage: Usd.Stage, width: int | None = None, height: int | N
 
 def read_camera(camera: UsdGeom.Camera, time: Usd.TimeCode, width: int, height: int) -> Camera:
     """One perspective UsdGeom.Camera at `time`, conformed to a width x height image."""
-    gf_camera = camera.GetCamera(time)
+    try:
+        gf_camera = camera.GetCamera(time)
+    except Exception:  # pxr's Tf.ErrorException: an xformOp authored with a value of another type
+        raise RelightError(f"camera {camera.GetPath()}: {xform.unreadable_op(camera.GetPrim(), time)}") from None
     clipping = gf_camera.clippingRange
     horizontal_aperture = float(gf_camera.horizontalAperture)
     return Camera(

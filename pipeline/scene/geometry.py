@@ -30,6 +30,7 @@ from pipeline.scene.primvars import read_primvar
 from pipeline.scene.subdivision import Refinement, is_subdivision, read_subdivision_mesh
 from pipeline.scene.tessellate import Surface, implicit_surface, is_implicit, mesh_surface
 from pipeline.scene.types import Camera, Geometry, SceneObject
+from relight_torch import xform
 
 # A triangle is degenerate when |cross| <= this times its longest squared edge (a relative
 # zero: repeated or collinear float32 points, not thin slivers).
@@ -49,11 +50,6 @@ class _Placement:
     prim: Usd.Prim
     world_from_local: np.ndarray
     paths: list[str]
-
-
-def _matrix(gf_matrix) -> np.ndarray:
-    """A row-vector Gf matrix as a (4, 4) float64 column-vector matrix."""
-    return np.array(gf_matrix, np.float64).T
 
 
 class _Walker:
@@ -80,9 +76,18 @@ class _Walker:
 
     def _base_from_prim(self, prim: Usd.Prim, prototype_root: Usd.Prim | None) -> np.ndarray:
         """(4, 4) transform from the prim's space to the world, or to its prototype root's space."""
-        if prototype_root is None:
-            return _matrix(self.xform_cache.GetLocalToWorldTransform(prim))
-        return _matrix(self.xform_cache.ComputeRelativeTransform(prim, prototype_root)[0])
+        return xform.world_from_local(self.xform_cache, prim, prototype_root)
+
+    def _placed(
+        self, prim: Usd.Prim, world_from_base: np.ndarray, prototype_root: Usd.Prim | None
+    ) -> np.ndarray | None:
+        """(I, 4, 4) world transforms of `prim`'s placements; None, with a warning, when an xformOp
+        of it or an ancestor is not a transform (the prim is skipped, as a mesh with bad indices is)."""
+        try:
+            return world_from_base @ self._base_from_prim(prim, prototype_root)
+        except ValueError as error:
+            warn(f"{error}; skipped", self.warnings)
+            return None
 
     def walk(
         self, root: Usd.Prim, world_from_base: np.ndarray, base_paths: list[str], prototype_root: Usd.Prim | None = None
@@ -100,12 +105,15 @@ class _Walker:
         for prim in prims:
             if prim.IsA(UsdGeom.PointInstancer):
                 prims.PruneChildren()
-                if self._rendered(prim, prototype_root):
-                    world_from_instancer = world_from_base @ self._base_from_prim(prim, prototype_root)
+                if not self._rendered(prim, prototype_root):
+                    continue
+                world_from_instancer = self._placed(prim, world_from_base, prototype_root)
+                if world_from_instancer is not None:
                     yield from self._instances(UsdGeom.PointInstancer(prim), world_from_instancer, base_paths)
             elif (prim.IsA(UsdGeom.Mesh) or is_implicit(prim)) and self._rendered(prim, prototype_root):
-                world_from_local = world_from_base @ self._base_from_prim(prim, prototype_root)
-                yield _Placement(prim, world_from_local, [f"{b}{prim.GetPath()}" for b in base_paths])
+                world_from_local = self._placed(prim, world_from_base, prototype_root)
+                if world_from_local is not None:
+                    yield _Placement(prim, world_from_local, [f"{b}{prim.GetPath()}" for b in base_paths])
 
     def _instances(
         self, instancer: UsdGeom.PointInstancer, world_from_instancer: np.ndarray, base_paths: list[str]
@@ -134,6 +142,29 @@ class _Walker:
             )
             paths = [f"{b}{path}[{i}]" for b in base_paths for i in instance_ids[selected]]
             yield from self.walk(prototype, world_from_prototype, paths, prototype_root=prototype)
+
+
+def _invertible(placement: _Placement, warnings: list[str]) -> _Placement | None:
+    """The placement without its non-finite or singular transforms (a zero scale), with a warning
+    naming the prim; None when none is left. Surface refinement inverts them (`dicing`), and such a
+    placement has no area to render anyway."""
+    linear = placement.world_from_local[:, :3, :3]
+    finite = np.isfinite(placement.world_from_local).all(axis=(1, 2))
+    with np.errstate(invalid="ignore", over="ignore"):
+        determinant = np.linalg.det(np.where(finite[:, None, None], linear, 0.0))
+    keep = finite & (determinant != 0) & np.isfinite(determinant)
+    if keep.all():
+        return placement
+    warn(
+        f"{placement.prim.GetPath()}: world transform of {int((~keep).sum())} of {len(keep)} placements is not "
+        "finite and invertible (a zero scale?); skipped",
+        warnings,
+    )
+    if not keep.any():
+        return None
+    return _Placement(
+        placement.prim, placement.world_from_local[keep], [p for p, k in zip(placement.paths, keep, strict=True) if k]
+    )
 
 
 def _place(surface: Surface, world_from_local: np.ndarray):
@@ -300,6 +331,9 @@ def read_geometry(
     parts: list[tuple[np.ndarray, ...]] = []
     objects: list[SceneObject] = []
     for placement in walker.walk(stage.GetPseudoRoot(), np.eye(4)[None], [""]):
+        placement = _invertible(placement, warnings)
+        if placement is None:
+            continue
         prim = placement.prim
         source = prim.GetPrimInPrototype() if prim.IsInstanceProxy() else prim
         key = str(source.GetPath())

@@ -43,6 +43,7 @@ from relight_torch.cuts.tree import LightTree
 from relight_torch.direct.relighter import Relighter, light_group
 from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.lights.dome import REC709_LUMINANCE
+from relight_torch.lights.emission import validate_light
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import linked_points
 from relight_torch.math.frame import to_local
@@ -281,7 +282,12 @@ class CutsRelighter:
         self._samples = None
 
     def set_light(self, light: Light) -> None:
-        """Add or edit a light (matched by path)."""
+        """Add or edit a light (matched by path).
+
+        Raises:
+            ValueError: the light is one the kernels cannot honour (`emission.validate_light`).
+        """
+        validate_light(light)
         if self._by_cuts(light):
             self._domes[light.path] = light
         else:

@@ -39,6 +39,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import functools
+import logging
 import math
 import os
 from dataclasses import dataclass
@@ -53,7 +54,7 @@ from relight_torch.cache.load import check_inputs, load_gbuffer, load_npy
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.light_samples import adaptive_sample_count, angular_radius, fixed_light_samples
-from relight_torch.lights.emission import is_delta_light, light_radiance_scale, sample_light
+from relight_torch.lights.emission import is_delta_light, light_radiance_scale, sample_light, validate_light
 from relight_torch.lights.geometry import LightFrame
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import decode_paths, linked_points
@@ -64,7 +65,7 @@ from relight_torch.lights.usd import read_stage_lights
 from relight_torch.math.frame import dot, to_local
 from relight_torch.parallel import parallel_map, tile_threads
 from relight_torch.protocol import CacheRelighter, refuse_material_edit
-from relight_torch.stage import check_composition, defining_layer, open_stage, time_code
+from relight_torch.stage import check_composition, defining_layer, open_stage, outside_reads, time_code
 from relight_torch.visibility import Visibility
 from relight_torch.visibility.embree import EmbreeCaster, ShadowLinkCasters
 from relight_torch.visibility.opacity import OPACITY_PAYLOADS, OpacityTable
@@ -402,7 +403,12 @@ class Relighter:
         replace_rig(self, lights)
 
     def set_light(self, light: Light) -> None:
-        """Add a light or edit one (matched by path); invalidates only what the edit touches."""
+        """Add a light or edit one (matched by path); invalidates only what the edit touches.
+
+        Raises:
+            ValueError: the light is one the kernels cannot honour (`emission.validate_light`).
+        """
+        validate_light(light)
         transport_key = geometry_key(light)
         shading_key = transport_key + _key(light, _SHADING_FIELDS)
         state = self._lights.get(light.path)
@@ -1045,6 +1051,8 @@ def shot_lights(description: CacheDescription, lights_layer: str | os.PathLike[s
     stage = open_stage(description.source, lights_layer)
     shot = os.fspath(lights_layer or description.source)
     check_composition(stage, shot)
+    for line in outside_reads(description.source, lights_layer) if lights_layer is not None else []:
+        logging.getLogger("relight").warning(line)
     time = description.parameters.get("time")
     try:
         return read_stage_lights(stage, time_code(stage, None if time is None else float(time)))

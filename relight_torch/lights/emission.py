@@ -64,6 +64,7 @@ from relight_torch.lights.dome import dome_samplers, latlong_direction, local_fr
 from relight_torch.lights.geometry import (
     LightFrame,
     SurfaceHits,
+    check_extent,
     check_transform,
     intersect_surface,
     planar_hits,
@@ -79,6 +80,13 @@ from relight_torch.math.frame import dot, length, orthonormal_basis, to_world
 from relight_torch.math.sampling import concentric_disk, uniform_cone, uniform_sphere
 
 _AREA_KINDS = (LightKind.SPHERE, LightKind.RECT, LightKind.DISK, LightKind.CYLINDER)
+
+MAX_RADIANCE = 1e20
+"""Largest radiance (nits) a light may emit into a lobe: intensity * 2^exposure * color [* blackbody]
+[/ sizeFactor] * max(1, diffuse, specular) * the texture's largest texel. The sun's disc is about
+1.6e9 nits; far above it the float32 kernels overflow once a BRDF peak and a solid angle multiply
+in (a diffuse multiplier of 1e30 rendered inf pixels). A normalized distant light of a tiny angle
+reaches it first: give it angle 0 (a delta light) instead."""
 
 
 @dataclass(frozen=True)
@@ -139,7 +147,8 @@ def light_radiance_scale(light: Light) -> np.ndarray:
     is the radiant intensity I (0 unless normalize, see the module doc). Zero-area rect, disk and
     cylinder lights emit nothing.
     """
-    scale: np.ndarray = light.intensity * 2.0**light.exposure * np.asarray(light.color, np.float64)
+    # np.exp2, not 2.0**: an exposure of 1e30 is inf here (refused by `validate_light`), not an OverflowError.
+    scale: np.ndarray = light.intensity * np.exp2(light.exposure) * np.asarray(light.color, np.float64)
     if light.enable_color_temperature:
         scale = scale * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(light.color_temperature), np.float64)
     if light.kind is LightKind.SPHERE and light.radius == 0.0:
@@ -152,10 +161,13 @@ def light_radiance_scale(light: Light) -> np.ndarray:
 def validate_light(light: Light) -> None:
     """Raise ValueError (one line naming the light) for what the samplers cannot honour.
 
-    Checks the transform (`geometry.check_transform`), the dome's pole axis, image shapes, and
-    the Barzel fall-off ramps' order.
+    Checks the transform (`geometry.check_transform`), positions and sizes (`geometry.check_extent`),
+    the emitted radiance (`MAX_RADIANCE`), the dome's pole axis, image shapes, and the Barzel
+    fall-off ramps' order.
     """
     check_transform(light)
+    check_extent(light)
+    _check_radiance(light)
     if light.pole_axis not in ("Y", "Z"):
         raise ValueError(f"{light.path}: poleAxis must be 'Y' or 'Z' once resolved, got {light.pole_axis!r}")
     images = {"texture": light.texture, "cookie": light.barzel.cookie if light.barzel else None}
@@ -176,6 +188,20 @@ def validate_light(light: Light) -> None:
                 f"{light.path}: relight:barzel:far:start must lie in [0, far:end], "
                 f"got {barzel.far_start} and {barzel.far_end}"
             )
+
+
+def _check_radiance(light: Light) -> None:
+    """Raise ValueError naming the light's emission inputs when its peak radiance exceeds `MAX_RADIANCE`."""
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        scale = light_radiance_scale(light)
+        peak = float(np.max(scale)) * max(1.0, light.diffuse, light.specular)
+        if light.texture is not None and light.texture.size:
+            peak *= max(1.0, float(np.max(light.texture)))
+    if not peak <= MAX_RADIANCE:
+        raise ValueError(
+            f"{light.path}: inputs:intensity * 2^inputs:exposure * inputs:color (with normalize, diffuse, specular "
+            f"and texture) emits {peak:g} nits, beyond {MAX_RADIANCE:g}"
+        )
 
 
 def sample_light(light: Light, points: torch.Tensor, u: torch.Tensor) -> LightSample:

@@ -8,6 +8,7 @@ and the hit distance is already the world distance along a unit world direction.
 Transforms the exact samplers need (checked by `check_transform`): the sphere and the dome need a
 similarity (rotation times one scale); the cylinder needs local Y and Z scaled equally and all
 three axes kept orthogonal (X may be stretched). Rect and disk accept any invertible affine map.
+Positions, axis scales and world-space sizes are bounded by `MAX_EXTENT` (`check_extent`).
 """
 
 from __future__ import annotations
@@ -22,6 +23,12 @@ from relight_torch.lights.light import Light, LightKind
 from relight_torch.math.frame import length
 
 _ORTHOGONALITY_TOLERANCE = 1e-4
+
+MAX_EXTENT = 1e15
+"""Largest world-space coordinate, axis scale or size of a light (scene units). The kernels square
+distances and multiply sizes in float32 (largest value 3.4e38): squares of 1e15 (1e30) leave room
+for the products that follow, while squares of 1e19 and more overflow to inf and end in non-finite
+pixels. Anything farther than this is better described by a distant or dome light."""
 
 
 @dataclass(frozen=True)
@@ -100,6 +107,50 @@ def check_transform(light: Light) -> None:
             f"{light.path}: CylinderLight needs orthogonal axes with Y and Z scaled equally "
             f"(a circular cross-section); its axes scale by {np.round(scale, 6).tolist()}"
         )
+
+
+def check_extent(light: Light) -> None:
+    """Raise ValueError (naming the light and attribute) for a position, scale or size beyond `MAX_EXTENT`.
+
+    Run before anything squares the light's sizes (`surface_area`): a radius of 1e300 passes a
+    finiteness check but overflows once squared.
+    """
+    origin = light.world_from_light[:3, 3]
+    if not np.abs(origin).max() <= MAX_EXTENT:
+        raise ValueError(
+            f"{light.path}: xformOp (world transform) puts the light at {_triple(origin)}, "
+            f"beyond {MAX_EXTENT:g} scene units from the origin"
+        )
+    scales = axis_scales(light)
+    if not scales.max() <= MAX_EXTENT:
+        raise ValueError(
+            f"{light.path}: xformOp (world transform) scales the light's axes by {_triple(scales)}, "
+            f"beyond {MAX_EXTENT:g}"
+        )
+    for attribute, size in _world_sizes(light, scales):
+        if not size <= MAX_EXTENT:
+            raise ValueError(
+                f"{light.path}: {attribute} gives a world-space size of {size:g}, beyond {MAX_EXTENT:g} scene units"
+            )
+
+
+def _triple(values: np.ndarray) -> str:
+    """'(1e+30, 0, 0)': a short text of three numbers for a message."""
+    return "(" + ", ".join(f"{float(value):.6g}" for value in values) + ")"
+
+
+def _world_sizes(light: Light, scales: np.ndarray) -> list[tuple[str, float]]:
+    """(attribute, world-space size) of each size input the light's kind uses (plain floats, inf on overflow)."""
+    x, y = float(scales[0]), float(scales[1])
+    if light.kind is LightKind.SPHERE:
+        return [("inputs:radius", light.radius * y)]
+    if light.kind is LightKind.RECT:
+        return [("inputs:width", light.width * x), ("inputs:height", light.height * y)]
+    if light.kind is LightKind.DISK:
+        return [("inputs:radius", light.radius * max(x, y))]
+    if light.kind is LightKind.CYLINDER:
+        return [("inputs:length", light.length * x), ("inputs:radius", light.radius * y)]
+    return []
 
 
 def axis_scales(light: Light) -> np.ndarray:

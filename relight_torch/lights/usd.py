@@ -26,6 +26,7 @@ from relight_torch.lights.image import read_linear_rgb
 from relight_torch.lights.light import BarzelShaping, Light, LightKind, Shadow, Shaping
 from relight_torch.lights.linking import read_link, write_link
 from relight_torch.schema import register_schemas
+from relight_torch.xform import world_from_local
 
 log = logging.getLogger("relight")
 
@@ -42,6 +43,7 @@ _KIND_FROM_TYPE = {
     "DomeLight_1": LightKind.DOME,
 }
 _LATLONG_FORMATS = ("automatic", "latlong")
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 @dataclass(frozen=True)
@@ -273,6 +275,10 @@ def checked_value(spec: LightInput, value: Any, where: str, described: str = "")
         numbers = tuple(float(x) for x in items)
     except OverflowError:  # an integer beyond float range (JSON has no limit)
         numbers = (math.inf,)
+    # Light inputs are floats in the schema: a double authored beyond float32's range (1e300) is
+    # finite here but inf in every kernel.
+    if any(math.isfinite(x) and abs(x) > _FLOAT32_MAX for x in numbers):
+        raise ValueError(f"{described} overflows a float (the schema's type, largest {_FLOAT32_MAX:.4g})")
     minimum, strict = {
         "nonnegative": (0.0, False),
         "colour": (0.0, False),
@@ -308,7 +314,7 @@ def _pole_axis(prim: Usd.Prim) -> str:
 
 def _world_from_light(prim: Usd.Prim, time: Usd.TimeCode) -> np.ndarray:
     """(4, 4) float64 column-vector world_from_light; ValueError if not finite and invertible."""
-    world_from_light = np.array(UsdGeom.XformCache(time).GetLocalToWorldTransform(prim), np.float64).T
+    world_from_light = world_from_local(UsdGeom.XformCache(time), prim)
     if not np.isfinite(world_from_light).all() or abs(np.linalg.det(world_from_light[:3, :3])) < 1e-300:
         raise ValueError(f"{prim.GetPath()}: world transform is not finite and invertible")
     return world_from_light

@@ -45,6 +45,7 @@ from relight_torch.direct.relighter import Relighter, RelightSettings, embree_vi
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.light_samples import bounding_radius, fixed_light_samples
+from relight_torch.lights.emission import validate_light
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import decode_paths
 from relight_torch.math.extremes import extremes_of_four
@@ -260,7 +261,12 @@ class MultiviewRelighter:
         replace_rig(self, lights)
 
     def set_light(self, light: Light) -> None:
-        """Add or edit a light: an edit of its transform or shaping drops its cached lighting."""
+        """Add or edit a light: an edit of its transform or shaping drops its cached lighting.
+
+        Raises:
+            ValueError: the light is one the kernels cannot honour (`emission.validate_light`).
+        """
+        validate_light(light)
         relighter = self._relighter
         had = relighter is not None and light.path in self._lights and relighter.unit_images(light.path) is not None
         self._lights[light.path] = light
