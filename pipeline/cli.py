@@ -27,6 +27,10 @@ from pipeline.errors import RelightError
 COMMANDS = ("demo", "scenes", "info", "bake", "render", "serve", "reference", "trace_bench", "bench_direct", "bench")
 
 
+# How log records read on stderr (a warning: 'relight: WARNING: ...').
+LOG_FORMAT = "relight: %(levelname)s: %(message)s"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="relight",
@@ -49,10 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
-        format="relight: %(levelname)s: %(message)s",
-    )
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format=LOG_FORMAT)
     try:
         return int(args.run(args) or 0)
     except RelightError as error:

@@ -274,7 +274,8 @@ def bake_for_quality(
         shutil.rmtree(pilot_dir, ignore_errors=True)
     if ladder_spent:
         log.warning(
-            "quality target %g dB not reached: measured %.2f dB with the best %s size of the ladder (%s)",
+            "%s: quality target %g dB not reached: measured %.2f dB with the best %s size of the ladder (%s)",
+            scene.source,
             target_db,
             measured_db,
             method,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 from pathlib import Path
 
 from pipeline import cli
@@ -41,10 +42,22 @@ def bake_arguments(shot: Path, out: Path, method: str) -> list[str]:
 
 
 def quiet_main(arguments: list[str]) -> tuple[int, str]:
-    """`relight ARGUMENTS` in this process -> (exit status, stderr); stdout is discarded."""
+    """`relight ARGUMENTS` in this process -> (exit status, stderr with its log lines); stdout is discarded.
+
+    The log lines get a handler of their own: `cli.main`'s `logging.basicConfig` acts only when
+    the root logger has none, so it binds the first call's stderr (or none, under pytest's own
+    handlers).
+    """
     stderr = io.StringIO()
-    with contextlib.redirect_stderr(stderr), contextlib.redirect_stdout(io.StringIO()):
-        status = cli.main(arguments)
+    handler = logging.StreamHandler(stderr)
+    handler.setFormatter(logging.Formatter(cli.LOG_FORMAT))
+    root = logging.getLogger()
+    root.addHandler(handler)
+    try:
+        with contextlib.redirect_stderr(stderr), contextlib.redirect_stdout(io.StringIO()):
+            status = cli.main(arguments)
+    finally:
+        root.removeHandler(handler)
     return status, stderr.getvalue()
 
 
