@@ -24,7 +24,7 @@ from pipeline import __version__
 from pipeline.errors import RelightError
 
 # Subcommand modules, in the order `relight --help` lists them.
-COMMANDS = ("demo", "scenes", "info", "bake", "render", "reference", "trace_bench", "bench_direct", "bench")
+COMMANDS = ("demo", "scenes", "info", "bake", "render", "reference", "solve", "trace_bench", "bench_direct", "bench")
 
 
 def build_parser() -> argparse.ArgumentParser:
