@@ -60,6 +60,21 @@ class CacheRelighter(Protocol):
         kept grids), not counting the baked payloads loaded at open."""
 
 
+@runtime_checkable
+class GradientRelighter(CacheRelighter, Protocol):
+    """A relighter that `relight solve` can differentiate in the light kinds it names.
+
+    Attributes:
+        gradient_kinds: the `--free` geometry kinds (`relight_torch.direct.gradients.GEOMETRY_KINDS`)
+            whose gradients it provides; the solver refuses the others, naming the method. The
+            direct Relighter provides them all through `relight_torch.direct.gradients` (its
+            `gbuffer`, `visibility`, `fixed_samples`, `light_mask` and `to_image`); the methods
+            that compose it add indirect light without gradients, and so declare none.
+    """
+
+    gradient_kinds: frozenset[str]
+
+
 def refuse_material_edit(relighter: object) -> None:
     """The `edit_material` of a relighter whose `material_edits` is False.
 

@@ -22,7 +22,7 @@ import torch
 from relight_torch.direct.gradients import GEOMETRY_KINDS, applies
 from relight_torch.errors import RelightError
 from relight_torch.lights.light import Light
-from relight_torch.protocol import CacheRelighter
+from relight_torch.protocol import CacheRelighter, GradientRelighter
 from relight_torch.solve.descent import DescentSettings, Progress, descend
 from relight_torch.solve.linear import current_scales, solve_scales, unit_images
 from relight_torch.solve.rig import SCALE_KINDS, parse_free, scaled_light
@@ -178,7 +178,7 @@ def _solved_paths(rig: list[Light], solve: Sequence[str] | None) -> list[str]:
 
 def _check_gradients(relighter: CacheRelighter, kinds: Sequence[str], lights: list[Light]) -> None:
     """Refuse a geometry kind the relighter cannot differentiate, or that no solved light has."""
-    supported = getattr(relighter, "gradient_kinds", frozenset())
+    supported = relighter.gradient_kinds if isinstance(relighter, GradientRelighter) else frozenset()
     for kind in kinds:
         if kind not in GEOMETRY_KINDS:
             continue
