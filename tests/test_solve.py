@@ -12,9 +12,11 @@ import pytest
 import torch
 
 from pipeline.bake.direct.bake import bake_direct
+from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
 from pipeline.cli import main
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
+from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.direct import gradients
 from relight_torch.direct.relighter import Relighter, open_relighter, shot_lights
@@ -22,10 +24,12 @@ from relight_torch.errors import RelightError
 from relight_torch.io.exr import read_rgb_exr, write_rgb_exr
 from relight_torch.lights.light import Light, LightKind, Shaping
 from relight_torch.lights.overrides import write_light_overrides
+from relight_torch.protocol import GradientRelighter
 from relight_torch.solve import DescentSettings, solve_lights
 from relight_torch.solve.descent import descend
 from relight_torch.solve.linear import unit_images
 from relight_torch.solve.rig import scaled_light
+from relight_torch.transfer.relighter import TransferRelighter
 
 WIDTH, HEIGHT = 48, 36
 CAMERA = SCENES["cornell_box"].camera
@@ -66,27 +70,23 @@ def _test_lights(ceiling: Light) -> list[Light]:
     return [ceiling, sphere, disk]
 
 
-@pytest.mark.parametrize("index", [0, 1, 2], ids=["rect", "sphere", "disk"])
-def test_gradients_match_central_differences(cornell: tuple[Path, Path], index: int) -> None:
+def _check_gradients(relighter: GradientRelighter, light: Light, seed: int) -> None:
     """d image / d parameter of each free geometry kind, autograd against central differences in
     float64, visibility frozen at the start (as the solver holds it within a step)."""
-    relighter = _float64(open_relighter(cornell[1]))
-    light = _test_lights(relighter.lights[0])[index]
-    relighter.set_lights([light])
     start = gradients.LightPose.of(light)
-    frozen = gradients.freeze_visibility(relighter, light, start, 2)
-    weights = torch.rand(HEIGHT, WIDTH, 3, generator=torch.Generator().manual_seed(index), dtype=torch.float64)
+    frozen = relighter.freeze_light(light, start, 2)
+    weights = torch.rand(HEIGHT, WIDTH, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
     fields = ("position", "rotation", "size") + (("shaping",) if light.shaping is not None else ())
+    steps = {"position": 1e-3, "rotation": 1e-6, "size": 1e-3, "shaping": 1e-4}
     for field in fields:
         base = getattr(start, field)
 
         def image_sum(value: torch.Tensor, field: str = field) -> torch.Tensor:
             pose = dataclasses.replace(start, **{field: value})
-            return (gradients.light_image(relighter, light, pose, frozen) * weights).sum()
+            return (relighter.differentiable_light_image(light, pose, frozen) * weights).sum()
 
         value = base.clone().requires_grad_(True)
         (gradient,) = torch.autograd.grad(image_sum(value), value)
-        steps = {"position": 1e-3, "rotation": 1e-6, "size": 1e-3, "shaping": 1e-4}
         numeric = torch.zeros_like(base)
         for k in range(base.numel()):
             offset = torch.zeros_like(base)
@@ -95,6 +95,81 @@ def test_gradients_match_central_differences(cornell: tuple[Path, Path], index: 
         scale = float(numeric.abs().max()) + 1e-12
         assert torch.allclose(gradient, numeric, rtol=1e-4, atol=1e-6 * scale), (field, gradient, numeric)
         assert float(gradient.abs().max()) > 0, field  # the kind moves the image at all
+
+
+@pytest.mark.parametrize("index", [0, 1, 2], ids=["rect", "sphere", "disk"])
+def test_gradients_match_central_differences(cornell: tuple[Path, Path], index: int) -> None:
+    relighter = _float64(open_relighter(cornell[1]))
+    light = _test_lights(relighter.lights[0])[index]
+    relighter.set_lights([light])
+    _check_gradients(relighter, light, index)
+
+
+@pytest.fixture(scope="module")
+def cornell_transfer(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small transfer (shot-cache) bake of the Cornell box: 256 gathers, two bounces."""
+    root = tmp_path_factory.mktemp("cornell_transfer")
+    shot = SCENES["cornell_box"].write(root / "scene")
+    scene = load_scene(shot, width=WIDTH, height=HEIGHT)
+    settings = TransferSettings(
+        num_gathers=256, num_coefficients=64, num_bounces=2, num_bounce_coefficients=32, indirect_scale=1
+    )
+    camera = find_camera(scene, CAMERA)
+    return bake_transfer(scene, camera, root / "cache", "cornell", texture_samples=1, settings=settings, progress=False)
+
+
+def _transfer_float64(relighter: TransferRelighter) -> TransferRelighter:
+    bounce = None if relighter.bounce is None else relighter.bounce.to("cpu", torch.float64)
+    return TransferRelighter(
+        _float64(relighter.direct),
+        relighter.gathers.to("cpu", torch.float64),
+        relighter.view_pixels,
+        relighter.final_gather.to("cpu", torch.float64),
+        bounce,
+        relighter.num_bounces,
+        relighter.gather_samples,
+        relighter.upsampler,
+    )
+
+
+@pytest.mark.parametrize("index", [0, 1], ids=["rect", "sphere"])
+def test_gradients_through_indirect_light_match_central_differences(cornell_transfer: Path, index: int) -> None:
+    """The same check through the transfer relighter (direct + indirect), and its indirect part
+    carries gradient of its own."""
+    relighter = open_cache(cornell_transfer)
+    assert isinstance(relighter, TransferRelighter)
+    relighter = _transfer_float64(relighter)
+    light = _test_lights(relighter.lights[0])[index]
+    relighter.set_lights([light])
+    _check_gradients(relighter, light, index)
+    pose = gradients.LightPose.of(light)
+    pose.position.requires_grad_(True)
+    frozen = relighter.freeze_light(light, pose, 2)
+    indirect = relighter.differentiable_light_image(light, pose, frozen) - relighter.direct.differentiable_light_image(
+        light, pose, frozen.direct
+    )
+    assert float(indirect.detach().sum()) > 0
+    (gradient,) = torch.autograd.grad(indirect.sum(), pose.position)
+    assert float(gradient.abs().max()) > 0
+
+
+@pytest.mark.slow
+def test_shot_cache_solve_recovers_a_move(cornell_transfer: Path) -> None:
+    """Through the transfer relighter (direct and indirect light), target by the relighter itself:
+    a 55 mm move and x1.5 intensity come back within 1 % of the diagonal and 1 %."""
+    relighter = open_cache(cornell_transfer)
+    light = relighter.lights[0]
+    moved = light.world_from_light.copy()
+    moved[:3, 3] += (33.0, 0.0, -44.0)
+    truth = dataclasses.replace(light, world_from_light=moved, intensity=light.intensity * 1.5)
+    relighter.set_lights([truth])
+    target = relighter.render().clone()
+    relighter.set_lights([light])
+    result = solve_lights(relighter, target, free="intensity,position", settings=DescentSettings(iterations=200))
+    solved = result.after[0]
+    diagonal = float(np.linalg.norm([556.0, 548.8, 559.2]))
+    assert np.linalg.norm(solved.world_from_light[:3, 3] - moved[:3, 3]) < 0.01 * diagonal
+    assert solved.intensity == pytest.approx(truth.intensity, rel=0.01)
 
 
 def test_pose_copies_the_light_transform(cornell: tuple[Path, Path]) -> None:
@@ -215,7 +290,8 @@ def test_scaled_light_writes_the_freed_inputs() -> None:
 
 
 class _NoGradients:
-    """A relighter offering the protocol but no `gradient_kinds` (as the indirect methods' do)."""
+    """A relighter offering the protocol but no `gradient_kinds` (as the gather, cuts and multiview
+    methods' do)."""
 
     material_edits = False
 

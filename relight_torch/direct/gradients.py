@@ -30,8 +30,10 @@ by sampling noise of the same order as the relighter's own.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -41,6 +43,10 @@ from relight_torch.lights.emission import LightSample, is_delta_light, sample_li
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.math.frame import dot, to_local
+from relight_torch.visibility import Visibility
+
+if TYPE_CHECKING:
+    from relight_torch.direct.relighter import Relighter
 
 GEOMETRY_KINDS = ("position", "orientation", "size", "shaping")
 """The `--free` kinds this module differentiates (the colour kinds need no gradient through shading)."""
@@ -172,34 +178,37 @@ class FrozenVisibility:
     factor: torch.Tensor
 
 
-def freeze_visibility(relighter: object, light: Light, pose: LightPose, num_samples: int) -> FrozenVisibility:
-    """Trace the shadow rays of `light` at `pose` once (no gradient).
+def frozen_visibility(
+    visibility: Visibility, light: Light, pose: LightPose, points: torch.Tensor, normals: torch.Tensor, u: torch.Tensor
+) -> FrozenVisibility:
+    """Trace the shadow rays of `light` at `pose` from N points once (no gradient).
 
     Args:
-        relighter: the direct `Relighter` (its G-buffer, visibility and fixed light samples).
+        visibility: the shadow queries (the relighter's).
         light: the light as it started (its transform is the pose's reference).
         pose: the parameters to trace at.
-        num_samples: light samples per point (1 for a delta light).
+        points: (N, 3) world receivers; normals: (N, 3) their geometric normals (ray offsets).
+        u: (N, S, 2) the fixed light-sample numbers of the points.
     """
     with torch.no_grad():
         detached = pose.detached()
-        direction, sample = _sample(relighter, light, detached, num_samples)
-        g = relighter.gbuffer  # type: ignore[attr-defined]
+        direction, sample = _sample(light, detached, points, u)
         # The shadow rays of the moved light (its own transform, for shadow maps and shadow links).
-        moved = detached.posed_light(light)
-        distance = relighter.visibility.occluder_distance(  # type: ignore[attr-defined]
-            moved,
-            g.position,
-            g.geometric_normal,
-            direction.transpose(0, 1),
-            sample.distance,
+        distance = visibility.occluder_distance(
+            detached.posed_light(light), points, normals, direction.transpose(0, 1), sample.distance
         ).transpose(0, 1)
         return FrozenVisibility(shadow_factor(light.shadow, distance < torch.inf, distance))
 
 
-def light_image(
-    relighter: object, light: Light, pose: LightPose, visibility: FrozenVisibility
-) -> torch.Tensor:
+def freeze_visibility(relighter: Relighter, light: Light, pose: LightPose, num_samples: int) -> FrozenVisibility:
+    """`frozen_visibility` at the relighter's shading points, with its fixed light samples."""
+    g = relighter.gbuffer
+    return frozen_visibility(
+        relighter.visibility, light, pose, g.position, g.geometric_normal, relighter.fixed_samples(num_samples)
+    )
+
+
+def light_image(relighter: Relighter, light: Light, pose: LightPose, visibility: FrozenVisibility) -> torch.Tensor:
     """(H, W, 3) image of the unit light (intensity 1, exposure 0, white, no temperature; diffuse
     and specular multipliers and light link applied) at `pose`, differentiable in the pose's tensors.
 
@@ -209,9 +218,9 @@ def light_image(
         pose: the parameters (tensors of the G-buffer's dtype and device, or castable to them).
         visibility: `freeze_visibility` of the same light, held fixed.
     """
-    g = relighter.gbuffer  # type: ignore[attr-defined]
+    g = relighter.gbuffer
     num_samples = visibility.factor.shape[0]
-    direction, sample = _sample(relighter, light, pose, num_samples)
+    direction, sample = _sample(light, pose, g.position, relighter.fixed_samples(num_samples))
     # (S, N, ...) throughout: per-point values broadcast over the samples' slabs.
     cosine = dot(direction, g.normal)
     facing = dot(direction, g.geometric_normal) > 0
@@ -220,25 +229,48 @@ def light_image(
     frame = (g.tangent, g.bitangent, g.normal)
     diffuse, specular = preview_surface.split(g.params, to_local(g.wo_world(), *frame), to_local(direction, *frame))
     per_point = ((diffuse * light.diffuse + specular * light.specular) * weight).sum(0)
-    mask = relighter.light_mask(light)  # type: ignore[attr-defined]
+    mask = relighter.light_mask(light)
     if mask is not None:
         per_point = per_point * mask
-    return relighter.to_image(per_point)  # type: ignore[attr-defined]
+    return relighter.to_image(per_point)
 
 
-def _sample(relighter: object, light: Light, pose: LightPose, num_samples: int) -> tuple[torch.Tensor, LightSample]:
-    """World directions (S, N, 3) to the unit light's samples at `pose`, and the `LightSample`
-    (N, S) seen from the receivers moved into the starting light's frame (module doc)."""
-    g = relighter.gbuffer  # type: ignore[attr-defined]
-    like = g.position
-    pose = pose.map(lambda t: t.to(like.device, like.dtype))
+def diffuse_light(
+    light: Light,
+    pose: LightPose,
+    points: torch.Tensor,
+    normals: torch.Tensor,
+    albedo: torch.Tensor,
+    u: torch.Tensor,
+    visibility: FrozenVisibility,
+) -> torch.Tensor:
+    """(N, 3) radiance leaving N diffuse points after one reflection of the unit light at `pose`,
+    differentiable in the pose: `diffuse_light.diffuse_radiance`'s estimator (diffuse x albedo / pi
+    x irradiance from the fixed samples, on the side `normals` point to) without its ratio
+    estimator, visibility frozen.
+
+    Args:
+        light: the light as it started; pose: its parameters.
+        points: (N, 3) world points; normals: (N, 3) unit receiving normals; albedo: (N, 3).
+        u: (N, S, 2) fixed light-sample numbers; visibility: `frozen_visibility` at these points.
+    """
+    direction, sample = _sample(light, pose, points, u)
+    cosine = dot(direction, normals).clamp(min=0.0)
+    irradiance = (sample.weight().transpose(0, 1) * cosine.unsqueeze(-1) * visibility.factor).mean(0)
+    return light.diffuse * albedo / math.pi * irradiance
+
+
+def _sample(light: Light, pose: LightPose, points: torch.Tensor, u: torch.Tensor) -> tuple[torch.Tensor, LightSample]:
+    """World directions (S, N, 3) from `points` (N, 3) to the unit light's samples at `pose`
+    (fixed numbers u (N, S, 2)), and the `LightSample` (N, S) seen from the receivers moved into
+    the starting light's frame (module doc)."""
+    pose = pose.map(lambda t: t.to(points.device, points.dtype))
     turn = rotation_matrix(pose.rotation)
-    origin = torch.as_tensor(light.world_from_light[:3, 3], device=like.device, dtype=like.dtype)
-    receivers = (g.position - pose.position) @ turn + origin  # rows: R^T (p - c) + c0
+    origin = torch.as_tensor(light.world_from_light[:3, 3], device=points.device, dtype=points.dtype)
+    receivers = (points - pose.position) @ turn + origin  # rows: R^T (p - c) + c0
     unit = dataclasses.replace(
         pose.tensor_light(light), intensity=1.0, exposure=0.0, color=(1.0, 1.0, 1.0), enable_color_temperature=False
     )
-    u = relighter.fixed_samples(num_samples)  # type: ignore[attr-defined]
     sample = sample_light(unit, receivers, u)
     direction = sample.direction.transpose(0, 1) @ turn.T  # rows: R d
     return direction, sample

@@ -7,8 +7,9 @@ The frame is modelled as
 with `rest` and the unit images U_i of lights whose geometry is fixed taken from the relighter
 (`linear.unit_images`), U_i of lights whose geometry is free from the differentiable direct
 relighter: each step takes their value from the relighter at the current parameters and their
-gradient from the relighter's differentiable twin (`relight_torch.direct.gradients`, visibility
-traced at the current parameters and held fixed through the gradient), and s_i the emission factor: the closed-form start times a free non-negative
+gradient from the relighter's differentiable twin (`protocol.GradientRelighter`, built on
+`relight_torch.direct.gradients`: visibility traced at the current parameters and held fixed
+through the gradient), and s_i the emission factor: the closed-form start times a free non-negative
 multiple (per channel when colours are free) times blackbody(T) / blackbody(T_0).
 
 Adam (Kingma & Ba 2015) runs on normalised unknowns z, so one learning rate fits all: position
@@ -36,10 +37,11 @@ import numpy as np
 import torch
 
 from relight_torch.direct import gradients
-from relight_torch.direct.gradients import FrozenVisibility, LightPose, applies
+from relight_torch.direct.gradients import LightPose, applies
 from relight_torch.direct.relighter import colour_scale
 from relight_torch.lights.emission import is_delta_light
 from relight_torch.lights.light import Light
+from relight_torch.protocol import CacheRelighter, GradientRelighter
 from relight_torch.solve.linear import unit_images
 from relight_torch.solve.rig import SCALE_KINDS, TEMPERATURE_RANGE, blackbody, blackbody_tensor, scaled_light
 
@@ -85,7 +87,7 @@ class _Unknowns:
     rotation: torch.Tensor | None = None
     size: torch.Tensor | None = None
     shaping: torch.Tensor | None = None
-    visibility: FrozenVisibility | None = None
+    visibility: object | None = None  # the relighter's `freeze_light` at the current pose
 
     def tensors(self) -> list[torch.Tensor]:
         values = (self.multiple, self.temperature, self.position, self.rotation, self.size, self.shaping)
@@ -132,7 +134,7 @@ class DescentResult:
 
 
 def descend(
-    relighter: object,
+    relighter: CacheRelighter,
     lights: Sequence[Light],
     rest: torch.Tensor,
     images: torch.Tensor,
@@ -177,7 +179,8 @@ def descend(
         for index, (u, start) in enumerate(zip(unknowns, starts, strict=True)):
             image = images[index]
             if u.visibility is not None:
-                twin = gradients.light_image(relighter, u.light, u.current_pose(diagonal), u.visibility).to(dtype)
+                assert isinstance(relighter, GradientRelighter)
+                twin = relighter.differentiable_light_image(u.light, u.current_pose(diagonal), u.visibility).to(dtype)
                 image = exact[u.light.path].to(dtype) + (twin - twin.detach())
             frame = frame + _scale(u, start) * image
         data = (weights * (frame - target).square()).sum() / energy
@@ -248,19 +251,20 @@ def _unknowns(light: Light, free: Sequence[str], dtype: torch.dtype) -> _Unknown
 
 
 def _moving_images(
-    relighter: object, unknowns: list[_Unknowns], diagonal: float, samples: int
+    relighter: CacheRelighter, unknowns: list[_Unknowns], diagonal: float, samples: int
 ) -> dict[str, torch.Tensor]:
     """Put each moving light at its current pose on the relighter and return its unit image there
     (`linear.unit_images`); trace its differentiable twin's visibility there too (no gradient)."""
     moving = [u for u in unknowns if u.pose is not None]
     if not moving:
         return {}
+    assert isinstance(relighter, GradientRelighter), "the solver refuses geometry kinds without gradients"
     for u in moving:
         pose = u.current_pose(diagonal)
-        relighter.set_light(pose.posed_light(u.light))  # type: ignore[attr-defined]
+        relighter.set_light(pose.posed_light(u.light))
         count = 1 if is_delta_light(u.light) else samples
-        u.visibility = gradients.freeze_visibility(relighter, u.light, pose, count)
-    _, images = unit_images(relighter, [u.light.path for u in moving])  # type: ignore[arg-type]
+        u.visibility = relighter.freeze_light(u.light, pose, count)
+    _, images = unit_images(relighter, [u.light.path for u in moving])
     return {u.light.path: image for u, image in zip(moving, images, strict=True)}
 
 
@@ -299,12 +303,7 @@ def _solved_light(u: _Unknowns, start: torch.Tensor, diagonal: float, free: Sequ
     return light
 
 
-def _scene_diagonal(relighter: object) -> float:
-    """The diagonal of the shaded points' bounding box: the unit of position offsets."""
-    gbuffer = getattr(relighter, "gbuffer", None)
-    if gbuffer is None:
-        return 1.0
-    position = gbuffer.position
-    if position.shape[0] == 0:
-        return 1.0
-    return float((position.amax(0) - position.amin(0)).norm()) or 1.0
+def _scene_diagonal(relighter: CacheRelighter) -> float:
+    """The unit of position offsets: the relighter's `scene_diagonal`, 1 for one without gradients
+    (which moves no light)."""
+    return relighter.scene_diagonal() if isinstance(relighter, GradientRelighter) else 1.0

@@ -186,7 +186,7 @@ def _check_gradients(relighter: CacheRelighter, kinds: Sequence[str], lights: li
             method = _method_name(relighter)
             raise RelightError(
                 f"--free {kind}: the {method} method's relighter has no gradients for {kind} "
-                "(solve it on a direct cache, or free only intensity,exposure,color,temperature)"
+                "(solve it on a direct or transfer cache, or free only intensity,exposure,color,temperature)"
             )
         if not any(applies(kind, light) for light in lights):
             raise RelightError(f"--free {kind}: none of the solved lights has a {kind} to solve")
