@@ -333,5 +333,3 @@ def test_errors_are_one_line(cornell: tuple[Path, Path], tmp_path: Path, capsys:
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1, err
     assert not (tmp_path / "out.usda").exists()
-
-

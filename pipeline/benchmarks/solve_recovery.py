@@ -106,7 +106,9 @@ def run_scene(name: str, size: tuple[int, int], spp: int, iterations: int, direc
             normalised = np.asarray(got.color) / max(max(got.color), 1e-30) - np.asarray(light.color) / max(light.color)
             colour = max(colour, float(np.abs(normalised).max()))
         if light.path == moved:
-            position_error = float(np.linalg.norm(got.world_from_light[:3, 3] - light.world_from_light[:3, 3])) / diagonal
+            position_error = (
+                float(np.linalg.norm(got.world_from_light[:3, 3] - light.world_from_light[:3, 3])) / diagonal
+            )
     solved_image = reference(shot, spec.camera, size, before, result.after, directory / name / "solved.exr", spp)
     return {
         "scene": name,
@@ -185,6 +187,12 @@ def run_painted(name: str, size: tuple[int, int], directory: Path) -> dict[str, 
     }
 
 
+def table(header: list[str], rows: list[list[object]]) -> list[str]:
+    """Markdown lines of a table (a blank line first)."""
+    lines = ["", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return lines + ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
+
+
 def write_summary(
     rows: list[dict[str, object]],
     extra: list[dict[str, object]],
@@ -206,34 +214,28 @@ def write_summary(
         f"Command: `{command}`",
     ]
     if rows:
-        lines += [
-            "",
-            "| scene | lights | free | intensity err | colour err | position err / diag | PSNR dB | steps | s |",
-            "|---|---|---|---|---|---|---|---|---|",
-        ]
-    for row in rows:
-        lines.append(
-            f"| {row['scene']} | {row['lights']} | {row['free']} | {row['intensity_error']:.2%} | "
-            f"{row['colour_error']:.4f} | {row['position_error']:.2%} | {row['psnr_db']:.1f} | "
-            f"{row['iterations']} | {row['seconds']:.1f} |"
-        )
+        lines += table(
+            ["scene", "lights", "free", "intensity err", "colour err", "position err / diag", "PSNR dB", "steps", "s"],
+            [
+                [row["scene"], row["lights"], row["free"], f"{row['intensity_error']:.2%}",
+                 f"{row['colour_error']:.4f}", f"{row['position_error']:.2%}", f"{row['psnr_db']:.1f}",
+                 row["iterations"], f"{row['seconds']:.1f}"]
+                for row in rows
+            ],
+        )  # fmt: skip
     cones = [row for row in extra if "cone" in row]
     if cones:
-        lines += [
-            "",
-            "## A cone 20 % wider (intensity and shaping free, that light alone)",
-            "",
-            "| scene | light | cone start / truth / solved (deg) | softness truth / solved | focus truth / solved | "
-            "intensity err | PSNR dB | steps | s |",
-            "|---|---|---|---|---|---|---|---|---|",
-        ]
-        for row in cones:
-            cone, soft, focus = row["cone"], row["softness"], row["focus"]
-            lines.append(
-                f"| {row['scene']} | {row['light']} | {cone[0]:.1f} / {cone[1]:.1f} / {cone[2]:.1f} | "
-                f"{soft[0]:.2f} / {soft[1]:.2f} | {focus[0]:.2f} / {focus[1]:.2f} | {row['intensity_error']:.2%} | "
-                f"{row['psnr_db']:.1f} | {row['iterations']} | {row['seconds']:.1f} |"
-            )
+        lines += ["", "## A cone 20 % wider (intensity and shaping free, that light alone)"]
+        lines += table(
+            ["scene", "light", "cone start / truth / solved (deg)", "softness truth / solved", "focus truth / solved",
+             "intensity err", "PSNR dB", "steps", "s"],
+            [
+                [row["scene"], row["light"], " / ".join(f"{v:.1f}" for v in row["cone"]),
+                 " / ".join(f"{v:.2f}" for v in row["softness"]), " / ".join(f"{v:.2f}" for v in row["focus"]),
+                 f"{row['intensity_error']:.2%}", f"{row['psnr_db']:.1f}", row["iterations"], f"{row['seconds']:.1f}"]
+                for row in cones
+            ],
+        )  # fmt: skip
     painted = [row for row in extra if "inside" in row]
     if painted:
         lines += [
@@ -243,15 +245,15 @@ def write_summary(
             "Closed form over every light's intensity and colour, all pixels weighted alike. Relative RMS error "
             "against the painted target inside and outside the painted rectangle (before the solve: the "
             "inside error of the unpainted frame, 0 outside); mean brightness gain inside (2 is the paint's).",
-            "",
-            "| scene | inside before | inside after | outside after | gain inside | s |",
-            "|---|---|---|---|---|---|",
         ]
-        for row in painted:
-            lines.append(
-                f"| {row['scene']} | {row['before_inside']:.3f} | {row['inside']:.3f} | {row['outside']:.3f} | "
-                f"{row['mean_ratio_inside']:.2f} | {row['seconds']:.1f} |"
-            )
+        lines += table(
+            ["scene", "inside before", "inside after", "outside after", "gain inside", "s"],
+            [
+                [row["scene"], f"{row['before_inside']:.3f}", f"{row['inside']:.3f}", f"{row['outside']:.3f}",
+                 f"{row['mean_ratio_inside']:.2f}", f"{row['seconds']:.1f}"]
+                for row in painted
+            ],
+        )  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.md").write_text("\n".join(lines) + "\n")
 

@@ -33,7 +33,7 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -114,8 +114,8 @@ class LightPose:
     def of(light: Light, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> LightPose:
         """The pose of `light` as it stands (no rotation on top)."""
 
-        def tensor(values: object) -> torch.Tensor:
-            return torch.tensor(np.array(values, np.float64), dtype=dtype, device=device)  # a copy: never the light's memory
+        def tensor(values: object) -> torch.Tensor:  # a copy: never a view of the light's arrays
+            return torch.tensor(np.array(values, np.float64), dtype=dtype, device=device)
 
         fields = SIZE_FIELDS.get(light.kind)
         shaping = light.shaping
@@ -136,18 +136,19 @@ class LightPose:
 
     def map(self, function: Callable[[torch.Tensor], torch.Tensor]) -> LightPose:
         """A pose of `function` applied to each tensor (None stays None)."""
-        return LightPose(*(None if t is None else function(t) for t in self.tensors()))
+        size = None if self.size is None else function(self.size)
+        shaping = None if self.shaping is None else function(self.shaping)
+        return LightPose(function(self.position), function(self.rotation), size, shaping)
 
     def tensor_light(self, light: Light) -> Light:
         """`light` with its size and shaping fields replaced by this pose's 0-d tensors (transform
         untouched: position and orientation act on the receivers, see the module doc)."""
-        changes: dict[str, object] = {}
+        changes: dict[str, Any] = {}  # 0-d tensors where the fields say float (module doc)
         if self.size is not None:
             changes.update(zip(SIZE_FIELDS[light.kind], self.size.unbind(), strict=True))
         if self.shaping is not None and light.shaping is not None:
-            changes["shaping"] = dataclasses.replace(
-                light.shaping, **dict(zip(SHAPING_FIELDS, self.shaping.unbind(), strict=True))
-            )
+            shaping: dict[str, Any] = dict(zip(SHAPING_FIELDS, self.shaping.unbind(), strict=True))
+            changes["shaping"] = dataclasses.replace(light.shaping, **shaping)
         return dataclasses.replace(light, **changes)
 
     def posed_light(self, light: Light) -> Light:
@@ -156,7 +157,7 @@ class LightPose:
         turn = rotation_matrix(self.rotation.detach().to(torch.float64).cpu()).numpy()
         world_from_light[:3, :3] = turn @ world_from_light[:3, :3]
         world_from_light[:3, 3] = self.position.detach().to(torch.float64).cpu().numpy()
-        changes: dict[str, object] = {"world_from_light": world_from_light}
+        changes: dict[str, Any] = {"world_from_light": world_from_light}
         if self.size is not None:
             changes.update(zip(SIZE_FIELDS[light.kind], self.size.detach().cpu().tolist(), strict=True))
         if self.shaping is not None and light.shaping is not None:

@@ -50,9 +50,9 @@ import torch
 from relight_torch.brdf import preview_surface
 from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import check_inputs, load_gbuffer, load_npy
-from relight_torch.errors import RelightError
 from relight_torch.direct import gradients
 from relight_torch.direct.gradients import GEOMETRY_KINDS
+from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.light_samples import adaptive_sample_count, angular_radius, fixed_light_samples
 from relight_torch.lights.emission import is_delta_light, light_radiance_scale, sample_light

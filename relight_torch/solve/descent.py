@@ -18,11 +18,13 @@ sizes as log(size / size_0), cone angle in units of 90 degrees, softness and foc
 temperature in units of 1000 K, emission multiples as (multiple - 1). Limits are kept by
 reparametrisation (sizes: the log) or by projection after each step (emission multiples >= 0,
 cone angle in [0.5, 180] degrees, softness in [0, 1], focus >= 0, temperature in
-`rig.TEMPERATURE_RANGE`). A step that raises the loss (evaluated with the visibility of where it
-landed) is refused and the step size halved, so the descent is monotone in the true loss even
-where the frozen visibility misleads a gradient (a light about to pass behind a wall). The loss is the mask-weighted squared error over the target's weighted
-energy plus `regularisation` x |z|^2, a pull toward the starting rig that keeps lights the target
-says nothing about where they were.
+`rig.TEMPERATURE_RANGE`). A step that raises the loss (the relighter's, with the visibility of
+where the step landed) is refused and the step size halved, then grown back toward its schedule
+by 1.5x per accepted step, so the descent is monotone in the true loss even where the frozen
+visibility misleads a gradient (the Cornell box's ceiling light, 1 mm under the ceiling, is
+pushed up by it while its x and z are wrong). The loss is the mask-weighted squared error over
+the target's weighted energy plus `regularisation` x |z|^2, a pull toward the starting rig that
+keeps lights the target says nothing about where they were.
 """
 
 from __future__ import annotations
@@ -101,7 +103,9 @@ class _Unknowns:
             start.position + diagonal * self.position if self.position is not None else start.position,
             self.rotation if self.rotation is not None else start.rotation,
             start.size * torch.exp(self.size) if self.size is not None and start.size is not None else start.size,
-            start.shaping + self.shaping * _SHAPING_UNITS if self.shaping is not None else start.shaping,
+            start.shaping + self.shaping * _SHAPING_UNITS
+            if self.shaping is not None and start.shaping is not None
+            else start.shaping,
         )
 
     def project(self) -> None:

@@ -61,12 +61,12 @@ class _Blackbody(torch.autograd.Function):
     of the same function (1 K steps: its table is smooth on that scale)."""
 
     @staticmethod
-    def forward(ctx, temperature: torch.Tensor) -> torch.Tensor:  # type: ignore[no-untyped-def, override]
+    def forward(ctx, temperature: torch.Tensor) -> torch.Tensor:
         ctx.save_for_backward(temperature)
         return temperature.new_tensor(blackbody(float(temperature)))
 
     @staticmethod
-    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:  # type: ignore[no-untyped-def, override]
+    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
         (temperature,) = ctx.saved_tensors
         kelvin = float(temperature)
         slope = (blackbody(kelvin + 1.0) - blackbody(kelvin - 1.0)) / 2.0
@@ -75,7 +75,7 @@ class _Blackbody(torch.autograd.Function):
 
 def blackbody_tensor(temperature: torch.Tensor) -> torch.Tensor:
     """(3,) blackbody colour of a 0-d temperature tensor in kelvin, differentiable."""
-    result: torch.Tensor = _Blackbody.apply(temperature)  # type: ignore[no-untyped-call]
+    result: torch.Tensor = _Blackbody.apply(temperature)
     return result
 
 

@@ -159,7 +159,8 @@ def _weights(mask: torch.Tensor | np.ndarray | None, like: torch.Tensor) -> torc
         weights = weights[..., :3].mean(-1)  # a grey mask saved as RGB
     if tuple(weights.shape) != (height, width):
         raise RelightError(
-            f"mask: {tuple(weights.shape)} pixels, but the cache renders {width}x{height} (expected ({height}, {width}))"
+            f"mask: {tuple(weights.shape)} pixels, but the cache renders {width}x{height} "
+            f"(expected ({height}, {width}))"
         )
     if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()) or not bool((weights > 0).any()):
         raise RelightError("mask: weights must be finite, non-negative and not all zero")

@@ -137,7 +137,9 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
     def freeze_light(self, light: Light, pose: gradients.LightPose, num_samples: int) -> FrozenTransfer:
         """`protocol.GradientRelighter.freeze_light`: the view samples' and the gathers' shadow rays."""
         g = self.gathers
-        u = fixed_light_samples(g.num_gathers, num_samples, self.direct.settings.seed, g.position.device, g.position.dtype)
+        u = fixed_light_samples(
+            g.num_gathers, num_samples, self.direct.settings.seed, g.position.device, g.position.dtype
+        )
         return FrozenTransfer(
             self.direct.freeze_light(light, pose, num_samples),
             gradients.frozen_visibility(self.direct.visibility, light, pose, g.position, g.normal, u),
