@@ -76,6 +76,10 @@ class DescentSettings:
     tolerance: float = 1e-5
 
 
+SHAPING_UNITS = (90.0, 1.0, 1.0)
+"""The units of the shaping unknowns: cone angle (degrees), softness, focus."""
+
+
 @dataclass
 class _Unknowns:
     """One light's normalised unknowns (module doc); None where not free."""
@@ -103,7 +107,7 @@ class _Unknowns:
             start.position + diagonal * self.position if self.position is not None else start.position,
             self.rotation if self.rotation is not None else start.rotation,
             start.size * torch.exp(self.size) if self.size is not None and start.size is not None else start.size,
-            start.shaping + self.shaping * _SHAPING_UNITS
+            start.shaping + self.shaping * start.shaping.new_tensor(SHAPING_UNITS)
             if self.shaping is not None and start.shaping is not None
             else start.shaping,
         )
@@ -118,12 +122,10 @@ class _Unknowns:
                 low, high = ((bound - kelvin) / 1000.0 for bound in TEMPERATURE_RANGE)
                 self.temperature.clamp_(low, high)
             if self.shaping is not None and self.pose is not None and self.pose.shaping is not None:
-                values = self.pose.shaping + self.shaping * _SHAPING_UNITS
+                units = self.pose.shaping.new_tensor(SHAPING_UNITS)
+                values = self.pose.shaping + self.shaping * units
                 values = torch.stack((values[0].clamp(0.5, 180.0), values[1].clamp(0.0, 1.0), values[2].clamp_min(0.0)))
-                self.shaping.copy_((values - self.pose.shaping) / _SHAPING_UNITS)
-
-
-_SHAPING_UNITS = torch.tensor([90.0, 1.0, 1.0], dtype=torch.float64)
+                self.shaping.copy_((values - self.pose.shaping) / units)
 
 
 @dataclass(frozen=True)
@@ -164,13 +166,14 @@ def descend(
     weights = weights.to(dtype).unsqueeze(-1)
     energy = float((weights * target.square()).sum()) or 1.0
     diagonal = _scene_diagonal(relighter)
-    unknowns = [_unknowns(light, free, dtype) for light in lights]
+    device = rest.device
+    unknowns = [_unknowns(light, free, dtype, device) for light in lights]
     parameters = [t for u in unknowns for t in u.tensors()]
     if not parameters:
         return DescentResult(list(lights), math.nan, math.nan, 0, 0.0)
     optimiser = torch.optim.Adam(parameters, lr=settings.learning_rate)
     decay = (settings.final_learning_rate / settings.learning_rate) ** (1.0 / max(settings.iterations, 1))
-    starts = [torch.as_tensor(_factor(light), dtype=dtype) for light in lights]
+    starts = [torch.as_tensor(_factor(light), dtype=dtype, device=device) for light in lights]
     rate, best, kept = settings.learning_rate, math.inf, [t.detach().clone() for t in parameters]
     history: list[float] = []
     step = 0
@@ -229,21 +232,21 @@ def _set_rate(optimiser: torch.optim.Optimizer, rate: float) -> None:
         group["lr"] = rate
 
 
-def _unknowns(light: Light, free: Sequence[str], dtype: torch.dtype) -> _Unknowns:
+def _unknowns(light: Light, free: Sequence[str], dtype: torch.dtype, device: torch.device) -> _Unknowns:
     kinds = tuple(kind for kind in gradients.GEOMETRY_KINDS if kind in free and applies(kind, light))
     scale_free = [kind for kind in SCALE_KINDS if kind in free]
     multiple = None
     if scale_free:
-        multiple = torch.zeros(3 if "color" in scale_free else 1, dtype=dtype, requires_grad=True)
+        multiple = torch.zeros(3 if "color" in scale_free else 1, dtype=dtype, device=device, requires_grad=True)
     temperature = None
     if "temperature" in free and light.enable_color_temperature:
-        temperature = torch.zeros((), dtype=dtype, requires_grad=True)
-    pose = LightPose.of(light, dtype) if kinds else None
+        temperature = torch.zeros((), dtype=dtype, device=device, requires_grad=True)
+    pose = LightPose.of(light, dtype, device) if kinds else None
     u = _Unknowns(light, pose, kinds, multiple, temperature)
     if pose is not None:
         zeros = {
-            "position": torch.zeros(3, dtype=dtype),
-            "orientation": torch.zeros(3, dtype=dtype),
+            "position": torch.zeros(3, dtype=dtype, device=device),
+            "orientation": torch.zeros(3, dtype=dtype, device=device),
             "size": None if pose.size is None else torch.zeros_like(pose.size),
             "shaping": None if pose.shaping is None else torch.zeros_like(pose.shaping),
         }
@@ -286,7 +289,7 @@ def _scale(u: _Unknowns, start: torch.Tensor) -> torch.Tensor:
     if u.multiple is not None:
         scale = scale * (1.0 + u.multiple)
     if u.light.enable_color_temperature:
-        kelvin = torch.as_tensor(u.light.color_temperature, dtype=start.dtype)
+        kelvin = torch.as_tensor(u.light.color_temperature, dtype=start.dtype, device=start.device)
         if u.temperature is not None:
             kelvin = kelvin + 1000.0 * u.temperature
         scale = scale * blackbody_tensor(kelvin)
@@ -302,7 +305,7 @@ def _solved_light(u: _Unknowns, start: torch.Tensor, diagonal: float, free: Sequ
         light = dataclasses.replace(light, color_temperature=light.color_temperature + 1000.0 * float(u.temperature))
     if u.multiple is not None:
         with torch.no_grad():
-            scale = _scale(dataclasses.replace(u, light=light, temperature=None), start).numpy()
+            scale = _scale(dataclasses.replace(u, light=light, temperature=None), start).cpu().numpy()
         light = scaled_light(light, scale, free)
     return light
 

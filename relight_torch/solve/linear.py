@@ -85,9 +85,10 @@ def solve_scales(
     Returns:
         (L, 3) float64 factors.
     """
-    root = torch.sqrt(weights).to(torch.float64).reshape(-1, 1)
-    columns = images.to(torch.float64).reshape(images.shape[0], -1, 3) * root  # (L, P, 3)
-    rhs = residual.to(torch.float64).reshape(-1, 3) * root  # (P, 3)
+    # scipy solves on the CPU, in float64, whatever device the images were made on.
+    root = torch.sqrt(weights.to("cpu", torch.float64)).reshape(-1, 1)
+    columns = images.to("cpu", torch.float64).reshape(images.shape[0], -1, 3) * root  # (L, P, 3)
+    rhs = residual.to("cpu", torch.float64).reshape(-1, 3) * root  # (P, 3)
     num_lights = images.shape[0]
     if per_channel:
         factors = np.zeros((num_lights, 3))
