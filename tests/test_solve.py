@@ -333,3 +333,20 @@ def test_errors_are_one_line(cornell: tuple[Path, Path], tmp_path: Path, capsys:
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1, err
     assert not (tmp_path / "out.usda").exists()
+
+
+def test_temperature_is_solved_through_the_blackbody(cornell: tuple[Path, Path]) -> None:
+    """Colour temperature by descent over the linear model (UsdLux's blackbody, differentiated by
+    central differences of the same function): 4000 K back from a 5500 K target."""
+    relighter = open_relighter(cornell[1])
+    light = dataclasses.replace(
+        relighter.lights[0], color=(1.0, 1.0, 1.0), enable_color_temperature=True, color_temperature=4000.0
+    )
+    relighter.set_lights([dataclasses.replace(light, color_temperature=5500.0)])
+    target = relighter.render().clone()
+    relighter.set_lights([light])
+    result = solve_lights(relighter, target, free="temperature", settings=DescentSettings(learning_rate=0.1))
+    assert result.after[0].color_temperature == pytest.approx(5500.0, abs=50.0)
+    assert result.loss_end < 1e-3 * result.loss_start
+    with pytest.raises(RelightError, match="no light to solve"):
+        solve_lights(relighter, target, solve=[])

@@ -169,6 +169,8 @@ def _weights(mask: torch.Tensor | np.ndarray | None, like: torch.Tensor) -> torc
 
 def _solved_paths(rig: list[Light], solve: Sequence[str] | None) -> list[str]:
     paths = [light.path for light in rig]
+    if not paths or (solve is not None and not solve):
+        raise RelightError("--solve: no light to solve (the rig has none, or none was named)")
     if solve is None:
         return paths
     for path in solve:
