@@ -302,7 +302,8 @@ def _solved_light(u: _Unknowns, start: torch.Tensor, diagonal: float, free: Sequ
     if u.pose is not None:
         light = u.current_pose(diagonal).posed_light(light)
     if u.temperature is not None:
-        light = dataclasses.replace(light, color_temperature=light.color_temperature + 1000.0 * float(u.temperature.detach()))
+        kelvin = light.color_temperature + 1000.0 * float(u.temperature.detach())
+        light = dataclasses.replace(light, color_temperature=kelvin)
     if u.multiple is not None:
         with torch.no_grad():
             scale = _scale(dataclasses.replace(u, light=light, temperature=None), start).cpu().numpy()
