@@ -350,3 +350,22 @@ def test_temperature_is_solved_through_the_blackbody(cornell: tuple[Path, Path])
     assert result.loss_end < 1e-3 * result.loss_start
     with pytest.raises(RelightError, match="no light to solve"):
         solve_lights(relighter, target, solve=[])
+
+
+def test_mask_weights_the_pixels(cornell: tuple[Path, Path], tmp_path: Path) -> None:
+    """Outside the mask the target is garbage (black); the masked solve sees only the inside, where
+    the frame is twice as bright, and doubles the intensity exactly."""
+    _, layer = cornell
+    relighter = open_relighter(layer)
+    frame = relighter.render().numpy()
+    inside = np.zeros((HEIGHT, WIDTH), np.float32)
+    inside[HEIGHT // 4 : 3 * HEIGHT // 4, WIDTH // 4 : 3 * WIDTH // 4] = 1.0
+    target, mask = tmp_path / "painted.exr", tmp_path / "mask.exr"
+    write_rgb_exr(target, 2.0 * frame * inside[..., None])
+    write_rgb_exr(mask, np.repeat(inside[..., None], 3, axis=-1))
+    out = tmp_path / "solved.usda"
+    argv = ["solve", str(layer), "--target", str(target), "--mask", str(mask), "--free", "intensity", "-o", str(out)]
+    assert main(argv) == 0
+    solved = shot_lights(read_cache_layer(layer), out)[0]
+    assert solved.intensity == pytest.approx(2.0 * relighter.lights[0].intensity, rel=1e-3)
+    assert "inputs:color" not in out.read_text()  # colour was not free: not authored
