@@ -24,7 +24,19 @@ from pipeline import __version__
 from pipeline.errors import RelightError
 
 # Subcommand modules, in the order `relight --help` lists them.
-COMMANDS = ("demo", "scenes", "info", "bake", "render", "serve", "reference", "trace_bench", "bench_direct", "bench")
+COMMANDS = (
+    "demo",
+    "scenes",
+    "info",
+    "bake",
+    "render",
+    "serve",
+    "reference",
+    "solve",
+    "trace_bench",
+    "bench_direct",
+    "bench",
+)
 
 
 # How log records read on stderr (a warning: 'relight: WARNING: ...').

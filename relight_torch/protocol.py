@@ -7,12 +7,15 @@ nothing else. Each method's relighter class satisfies it structurally (no base c
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import torch
 
 from relight_torch.errors import RelightError
 from relight_torch.lights.light import Light
+
+if TYPE_CHECKING:  # the direct package imports this module
+    from relight_torch.direct.gradients import LightPose
 
 
 @runtime_checkable
@@ -58,6 +61,33 @@ class CacheRelighter(Protocol):
     def held_bytes(self) -> int:
         """Bytes of the work kept between renders (per-light transports, images, indirect light,
         kept grids), not counting the baked payloads loaded at open."""
+
+
+@runtime_checkable
+class GradientRelighter(CacheRelighter, Protocol):
+    """A relighter that `relight solve` can differentiate in the light kinds it names.
+
+    Attributes:
+        gradient_kinds: the `--free` geometry kinds (`relight_torch.direct.gradients.GEOMETRY_KINDS`)
+            whose gradients it provides; the solver refuses the others, naming the method. The
+            direct Relighter provides them through `relight_torch.direct.gradients`, and the
+            transfer relighter adds its indirect light's (the gathers' direct light differentiated
+            the same way, carried by its linear transport).
+    """
+
+    gradient_kinds: frozenset[str]
+
+    def scene_diagonal(self) -> float:
+        """World length of the diagonal of the shaded points' bounding box (the solver's unit of
+        position offsets)."""
+
+    def freeze_light(self, light: Light, pose: LightPose, num_samples: int) -> object:
+        """Trace the light's shadow rays at `pose` once, `num_samples` per point (no gradient):
+        the visibility `differentiable_light_image` holds fixed."""
+
+    def differentiable_light_image(self, light: Light, pose: LightPose, frozen: object) -> torch.Tensor:
+        """(H, W, 3) image of the unit light (`relighter.unit_light`) at `pose`, differentiable in
+        the pose's tensors, visibility `frozen`; exposure applied as in `render`."""
 
 
 def refuse_material_edit(relighter: object) -> None:

@@ -51,6 +51,8 @@ import torch
 from relight_torch.brdf import preview_surface
 from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import check_inputs, load_gbuffer, load_npy
+from relight_torch.direct import gradients
+from relight_torch.direct.gradients import GEOMETRY_KINDS
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.light_samples import adaptive_sample_count, angular_radius, fixed_light_samples
@@ -338,6 +340,9 @@ class Relighter:
     """
 
     material_edits = False  # the baked materials are shaded as they are (`CacheRelighter`)
+    # The `--free` kinds `relight solve` may differentiate through this relighter
+    # (`protocol.GradientRelighter`, `relight_torch.direct.gradients`).
+    gradient_kinds = frozenset(GEOMETRY_KINDS)
 
     def __init__(
         self,
@@ -514,6 +519,35 @@ class Relighter:
     def emission_image(self) -> torch.Tensor:
         """(H, W, 3) the surfaces' own emission (UsdPreviewSurface emissiveColor), no light's."""
         return self._to_image(self.gbuffer.params.emissive_color)
+
+    def scene_diagonal(self) -> float:
+        """`protocol.GradientRelighter.scene_diagonal` (1 for an image that covers nothing)."""
+        position = self.gbuffer.position
+        if position.shape[0] == 0:
+            return 1.0
+        return float((position.amax(0) - position.amin(0)).norm()) or 1.0
+
+    def freeze_light(self, light: Light, pose: gradients.LightPose, num_samples: int) -> gradients.FrozenVisibility:
+        """`protocol.GradientRelighter.freeze_light`: the light's shadow rays at `pose`, traced once."""
+        return gradients.freeze_visibility(self, light, pose, num_samples)
+
+    def differentiable_light_image(
+        self, light: Light, pose: gradients.LightPose, frozen: gradients.FrozenVisibility
+    ) -> torch.Tensor:
+        """`protocol.GradientRelighter.differentiable_light_image`: (H, W, 3) unit image at `pose`."""
+        return gradients.light_image(self, light, pose, frozen)
+
+    def to_image(self, values: torch.Tensor) -> torch.Tensor:
+        """Sub-sample values (N, 3) to the (H, W, 3) image (`_to_image`; differentiable)."""
+        return self._to_image(values)
+
+    def light_mask(self, light: Light) -> torch.Tensor | None:
+        """(N, 1) the light's light-link mask, None when it links every object (`_mask`)."""
+        return self._mask(light)
+
+    def fixed_samples(self, num_samples: int) -> torch.Tensor:
+        """(N, S, 2) the fixed light-sample numbers of every point for S samples (`light_samples`)."""
+        return self._fixed_u(num_samples)
 
     def _to_image(self, values: torch.Tensor) -> torch.Tensor:
         """Sub-sample values (N, 3) to the (H, W, 3) image: scattered, box-filtered, exposed."""

@@ -48,8 +48,12 @@ def shaping_factor(shaping: Shaping, emission_local: torch.Tensor) -> torch.Tens
     cos_off = (-emission_local[..., 2]).clamp(-1.0, 1.0)
     focus = cos_off.abs() ** shaping.focus if shaping.focus > 0 else torch.ones_like(cos_off)
     tint = torch.as_tensor(shaping.focus_tint, device=cos_off.device, dtype=cos_off.dtype)
-    theta_cut = math.radians(shaping.cone_angle)
-    theta_start = theta_cut * (1.0 - min(max(shaping.cone_softness, 0.0), 1.0))
+    # Written so that the cone angle, softness and focus may be 0-d tensors requiring grad (`relight
+    # solve` differentiates through them): no math.radians or min/max, which would make floats.
+    theta_cut = shaping.cone_angle * (math.pi / 180.0)
+    softness = shaping.cone_softness
+    softness = softness.clamp(0.0, 1.0) if torch.is_tensor(softness) else min(max(softness, 0.0), 1.0)
+    theta_start = theta_cut * (1.0 - softness)
     cone = 1.0 - smoothstep(theta_start, theta_cut, torch.acos(cos_off))
     return (tint + focus.unsqueeze(-1) * (1.0 - tint)) * cone.unsqueeze(-1)
 

@@ -17,9 +17,11 @@ import dataclasses
 import torch
 
 from relight_torch.diffuse_light import link_mask
+from relight_torch.direct import gradients
 from relight_torch.direct.relighter import Relighter, unit_light
 from relight_torch.indirect import IndirectRelighter, gather_light_key
 from relight_torch.indirect_samples import GatherSamples, gather_radiance
+from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.light import Light
 from relight_torch.protocol import tensor_bytes
 from relight_torch.transfer.haar import haar2d
@@ -28,6 +30,21 @@ from relight_torch.transfer.upsample import EdgeAwareUpsampler
 
 GATHER_SAMPLES = 4
 """Light samples per gather for area lights by default (see `TransferRelighter`)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FrozenTransfer:
+    """A light's visibility at one pose for `TransferRelighter.differentiable_light_image`.
+
+    Attributes:
+        direct: the view samples' (`Relighter.freeze_light`).
+        gathers: the gathers' (`gradients.frozen_visibility`).
+        u: (G, S, 2) the gathers' fixed light-sample numbers.
+    """
+
+    direct: gradients.FrozenVisibility
+    gathers: gradients.FrozenVisibility
+    u: torch.Tensor
 
 
 @dataclasses.dataclass
@@ -108,6 +125,39 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         self._column_norms = column_norms(final_gather) if cull_tolerance > 0 else None
         self.counters: collections.Counter[str] = collections.Counter()
         self._emission_indirect: torch.Tensor | None = None
+
+    # `relight solve` differentiates the direct light and the gathers' direct light, which the
+    # transport carries linearly (`protocol.GradientRelighter`).
+    gradient_kinds = frozenset(gradients.GEOMETRY_KINDS)
+
+    def scene_diagonal(self) -> float:
+        """`protocol.GradientRelighter.scene_diagonal`: the direct relighter's."""
+        return self.direct.scene_diagonal()
+
+    def freeze_light(self, light: Light, pose: gradients.LightPose, num_samples: int) -> FrozenTransfer:
+        """`protocol.GradientRelighter.freeze_light`: the view samples' and the gathers' shadow rays."""
+        g = self.gathers
+        u = fixed_light_samples(
+            g.num_gathers, num_samples, self.direct.settings.seed, g.position.device, g.position.dtype
+        )
+        return FrozenTransfer(
+            self.direct.freeze_light(light, pose, num_samples),
+            gradients.frozen_visibility(self.direct.visibility, light, pose, g.position, g.normal, u),
+            u,
+        )
+
+    def differentiable_light_image(
+        self, light: Light, pose: gradients.LightPose, frozen: FrozenTransfer
+    ) -> torch.Tensor:
+        """`protocol.GradientRelighter.differentiable_light_image`: the direct image plus the
+        indirect image F (I + M + ...) g_d of the gathers' differentiable direct light."""
+        direct = self.direct.differentiable_light_image(light, pose, frozen.direct)
+        g = self.gathers
+        radiance = gradients.diffuse_light(light, pose, g.position, g.normal, g.albedo, frozen.u, frozen.gathers)
+        linked = link_mask(light, g.object_id, self.direct.object_paths)
+        if linked is not None:
+            radiance = radiance * linked.unsqueeze(-1).to(radiance)
+        return direct + self._rows_to_image(self.transfer(radiance.to(g.position.dtype)))
 
     def transfer(self, radiance: torch.Tensor) -> torch.Tensor:
         """F (I + M + ... + M^(B-1)) radiance: (G, 3) gather radiance -> (R, 3) at the view rows, clamped
