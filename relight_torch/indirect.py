@@ -11,25 +11,15 @@ from __future__ import annotations
 import dataclasses
 from typing import Generic, TypeVar
 
-import numpy as np
 import torch
 
 from relight_torch.direct.relighter import Relighter, colour_scale, light_group
 from relight_torch.lights.emission import is_delta_light
-from relight_torch.lights.light import Light, LightKind
+from relight_torch.lights.light import Light, LightKind, light_snapshot
 from relight_torch.protocol import refuse_material_edit
 
 StateT = TypeVar("StateT")
 """A subclass's cached indirect work per light."""
-
-
-def light_snapshot(value: object) -> object:
-    """A hashable, comparable snapshot of a light or a light field (arrays by content, dataclasses by field)."""
-    if isinstance(value, np.ndarray):
-        return value.shape, value.dtype.str, value.tobytes()
-    if dataclasses.is_dataclass(value):
-        return tuple((f.name, light_snapshot(getattr(value, f.name))) for f in dataclasses.fields(value))
-    return value
 
 
 def gather_light_key(unit: Light) -> object:

@@ -7,6 +7,7 @@ nothing else. Each method's relighter class satisfies it structurally (no base c
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import torch
@@ -22,9 +23,12 @@ class CacheRelighter(Protocol):
     Attributes:
         material_edits: whether `edit_material` changes the image without a re-bake (a
             capability: callers test it, never the method's name).
+        progressive: whether `pending` and `refine` give coarse frames (progressive refinement,
+            `relight_torch.progressive`); where False they raise `RelightError`.
     """
 
     material_edits: bool
+    progressive: bool
 
     @property
     def lights(self) -> list[Light]:
@@ -55,9 +59,59 @@ class CacheRelighter(Protocol):
             RelightError: `material_edits` is False.
         """
 
+    @property
+    def edits(self) -> int:
+        """Changes made so far to the rig (`set_light`, `remove_light`, `set_lights`) and the
+        materials: progressive refinement starts again from a coarse frame when it grows."""
+
+    def pending(self, stride: int | None) -> int:
+        """Light evaluations (one light at one shading point) `refine(stride)` would make.
+
+        Raises:
+            RelightError: `progressive` is False.
+        """
+
+    def refine(self, stride: int | None) -> Refinement:
+        """A frame of the current rig: exact where nothing changed since the last exact frame,
+        the changed lights evaluated at one point per `stride` x `stride` pixels and upsampled
+        elsewhere; `stride` None makes the exact frame, equal to `render()`. Work done for a
+        coarse frame is kept (per light, per point) and never done again by a finer one or the
+        exact one, unless an edit made it stale.
+
+        Raises:
+            RelightError: `progressive` is False.
+        """
+
     def held_bytes(self) -> int:
         """Bytes of the work kept between renders (per-light transports, images, indirect light,
         kept grids), not counting the baked payloads loaded at open."""
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """One frame of progressive refinement (`CacheRelighter.refine`).
+
+    Attributes:
+        image: (H, W, 3) linear radiance image, camera exposure applied.
+        evaluated: light evaluations (one light at one shading point) made for it.
+        exact: whether `image` is the exact frame (`render()`).
+    """
+
+    image: torch.Tensor
+    evaluated: int
+    exact: bool
+
+
+def refuse_progressive(relighter: object) -> None:
+    """The `pending` and `refine` of a relighter whose `progressive` is False.
+
+    Raises:
+        RelightError: always, naming the relighter's class.
+    """
+    raise RelightError(
+        f"{type(relighter).__name__}: this cache's method has no progressive refinement (progressive is "
+        f"False); render it whole"
+    )
 
 
 def refuse_material_edit(relighter: object) -> None:

@@ -10,6 +10,7 @@ Edit a light with `dataclasses.replace(light, intensity=...)`; a light is identi
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 from dataclasses import dataclass, field
 
@@ -142,3 +143,12 @@ class Light:
     light_group: str = ""
     light_link: tuple[str, ...] | None = None
     shadow_link: tuple[str, ...] | None = None
+
+
+def light_snapshot(value: object) -> object:
+    """A hashable, comparable snapshot of a light or a light field (arrays by content, dataclasses by field)."""
+    if isinstance(value, np.ndarray):
+        return value.shape, value.dtype.str, value.tobytes()
+    if dataclasses.is_dataclass(value):
+        return tuple((f.name, light_snapshot(getattr(value, f.name))) for f in dataclasses.fields(value))
+    return value

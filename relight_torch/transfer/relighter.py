@@ -24,7 +24,7 @@ from relight_torch.lights.light import Light
 from relight_torch.protocol import tensor_bytes
 from relight_torch.transfer.haar import haar2d
 from relight_torch.transfer.sparse import SparseRows, column_norms, cull_light
-from relight_torch.transfer.upsample import EdgeAwareUpsampler
+from relight_torch.upsample import EdgeAwareUpsampler
 
 GATHER_SAMPLES = 4
 """Light samples per gather for area lights by default (see `TransferRelighter`)."""
