@@ -8,7 +8,7 @@ nothing else. Each method's relighter class satisfies it structurally (no base c
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import NoReturn, Protocol, runtime_checkable
 
 import torch
 
@@ -102,7 +102,7 @@ class Refinement:
     exact: bool
 
 
-def refuse_progressive(relighter: object) -> None:
+def refuse_progressive(relighter: object) -> NoReturn:
     """The `pending` and `refine` of a relighter whose `progressive` is False.
 
     Raises:

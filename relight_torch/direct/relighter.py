@@ -617,20 +617,43 @@ class Relighter:
         they still lacked traced (or shaded from their kept transport) and kept; their light
         upsampled edge-aware and added to the exact image of the others. `stride` None: every
         point, then `render()`."""
-        changed = self._changed()
-        if stride is None or not changed:
-            evaluated = sum(self._refine_points(state, None) for state in changed if state.images is None)
-            return Refinement(self.render(), evaluated, True)
+        if stride is None or not self._changed():
+            return Refinement(self.render(), self.complete(), True)
+        level, values, evaluated = self.coarse_values(stride)
+        return Refinement(self.coarse_image(level, values), evaluated, False)
+
+    def changed_lights(self) -> list[Light]:
+        """The lights set since the last exact frame (`render()`), which a coarse frame refines."""
+        return [state.light for state in self._changed()]
+
+    def unchanged_key(self) -> tuple[object, ...]:
+        """A key of the lights not set since the last exact frame: equal keys, equal lights."""
+        return tuple((path, state.edited) for path, state in self._lights.items() if state.edited <= self._exact_edits)
+
+    def complete(self) -> int:
+        """Shade every point the changed lights still lack (their unit images complete); returns
+        the evaluations made."""
+        return sum(self._refine_points(state, None) for state in self._changed() if state.images is None)
+
+    def coarse_values(self, stride: int) -> tuple[Level, torch.Tensor, int]:
+        """(level, values (M, 3), evaluations made): the changed lights' light at the points of
+        the level of `stride` pixels (camera exposure not applied), the points they lacked shaded
+        and kept."""
         level = self._level(stride)
         values = self.gbuffer.position.new_zeros(level.points.shape[0], 3)
         evaluated = 0
-        for state in changed:
+        for state in self._changed():
             if state.images is None:
                 evaluated += self._refine_points(state, level.points)
             self._add_light_at(values, state, level.points)
+        return level, values, evaluated
+
+    def coarse_image(self, level: Level, values: torch.Tensor) -> torch.Tensor:
+        """(H, W, 3) the exact image of the unchanged lights plus `values` (M, 3) at the level's
+        points upsampled, camera exposure applied."""
         height, width = (size // self.supersampling for size in self.gbuffer.image_size)
         coarse = level.upsampler(values).reshape(height, width, 3) * self.exposure_scale
-        return Refinement(self._static_image(changed) + coarse, evaluated, False)
+        return self._static_image(self._changed()) + coarse
 
     def _changed(self) -> list[_LightState]:
         """The lights set since the last exact frame."""
@@ -664,6 +687,7 @@ class Relighter:
                 assert state.transports is not None  # not traced: shaded from the kept transport
                 for transport in state.transports:
                     part = transport.subset(todo)
+                    assert part.points is not None  # a subset names its points
                     progress.images.index_add_(1, part.points, self._per_point(state.light, part))
             progress.done[todo] = True
             progress.num_done += int(todo.numel())
@@ -706,8 +730,9 @@ class Relighter:
     def _static_image(self, changed: list[_LightState]) -> torch.Tensor:
         """(H, W, 3) exact image of the emission and every light not in `changed`, kept while
         those stay the same. When only the last light set changed, these are `_others`."""
-        shown = [(path, state) for path, state in self._lights.items() if state not in changed]
-        key = tuple((path, state.edited) for path, state in shown)
+        changed_ids = {id(state) for state in changed}
+        shown = [(path, state) for path, state in self._lights.items() if id(state) not in changed_ids]
+        key = self.unchanged_key()
         if self._static is not None and self._static[0] == key:
             return self._static[1]
         only_active = len(changed) == 1 and changed[0] is self._lights.get(self._active or "")

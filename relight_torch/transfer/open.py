@@ -94,6 +94,7 @@ def open_transfer_relighter(
             num_bounces,
             upsampler=upsampler,
             cull_tolerance=cull_tolerance,
+            indirect_scale=scale,
         )
     except ValueError as error:
         raise RelightError(f"{layer_path}: {error}") from None
