@@ -138,7 +138,8 @@ def progressive_frames(
         end = time.perf_counter()
         frame_ms = 1e3 * (end - began)
         costs.record(stride, frame_ms, result.evaluated)
-        yield Frame(result.image, stride, 1e3 * (end - start), frame_ms, result.evaluated, result.exact)
+        shown = None if result.exact else stride
+        yield Frame(result.image, shown, 1e3 * (end - start), frame_ms, result.evaluated, result.exact)
         if result.exact and relighter.edits == seen:
             return
         index = min(index + 1, len(levels) - 1)

@@ -618,7 +618,8 @@ class Relighter:
         upsampled edge-aware and added to the exact image of the others. `stride` None: every
         point, then `render()`."""
         if stride is None or not self._changed():
-            return Refinement(self.render(), self.complete(), True)
+            evaluated = self.complete()  # before render(), which would shade the rest whole
+            return Refinement(self.render(), evaluated, True)
         level, values, evaluated = self.coarse_values(stride)
         return Refinement(self.coarse_image(level, values), evaluated, False)
 
