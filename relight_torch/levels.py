@@ -5,11 +5,16 @@ sub-sample (top-left), so that the levels nest (every point of stride 2p is a po
 and the work of a coarse frame is never done again by a finer one. A coarse frame evaluates light
 at those points only and brings them to every pixel with the edge-aware upsampler of
 `relight_torch.upsample` (guided by the full deep framebuffer: normals, positions, object ids),
-whose weights depend on geometry only and are built once per level.
+whose weights depend on geometry only and are built once per level. The weights are those of
+each pixel's first covered sub-sample (not the mean of its sub-samples' weights, as the transfer
+method's upsampling takes): a quarter of the work at 2 x 2 supersampling and no merge of entries
+(10 s against ~2.5 s per level at 640 x 480 on a loaded 2-core machine), for frames that are
+approximations anyway; a pixel that any sub-sample covers counts as covered in them.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -56,8 +61,8 @@ def build_level(gbuffer: GBuffer, supersampling: int, stride: int) -> Level:
     """The level of stride `stride` pixels of a G-buffer whose pixels have s x s sub-samples."""
     points, blocks = level_points(gbuffer, supersampling, stride)
     upsampler = edge_aware_upsampler(
-        gbuffer,
-        supersampling,
+        pixel_representatives(gbuffer, supersampling),
+        1,
         stride,
         blocks,
         gbuffer.position[points],
@@ -66,3 +71,29 @@ def build_level(gbuffer: GBuffer, supersampling: int, stride: int) -> Level:
         sample_offset=0.5 / (supersampling * stride) - 0.5,
     )
     return Level(stride, points, upsampler)
+
+
+def pixel_representatives(gbuffer: GBuffer, supersampling: int) -> GBuffer:
+    """The G-buffer of the (H / s) x (W / s) pixel image whose each covered pixel holds its first
+    covered sub-sample (the lowest G-buffer index)."""
+    sub_height, sub_width = gbuffer.image_size
+    width = sub_width // supersampling
+    row = torch.div(gbuffer.pixel_index, sub_width * supersampling, rounding_mode="floor")
+    col = torch.div(gbuffer.pixel_index % sub_width, supersampling, rounding_mode="floor")
+    pixel = row * width + col
+    order = torch.arange(gbuffer.num_samples, device=gbuffer.device)
+    first = torch.full((sub_height // supersampling * width,), gbuffer.num_samples, device=gbuffer.device)
+    first.scatter_reduce_(0, pixel, order, reduce="amin")
+    chosen = first[first < gbuffer.num_samples]
+    fields = {}
+    for item in dataclasses.fields(gbuffer):
+        value = getattr(gbuffer, item.name)
+        if item.name == "pixel_index":
+            value = pixel.index_select(0, chosen)
+        elif item.name == "params":
+            value = value.index(chosen)
+        elif isinstance(value, torch.Tensor) and item.name != "camera_position":
+            value = value.index_select(0, chosen)
+        fields[item.name] = value
+    fields["image_size"] = (sub_height // supersampling, width)
+    return GBuffer(**fields)

@@ -148,6 +148,8 @@ def progressive_frames(
 def _first_level(relighter: CacheRelighter, levels: list[int | None], budget_ms: float, costs: CostModel) -> int:
     """The finest level predicted to fit the budget, else the coarsest."""
     for index in range(len(levels) - 1, 0, -1):
+        if levels[index] not in costs.overhead_ms:  # never made: unknown cost (and perhaps unbuilt)
+            continue
         predicted = costs.predict(levels[index], relighter.pending(levels[index]))
         if predicted is not None and predicted <= budget_ms:
             return index

@@ -115,8 +115,16 @@ def edge_aware_upsampler(
         keep = weight > 0
         keys.append(pixel.unsqueeze(1).expand_as(rows)[keep] * num_rows + rows[keep])
         weights.append(weight[keep])
+    keys_all = torch.cat(keys)
+    if supersampling == 1 and bool((fine.pixel_index[1:] > fine.pixel_index[:-1]).all()):
+        # One sample per pixel, in pixel order: the entries are grouped by pixel already (a coarse
+        # row named twice, at a clamped border, is summed twice by the product: the same sum).
+        counts = torch.bincount(torch.div(keys_all, num_rows, rounding_mode="floor"), minlength=height * width)
+        offsets = torch.zeros(height * width + 1, dtype=torch.int64, device=device)
+        offsets[1:] = counts.cumsum(0)
+        return EdgeAwareUpsampler(keys_all % num_rows, torch.cat(weights), offsets)
     # Merge the entries of a pixel (its sub-samples) that name the same coarse row.
-    unique, inverse = torch.unique(torch.cat(keys), return_inverse=True)
+    unique, inverse = torch.unique(keys_all, return_inverse=True)
     merged = torch.zeros(unique.shape[0], dtype=fine.position.dtype, device=device).index_add_(
         0, inverse, torch.cat(weights)
     )
