@@ -22,6 +22,7 @@ from pipeline.scenes import SCENES
 from relight_torch import open_cache
 from relight_torch.direct.relighter import RelightSettings
 from relight_torch.errors import RelightError
+from relight_torch.io.exr import read_rgb_exr
 from relight_torch.levels import level_points
 from relight_torch.lights.light import Light, LightKind, Shaping
 from relight_torch.progressive import progressive_frames
@@ -207,3 +208,27 @@ def test_strides_must_decrease():
 
     with pytest.raises(ValueError, match="decreasing"):
         next(progressive_frames(Stub(), strides=(2, 4)))  # type: ignore[arg-type]
+
+
+@pytest.mark.slow
+def test_render_progressive_writes_the_exact_frame(caches, tmp_path, capsys):
+    plain, progressive, frames = tmp_path / "plain.exr", tmp_path / "progressive.exr", tmp_path / "frames"
+    assert cli.main(["render", caches["transfer"], "-o", str(plain)]) == 0
+    arguments = ["render", caches["transfer"], "-o", str(progressive), "--progressive", "--frames", str(frames)]
+    assert cli.main(arguments + ["--budget-ms", "0"]) == 0
+    log = capsys.readouterr().out
+    assert "frame 0: 1 point per 8x8 pixels" in log and "exact" in log
+    assert np.abs(read_rgb_exr(progressive) - read_rgb_exr(plain)).max() <= TOLERANCE
+    assert sorted(path.name for path in frames.iterdir()) == [f"frame-{n:02d}.exr" for n in range(5)]
+
+
+@pytest.mark.slow
+def test_render_progressive_of_a_method_without_it_is_one_error_line(tmp_path, capsys):
+    from pipeline.benchmarks.tiny_caches import bake_tiny
+
+    layer = bake_tiny(tmp_path, ("gather",))["gather"]
+    capsys.readouterr()
+    assert cli.main(["render", str(layer), "-o", str(tmp_path / "out.exr"), "--progressive"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("relight: error: --progressive:") and "no progressive refinement" in error
+    assert len(error.splitlines()) == 1 and not (tmp_path / "out.exr").exists()
