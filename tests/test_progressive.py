@@ -24,7 +24,7 @@ from relight_torch.direct.relighter import RelightSettings
 from relight_torch.errors import RelightError
 from relight_torch.io.exr import read_rgb_exr
 from relight_torch.levels import level_points
-from relight_torch.lights.light import Light, LightKind, Shaping
+from relight_torch.lights.light import Light, LightKind, Shaping, lights_equal
 from relight_torch.progressive import progressive_frames
 
 WIDTH, HEIGHT = 32, 24
@@ -232,3 +232,11 @@ def test_render_progressive_of_a_method_without_it_is_one_error_line(tmp_path, c
     error = capsys.readouterr().err.strip()
     assert error.startswith("relight: error: --progressive:") and "no progressive refinement" in error
     assert len(error.splitlines()) == 1 and not (tmp_path / "out.exr").exists()
+
+
+def test_lights_compare_by_content():
+    sky = _dome(0.0)
+    assert lights_equal(sky, dataclasses.replace(sky, texture=sky.texture.copy()))
+    assert not lights_equal(sky, dataclasses.replace(sky, texture=sky.texture * 2))
+    assert not lights_equal(sky, _dome(10.0))
+    assert not lights_equal(sky, dataclasses.replace(sky, shaping=Shaping(focus=1.0)))

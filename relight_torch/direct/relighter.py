@@ -56,7 +56,7 @@ from relight_torch.levels import Level, build_level
 from relight_torch.light_samples import adaptive_sample_count, angular_radius, fixed_light_samples
 from relight_torch.lights.emission import is_delta_light, light_radiance_scale, sample_light
 from relight_torch.lights.geometry import LightFrame
-from relight_torch.lights.light import Light, LightKind, light_snapshot
+from relight_torch.lights.light import Light, LightKind, lights_equal
 from relight_torch.lights.linking import decode_paths, linked_points
 from relight_torch.lights.polygon import closed_form, has_closed_form, ratio_of
 from relight_torch.lights.shadow import shadow_factor, shadow_strength
@@ -474,7 +474,7 @@ class Relighter:
         transport_key = geometry_key(light)
         shading_key = transport_key + _key(light, _SHADING_FIELDS)
         state = self._lights.get(light.path)
-        if state is not None and light_snapshot(state.light) == light_snapshot(light):
+        if state is not None and lights_equal(state.light, light):
             return  # no change: nothing to redo, nothing for progressive refinement to refine
         if state is None or state.geometry_key != transport_key:
             state = _LightState(light, transport_key, shading_key)

@@ -152,3 +152,22 @@ def light_snapshot(value: object) -> object:
     if dataclasses.is_dataclass(value):
         return tuple((f.name, light_snapshot(getattr(value, f.name))) for f in dataclasses.fields(value))
     return value
+
+
+def lights_equal(a: object, b: object) -> bool:
+    """Whether two lights (or light fields) are equal: arrays by content, an array compared with
+    itself without reading it (a light copied with `dataclasses.replace` shares its texture)."""
+    if a is b:
+        return True
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return (
+            isinstance(a, np.ndarray)
+            and isinstance(b, np.ndarray)
+            and a.shape == b.shape
+            and a.dtype == b.dtype
+            and bool(np.array_equal(a, b))
+        )
+    if dataclasses.is_dataclass(a) and not isinstance(a, type):
+        fields = dataclasses.fields(a)
+        return type(a) is type(b) and all(lights_equal(getattr(a, f.name), getattr(b, f.name)) for f in fields)
+    return bool(a == b)

@@ -158,7 +158,7 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
 
     def invalidate_indirect(self) -> None:
         """Drop every cached indirect image (after `num_bounces` changes); the gather light is kept."""
-        self._emission_indirect = None
+        self._emission_indirect = self._static = None
         for state in self._per_light.values():
             state.unit_indirect = state.rows = None
 
