@@ -25,6 +25,7 @@ import math
 import os
 import statistics
 import tempfile
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -56,12 +57,14 @@ FIELDS = (
     "repeats",
     "first_level",
     "first_ms",
+    "first_cpu_ms",
     "first_psnr_vs_converged_db",
     "converged_ms",
     "converged_max_diff",
     "first_psnr_vs_reference_db",
     "converged_psnr_vs_reference_db",
     "level_ms",
+    "level_psnr_db",
     "note",
 )
 
@@ -130,13 +133,17 @@ def measure(
             row["note"] = f"not supported: the {method} method's relighter has no {kind}"
             rows.append(row)
             continue
-        first_ms, first_psnr, converged_ms, levels, first_level = [], [], [], {}, []
+        first_ms, first_cpu_ms, first_psnr, converged_ms, levels, level_psnr, first_level = [], [], [], [], {}, {}, []
         for k in range(args.repeats + 1):
             before, after = rigs[edit](k)
             relighter.set_lights(before)
             relighter.render()
             relighter.set_lights(after)
-            frames = list(progressive_frames(relighter, args.budget_ms, costs=costs))
+            cpu = time.process_time()
+            sequence = progressive_frames(relighter, args.budget_ms, costs=costs)
+            frames = [next(sequence)]
+            cpu = time.process_time() - cpu
+            frames += list(sequence)
             if k == 0:
                 fresh.set_lights(after)
                 row["converged_max_diff"] = float((frames[-1].image - fresh.render()).abs().max())
@@ -146,18 +153,25 @@ def measure(
                 row["converged_psnr_vs_reference_db"] = psnr(downsampled(frames[-1].image, size), reference)
                 continue  # the warm-up: level weights built, costs learnt
             first_ms.append(frames[0].frame_ms)
+            first_cpu_ms.append(1e3 * cpu)
             first_level.append("exact" if frames[0].stride is None else f"1/{frames[0].stride}")
             first_psnr.append(psnr(frames[0].image.cpu().numpy(), frames[-1].image.cpu().numpy()))
             converged_ms.append(frames[-1].elapsed_ms)
+            converged = frames[-1].image.cpu().numpy()
             for frame in frames:
-                levels.setdefault("exact" if frame.stride is None else str(frame.stride), []).append(frame.frame_ms)
+                name = "exact" if frame.stride is None else str(frame.stride)
+                levels.setdefault(name, []).append(frame.frame_ms)
+                if frame.stride is not None:
+                    level_psnr.setdefault(name, []).append(psnr(frame.image.cpu().numpy(), converged))
         row.update(
             repeats=args.repeats,
             first_level=statistics.mode(first_level),
             first_ms=statistics.median(first_ms),
+            first_cpu_ms=statistics.median(first_cpu_ms),
             first_psnr_vs_converged_db=statistics.median(first_psnr),
             converged_ms=statistics.median(converged_ms),
             level_ms=" ".join(f"{name}:{statistics.median(ms):.0f}" for name, ms in levels.items()),
+            level_psnr_db=" ".join(f"{name}:{statistics.median(db):.1f}" for name, db in level_psnr.items()),
             note="",
         )
         rows.append(row)
@@ -252,21 +266,25 @@ def _write(args: argparse.Namespace, rows: list[dict[str, object]], point, load:
         f"{args.repeats} edits after a warm-up one; levels are 1/p (one shaded point per p x p pixels, "
         "upsampled edge-aware) or exact. PSNR against the reference: the path tracer's full frame at "
         f"{args.reference_size[0]}x{args.reference_size[1]}, {args.spp} spp, the relit frames box-filtered "
-        "to it. 'max diff' is the converged frame against a fresh relighter's render().",
+        "to it. First frame: wall ms, and in brackets the process's CPU ms (all threads), the work itself "
+        "on a shared machine. 'max diff' is the converged frame against a fresh relighter's render(). "
+        "Per level: the median "
+        "ms of its frame and the median PSNR of its frame against the converged one.",
         "",
-        "| cache | edit | first frame ms | level | first vs converged dB | converged ms | max diff | "
-        "first vs reference dB | converged vs reference dB | median ms per level |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| cache | edit | first frame ms (CPU ms) | level | first vs converged dB | converged ms | max diff | "
+        "first vs reference dB | converged vs reference dB | median ms per level | median dB per level |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
         if row.get("note"):
-            text.append(f"| {row['cache']} | {row['edit']} | {row['note']} |  |  |  |  |  |  |  |")
+            text.append(f"| {row['cache']} | {row['edit']} | {row['note']} |  |  |  |  |  |  |  |  |")
             continue
         text.append(
-            f"| {row['cache']} | {row['edit']} | {row['first_ms']:.1f} | {row['first_level']} | "
+            f"| {row['cache']} | {row['edit']} | {row['first_ms']:.1f} ({row['first_cpu_ms']:.0f}) | "
+            f"{row['first_level']} | "
             f"{row['first_psnr_vs_converged_db']:.1f} | {row['converged_ms']:.0f} | {row['converged_max_diff']:.1e} | "
             f"{row['first_psnr_vs_reference_db']:.1f} | {row['converged_psnr_vs_reference_db']:.1f} | "
-            f"{row['level_ms']} |"
+            f"{row['level_ms']} | {row['level_psnr_db']} |"
         )
     text += [
         "",
