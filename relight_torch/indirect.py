@@ -91,7 +91,7 @@ class IndirectRelighter(Generic[StateT]):
     def edits(self) -> int:
         return self.direct.edits
 
-    def pending(self, stride: int | None) -> int:
+    def pending(self, stride: int | None) -> float:
         """`CacheRelighter.pending`: the direct relighter's (indirect rows cost far less per row)."""
         if not self.progressive:
             refuse_progressive(self)
@@ -106,10 +106,10 @@ class IndirectRelighter(Generic[StateT]):
             refuse_progressive(self)
         changed = self.direct.changed_lights()
         if stride is None or not changed:
-            evaluated = self.direct.complete()
-            return Refinement(self.render(), evaluated, True)
+            evaluated, work = self.direct.complete()
+            return Refinement(self.render(), evaluated, work, True)
         static = self._static_indirect(changed)
-        level, values, evaluated = self.direct.coarse_values(stride)
+        level, values, evaluated, work = self.direct.coarse_values(stride)
         rows = self._rows_of(level.points)
         seen = rows >= 0
         rows = rows[seen]
@@ -117,7 +117,7 @@ class IndirectRelighter(Generic[StateT]):
             scale = self._scale(light, values)
             if bool((scale != 0).any()):
                 values[seen] += self._unit_indirect_at(light, rows) * scale
-        return Refinement(self.direct.coarse_image(level, values) + static, evaluated, False)
+        return Refinement(self.direct.coarse_image(level, values) + static, evaluated, work, False)
 
     def _unit_indirect_at(self, light: Light, rows: torch.Tensor) -> torch.Tensor:
         """(K, 3) `_unit_indirect(light)` at view samples `rows` (K,), its work kept for the rest."""

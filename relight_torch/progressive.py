@@ -32,7 +32,7 @@ import torch
 
 from relight_torch.protocol import CacheRelighter, refuse_progressive
 
-STRIDES: tuple[int, ...] = (8, 4, 2, 1)
+STRIDES: tuple[int, ...] = (16, 8, 4, 2, 1)
 """Pixels per block side of the coarse levels, coarse to fine; the exact frame follows them."""
 
 DEFAULT_BUDGET_MS = 33.0
@@ -63,32 +63,33 @@ class Frame:
 
 @dataclass
 class CostModel:
-    """Predicted wall ms of a frame: a level's overhead (its last frame less its evaluations) plus
-    the evaluations it will make times the median ms per evaluation seen so far.
+    """Predicted wall ms of a frame: a level's overhead (its last frame less its work) plus the
+    work it will do (`CacheRelighter.pending`: light samples) times the median ms per sample of
+    the last frames that did some.
 
     Attributes:
-        per_evaluation_ms: ms per light evaluation of the frames that made at least 1,000.
-        overhead_ms: level (stride or None) -> its last frame's ms less its evaluations' share.
+        per_sample_ms: ms per light sample of the last frames that evaluated at least 1,000.
+        overhead_ms: level (stride or None) -> its last frame's ms less its samples' share.
     """
 
-    per_evaluation_ms: list[float] = field(default_factory=list)
+    per_sample_ms: list[float] = field(default_factory=list)
     overhead_ms: dict[int | None, float] = field(default_factory=dict)
 
-    def record(self, stride: int | None, frame_ms: float, evaluated: int) -> None:
-        if evaluated >= 1000:
-            self.per_evaluation_ms = (self.per_evaluation_ms + [frame_ms / evaluated])[-9:]
-        self.overhead_ms[stride] = max(0.0, frame_ms - evaluated * self._per_evaluation())
+    def record(self, stride: int | None, frame_ms: float, work: float) -> None:
+        if work >= 1000:
+            self.per_sample_ms = (self.per_sample_ms + [frame_ms / work])[-9:]
+        self.overhead_ms[stride] = max(0.0, frame_ms - work * self._per_sample())
 
-    def predict(self, stride: int | None, evaluations: int) -> float | None:
-        """Predicted ms, or None for a level not seen yet (or no evaluation cost measured)."""
-        if stride not in self.overhead_ms or (evaluations and not self.per_evaluation_ms):
+    def predict(self, stride: int | None, work: float) -> float | None:
+        """Predicted ms, or None for a level not seen yet (or no cost per sample measured)."""
+        if stride not in self.overhead_ms or (work and not self.per_sample_ms):
             return None
-        return self.overhead_ms[stride] + evaluations * self._per_evaluation()
+        return self.overhead_ms[stride] + work * self._per_sample()
 
-    def _per_evaluation(self) -> float:
-        if not self.per_evaluation_ms:
+    def _per_sample(self) -> float:
+        if not self.per_sample_ms:
             return 0.0
-        return sorted(self.per_evaluation_ms)[len(self.per_evaluation_ms) // 2]
+        return sorted(self.per_sample_ms)[len(self.per_sample_ms) // 2]
 
 
 def check_progressive(relighter: CacheRelighter) -> None:
@@ -137,7 +138,7 @@ def progressive_frames(
         result = relighter.refine(stride)
         end = time.perf_counter()
         frame_ms = 1e3 * (end - began)
-        costs.record(stride, frame_ms, result.evaluated)
+        costs.record(stride, frame_ms, result.work)
         shown = None if result.exact else stride
         yield Frame(result.image, shown, 1e3 * (end - start), frame_ms, result.evaluated, result.exact)
         if result.exact and relighter.edits == seen:

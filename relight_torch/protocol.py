@@ -64,8 +64,9 @@ class CacheRelighter(Protocol):
         """Changes made so far to the rig (`set_light`, `remove_light`, `set_lights`) and the
         materials: progressive refinement starts again from a coarse frame when it grows."""
 
-    def pending(self, stride: int | None) -> int:
-        """Light evaluations (one light at one shading point) `refine(stride)` would make.
+    def pending(self, stride: int | None) -> float:
+        """The work `refine(stride)` would do, in light samples (a light at a shading point counts
+        its samples): what progressive refinement predicts a frame's time from.
 
         Raises:
             RelightError: `progressive` is False.
@@ -94,11 +95,13 @@ class Refinement:
     Attributes:
         image: (H, W, 3) linear radiance image, camera exposure applied.
         evaluated: light evaluations (one light at one shading point) made for it.
+        work: the light samples they evaluated (the units of `CacheRelighter.pending`).
         exact: whether `image` is the exact frame (`render()`).
     """
 
     image: torch.Tensor
     evaluated: int
+    work: float
     exact: bool
 
 

@@ -60,7 +60,7 @@ def add_parser(subparsers) -> None:
     progressive.add_argument(
         "--progressive",
         action="store_true",
-        help="render coarse frames first (one point per 8x8, 4x4, 2x2 pixels, upsampled edge-aware), then "
+        help="render coarse frames first (one point per 16x16 down to 1x1 pixels, upsampled edge-aware), then "
         "the exact frame written to OUT; logs each frame's milliseconds",
     )
     progressive.add_argument(

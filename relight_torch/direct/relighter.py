@@ -350,6 +350,8 @@ class _Progress:
             (allocated, not zeroed: a coarse frame's first work should not be a pass over N).
         done: (N,) bool, the points done.
         num_done: their count.
+        samples_per_point: the light's samples per point, averaged over the points (its sample
+            groups, `Relighter._sample_groups`): the work a point costs, for `pending`.
         traced: whether they come from shadow rays traced for them (the light kept no transport)
             or from its kept transport.
         shadow_sums: (N, 2) sum_s w V and sum_s w at the points done, for a traced light whose
@@ -360,6 +362,7 @@ class _Progress:
     images: torch.Tensor
     done: torch.Tensor
     traced: bool
+    samples_per_point: float
     num_done: int = 0
     shadow_sums: torch.Tensor | None = None
 
@@ -598,17 +601,19 @@ class Relighter:
         """`CacheRelighter.edits`: light additions, edits and removals so far."""
         return self._edits
 
-    def pending(self, stride: int | None) -> int:
-        """`CacheRelighter.pending`: points still to shade for the changed lights at `stride`."""
+    def pending(self, stride: int | None) -> float:
+        """`CacheRelighter.pending`: light samples still to evaluate for the changed lights at
+        `stride` (points times their samples)."""
         points = None if stride is None else self._level(stride).points
-        total = 0
+        total = 0.0
         for state in self._changed():
             if state.images is None:
                 progress = self._progress(state)
                 if points is None:
-                    total += progress.done.shape[0] - progress.num_done
+                    todo = progress.done.shape[0] - progress.num_done
                 else:
-                    total += int((~_take(progress.done, points)).sum())
+                    todo = int((~_take(progress.done, points)).sum())
+                total += todo * progress.samples_per_point
         return total
 
     def refine(self, stride: int | None) -> Refinement:
@@ -618,10 +623,10 @@ class Relighter:
         upsampled edge-aware and added to the exact image of the others. `stride` None: every
         point, then `render()`."""
         if stride is None or not self._changed():
-            evaluated = self.complete()  # before render(), which would shade the rest whole
-            return Refinement(self.render(), evaluated, True)
-        level, values, evaluated = self.coarse_values(stride)
-        return Refinement(self.coarse_image(level, values), evaluated, False)
+            evaluated, work = self.complete()  # before render(), which would shade the rest whole
+            return Refinement(self.render(), evaluated, work, True)
+        level, values, evaluated, work = self.coarse_values(stride)
+        return Refinement(self.coarse_image(level, values), evaluated, work, False)
 
     def changed_lights(self) -> list[Light]:
         """The lights set since the last exact frame (`render()`), which a coarse frame refines."""
@@ -631,23 +636,29 @@ class Relighter:
         """A key of the lights not set since the last exact frame: equal keys, equal lights."""
         return tuple((path, state.edited) for path, state in self._lights.items() if state.edited <= self._exact_edits)
 
-    def complete(self) -> int:
+    def complete(self) -> tuple[int, float]:
         """Shade every point the changed lights still lack (their unit images complete); returns
-        the evaluations made."""
-        return sum(self._refine_points(state, None) for state in self._changed() if state.images is None)
-
-    def coarse_values(self, stride: int) -> tuple[Level, torch.Tensor, int]:
-        """(level, values (M, 3), evaluations made): the changed lights' light at the points of
-        the level of `stride` pixels (camera exposure not applied), the points they lacked shaded
-        and kept."""
-        level = self._level(stride)
-        values = self.gbuffer.position.new_zeros(level.points.shape[0], 3)
-        evaluated = 0
+        the light evaluations and the light samples made (`Refinement`)."""
+        evaluated, work = 0, 0.0
         for state in self._changed():
             if state.images is None:
-                evaluated += self._refine_points(state, level.points)
+                points, samples = self._refine_points(state, None)
+                evaluated, work = evaluated + points, work + samples
+        return evaluated, work
+
+    def coarse_values(self, stride: int) -> tuple[Level, torch.Tensor, int, float]:
+        """(level, values (M, 3), light evaluations, light samples made): the changed lights' light
+        at the points of the level of `stride` pixels (camera exposure not applied), the points
+        they lacked shaded and kept."""
+        level = self._level(stride)
+        values = self.gbuffer.position.new_zeros(level.points.shape[0], 3)
+        evaluated, work = 0, 0.0
+        for state in self._changed():
+            if state.images is None:
+                points, samples = self._refine_points(state, level.points)
+                evaluated, work = evaluated + points, work + samples
             self._add_light_at(values, state, level.points)
-        return level, values, evaluated
+        return level, values, evaluated, work
 
     def coarse_image(self, level: Level, values: torch.Tensor) -> torch.Tensor:
         """(H, W, 3) the exact image of the unchanged lights plus `values` (M, 3) at the level's
@@ -672,12 +683,15 @@ class Relighter:
         if state.progress is None or state.progress.traced != traced:
             g = self.gbuffer
             done = torch.zeros(g.num_samples, dtype=torch.bool, device=g.device)
-            state.progress = _Progress(g.position.new_empty(2, g.num_samples, 3), done, traced)
+            groups = self._sample_groups(self._transport_light(state))
+            samples = sum((g.num_samples if p is None else p.shape[0]) * num for p, num in groups)
+            per_point = samples / max(g.num_samples, 1)
+            state.progress = _Progress(g.position.new_empty(2, g.num_samples, 3), done, traced, per_point)
         return state.progress
 
-    def _refine_points(self, state: _LightState, points: torch.Tensor | None) -> int:
+    def _refine_points(self, state: _LightState, points: torch.Tensor | None) -> tuple[int, float]:
         """Shade the light at those of `points` ((M,) ascending; None: all) not done yet; once
-        every point is, its unit images are complete. Returns the points shaded."""
+        every point is, its unit images are complete. Returns (points shaded, their samples)."""
         progress = self._progress(state)
         todo = torch.nonzero(~progress.done).squeeze(-1) if points is None else points[~_take(progress.done, points)]
         if todo.numel():
@@ -700,7 +714,7 @@ class Relighter:
             self.counters["shading"] += 1
             state.images, state.progress = images.half() if self._half_images else images, None
             self._fit_budget(state)
-        return int(todo.numel())
+        return int(todo.numel()), int(todo.numel()) * progress.samples_per_point
 
     def _add_light_at(self, values: torch.Tensor, state: _LightState, points: torch.Tensor) -> None:
         """values (M, 3) plus the light's image at shading points `points` (M,), from its unit
