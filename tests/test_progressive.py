@@ -241,3 +241,25 @@ def test_lights_compare_by_content():
     assert not lights_equal(sky, dataclasses.replace(sky, texture=sky.texture * 2))
     assert not lights_equal(sky, _dome(10.0))
     assert not lights_equal(sky, dataclasses.replace(sky, shaping=Shaping(focus=1.0)))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("settings", [RelightSettings(), FILTERED], ids=["unfiltered", "filtered"])
+def test_a_shaping_edit_after_a_progressive_move_traces_nothing(caches, settings):
+    """The transport traced point by point is kept: a later shaping edit only re-shades it."""
+    progressive, reference = (
+        open_cache(caches["direct"], settings=settings),
+        open_cache(caches["direct"], settings=settings),
+    )
+    progressive.render()
+    light = progressive.lights[0]
+    moved = _moved(light, 0.05 * float(np.linalg.norm(light.world_from_light[:3, 3])))
+    shaped = dataclasses.replace(moved, shaping=Shaping(focus=3.0))
+    progressive.set_light(moved)
+    list(progressive_frames(progressive, budget_ms=0.0, strides=STRIDES))
+    traced = progressive.counters["visibility"]
+    progressive.set_light(shaped)
+    frames = list(progressive_frames(progressive, budget_ms=0.0, strides=STRIDES))
+    assert progressive.counters["visibility"] == traced
+    reference.set_light(shaped)
+    assert _max_difference(frames[-1].image, reference.render()) <= TOLERANCE

@@ -196,6 +196,10 @@ def _take(values: torch.Tensor, rows: slice | torch.Tensor) -> torch.Tensor:
     return values[rows] if isinstance(rows, slice) else values.index_select(0, rows)
 
 
+def _reorder(values: torch.Tensor | None, order: torch.Tensor) -> torch.Tensor | None:
+    return None if values is None else values.index_select(0, order)
+
+
 def _key(light: Light, names: tuple[str, ...]) -> tuple[object, ...]:
     """A hashable snapshot of some fields of a light (arrays by content)."""
     values: list[object] = []
@@ -352,6 +356,9 @@ class _Progress:
         num_done: their count.
         samples_per_point: the light's samples per point, averaged over the points (its sample
             groups, `Relighter._sample_groups`): the work a point costs, for `pending`.
+        parts: per sample group, the transports traced so far and the points they were traced
+            for, kept (where the memory budget allows it) to become the light's transport once
+            every point is done, so that a later shaping edit traces nothing; None: not kept.
         traced: whether they come from shadow rays traced for them (the light kept no transport)
             or from its kept transport.
         shadow_sums: (N, 2) sum_s w V and sum_s w at the points done, for a traced light whose
@@ -365,11 +372,13 @@ class _Progress:
     samples_per_point: float
     num_done: int = 0
     shadow_sums: torch.Tensor | None = None
+    parts: list[list[tuple[torch.Tensor, _Transport]]] | None = None
 
     @property
     def num_bytes(self) -> int:
         tensors = (self.images, self.done, self.shadow_sums)
-        return sum(t.numel() * t.element_size() for t in tensors if t is not None)
+        kept = sum(part.num_bytes for group in self.parts or () for _, part in group)
+        return kept + sum(t.numel() * t.element_size() for t in tensors if t is not None)
 
 
 @dataclass
@@ -687,6 +696,8 @@ class Relighter:
             samples = sum((g.num_samples if p is None else p.shape[0]) * num for p, num in groups)
             per_point = samples / max(g.num_samples, 1)
             state.progress = _Progress(g.position.new_empty(2, g.num_samples, 3), done, traced, per_point)
+            if traced and self._transport_fits(state):
+                state.progress.parts = [[] for _ in groups]
         return state.progress
 
     def _refine_points(self, state: _LightState, points: torch.Tensor | None) -> tuple[int, float]:
@@ -697,7 +708,9 @@ class Relighter:
         if todo.numel():
             progress.images.index_fill_(1, todo, 0.0)  # unlit points get no values, only these zeros
             if progress.traced:
-                progress.shadow_sums = self._traced_images(state, todo, progress.images, progress.shadow_sums)
+                progress.shadow_sums = self._traced_images(
+                    state, todo, progress.images, progress.shadow_sums, progress.parts
+                )
             else:
                 assert state.transports is not None  # not traced: shaded from the kept transport
                 for transport in state.transports:
@@ -708,8 +721,14 @@ class Relighter:
             progress.num_done += int(todo.numel())
         if points is None or progress.num_done == progress.done.shape[0]:
             images = progress.images
+            visibility = None
             if progress.shadow_sums is not None:  # as in _streamed_images
-                images[0].mul_(self._filtered_visibility(progress.shadow_sums).unsqueeze(-1))
+                visibility = self._filtered_visibility(progress.shadow_sums)
+                images[0].mul_(visibility.unsqueeze(-1))
+            if progress.parts is not None:  # the transport `_transports` would have made
+                state.transports = [self._kept_transport(group) for group in progress.parts if group]
+                if visibility is not None:
+                    self._filter_visibility(state.transports, visibility)
             self.counters["visibility"] += int(progress.traced)
             self.counters["shading"] += 1
             state.images, state.progress = images.half() if self._half_images else images, None
@@ -893,6 +912,19 @@ class Relighter:
             self._viewer = (wo, dot(wo, normal).mul_(inverse_norm), inverse_norm)
         return self._viewer
 
+    def _kept_transport(self, group: list[tuple[torch.Tensor, _Transport]]) -> _Transport:
+        """One sample group's transport from the parts traced for its points, point by point
+        (`_Progress.parts`): joined as `_transports` joins its tiles, its points ascending."""
+        chunks: list[slice | torch.Tensor] = [chunk for chunk, _ in group]
+        transport = self._joined([part for _, part in group], chunks)
+        if transport.points is None:
+            return transport
+        order = torch.argsort(transport.points)
+        subset = dataclasses.replace(transport, points=None).subset(order)
+        return dataclasses.replace(
+            subset, points=transport.points[order], shadow_sums=_reorder(transport.shadow_sums, order)
+        )
+
     def _joined(self, parts: list[_Transport], chunks: list[slice | torch.Tensor]) -> _Transport:
         """One transport from the transports of consecutive chunks of shading points.
 
@@ -934,19 +966,21 @@ class Relighter:
             join("shadow_sums", 0, 0.0),
         )
 
-    def _filter_visibility(self, transports: list[_Transport]) -> None:
+    def _filter_visibility(self, transports: list[_Transport], visibility: torch.Tensor | None = None) -> None:
         """Fold the filtered visibility F(sum w V) / F(sum w) into the transports' diffuse ratios
         (Heitz et al. 2018; `visibility.surface_filter`) and drop the sums. The groups' sums
-        are filtered together: each sum is already its group's mean over its samples."""
-        g = self.gbuffer
-        sums = g.position.new_zeros(g.num_samples, 2)
-        for transport in transports:
-            assert transport.shadow_sums is not None, "every transport of a filtered light keeps its sums"
-            if transport.points is None:
-                sums += transport.shadow_sums
-            else:
-                sums.index_add_(0, transport.points, transport.shadow_sums)
-        visibility = self._filtered_visibility(sums)
+        are filtered together: each sum is already its group's mean over its samples. A
+        `visibility` (N,) already filtered from the same sums is used as it is."""
+        if visibility is None:
+            g = self.gbuffer
+            sums = g.position.new_zeros(g.num_samples, 2)
+            for transport in transports:
+                assert transport.shadow_sums is not None, "every transport of a filtered light keeps its sums"
+                if transport.points is None:
+                    sums += transport.shadow_sums
+                else:
+                    sums.index_add_(0, transport.points, transport.shadow_sums)
+            visibility = self._filtered_visibility(sums)
         for transport in transports:
             points = transport.points
             assert transport.diffuse_ratio is not None, "a filtered light has a closed form, hence ratios"
@@ -1133,16 +1167,22 @@ class Relighter:
         return images.half() if self._half_images else images
 
     def _traced_images(
-        self, state: _LightState, todo: torch.Tensor | None, images: torch.Tensor, sums: torch.Tensor | None
+        self,
+        state: _LightState,
+        todo: torch.Tensor | None,
+        images: torch.Tensor,
+        sums: torch.Tensor | None,
+        parts: list[list[tuple[torch.Tensor, _Transport]]] | None = None,
     ) -> torch.Tensor | None:
         """Add the light's unit images at the shading points `todo` ((K,) ascending; None: all) to
-        `images` (2, N, 3), traced tile by tile without keeping the transport; the per-point sums
-        of a filtered visibility go to `sums` ((N, 2), made on first need), which is returned.
-        The filtered visibility itself is not applied (it needs every point's sums)."""
+        `images` (2, N, 3), traced tile by tile; the per-point sums of a filtered visibility go to
+        `sums` ((N, 2), made on first need), which is returned. The filtered visibility itself is
+        not applied (it needs every point's sums). Each tile's transport is dropped once shaded,
+        or with `parts` (one list per sample group) appended to its group's list with its points."""
         light = self._transport_light(state)
         g = self.gbuffer
         threads = tile_threads(g.device, self.visibility.thread_safe)
-        for points, num_samples in self._sample_groups(light):
+        for group, (points, num_samples) in enumerate(self._sample_groups(light)):
             if todo is not None:
                 if points is not None:  # the group's points among `todo`
                     member = torch.zeros(g.num_samples, dtype=torch.bool, device=g.device)
@@ -1159,16 +1199,20 @@ class Relighter:
                 chunk: slice | torch.Tensor,
                 u: torch.Tensor = u,
                 viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor] = viewer,
-            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+            ) -> tuple[torch.Tensor, torch.Tensor, _Transport]:
                 part = self._chunk_transport(light, chunk, u, viewer)
                 if part.points is None:  # the whole tile: name its points, as `_joined` does
                     part.points = (
                         torch.arange(chunk.start, chunk.stop, device=g.device) if isinstance(chunk, slice) else chunk
                     )
-                return part.points, self._per_point(state.light, part), part.shadow_sums
+                return part.points, self._per_point(state.light, part), part
 
-            for index, per_point, shadow_sums in parallel_map(tile, chunks, threads):
+            for (index, per_point, part), chunk in zip(parallel_map(tile, chunks, threads), chunks, strict=True):
                 images.index_add_(1, index, per_point)
+                shadow_sums = part.shadow_sums
+                if parts is not None:
+                    assert isinstance(chunk, torch.Tensor), "parts are kept of point lists (progressive refinement)"
+                    parts[group].append((chunk, part))
                 if shadow_sums is not None:
                     sums = g.position.new_zeros(g.num_samples, 2) if sums is None else sums
                     sums.index_add_(0, index, shadow_sums)
