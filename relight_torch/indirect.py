@@ -116,7 +116,7 @@ class IndirectRelighter(Generic[StateT]):
         for light in changed:
             scale = self._scale(light, values)
             if bool((scale != 0).any()):
-                values[seen] += self._unit_indirect_at(light, rows) * scale
+                values[seen, :3] += self._unit_indirect_at(light, rows) * scale
         return Refinement(self.direct.coarse_image(level, values) + static, evaluated, work, False)
 
     def _unit_indirect_at(self, light: Light, rows: torch.Tensor) -> torch.Tensor:

@@ -656,25 +656,38 @@ class Relighter:
         return evaluated, work
 
     def coarse_values(self, stride: int) -> tuple[Level, torch.Tensor, int, float]:
-        """(level, values (M, 3), light evaluations, light samples made): the changed lights' light
-        at the points of the level of `stride` pixels (camera exposure not applied), the points
-        they lacked shaded and kept."""
+        """(level, values (M, C), light evaluations, light samples made): the changed lights'
+        light at the points of the level of `stride` pixels (camera exposure not applied), the
+        points they lacked shaded and kept. values[:, :3] is light; each light whose visibility
+        will be filtered, while it is made, adds five columns for `coarse_image`: its unshadowed
+        diffuse light (3) and its per-point sums of w V and w (2)."""
         level = self._level(stride)
         values = self.gbuffer.position.new_zeros(level.points.shape[0], 3)
+        columns = [values]
         evaluated, work = 0, 0.0
         for state in self._changed():
             if state.images is None:
                 points, samples = self._refine_points(state, level.points)
                 evaluated, work = evaluated + points, work + samples
-            self._add_light_at(values, state, level.points)
-        return level, values, evaluated, work
+            ratio_terms = self._add_light_at(values, state, level.points)
+            if ratio_terms is not None:
+                columns.append(ratio_terms)
+        return level, torch.cat(columns, dim=1) if len(columns) > 1 else values, evaluated, work
 
     def coarse_image(self, level: Level, values: torch.Tensor) -> torch.Tensor:
-        """(H, W, 3) the exact image of the unchanged lights plus `values` (M, 3) at the level's
-        points upsampled, camera exposure applied."""
+        """(H, W, 3) the exact image of the unchanged lights plus `coarse_values` upsampled,
+        camera exposure applied. A light whose visibility will be filtered takes its unshadowed
+        diffuse light upsampled times the ratio of its upsampled sums of w V and w: the ratio
+        estimator (Heitz et al. 2018) with the upsampling as the filter, where each point's own
+        ratio (one light sample at matte points) would show as blotches."""
         height, width = (size // self.supersampling for size in self.gbuffer.image_size)
-        coarse = level.upsampler(values).reshape(height, width, 3) * self.exposure_scale
-        return self._static_image(self._changed()) + coarse
+        upsampled = level.upsampler(values)
+        coarse = upsampled[:, :3]
+        for first in range(3, upsampled.shape[1], 5):
+            unshadowed, sums = upsampled[:, first : first + 3], upsampled[:, first + 3 : first + 5]
+            visible = torch.where(sums[:, 1] > 0, sums[:, 0] / sums[:, 1].clamp(min=1e-30), 0.0)
+            coarse = coarse + unshadowed * visible.unsqueeze(-1)
+        return self._static_image(self._changed()) + coarse.reshape(height, width, 3) * self.exposure_scale
 
     def _changed(self) -> list[_LightState]:
         """The lights set since the last exact frame."""
@@ -735,14 +748,16 @@ class Relighter:
             self._fit_budget(state)
         return int(todo.numel()), int(todo.numel()) * progress.samples_per_point
 
-    def _add_light_at(self, values: torch.Tensor, state: _LightState, points: torch.Tensor) -> None:
+    def _add_light_at(self, values: torch.Tensor, state: _LightState, points: torch.Tensor) -> torch.Tensor | None:
         """values (M, 3) plus the light's image at shading points `points` (M,), from its unit
-        images or, while they are made, from the points done (whose visibility, where it will be
-        filtered, is each point's own estimate until then)."""
+        images or, while they are made, from the points done. A light whose visibility will be
+        filtered adds its specular light only and returns (M, 5): its unshadowed diffuse light
+        and its sums of w V and w at the points (see `coarse_values`); None otherwise."""
         light = state.light
         scale = colour_scale(light)
         if not scale.any():
-            return
+            return None
+        sums = None
         if state.images is not None:
             unit = state.images.index_select(1, points).to(values.dtype)
         else:
@@ -750,8 +765,6 @@ class Relighter:
             unit = state.progress.images.index_select(1, points)
             if state.progress.shadow_sums is not None:
                 sums = _take(state.progress.shadow_sums, points)
-                visible = torch.where(sums[:, 1] > 0, sums[:, 0] / sums[:, 1].clamp(min=1e-30), 0.0)
-                unit[0].mul_(visible.unsqueeze(-1))
         diffuse_scale, specular_scale = (
             torch.as_tensor(scale * lobe, device=values.device, dtype=values.dtype)
             for lobe in (light.diffuse, light.specular)
@@ -759,7 +772,11 @@ class Relighter:
         mask = self._mask(light)
         if mask is not None:
             diffuse_scale, specular_scale = diffuse_scale * _take(mask, points), specular_scale * _take(mask, points)
-        values.addcmul_(unit[0], diffuse_scale).addcmul_(unit[1], specular_scale)
+        values.addcmul_(unit[1], specular_scale)
+        if sums is not None:
+            return torch.cat((unit[0] * diffuse_scale, sums), dim=1)
+        values.addcmul_(unit[0], diffuse_scale)
+        return None
 
     def _static_image(self, changed: list[_LightState]) -> torch.Tensor:
         """(H, W, 3) exact image of the emission and every light not in `changed`, kept while
