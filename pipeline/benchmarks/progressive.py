@@ -126,7 +126,7 @@ def measure(
     method = read_cache_layer(layer).method
     costs = CostModel()
     rows: list[dict[str, object]] = []
-    for edit in EDITS:
+    for edit in args.edits:
         row: dict[str, object] = {"cache": label, "method": method, "edit": edit, "repeats": 0}
         if edit not in rigs:
             kind = "a material edit" if edit.startswith("material") else "a camera move"
@@ -198,6 +198,14 @@ def main(argv: list[str] | None = None) -> int:
         "(e.g. `relight bake --method transfer` at the sizes docs/bench/shot records)",
     )
     parser.add_argument("--direct-cache", type=Path, help="a direct cache to use instead of baking one")
+    parser.add_argument(
+        "--edits",
+        nargs="+",
+        choices=EDITS,
+        default=list(EDITS),
+        metavar="EDIT",
+        help=f"edit kinds ({', '.join(EDITS)})",
+    )
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.work is None:
@@ -248,6 +256,8 @@ def _run(args: argparse.Namespace, work: Path) -> int:
     reference_camera = find_camera(reference_scene, camera_path)
     references = {}
     for edit, rig in rigs.items():
+        if edit not in args.edits:
+            continue
         path = work / f"reference-{edit.replace(' ', '_')}-{args.reference_size[0]}-{args.spp}.npy"
         if not path.exists():
             np.save(path, reference_image(reference_scene, reference_camera, rig(0)[1], args.spp))
@@ -270,6 +280,7 @@ def _write(args: argparse.Namespace, rows: list[dict[str, object]], point, load:
         f"{args.shot_size[0]} {args.shot_size[1]} --quality {args.quality:g} --repeats {args.repeats} --budget-ms "
         f"{args.budget_ms:g} --reference-size {args.reference_size[0]} {args.reference_size[1]} --spp {args.spp} "
         f"--out {args.out}"
+        + ("" if list(args.edits) == list(EDITS) else " --edits " + " ".join(f"'{edit}'" for edit in args.edits))
         + (f" --shot-cache {args.shot_cache.name} --direct-cache {args.direct_cache.name}" if args.shot_cache else "")
     )
     text = [
