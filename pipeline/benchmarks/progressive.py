@@ -129,7 +129,7 @@ def measure(
     for edit in args.edits:
         row: dict[str, object] = {"cache": label, "method": method, "edit": edit, "repeats": 0}
         if edit not in rigs:
-            kind = "a material edit" if edit.startswith("material") else "a camera move"
+            kind = "material edits" if edit.startswith("material") else "camera moves"
             row["note"] = f"not supported: the {method} method's relighter has no {kind}"
             rows.append(row)
             continue
@@ -281,7 +281,7 @@ def _write(args: argparse.Namespace, rows: list[dict[str, object]], point, load:
         f"{args.budget_ms:g} --reference-size {args.reference_size[0]} {args.reference_size[1]} --spp {args.spp} "
         f"--out {args.out}"
         + ("" if list(args.edits) == list(EDITS) else " --edits " + " ".join(f"'{edit}'" for edit in args.edits))
-        + (f" --shot-cache {args.shot_cache.name} --direct-cache {args.direct_cache.name}" if args.shot_cache else "")
+        + (f" --shot-cache {args.shot_cache} --direct-cache {args.direct_cache}" if args.shot_cache else "")
     )
     text = [
         "# Progressive relighting: the first frame after each edit, and the converged one",
