@@ -11,25 +11,15 @@ from __future__ import annotations
 import dataclasses
 from typing import Generic, TypeVar
 
-import numpy as np
 import torch
 
 from relight_torch.direct.relighter import Relighter, colour_scale, light_group
 from relight_torch.lights.emission import is_delta_light
-from relight_torch.lights.light import Light, LightKind
-from relight_torch.protocol import refuse_material_edit
+from relight_torch.lights.light import Light, LightKind, light_snapshot
+from relight_torch.protocol import Refinement, refuse_material_edit, refuse_progressive
 
 StateT = TypeVar("StateT")
 """A subclass's cached indirect work per light."""
-
-
-def light_snapshot(value: object) -> object:
-    """A hashable, comparable snapshot of a light or a light field (arrays by content, dataclasses by field)."""
-    if isinstance(value, np.ndarray):
-        return value.shape, value.dtype.str, value.tobytes()
-    if dataclasses.is_dataclass(value):
-        return tuple((f.name, light_snapshot(getattr(value, f.name))) for f in dataclasses.fields(value))
-    return value
 
 
 def gather_light_key(unit: Light) -> object:
@@ -53,10 +43,14 @@ class IndirectRelighter(Generic[StateT]):
 
     view_pixels: torch.Tensor
     material_edits = False  # the transport was baked with the materials (`CacheRelighter`)
+    progressive = False  # a subclass with `_unit_indirect_at` sets it (`CacheRelighter.refine`)
+    indirect_scale = 1  # pixels per side of an indirect view sample (`view_pixels` index that image)
 
     def __init__(self, direct: Relighter):
         self.direct = direct
         self._per_light: dict[str, StateT] = {}
+        self._row_of_point: torch.Tensor | None = None  # (N,) see `_rows_of`
+        self._static: tuple[object, torch.Tensor] | None = None  # see `_static_indirect`
 
     @property
     def lights(self) -> list[Light]:
@@ -90,6 +84,75 @@ class IndirectRelighter(Generic[StateT]):
     def render(self) -> torch.Tensor:
         """(H, W, 3) linear image: direct (supersampled) + indirect (per pixel), exposure applied."""
         return self.direct.render() + self.indirect_image()
+
+    # -- progressive refinement (`CacheRelighter.refine`) ---------------------------------------
+
+    @property
+    def edits(self) -> int:
+        return self.direct.edits
+
+    def pending(self, stride: int | None) -> float:
+        """`CacheRelighter.pending`: the direct relighter's (indirect rows cost far less per row)."""
+        if not self.progressive:
+            refuse_progressive(self)
+        return self.direct.pending(stride)
+
+    def refine(self, stride: int | None) -> Refinement:
+        """`CacheRelighter.refine`: the direct relighter's coarse values of the changed lights plus
+        their unit indirect light at the view samples of the level's points (the rows made kept:
+        `_unit_indirect_at`), upsampled together over the exact image (direct and indirect) of
+        the others. `stride` None: `render()`, the rows made by coarse frames not multiplied again."""
+        if not self.progressive:
+            refuse_progressive(self)
+        changed = self.direct.changed_lights()
+        if stride is None or not changed:
+            evaluated, work = self.direct.complete()
+            return Refinement(self.render(), evaluated, work, True)
+        static = self._static_indirect(changed)
+        level, values, evaluated, work = self.direct.coarse_values(stride)
+        rows = self._rows_of(level.points)
+        seen = rows >= 0
+        rows = rows[seen]
+        for light in changed:
+            scale = self._scale(light, values)
+            if bool((scale != 0).any()):
+                values[seen, :3] += self._unit_indirect_at(light, rows) * scale
+        return Refinement(self.direct.coarse_image(level, values) + static, evaluated, work, False)
+
+    def _unit_indirect_at(self, light: Light, rows: torch.Tensor) -> torch.Tensor:
+        """(K, 3) `_unit_indirect(light)` at view samples `rows` (K,), its work kept for the rest."""
+        raise NotImplementedError
+
+    def _rows_of(self, points: torch.Tensor) -> torch.Tensor:
+        """(M,) the view sample (row of `view_pixels`) whose pixel holds each of the direct
+        relighter's shading points `points` (M,), -1 where none does."""
+        if self._row_of_point is None:
+            g, s = self.direct.gbuffer, self.direct.supersampling
+            sub_width = g.image_size[1]
+            width = sub_width // s // self.indirect_scale
+            row, col = torch.div(g.pixel_index, sub_width, rounding_mode="floor"), g.pixel_index % sub_width
+            pixel = torch.div(row, s * self.indirect_scale, rounding_mode="floor") * width + torch.div(
+                col, s * self.indirect_scale, rounding_mode="floor"
+            )
+            height = g.image_size[0] // s // self.indirect_scale
+            row_of_pixel = torch.full((height * width,), -1, dtype=torch.int64, device=g.device)
+            row_of_pixel[self.view_pixels] = torch.arange(self.view_pixels.shape[0], device=g.device)
+            self._row_of_point = row_of_pixel[pixel.clamp(max=height * width - 1)]
+        return self._row_of_point.index_select(0, points)
+
+    def _static_indirect(self, changed: list[Light]) -> torch.Tensor:
+        """(H, W, 3) the indirect image of the emission and the lights not in `changed` (exposure
+        applied), kept while those stay the same (`Relighter.unchanged_key`)."""
+        key = self.direct.unchanged_key()
+        if self._static is None or self._static[0] != key:
+            paths = {light.path for light in changed}
+            total = self._emission_rows()
+            for light in self.lights:
+                scale = self._scale(light, total)
+                if light.path not in paths and bool((scale != 0).any()):
+                    total = total + scale * self._unit_indirect(light)
+            self._static = (key, self._rows_to_image(total))
+        return self._static[1]
 
     def indirect_image(self) -> torch.Tensor:
         """(H, W, 3) indirect light alone, camera exposure applied."""

@@ -7,7 +7,8 @@ nothing else. Each method's relighter class satisfies it structurally (no base c
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, NoReturn, Protocol, runtime_checkable
 
 import torch
 
@@ -25,9 +26,12 @@ class CacheRelighter(Protocol):
     Attributes:
         material_edits: whether `edit_material` changes the image without a re-bake (a
             capability: callers test it, never the method's name).
+        progressive: whether `pending` and `refine` give coarse frames (progressive refinement,
+            `relight_torch.progressive`); where False they raise `RelightError`.
     """
 
     material_edits: bool
+    progressive: bool
 
     @property
     def lights(self) -> list[Light]:
@@ -56,6 +60,30 @@ class CacheRelighter(Protocol):
 
         Raises:
             RelightError: `material_edits` is False.
+        """
+
+    @property
+    def edits(self) -> int:
+        """Changes made so far to the rig (`set_light`, `remove_light`, `set_lights`) and the
+        materials: progressive refinement starts again from a coarse frame when it grows."""
+
+    def pending(self, stride: int | None) -> float:
+        """The work `refine(stride)` would do, in light samples (a light at a shading point counts
+        its samples): what progressive refinement predicts a frame's time from.
+
+        Raises:
+            RelightError: `progressive` is False.
+        """
+
+    def refine(self, stride: int | None) -> Refinement:
+        """A frame of the current rig: exact where nothing changed since the last exact frame,
+        the changed lights evaluated at one point per `stride` x `stride` pixels and upsampled
+        elsewhere; `stride` None makes the exact frame, equal to `render()`. Work done for a
+        coarse frame is kept (per light, per point) and never done again by a finer one or the
+        exact one, unless an edit made it stale.
+
+        Raises:
+            RelightError: `progressive` is False.
         """
 
     def held_bytes(self) -> int:
@@ -88,6 +116,35 @@ class GradientRelighter(CacheRelighter, Protocol):
     def differentiable_light_image(self, light: Light, pose: LightPose, frozen: object) -> torch.Tensor:
         """(H, W, 3) image of the unit light (`relighter.unit_light`) at `pose`, differentiable in
         the pose's tensors, visibility `frozen`; exposure applied as in `render`."""
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """One frame of progressive refinement (`CacheRelighter.refine`).
+
+    Attributes:
+        image: (H, W, 3) linear radiance image, camera exposure applied.
+        evaluated: light evaluations (one light at one shading point) made for it.
+        work: the light samples they evaluated (the units of `CacheRelighter.pending`).
+        exact: whether `image` is the exact frame (`render()`).
+    """
+
+    image: torch.Tensor
+    evaluated: int
+    work: float
+    exact: bool
+
+
+def refuse_progressive(relighter: object) -> NoReturn:
+    """The `pending` and `refine` of a relighter whose `progressive` is False.
+
+    Raises:
+        RelightError: always, naming the relighter's class.
+    """
+    raise RelightError(
+        f"{type(relighter).__name__}: this cache's method has no progressive refinement (progressive is "
+        f"False); render it whole"
+    )
 
 
 def refuse_material_edit(relighter: object) -> None:

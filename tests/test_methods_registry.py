@@ -22,6 +22,7 @@ from pipeline.scenes import SCENES
 from relight_torch import open_cache
 from relight_torch.errors import RelightError
 from relight_torch.methods import METHOD_NAMES, relight_method, relight_methods
+from relight_torch.progressive import progressive_frames
 from relight_torch.protocol import CacheRelighter
 
 SIZE = 24
@@ -158,3 +159,14 @@ def test_every_relighter_satisfies_the_protocol(tmp_path, name):
     else:
         with pytest.raises(RelightError, match="re-bake after a material edit"):
             relighter.edit_material(0, roughness=0.9)
+
+    edits = relighter.edits
+    relighter.set_light(brighter)
+    assert relighter.edits > edits
+    if relighter.progressive:  # tests/test_progressive.py checks it edit by edit
+        frames = list(progressive_frames(relighter, budget_ms=0.0))
+        assert frames[-1].done and len(frames) > 1
+        torch.testing.assert_close(frames[-1].image, relighter.render(), rtol=0.0, atol=1e-6)
+    else:
+        with pytest.raises(RelightError, match="no progressive refinement"):
+            relighter.refine(None)

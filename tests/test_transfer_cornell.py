@@ -28,7 +28,7 @@ from relight_torch.metrics import psnr
 from relight_torch.transfer.open import open_transfer_relighter
 from relight_torch.transfer.relighter import TransferRelighter
 from relight_torch.transfer.sparse import column_norms
-from relight_torch.transfer.upsample import edge_aware_upsampler
+from relight_torch.upsample import edge_aware_upsampler
 
 SIZE = 32
 

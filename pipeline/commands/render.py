@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 import numpy as np
+import torch
 
 from pipeline.bake.methods import bake_method, bake_methods
 from pipeline.commands.common import add_device_option, add_lights_option
@@ -15,6 +17,7 @@ from relight_torch.cache.layer import read_cache_layer
 from relight_torch.direct.relighter import MEMORY_BUDGET_FRACTION, RelightSettings
 from relight_torch.io.exr import exr_layer_names, write_rgb_exr
 from relight_torch.io.preview import write_png
+from relight_torch.progressive import DEFAULT_BUDGET_MS, check_progressive, progressive_frames
 
 
 def add_parser(subparsers) -> None:
@@ -53,6 +56,21 @@ def add_parser(subparsers) -> None:
         choices=("lightgroups",),
         help="extra EXR layers: 'lightgroups' (one per light group)",
     )
+    progressive = parser.add_argument_group("progressive refinement (direct and transfer caches, the shot cache)")
+    progressive.add_argument(
+        "--progressive",
+        action="store_true",
+        help="render coarse frames first (one point per 16x16 down to 1x1 pixels, upsampled edge-aware), then "
+        "the exact frame written to OUT; logs each frame's milliseconds",
+    )
+    progressive.add_argument(
+        "--budget-ms",
+        type=float,
+        default=DEFAULT_BUDGET_MS,
+        metavar="MS",
+        help=f"time budget of the first frame (default {DEFAULT_BUDGET_MS:g})",
+    )
+    progressive.add_argument("--frames", metavar="DIR", help="also write each progressive frame as DIR/frame-NN.exr")
     moving = ", ".join(name for name, method in bake_methods().items() if method.render_views is not None)
     view = parser.add_argument_group(f"moving camera ({moving} caches)")
     view.add_argument(
@@ -80,6 +98,12 @@ def add_parser(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     method = bake_method(read_cache_layer(args.cache).method)
+    if args.progressive and method.render_views is not None:
+        raise RelightError(
+            f"--progressive: {args.cache} is a {method.name!r} cache, whose relighter has no progressive refinement"
+        )
+    if args.budget_ms < 0:
+        raise RelightError(f"--budget-ms must be >= 0, got {args.budget_ms}")
     if method.render_views is not None:
         return run_views(args, start, method.render_views)
     if args.camera:
@@ -91,7 +115,14 @@ def run(args: argparse.Namespace) -> int:
     relighter = open_cache(
         args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights, settings=relight_settings(args)
     )
-    image = relighter.render().cpu().numpy()
+    if args.progressive:
+        try:
+            check_progressive(relighter)
+        except RelightError as error:
+            raise RelightError(f"--progressive: {args.cache} ({method.name!r} cache): {error}") from None
+        image = render_progressive(relighter, args.budget_ms, args.frames).cpu().numpy()
+    else:
+        image = relighter.render().cpu().numpy()
     write_rgb_exr(args.out, image, light_group_layers(relighter) if "lightgroups" in args.aov else None)
     if args.png:
         write_png(args.png, image)
@@ -100,6 +131,25 @@ def run(args: argparse.Namespace) -> int:
         f"{time.perf_counter() - start:.2f} s including load"
     )
     return 0
+
+
+def render_progressive(relighter, budget_ms: float, frames_dir: str | None) -> torch.Tensor:
+    """The exact frame of `relighter` after its coarse frames (`relight_torch.progressive`), each
+    logged (level, ms) and, with `frames_dir`, written as frame-NN.exr there."""
+    if frames_dir is not None:
+        os.makedirs(frames_dir, exist_ok=True)
+    image = None
+    for number, frame in enumerate(progressive_frames(relighter, budget_ms)):
+        level = "exact" if frame.stride is None else f"1 point per {frame.stride}x{frame.stride} pixels"
+        print(
+            f"frame {number}: {level}, {frame.frame_ms:.1f} ms ({frame.elapsed_ms:.1f} ms since the start), "
+            f"{frame.evaluated} light evaluations"
+        )
+        if frames_dir is not None:
+            write_rgb_exr(os.path.join(frames_dir, f"frame-{number:02d}.exr"), frame.image.cpu().numpy())
+        image = frame.image
+    assert image is not None, "progressive_frames yields at least the exact frame"
+    return image
 
 
 def run_views(args: argparse.Namespace, start: float, render_views) -> int:

@@ -48,7 +48,7 @@ from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import linked_points
 from relight_torch.math.frame import to_local
 from relight_torch.parallel import parallel_map, tile_threads
-from relight_torch.protocol import tensor_bytes
+from relight_torch.protocol import Refinement, refuse_progressive, tensor_bytes
 
 MERGE_ROWS = 2048
 """Sub-samples whose visibility cuts are merged together (`CutsRelighter.visibility_batches`), and
@@ -219,6 +219,7 @@ class CutsRelighter:
     """
 
     material_edits = True  # the cuts' light follows `params` (`CacheRelighter`)
+    progressive = False  # no coarse frames (`CacheRelighter.refine`): the cut merge has no point subset yet
 
     def __init__(self, direct: Relighter, cuts: CutsCache, settings: CutsRelightSettings = CutsRelightSettings()):
         if cuts.sample_vertices.shape[0] != direct.gbuffer.num_samples:
@@ -259,11 +260,23 @@ class CutsRelighter:
         # theirs), (nodes, diffuse, specular)).
         self._illumination: tuple[tuple, list[Light], tuple[torch.Tensor, ...]] | None = None
         self._columns: FactorColumns | None = None
+        self._edits = 0  # dome and material changes (the direct relighter counts its lights')
         self.set_lights(direct.lights)
 
     @property
     def mode(self) -> str:
         return self.cuts.mode
+
+    @property
+    def edits(self) -> int:
+        """`CacheRelighter.edits`: the direct relighter's light changes and this one's dome and material changes."""
+        return self.direct.edits + self._edits
+
+    def pending(self, stride: int | None) -> int:
+        refuse_progressive(self)
+
+    def refine(self, stride: int | None) -> Refinement:
+        refuse_progressive(self)
 
     # -- lights and materials -------------------------------------------------------------------
 
@@ -280,6 +293,7 @@ class CutsRelighter:
         self.direct.set_lights([light for light in lights if not self._by_cuts(light)])
         self._domes = {light.path: light for light in lights if self._by_cuts(light)}
         self._samples = None
+        self._edits += 1
 
     def set_light(self, light: Light) -> None:
         """Add or edit a light (matched by path).
@@ -290,6 +304,7 @@ class CutsRelighter:
         validate_light(light)
         if self._by_cuts(light):
             self._domes[light.path] = light
+            self._edits += 1
         else:
             self.direct.set_light(light)
         self._samples = None
@@ -297,6 +312,7 @@ class CutsRelighter:
     def remove_light(self, path: str) -> None:
         if path in self._domes:
             del self._domes[path]
+            self._edits += 1
         else:
             self.direct.remove_light(path)
             self._leaf_radiance.pop(path, None)
@@ -321,6 +337,7 @@ class CutsRelighter:
             )
         self.params = params
         self._samples = None
+        self._edits += 1
 
     def edit_material(self, material_id: int, **values: object) -> None:
         """Set UsdPreviewSurface inputs (field names of `PreviewSurfaceParams`, constants) on the

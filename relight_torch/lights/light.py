@@ -10,6 +10,7 @@ Edit a light with `dataclasses.replace(light, intensity=...)`; a light is identi
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 from dataclasses import dataclass, field
 
@@ -142,3 +143,31 @@ class Light:
     light_group: str = ""
     light_link: tuple[str, ...] | None = None
     shadow_link: tuple[str, ...] | None = None
+
+
+def light_snapshot(value: object) -> object:
+    """A hashable, comparable snapshot of a light or a light field (arrays by content, dataclasses by field)."""
+    if isinstance(value, np.ndarray):
+        return value.shape, value.dtype.str, value.tobytes()
+    if dataclasses.is_dataclass(value):
+        return tuple((f.name, light_snapshot(getattr(value, f.name))) for f in dataclasses.fields(value))
+    return value
+
+
+def lights_equal(a: object, b: object) -> bool:
+    """Whether two lights (or light fields) are equal: arrays by content, an array compared with
+    itself without reading it (a light copied with `dataclasses.replace` shares its texture)."""
+    if a is b:
+        return True
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return (
+            isinstance(a, np.ndarray)
+            and isinstance(b, np.ndarray)
+            and a.shape == b.shape
+            and a.dtype == b.dtype
+            and bool(np.array_equal(a, b))
+        )
+    if dataclasses.is_dataclass(a) and not isinstance(a, type):
+        fields = dataclasses.fields(a)
+        return type(a) is type(b) and all(lights_equal(getattr(a, f.name), getattr(b, f.name)) for f in fields)
+    return bool(a == b)

@@ -65,7 +65,7 @@ from relight_torch.multiview.load import load_camera_table, load_view_gbuffers
 from relight_torch.multiview.resample import bilinear_samples
 from relight_torch.multiview.views import CachingViews, concat_gbuffers, gather_gbuffer, take_rows
 from relight_torch.parallel import parallel_map, tile_threads
-from relight_torch.protocol import refuse_material_edit
+from relight_torch.protocol import Refinement, refuse_material_edit, refuse_progressive
 from relight_torch.visibility.embree import EmbreeCaster
 
 
@@ -188,6 +188,7 @@ class MultiviewRelighter:
     """
 
     material_edits = False  # the caching views' materials are shaded as baked (`CacheRelighter`)
+    progressive = False  # no coarse frames (`CacheRelighter.refine`)
 
     def __init__(
         self,
@@ -225,6 +226,7 @@ class MultiviewRelighter:
         self.counters: collections.Counter[str] = collections.Counter()
         self._counters_lock = threading.Lock()  # lights are shaded on worker threads (`_shaded`)
         self._lights: dict[str, Light] = {}
+        self._edits = 0  # `edits`
         self._relighter: Relighter | None = None
         self._view: ViewSamples | None = None
         self._directions: torch.Tensor | None = None  # (9, N) `incident.view_directions` of the view
@@ -256,6 +258,17 @@ class MultiviewRelighter:
     def lights(self) -> list[Light]:
         return list(self._lights.values())
 
+    @property
+    def edits(self) -> int:
+        """`CacheRelighter.edits`: light additions, edits and removals so far."""
+        return self._edits
+
+    def pending(self, stride: int | None) -> int:
+        refuse_progressive(self)
+
+    def refine(self, stride: int | None) -> Refinement:
+        refuse_progressive(self)
+
     def set_lights(self, lights: list[Light]) -> None:
         """Replace the whole rig; unchanged lights keep their cached lighting."""
         replace_rig(self, lights)
@@ -270,6 +283,7 @@ class MultiviewRelighter:
         relighter = self._relighter
         had = relighter is not None and light.path in self._lights and relighter.unit_images(light.path) is not None
         self._lights[light.path] = light
+        self._edits += 1
         if relighter is not None:
             relighter.set_light(light)
         if not (had and relighter is not None and relighter.unit_images(light.path) is not None):
@@ -278,6 +292,7 @@ class MultiviewRelighter:
             self._ready -= {(light.path, False), (light.path, True)}
 
     def remove_light(self, path: str) -> None:
+        self._edits += 1
         self._lights.pop(path, None)
         self._tables.pop(path, None)
         self._num_samples.pop(path, None)

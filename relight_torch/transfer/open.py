@@ -17,7 +17,7 @@ from relight_torch.indirect_samples import GatherSamples, gather_payload_name
 from relight_torch.transfer.encoding import PARTS, EncodedRows, decode_rows
 from relight_torch.transfer.relighter import TransferRelighter
 from relight_torch.transfer.sparse import SparseRows
-from relight_torch.transfer.upsample import edge_aware_upsampler
+from relight_torch.upsample import edge_aware_upsampler
 
 
 def _load(layer_path: Path, description: CacheDescription, name: str) -> torch.Tensor:
@@ -94,6 +94,7 @@ def open_transfer_relighter(
             num_bounces,
             upsampler=upsampler,
             cull_tolerance=cull_tolerance,
+            indirect_scale=scale,
         )
     except ValueError as error:
         raise RelightError(f"{layer_path}: {error}") from None

@@ -26,7 +26,7 @@ from relight_torch.lights.light import Light
 from relight_torch.protocol import tensor_bytes
 from relight_torch.transfer.haar import haar2d
 from relight_torch.transfer.sparse import SparseRows, column_norms, cull_light
-from relight_torch.transfer.upsample import EdgeAwareUpsampler
+from relight_torch.upsample import EdgeAwareUpsampler
 
 GATHER_SAMPLES = 4
 """Light samples per gather for area lights by default (see `TransferRelighter`)."""
@@ -48,15 +48,36 @@ class FrozenTransfer:
 
 
 @dataclasses.dataclass
+class _Rows:
+    """F rows of one light vector made a few at a time (progressive refinement).
+
+    Attributes:
+        light_link: the link the vector was masked with.
+        vector: (G, 3) the wavelet light F multiplies (`TransferRelighter.light_vector`).
+        values: (R, 3) the rows done (undefined elsewhere); done: (R,) bool; num_done: their count.
+    """
+
+    light_link: tuple[str, ...] | None
+    vector: torch.Tensor
+    values: torch.Tensor
+    done: torch.Tensor
+    num_done: int = 0
+
+
+@dataclasses.dataclass
 class _IndirectState:
     gather_key: object  # `gather_light_key` of the unit light less its link
     radiance: torch.Tensor  # (G, 3) its gather light g_d, no light link applied
     light_link: tuple[str, ...] | None = None  # the link `unit_indirect` was masked with
     unit_indirect: torch.Tensor | None = None  # (R, 3) its indirect radiance at the F rows
+    rows: _Rows | None = None  # `unit_indirect` in the making, while it is None or stale
 
 
 class TransferRelighter(IndirectRelighter[_IndirectState]):
     """Direct + indirect relighting of one transfer cache.
+
+    Progressive (`CacheRelighter.refine`): a coarse frame multiplies only the F rows of its
+    level's pixels, and keeps them (`_Rows`) for the finer frames and the exact one.
 
     Args:
         direct: the direct relighter of the cache's deep framebuffer (lights live there; its
@@ -78,6 +99,7 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         upsampler: for F rows baked at a reduced resolution (`--indirect-scale`), the edge-aware
             map from them to the full image's pixels (`upsample.edge_aware_upsampler`); None when
             `view_pixels` are pixels of the full image.
+        indirect_scale: full pixels per side of an F row's pixel (1 without `upsampler`).
         cull_tolerance: on-the-fly culling of weak wavelet lights in the F product (the chapter's
             section 9.8.3, `sparse.cull_light`): the Haar coefficients of the gather light whose
             weight |l_c| ||F_c|| sums to at most this fraction of the total are zeroed, bounding
@@ -98,6 +120,7 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         gather_samples: int = GATHER_SAMPLES,
         upsampler: EdgeAwareUpsampler | None = None,
         cull_tolerance: float = 0.0,
+        indirect_scale: int = 1,
     ):
         if final_gather.num_columns != gathers.num_gathers or final_gather.num_rows != view_pixels.shape[0]:
             raise ValueError(
@@ -121,10 +144,13 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         self.num_bounces = num_bounces
         self.gather_samples = gather_samples
         self.upsampler = upsampler
+        self.indirect_scale = indirect_scale
         self.cull_tolerance = cull_tolerance
         self._column_norms = column_norms(final_gather) if cull_tolerance > 0 else None
         self.counters: collections.Counter[str] = collections.Counter()
         self._emission_indirect: torch.Tensor | None = None
+
+    progressive = True
 
     # `relight solve` differentiates the direct light and the gathers' direct light, which the
     # transport carries linearly (`protocol.GradientRelighter`).
@@ -163,6 +189,11 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         """F (I + M + ... + M^(B-1)) radiance: (G, 3) gather radiance -> (R, 3) at the view rows, clamped
         at zero: truncated wavelet rows ring slightly negative (-2e-4 against a peak of 0.13) where a
         light reaches only a few gathers, and reflected radiance never is."""
+        return self.final_gather.matmul(self.light_vector(radiance)).clamp_(min=0.0)
+
+    def light_vector(self, radiance: torch.Tensor) -> torch.Tensor:
+        """(G, 3) gather radiance -> (G, 3) the wavelet light F multiplies in `transfer`: the
+        bounces added, Haar-transformed, weak wavelet lights culled."""
         total, bounced = radiance, radiance
         for _ in range(self.num_bounces - 1):
             assert self.bounce is not None  # __init__ requires M for more than one bounce
@@ -173,13 +204,13 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         if self.cull_tolerance > 0.0:
             assert self._column_norms is not None  # computed whenever culling is on
             light = cull_light(light, self._column_norms, self.cull_tolerance)
-        return self.final_gather.matmul(light).clamp_(min=0.0)
+        return light
 
     def invalidate_indirect(self) -> None:
         """Drop every cached indirect image (after `num_bounces` changes); the gather light is kept."""
-        self._emission_indirect = None
+        self._emission_indirect = self._static = None
         for state in self._per_light.values():
-            state.unit_indirect = None
+            state.unit_indirect = state.rows = None
 
     def _rows_to_image(self, rows: torch.Tensor) -> torch.Tensor:
         """(R, 3) values at the F rows' view samples -> (H, W, 3) image, camera exposure applied."""
@@ -196,9 +227,11 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
     # -- cached stages --------------------------------------------------------------------------
 
     def _indirect_bytes(self) -> int:
+        rows = [state.rows for state in self._per_light.values() if state.rows is not None]
         return tensor_bytes(
             self._emission_indirect,
             *(t for state in self._per_light.values() for t in (state.radiance, state.unit_indirect)),
+            *(t for part in rows for t in (part.vector, part.values, part.done)),
         )
 
     def _emission_rows(self) -> torch.Tensor:
@@ -208,7 +241,49 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
 
     def _unit_indirect(self, light: Light) -> torch.Tensor:
         """F (I + M + ...) g_d of the unit light: its gather light is traced again only when what
-        it depends on changes; a light-link edit re-masks the cached gather light and transfers."""
+        it depends on changes; a light-link edit re-masks the cached gather light and transfers.
+        Rows a coarse frame made (`_unit_indirect_at`) are kept: only the others are multiplied."""
+        state = self._gather_state(light)
+        if state.unit_indirect is None or state.light_link != light.light_link:
+            rows = state.rows
+            if rows is None or rows.light_link != light.light_link:
+                state.unit_indirect = self.transfer(self._linked_radiance(state, light))
+            else:
+                self._fill_rows(rows, torch.nonzero(~rows.done).squeeze(-1))
+                state.unit_indirect = rows.values
+            state.light_link, state.rows = light.light_link, None
+        return state.unit_indirect
+
+    def _unit_indirect_at(self, light: Light, rows: torch.Tensor) -> torch.Tensor:
+        """(K, 3) the unit light's indirect radiance at F rows `rows` (K,): from `unit_indirect`
+        when current, else those rows multiplied (once) and kept for the rest."""
+        state = self._gather_state(light)
+        if state.unit_indirect is not None and state.light_link == light.light_link:
+            return state.unit_indirect.index_select(0, rows)
+        if state.rows is None or state.rows.light_link != light.light_link:
+            vector = self.light_vector(self._linked_radiance(state, light))
+            num_rows = self.final_gather.num_rows
+            done = torch.zeros(num_rows, dtype=torch.bool, device=vector.device)
+            state.rows = _Rows(light.light_link, vector, vector.new_empty(num_rows, 3), done)
+        needed = torch.unique(rows)
+        self._fill_rows(state.rows, needed[~state.rows.done.index_select(0, needed)])
+        return state.rows.values.index_select(0, rows)
+
+    def _fill_rows(self, rows: _Rows, todo: torch.Tensor) -> None:
+        """Multiply the F rows `todo` (K,) by the kept vector into `rows`."""
+        if todo.numel():
+            product = self.final_gather.select_rows(todo).matmul(rows.vector).clamp_(min=0.0)
+            rows.values.index_copy_(0, todo, product)
+            rows.done[todo] = True
+            rows.num_done += int(todo.numel())
+
+    def _linked_radiance(self, state: _IndirectState, light: Light) -> torch.Tensor:
+        """(G, 3) the cached gather light with the light's link applied."""
+        linked = link_mask(light, self.gathers.object_id, self.direct.object_paths)
+        return state.radiance if linked is None else state.radiance * linked.unsqueeze(-1).to(state.radiance)
+
+    def _gather_state(self, light: Light) -> _IndirectState:
+        """The light's state, its gather light traced again when what it depends on changed."""
         unit = unit_light(light)
         gather_light = dataclasses.replace(unit, light_link=None)
         key = gather_light_key(gather_light)
@@ -220,8 +295,4 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
             self.counters["gather_light"] += 1
             state = _IndirectState(key, radiance)
             self._per_light[light.path] = state
-        if state.unit_indirect is None or state.light_link != light.light_link:
-            linked = link_mask(light, self.gathers.object_id, self.direct.object_paths)
-            radiance = state.radiance if linked is None else state.radiance * linked.unsqueeze(-1).to(state.radiance)
-            state.unit_indirect, state.light_link = self.transfer(radiance), light.light_link
-        return state.unit_indirect
+        return state

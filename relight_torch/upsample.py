@@ -1,4 +1,4 @@
-"""Edge-aware upsampling of an indirect image computed at a reduced resolution.
+"""Edge-aware upsampling of an image computed at a reduced resolution.
 
 Indirect light is smooth over a surface but not across edges, so the F rows of a transfer cache
 may be baked for the pixel centres of a coarse image (`--indirect-scale s`: (H / s) x (W / s))
@@ -18,6 +18,10 @@ relighter's G-buffer takes the coarse samples of the 3 x 3 coarse pixels around 
 normalised per sub-sample, then averaged over each pixel's sub-samples like the direct image. The
 weights depend on geometry only: they are built once per cache as a sparse (pixels x coarse rows)
 matrix, and upsampling an image is one `embedding_bag` over it.
+
+The transfer method upsamples its indirect image with it; progressive refinement
+(`relight_torch.progressive`) its coarse frames, whose samples sit at a corner of their coarse
+pixel rather than its centre (`sample_offset`) so that the coarse levels nest.
 """
 
 from __future__ import annotations
@@ -71,23 +75,27 @@ def edge_aware_upsampler(
     coarse_object: torch.Tensor,
     guided: bool = True,
     chunk_samples: int = 1 << 18,
+    sample_offset: float = 0.0,
 ) -> EdgeAwareUpsampler:
     """The upsampler from R coarse samples to the pixels of `fine`'s image.
 
     Args:
         fine: the direct relighter's G-buffer ((H s_d) x (W s_d) sub-samples).
         supersampling: s_d, its sub-samples per pixel side.
-        scale: s, full pixels per coarse pixel side (H and W multiples of it).
+        scale: s, full pixels per coarse pixel side; the coarse image is ceil(H / s) x ceil(W / s).
         coarse_pixels: (R,) int64 coarse pixel (row * (W / s) + col) of each coarse sample.
         coarse_position, coarse_normal: (R, 3) world position and unit geometric normal.
         coarse_object: (R,) int object id.
         guided: False drops the range weights (a plain tent filter, for comparison).
         chunk_samples: sub-samples weighed together (bounds the (chunk, 9, 3) temporaries).
+        sample_offset: where each coarse sample lies from its coarse pixel's centre, in coarse
+            pixels along both axes (0: at the centre; 0.5 / (s s_d) - 0.5: at the pixel's first
+            sub-sample).
     """
     device = fine.device
     sub_height, sub_width = fine.image_size
     height, width = sub_height // supersampling, sub_width // supersampling
-    coarse_height, coarse_width = height // scale, width // scale
+    coarse_height, coarse_width = -(-height // scale), -(-width // scale)
     num_rows = coarse_pixels.shape[0]
     row_of_pixel = torch.full((coarse_height * coarse_width,), -1, dtype=torch.int64, device=device)
     row_of_pixel[coarse_pixels.to(device)] = torch.arange(num_rows, device=device)
@@ -95,8 +103,9 @@ def edge_aware_upsampler(
     keys, weights = [], []
     for start in range(0, fine.num_samples, chunk_samples):
         chunk = slice(start, start + chunk_samples)
+        coarse_size = (coarse_height, coarse_width)
         rows, weight = _weights(
-            fine, chunk, supersampling, scale, (coarse_height, coarse_width), row_of_pixel, coarse, guided
+            fine, chunk, supersampling, scale, coarse_size, row_of_pixel, coarse, guided, sample_offset
         )
         sub_row = torch.div(fine.pixel_index[chunk], sub_width, rounding_mode="floor")
         sub_col = fine.pixel_index[chunk] % sub_width
@@ -106,8 +115,16 @@ def edge_aware_upsampler(
         keep = weight > 0
         keys.append(pixel.unsqueeze(1).expand_as(rows)[keep] * num_rows + rows[keep])
         weights.append(weight[keep])
+    keys_all = torch.cat(keys)
+    if supersampling == 1 and bool((fine.pixel_index[1:] > fine.pixel_index[:-1]).all()):
+        # One sample per pixel, in pixel order: the entries are grouped by pixel already (a coarse
+        # row named twice, at a clamped border, is summed twice by the product: the same sum).
+        counts = torch.bincount(torch.div(keys_all, num_rows, rounding_mode="floor"), minlength=height * width)
+        offsets = torch.zeros(height * width + 1, dtype=torch.int64, device=device)
+        offsets[1:] = counts.cumsum(0)
+        return EdgeAwareUpsampler(keys_all % num_rows, torch.cat(weights), offsets)
     # Merge the entries of a pixel (its sub-samples) that name the same coarse row.
-    unique, inverse = torch.unique(torch.cat(keys), return_inverse=True)
+    unique, inverse = torch.unique(keys_all, return_inverse=True)
     merged = torch.zeros(unique.shape[0], dtype=fine.position.dtype, device=device).index_add_(
         0, inverse, torch.cat(weights)
     )
@@ -126,6 +143,7 @@ def _weights(
     row_of_pixel: torch.Tensor,
     coarse: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     guided: bool,
+    sample_offset: float,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(rows (n, 9) int64, weights (n, 9)) of the sub-samples `chunk`: the coarse rows of the 3 x 3
     coarse pixels around each and their weights (see the module doc), each sub-sample's summing to
@@ -133,10 +151,10 @@ def _weights(
     coarse_height, coarse_width = coarse_size
     sub_width = fine.image_size[1]
     index = fine.pixel_index[chunk]
-    # Sub-sample centres in coarse pixel units (coarse pixel centres at integers).
+    # Sub-sample centres in coarse pixel units (coarse samples at integers).
     step = 1.0 / (supersampling * scale)
-    y = (torch.div(index, sub_width, rounding_mode="floor") + 0.5) * step - 0.5
-    x = (index % sub_width + 0.5) * step - 0.5
+    y = (torch.div(index, sub_width, rounding_mode="floor") + 0.5) * step - 0.5 - sample_offset
+    x = (index % sub_width + 0.5) * step - 0.5 - sample_offset
     around = torch.tensor([-1, 0, 1], device=index.device)
     cy = (y.round().long().unsqueeze(1) + around.repeat_interleave(3)).clamp(0, coarse_height - 1)
     cx = (x.round().long().unsqueeze(1) + around.repeat(3)).clamp(0, coarse_width - 1)

@@ -1,0 +1,99 @@
+"""Coarse levels of a deep framebuffer, for progressive refinement (`relight_torch.progressive`).
+
+A level of stride p (pixels) keeps one shading point per p x p block of pixels: the block's first
+sub-sample (top-left), so that the levels nest (every point of stride 2p is a point of stride p)
+and the work of a coarse frame is never done again by a finer one. A coarse frame evaluates light
+at those points only and brings them to every pixel with the edge-aware upsampler of
+`relight_torch.upsample` (guided by the full deep framebuffer: normals, positions, object ids),
+whose weights depend on geometry only and are built once per level. The weights are those of
+each pixel's first covered sub-sample (not the mean of its sub-samples' weights, as the transfer
+method's upsampling takes): a quarter of the work at 2 x 2 supersampling and no merge of entries
+(10 s against ~2.5 s per level at 640 x 480 on a loaded 2-core machine), for frames that are
+approximations anyway; a pixel that any sub-sample covers counts as covered in them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+
+from relight_torch.gbuffer import GBuffer
+from relight_torch.upsample import EdgeAwareUpsampler, edge_aware_upsampler
+
+
+@dataclass(frozen=True)
+class Level:
+    """The points of one coarse level and the map from them to the image.
+
+    Attributes:
+        stride: p, pixels per block side.
+        points: (M,) int64 G-buffer indices of the covered block corners, ascending.
+        upsampler: (M, C) values at `points` -> (H W, C) values at the image's pixels (box filter
+            over each pixel's sub-samples included).
+    """
+
+    stride: int
+    points: torch.Tensor
+    upsampler: EdgeAwareUpsampler
+
+
+def level_points(gbuffer: GBuffer, supersampling: int, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(points (M,) G-buffer indices, blocks (M,) coarse pixel row * ceil(W / p) + col) of the
+    covered first sub-samples of the p x p pixel blocks, p = `stride`."""
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1 pixel, got {stride}")
+    sub_width = gbuffer.image_size[1]
+    step = stride * supersampling
+    coarse_width = -(-sub_width // step)
+    row = torch.div(gbuffer.pixel_index, sub_width, rounding_mode="floor")
+    col = gbuffer.pixel_index % sub_width
+    corner = (row % step == 0) & (col % step == 0)
+    points = torch.nonzero(corner).squeeze(-1)
+    blocks = torch.div(row[points], step, rounding_mode="floor") * coarse_width + torch.div(
+        col[points], step, rounding_mode="floor"
+    )
+    return points, blocks
+
+
+def build_level(gbuffer: GBuffer, supersampling: int, stride: int) -> Level:
+    """The level of stride `stride` pixels of a G-buffer whose pixels have s x s sub-samples."""
+    points, blocks = level_points(gbuffer, supersampling, stride)
+    upsampler = edge_aware_upsampler(
+        pixel_representatives(gbuffer, supersampling),
+        1,
+        stride,
+        blocks,
+        gbuffer.position[points],
+        gbuffer.geometric_normal[points],
+        gbuffer.object_id[points],
+        sample_offset=0.5 / (supersampling * stride) - 0.5,
+    )
+    return Level(stride, points, upsampler)
+
+
+def pixel_representatives(gbuffer: GBuffer, supersampling: int) -> GBuffer:
+    """The G-buffer of the (H / s) x (W / s) pixel image whose each covered pixel holds its first
+    covered sub-sample (the lowest G-buffer index)."""
+    sub_height, sub_width = gbuffer.image_size
+    width = sub_width // supersampling
+    row = torch.div(gbuffer.pixel_index, sub_width * supersampling, rounding_mode="floor")
+    col = torch.div(gbuffer.pixel_index % sub_width, supersampling, rounding_mode="floor")
+    pixel = row * width + col
+    order = torch.arange(gbuffer.num_samples, device=gbuffer.device)
+    first = torch.full((sub_height // supersampling * width,), gbuffer.num_samples, device=gbuffer.device)
+    first.scatter_reduce_(0, pixel, order, reduce="amin")
+    chosen = first[first < gbuffer.num_samples]
+    fields = {}
+    for item in dataclasses.fields(gbuffer):
+        value = getattr(gbuffer, item.name)
+        if item.name == "pixel_index":
+            value = pixel.index_select(0, chosen)
+        elif item.name == "params":
+            value = value.index(chosen)
+        elif isinstance(value, torch.Tensor) and item.name != "camera_position":
+            value = value.index_select(0, chosen)
+        fields[item.name] = value
+    fields["image_size"] = (sub_height // supersampling, width)
+    return GBuffer(**fields)
