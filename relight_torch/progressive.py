@@ -94,7 +94,7 @@ class CostModel:
 
 def check_progressive(relighter: CacheRelighter) -> None:
     """Raise RelightError unless the relighter can refine progressively (its `progressive` flag)."""
-    if not getattr(relighter, "progressive", False):
+    if not relighter.progressive:
         refuse_progressive(relighter)
 
 

@@ -29,6 +29,7 @@ from pipeline.serve.display import png_bytes
 from pipeline.serve.placement import SurfaceLookup
 from pipeline.serve.session import Frame, Session
 from pipeline.serve.stream import FrameStream
+from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.cache.load import load_gbuffer
 from relight_torch.io.exr import read_rgb_exr, write_rgb_exr
@@ -504,3 +505,20 @@ def test_malformed_websocket_messages_are_answered_and_the_stream_goes_on(served
         header = socket.receive_json()
         assert header["type"] == "frame" and header["exposure"] == 2
         assert png_pixels(socket.receive_bytes()).shape == (32, 32, 3)
+
+
+def test_an_edit_streams_coarse_frames_then_the_exact_one(layer, tmp_path):
+    # The direct cache refines progressively: coarse frames first, the last one final and equal to
+    # a freshly opened relighter's render of the saved rig.
+    session = Session.open(layer, out_dir=tmp_path)
+    try:
+        light = session.state()["lights"][0]
+        session.edit(light["path"], {"inputs:intensity": 3 * light["attributes"]["inputs:intensity"]})
+        frames = list(session.frames())
+        assert len(frames) > 1 and [f.final for f in frames] == [False] * (len(frames) - 1) + [True]
+        assert {f.version for f in frames} == {session.version}
+        (tmp_path / "saved.usda").write_text(session.save_text())
+        fresh = open_cache(layer, lights_layer=tmp_path / "saved.usda").render().numpy()
+        np.testing.assert_allclose(frames[-1].image, fresh, rtol=0, atol=1e-6)
+    finally:
+        session.close()

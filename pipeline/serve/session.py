@@ -3,7 +3,8 @@
 Edits (HTTP requests from any number of clients) change the session's `Rig` under a lock and bump
 its `version`; they never touch the relighter. Frames come from one function, `Session.frames()`,
 which brings the relighter up to the current rig (only the lights that changed) and yields the
-frames of that version: today one converged render. A renderer calling it (`pipeline.serve.stream`)
+frames of that version: coarse progressive frames first where the method refines progressively
+(direct, transfer and the shot cache), the converged render last. A renderer calling it (`pipeline.serve.stream`)
 stops consuming as soon as a newer version exists, so edits that arrive while a frame renders are
 coalesced (the latest wins) and no stale frame is queued.
 
@@ -39,6 +40,7 @@ from relight_torch.io.exr import read_rgb_exr
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.overrides import light_overrides_text, write_light_overrides
 from relight_torch.methods import relight_method
+from relight_torch.progressive import CostModel, progressive_frames
 from relight_torch.protocol import CacheRelighter
 
 MAX_UNDO = 1000
@@ -95,6 +97,7 @@ class Session:
         self.changed = threading.Condition(self._lock)
         """Notified on every rig change (and by renderers poking each other)."""
         self._render_lock = threading.Lock()
+        self._costs = CostModel()  # the progressive first-frame budget's cost model, kept across edits
         self._rig = Rig.of(relighter.lights)
         self._sent: dict[str, tuple[Light, bool]] = {light.path: (light, True) for light in relighter.lights}
         self._undo: list[Rig] = []
@@ -339,8 +342,9 @@ class Session:
     # --- frames ---------------------------------------------------------------------------------
 
     def frames(self, groups: bool = False) -> Iterator[Frame]:
-        """The frames of the current rig, the converged one last (a progressive renderer yields
-        refining frames before it). The relighter is used by one caller at a time.
+        """The frames of the current rig, the converged one last; a progressive relighter
+        (`relight_torch.progressive`) yields its coarse frames first, within the first-frame budget
+        after an edit. The relighter is used by one caller at a time.
 
         Args:
             groups: also render each light group's image.
@@ -349,7 +353,14 @@ class Session:
             with self._lock:
                 rig, version = self._rig, self.version
             self._sync(rig)
-            image = self._relighter.render().cpu().numpy()
+            if self._relighter.progressive:
+                for step in progressive_frames(self._relighter, costs=self._costs):
+                    if not step.done:
+                        yield Frame(version, step.image.cpu().numpy(), None, final=False)
+                exact = step.image  # the last step is the exact frame, `render()`
+            else:
+                exact = self._relighter.render()
+            image = exact.cpu().numpy()
             group_images = None
             if groups:
                 group_images = {name: im.cpu().numpy() for name, im in self._relighter.light_group_images().items()}
