@@ -1,4 +1,4 @@
-"""The ratio estimator (lights/polygon.py) and its filtered visibility (visibility/surface_filter.py)
+"""The ratio estimator (lights/ratio.py) and its filtered visibility (visibility/surface_filter.py)
 in the relighter, on the Cornell box at 96 x 96 with one sub-sample per pixel.
 
 The truth is plain Monte Carlo with 256 light samples (the same shadow rays, no closed form): a few
@@ -18,7 +18,7 @@ from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.direct.relighter import Relighter, RelightSettings, auto_filter_radius, open_relighter
-from relight_torch.lights import polygon
+from relight_torch.lights import ratio as ratio_estimator
 from relight_torch.lights.light import Shaping
 from relight_torch.metrics import psnr
 from relight_torch.visibility.surface_filter import SurfaceFilter
@@ -49,7 +49,7 @@ def render(baked: Relighter, lights, samples: int, radius: int = 0):
 
 def plain(baked: Relighter, lights, samples: int, monkeypatch):
     with monkeypatch.context() as patch:
-        patch.setattr(polygon, "has_closed_form", lambda light: False)
+        patch.setattr(ratio_estimator, "has_closed_form", lambda light: False)
         return render(baked, lights, samples)
 
 

@@ -57,7 +57,7 @@ from relight_torch.lights.emission import is_delta_light, light_radiance_scale, 
 from relight_torch.lights.geometry import LightFrame
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import decode_paths, linked_points
-from relight_torch.lights.polygon import closed_form, has_closed_form, ratio_of
+from relight_torch.lights.ratio import closed_form, has_closed_form, ratio_of
 from relight_torch.lights.shadow import shadow_factor, shadow_strength
 from relight_torch.lights.shaping import emission_factor
 from relight_torch.lights.usd import read_stage_lights
@@ -257,7 +257,7 @@ class _Transport:
             (pdf S) for the unshaped unit light (V: the ShadowAPI factor); None when `factors`
             holds the transport.
         diffuse_ratio: (P,) the ratio estimator's factor on the diffuse sum (closed-form
-            unshadowed irradiance over the samples' estimate of it, `lights.polygon`), or None
+            unshadowed irradiance over the samples' estimate of it, `lights.ratio`), or None
             for lights without a closed form.
         factors: (F, S, P) the same as per-sample scalars, for lights whose L_i V is one colour
             times a scalar w (untextured, grey shadow colour): w cos(theta_i) / (pdf S) times the
