@@ -92,6 +92,37 @@ def test_the_filter_stays_on_one_surface(baked):
     assert torch.equal(counts[:, 1] / counts[:, 1], torch.ones_like(floor))
 
 
+def test_visibility_is_filtered_only_near_shadows_with_the_numbers_of_the_whole_filter(baked, monkeypatch):
+    from relight_torch.visibility import surface_filter
+
+    monkeypatch.setattr(surface_filter, "TILE", 16)  # 36 tiles over the 96 x 96 image
+    g = baked.gbuffer
+    generator = torch.Generator().manual_seed(4)
+    weights = torch.rand(g.num_samples, generator=generator, dtype=g.position.dtype) + 0.1
+    weights[g.normal[:, 0] > 0.99] = 0.0  # a wall the light does not reach
+    # A shadow with a noisy penumbra on the floor, wholly lit elsewhere.
+    offset = (g.position[:, 0] - g.position[:, 0].mean()).abs()
+    lit = torch.where(offset < 0.1 * offset.max(), 0.0, 1.0)
+    penumbra = (offset >= 0.1 * offset.max()) & (offset < 0.15 * offset.max())
+    lit = torch.where(penumbra, (torch.rand(lit.shape, generator=generator) < 0.5).to(lit.dtype), lit)
+    sums = torch.stack((weights * lit, weights), dim=-1)
+    f = SurfaceFilter(g, 2)
+    filtered = f(sums)
+    whole = torch.where(filtered[:, 1] > 0, filtered[:, 0] / torch.where(filtered[:, 1] > 0, filtered[:, 1], 1.0), 0.0)
+    calls = []
+    original = f._filter_tiles
+    monkeypatch.setattr(f, "_filter_tiles", lambda *args: calls.append(args[1].numel()) or original(*args))
+    tiles = f.visibility(sums)
+    own = weights > 0
+    assert torch.equal(tiles[own], whole[own])
+    assert bool(((tiles[~own] == whole[~own]) | (tiles[~own] == 1.0)).all())
+    assert 0 < calls[0] < 36  # only the tiles near the shadow's edges were filtered
+    # No shadow at all: nothing to filter, every reached point exactly 1.
+    calls.clear()
+    assert torch.equal(f.visibility(torch.stack((weights, weights), dim=-1))[own], torch.ones_like(weights[own]))
+    assert not calls
+
+
 def test_the_automatic_filter_radius_follows_the_image_size():
     assert [
         auto_filter_radius(size, 1)

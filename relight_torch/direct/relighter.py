@@ -709,11 +709,12 @@ class Relighter:
             transport.shadow_sums = None
 
     def _filtered_visibility(self, sums: torch.Tensor) -> torch.Tensor:
-        """(N,) filtered visibility F(sum w V) / F(sum w) of per-point (N, 2) sums (0 where unlit)."""
+        """(N,) filtered visibility F(sum w V) / F(sum w) of per-point (N, 2) sums (0 where unlit),
+        filtered only near shadows (`SurfaceFilter.visibility`): the filter's weights are made once,
+        and a moved light pays only for the tiles its shadows' edges cross."""
         if self._surface_filter is None:
             self._surface_filter = SurfaceFilter(self.gbuffer, self.filter_radius)
-        shadowed, unshadowed = self._surface_filter(sums).unbind(-1)
-        return torch.where(unshadowed > 0, shadowed / torch.where(unshadowed > 0, unshadowed, 1.0), 0.0)
+        return self._surface_filter.visibility(sums)
 
     def _chunk_transport(
         self,
