@@ -110,7 +110,7 @@ class SurfaceFilter:
         unshadowed closed form.
         """
         height, width = self.gbuffer.image_size
-        r, tile = self.radius, self.tile
+        tile = self.tile
         planes = sums.new_zeros(2, height * width)
         planes.index_copy_(1, self.gbuffer.pixel_index, sums.t())
         planes = planes.reshape(2, height, width)
