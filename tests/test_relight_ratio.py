@@ -96,6 +96,7 @@ def test_visibility_is_filtered_only_near_shadows_with_the_numbers_of_the_whole_
     from relight_torch.visibility import surface_filter
 
     monkeypatch.setattr(surface_filter, "TILE", 16)  # 36 tiles over the 96 x 96 image
+    monkeypatch.setattr(surface_filter, "MAX_TILE_FRACTION", 1.0)  # tiles however many
     g = baked.gbuffer
     generator = torch.Generator().manual_seed(4)
     weights = torch.rand(g.num_samples, generator=generator, dtype=g.position.dtype) + 0.1
@@ -121,6 +122,9 @@ def test_visibility_is_filtered_only_near_shadows_with_the_numbers_of_the_whole_
     calls.clear()
     assert torch.equal(f.visibility(torch.stack((weights, weights), dim=-1))[own], torch.ones_like(weights[own]))
     assert not calls
+    # Shadows over more tiles than MAX_TILE_FRACTION: the whole image in one pass, the same numbers.
+    monkeypatch.setattr(surface_filter, "MAX_TILE_FRACTION", 0.0)
+    assert torch.equal(f.visibility(sums), whole) and not calls
 
 
 def test_the_automatic_filter_radius_follows_the_image_size():

@@ -29,6 +29,9 @@ MAX_PLANE_SLOPE = 0.05
 """Neighbours further off the centre's tangent plane than this times their distance are another surface."""
 TILE = 64
 """Side in sub-samples of the tiles `SurfaceFilter.visibility` filters or skips as a whole."""
+MAX_TILE_FRACTION = 0.25
+"""Above this share of tiles to filter, `SurfaceFilter.visibility` filters the whole image in one pass
+instead (on the CPU the tiles' windows and weights cost more than the skipped tiles save)."""
 
 
 class SurfaceFilter:
@@ -125,6 +128,11 @@ class SurfaceFilter:
         result = near[1].to(sums.dtype).repeat_interleave(tile, 0).repeat_interleave(tile, 1)[:height, :width]
         result = result.contiguous()
         needed = torch.nonzero((near[0] & near[1]).flatten()).squeeze(-1)
+        if needed.numel() > MAX_TILE_FRACTION * rows * columns:  # shadows everywhere: one pass over the image
+            filtered = self(sums)
+            return torch.where(
+                filtered[:, 1] > 0, filtered[:, 0] / torch.where(filtered[:, 1] > 0, filtered[:, 1], 1.0), 0.0
+            )
         if needed.numel():
             filtered = self._filter_tiles(planes, needed, columns)  # (B, 2, T, T)
             ratio = torch.where(
