@@ -19,7 +19,7 @@ from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light
 from relight_torch.lights.light import Light
 from relight_torch.lights.linking import linked_points
-from relight_torch.lights.polygon import analytic_ratio
+from relight_torch.lights.ratio import analytic_ratio
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.visibility import Visibility
 
@@ -41,7 +41,7 @@ def diffuse_radiance(
     L = diffuse * albedo / pi * E, E the irradiance from `num_samples` fixed light samples per
     point through the view samples' kernels and visibility (`sample_light`, `occluder_distance`,
     `shadow_factor`), on the side `normal` points to; for lights with a closed-form unshadowed
-    irradiance, times the ratio estimator's factor (`lights.polygon.analytic_ratio`), as the
+    irradiance, times the ratio estimator's factor (`lights.ratio.analytic_ratio`), as the
     relighter does.
 
     Args:
@@ -85,7 +85,7 @@ def diffuse_radiance(
             ).squeeze(1)
         shadow = shadow_factor(light.shadow, torch.isfinite(distance), distance)
         irradiance[chunk] = (weight * shadow).mean(dim=1)
-        # The ratio estimator (lights.polygon): the samples' unshadowed estimate against the closed form.
+        # The ratio estimator (lights.ratio): the samples' unshadowed estimate against the closed form.
         estimate = (torch.isfinite(sample.distance) * cosine * sample.inverse_pdf()).mean(dim=1)
         ratio = analytic_ratio(light, position[chunk], normal[chunk], estimate)
         if ratio is not None:

@@ -12,7 +12,8 @@ import torch
 from relight_torch.lights import polygon
 from relight_torch.lights.emission import sample_light
 from relight_torch.lights.light import Light, LightKind
-from relight_torch.lights.polygon import analytic_ratio, has_closed_form, rect_cosine_integral
+from relight_torch.lights.polygon import rect_cosine_integral
+from relight_torch.lights.ratio import analytic_ratio, has_closed_form
 from relight_torch.math.frame import dot
 
 
@@ -109,7 +110,7 @@ def test_blocks_of_receivers_give_the_values_of_one_and_no_receivers_none(monkey
     assert rect_cosine_integral(light, points[:0], normals[:0]).shape == (0,)
 
 
-def test_ratio_is_exact_for_any_unshadowed_samples_and_only_for_rect_lights_without_texture():
+def test_ratio_is_exact_for_any_unshadowed_samples_and_only_for_rect_lights_without_texture_among_planar_ones():
     light = Light("/R", LightKind.RECT, width=1.0, height=0.5, world_from_light=world_from_light((0, 0, 1.0)))
     points = torch.tensor([[0.1, 0.2, 0.0], [0.4, -0.3, 0.2]], dtype=torch.float64)
     normals = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]], dtype=torch.float64)

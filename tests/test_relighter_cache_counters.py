@@ -29,7 +29,7 @@ from relight_torch.direct.relighter import Relighter, RelightSettings, colour_sc
 from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light
 from relight_torch.lights.light import BarzelShaping, Light, LightKind, Shadow, Shaping
-from relight_torch.lights.polygon import analytic_ratio
+from relight_torch.lights.ratio import analytic_ratio
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.math.frame import to_local
 from relight_torch.shading import reflected_radiance

@@ -61,7 +61,7 @@ from relight_torch.lights.emission import is_delta_light, light_radiance_scale, 
 from relight_torch.lights.geometry import LightFrame
 from relight_torch.lights.light import Light, LightKind, lights_equal
 from relight_torch.lights.linking import decode_paths, linked_points
-from relight_torch.lights.polygon import closed_form, has_closed_form, ratio_of
+from relight_torch.lights.ratio import closed_form, has_closed_form, ratio_of
 from relight_torch.lights.shadow import shadow_factor, shadow_strength
 from relight_torch.lights.shaping import emission_factor
 from relight_torch.lights.usd import read_stage_lights
@@ -272,7 +272,7 @@ class _Transport:
             (pdf S) for the unshaped unit light (V: the ShadowAPI factor); None when `factors`
             holds the transport.
         diffuse_ratio: (P,) the ratio estimator's factor on the diffuse sum (closed-form
-            unshadowed irradiance over the samples' estimate of it, `lights.polygon`), or None
+            unshadowed irradiance over the samples' estimate of it, `lights.ratio`), or None
             for lights without a closed form.
         factors: (F, S, P) the same as per-sample scalars, for lights whose L_i V is one colour
             times a scalar w (untextured, grey shadow colour): w cos(theta_i) / (pdf S) times the
@@ -1047,11 +1047,12 @@ class Relighter:
             transport.shadow_sums = None
 
     def _filtered_visibility(self, sums: torch.Tensor) -> torch.Tensor:
-        """(N,) filtered visibility F(sum w V) / F(sum w) of per-point (N, 2) sums (0 where unlit)."""
+        """(N,) filtered visibility F(sum w V) / F(sum w) of per-point (N, 2) sums (0 where unlit),
+        filtered only near shadows (`SurfaceFilter.visibility`): the filter's weights are made once,
+        and a moved light pays only for the tiles its shadows' edges cross."""
         if self._surface_filter is None:
             self._surface_filter = SurfaceFilter(self.gbuffer, self.filter_radius)
-        shadowed, unshadowed = self._surface_filter(sums).unbind(-1)
-        return torch.where(unshadowed > 0, shadowed / torch.where(unshadowed > 0, unshadowed, 1.0), 0.0)
+        return self._surface_filter.visibility(sums)
 
     def _chunk_transport(
         self,

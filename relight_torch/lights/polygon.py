@@ -1,4 +1,4 @@
-"""Closed-form unshadowed irradiance from a polygonal light, and the ratio estimator built on it.
+"""Closed-form unshadowed irradiance from a polygonal light (Lambert 1760).
 
 Lambert's formula for a convex polygon seen from a receiver at the origin, restricted to the
 receiver's upper hemisphere (normal n):
@@ -12,15 +12,8 @@ the horizon from where the boundary leaves the hemisphere to where it comes back
 +-n). G is a projected solid angle in sr (pi for a polygon covering the hemisphere); an
 untextured light of radiance L gives the irradiance E = L G.
 
-Ratio estimator (Heitz, Hill & McGuire 2018, "Combining analytic direct illumination and
-stochastic shadows"): with fixed light samples, the diffuse term sum_s f L V cos / (pdf S) is
-multiplied per receiver by G / G_hat, G_hat the same samples' unshadowed estimate sum_s cos / (pdf S)
-of G. Exact where the light is wholly visible or wholly hidden; noise only in penumbrae.
-Per-sample multipliers applied afterwards (ShapingAPI, Barzel) keep it consistent: the result
-tends to the integral of the shaped emission as samples grow.
-
-Lights with a closed form here: untextured RectLights (one-sided: nothing reaches the side
-their local +Z faces). `normalize` scales L only, so it leaves G / G_hat unchanged.
+Lights with this closed form: untextured RectLights (one-sided: nothing reaches the side
+their local +Z faces); `lights.ratio` uses it for the ratio estimator.
 """
 
 from __future__ import annotations
@@ -35,7 +28,7 @@ CHUNK_POINTS = 1 << 16
 """Receivers evaluated together by `rect_cosine_integral`."""
 
 
-def has_closed_form(light: Light) -> bool:
+def has_rect_closed_form(light: Light) -> bool:
     """Whether `rect_cosine_integral` gives the light's unshadowed irradiance (per unit radiance)."""
     return light.kind is LightKind.RECT and light.texture is None and surface_area(light) > 0.0
 
@@ -197,32 +190,3 @@ def _rect_block(
             ),
         )
     return total.abs_().mul_(0.5).masked_fill_(z * facing <= 0, 0.0)
-
-
-def closed_form(light: Light, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor | None:
-    """G (N,) of the light at receivers (N, 3) with unit normals (N, 3); None without a closed form."""
-    return rect_cosine_integral(light, points, normals) if has_closed_form(light) else None
-
-
-def ratio_of(exact: torch.Tensor, estimate: torch.Tensor) -> torch.Tensor:
-    """(N,) exact / estimate, 1 where the estimate is 0 (no sample to carry visibility)."""
-    return torch.where(estimate > 0, exact / torch.where(estimate > 0, estimate, 1.0), 1.0)
-
-
-def analytic_ratio(
-    light: Light, points: torch.Tensor, normals: torch.Tensor, estimate: torch.Tensor
-) -> torch.Tensor | None:
-    """(N,) G / estimate per receiver, the ratio estimator's factor on the diffuse term (module doc).
-
-    Args:
-        light: the light the samples were drawn from.
-        points, normals: (N, 3) receivers and their unit normals (the normal the samples' cosines used).
-        estimate: (N,) the samples' unshadowed Monte Carlo estimate of G, sum_s cos+ / (pdf S) over
-            samples reaching the emitting side.
-
-    Returns:
-        the factor, 1 where the estimate is 0 (no sample to carry visibility: plain Monte
-        Carlo is kept); None when the light has no closed form.
-    """
-    exact = closed_form(light, points, normals)
-    return None if exact is None else ratio_of(exact, estimate)

@@ -44,14 +44,14 @@ from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light
 from relight_torch.lights.geometry import LightFrame
 from relight_torch.lights.light import Light
-from relight_torch.lights.polygon import analytic_ratio
+from relight_torch.lights.ratio import analytic_ratio
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.lights.shaping import emission_factor
 from relight_torch.math.frame import dot
 
 CHANNELS = 7
 """Columns per group in a table: W (RGB), D (xyz), then the light's ratio-estimator factor on the
-diffuse sum (`lights.polygon.analytic_ratio`, as the direct Relighter applies it; 1 for lights
+diffuse sum (`lights.ratio.analytic_ratio`, as the direct Relighter applies it; 1 for lights
 without a closed form), the same in every group."""
 
 

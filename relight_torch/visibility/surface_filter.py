@@ -9,6 +9,12 @@ The filter is separable (a horizontal then a vertical pass of 2r + 1 taps) and a
 neighbours on the same surface as the centre: covered, normals within ~18 degrees, and lying
 within ~3 degrees of the centre's tangent plane. Those weights depend on the G-buffer alone, so
 they are made once; a filtering pass is then 4r multiply-adds per channel and pixel.
+
+`SurfaceFilter.visibility` filters only where it can change anything: a point whose (2r + 1)^2
+window holds no shadowed sample (wV = w everywhere in it) gets exactly 1, and one whose window
+holds no lit sample exactly 0, the values the whole filter gives there. Only the tiles of the image
+near both (penumbrae, shadow edges, points the light does not reach) are filtered, each with its
+halo of r; under a small light most of a large image is wholly lit or wholly shadowed.
 """
 
 from __future__ import annotations
@@ -21,6 +27,11 @@ MIN_NORMAL_COSINE = 0.95
 """Neighbours whose shading normal is further from the centre's count as another surface."""
 MAX_PLANE_SLOPE = 0.05
 """Neighbours further off the centre's tangent plane than this times their distance are another surface."""
+TILE = 64
+"""Side in sub-samples of the tiles `SurfaceFilter.visibility` filters or skips as a whole."""
+MAX_TILE_FRACTION = 0.25
+"""Above this share of tiles to filter, `SurfaceFilter.visibility` filters the whole image in one pass
+instead (on the CPU the tiles' windows and weights cost more than the skipped tiles save)."""
 
 
 class SurfaceFilter:
@@ -41,6 +52,8 @@ class SurfaceFilter:
         self.weights = [
             [self._same_surface(covered, position, normal, axis, offset) for offset in self.offsets] for axis in (0, 1)
         ]
+        self.tile = max(TILE, radius)  # a window then reaches at most into the neighbouring tiles
+        self._tile_weights: list[torch.Tensor] | None = None  # per axis (tiles, 2r, T + 2r, T + 2r), made on first use
 
     @property
     def offsets(self) -> list[int]:
@@ -89,3 +102,91 @@ class SurfaceFilter:
                 centre.addcmul_(neighbour, weight)
             image = total
         return image.reshape(values.shape[-1], -1).index_select(1, self.gbuffer.pixel_index).t()
+
+    def visibility(self, sums: torch.Tensor) -> torch.Tensor:
+        """(N,) filtered visibility F(sum w V) / F(sum w) of per-point (N, 2) sums (sum w V, sum w),
+        0 where F(sum w) is 0, computed only in the tiles where it is not a constant 1 or 0 (module
+        doc): the numbers of filtering the whole image with `__call__` at every point with a
+        sample of its own (sum w > 0). A point without one, whose window holds none either, gets
+        1 instead of 0 in a tile left unfiltered (no shadowed sample near it): the ratio
+        estimator's points whose samples all fell below their horizon then keep their
+        unshadowed closed form.
+        """
+        height, width = self.gbuffer.image_size
+        tile = self.tile
+        planes = sums.new_zeros(2, height * width)
+        planes.index_copy_(1, self.gbuffer.pixel_index, sums.t())
+        planes = planes.reshape(2, height, width)
+        shadowed, unshadowed = planes
+        # Dark: a shadowed sample; lit: a sample the light reaches unshadowed.
+        dark, lit = shadowed < unshadowed, shadowed > 0
+        rows, columns = -(-height // tile), -(-width // tile)
+        flags = torch.stack((dark, lit)).to(sums.dtype)
+        flags = torch.nn.functional.pad(flags, (0, columns * tile - width, 0, rows * tile - height))
+        per_tile = torch.nn.functional.max_pool2d(flags.unsqueeze(0), tile)  # (1, 2, rows, columns)
+        near = torch.nn.functional.max_pool2d(per_tile, 3, stride=1, padding=1)[0] > 0
+        result = near[1].to(sums.dtype).repeat_interleave(tile, 0).repeat_interleave(tile, 1)[:height, :width]
+        result = result.contiguous()
+        needed = torch.nonzero((near[0] & near[1]).flatten()).squeeze(-1)
+        if needed.numel() > MAX_TILE_FRACTION * rows * columns:  # shadows everywhere: one pass over the image
+            filtered = self(sums)
+            return torch.where(
+                filtered[:, 1] > 0, filtered[:, 0] / torch.where(filtered[:, 1] > 0, filtered[:, 1], 1.0), 0.0
+            )
+        if needed.numel():
+            filtered = self._filter_tiles(planes, needed, columns)  # (B, 2, T, T)
+            ratio = torch.where(
+                filtered[:, 1] > 0, filtered[:, 0] / torch.where(filtered[:, 1] > 0, filtered[:, 1], 1.0), 0.0
+            )
+            padded = result.new_zeros(rows * tile, columns * tile)
+            padded[:height, :width] = result
+            view = padded.reshape(rows, tile, columns, tile).permute(0, 2, 1, 3).reshape(rows * columns, tile, tile)
+            view.index_copy_(0, needed, ratio)
+            result = view.reshape(rows, columns, tile, tile).permute(0, 2, 1, 3).reshape(rows * tile, -1)
+            result = result[:height, :width]
+        return result.reshape(-1).index_select(0, self.gbuffer.pixel_index)
+
+    def _filter_tiles(self, planes: torch.Tensor, needed: torch.Tensor, columns: int) -> torch.Tensor:
+        """(B, C, T, T) the separable filter's sums over the B tiles `needed` (flat tile indices,
+        `columns` tiles a row) of (C, H, W) planes: each tile's window with its halo of r, the
+        taps of `__call__` in the same order."""
+        r, tile = self.radius, self.tile
+        size = tile + 2 * r
+        weights = self._tiled_weights()
+        windows = self._windows(planes, needed, columns)  # (B, C, size, size)
+        image = windows
+        for axis, per_axis in ((1, weights[1]), (0, weights[0])):
+            chosen = per_axis.index_select(0, needed).to(planes.dtype)  # (B, 2r, size, size)
+            total = image.clone()
+            for k, offset in enumerate(self.offsets):
+                dim = axis + 2
+                centre = total.narrow(dim, max(0, -offset), size - abs(offset))
+                neighbour = image.narrow(dim, max(0, offset), size - abs(offset))
+                weight = chosen[:, k : k + 1].narrow(dim, max(0, -offset), size - abs(offset))
+                centre.addcmul_(neighbour, weight)
+            image = total
+        return image[:, :, r : r + tile, r : r + tile]
+
+    def _windows(self, planes: torch.Tensor, needed: torch.Tensor, columns: int) -> torch.Tensor:
+        """(B, C, T + 2r, T + 2r) windows of (C, H, W) planes around the tiles `needed`, zero outside the image."""
+        height, width = planes.shape[-2:]
+        r, tile = self.radius, self.tile
+        rows = -(-height // tile)
+        padded = torch.nn.functional.pad(planes, (r, columns * tile - width + r, r, rows * tile - height + r))
+        starts = [(int(i) // columns * tile, int(i) % columns * tile) for i in needed.tolist()]
+        return torch.stack([padded[:, y : y + tile + 2 * r, x : x + tile + 2 * r] for y, x in starts])
+
+    def _tiled_weights(self) -> list[torch.Tensor]:
+        """Per axis (y, x), (tiles, 2r, T + 2r, T + 2r) uint8 0 / 1: each pair weight at its centre
+        point, in every tile's window (0 where the neighbour falls outside the image)."""
+        if self._tile_weights is None:
+            height, width = self.gbuffer.image_size
+            columns = -(-width // self.tile)
+            every = torch.arange(-(-height // self.tile) * columns, device=self.gbuffer.device)
+            self._tile_weights = []
+            for axis in (0, 1):
+                full = self.gbuffer.position.new_zeros(len(self.offsets), height, width, dtype=torch.uint8)
+                for k, (offset, weight) in enumerate(zip(self.offsets, self.weights[axis], strict=True)):
+                    full[k].narrow(axis, max(0, -offset), full.shape[axis + 1] - abs(offset)).copy_(weight > 0)
+                self._tile_weights.append(self._windows(full, every, columns))
+        return self._tile_weights

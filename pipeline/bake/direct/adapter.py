@@ -32,7 +32,7 @@ class DirectAdapter:
     chart_axes = ("areaSamples", "supersampling")
 
     def grid(self, quick: bool) -> list[dict[str, object]]:
-        # Rect lights take the ratio estimator (lights/polygon.py): a few samples are accurate,
+        # Rect and sphere lights take the ratio estimator (lights/ratio.py): a few samples are accurate,
         # and with their visibility filtered one sample can do.
         if quick:
             return [{"supersampling": 1, "shadows": "embree", "areaSamples": (1, 2, 4, 16), "shadowFilter": (0, 2, 4)}]
