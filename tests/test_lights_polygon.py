@@ -29,7 +29,8 @@ def world_from_light(translate, rotation_deg=(0.0, 0.0), scale=(1.0, 1.0, 1.0)) 
 
 
 def monte_carlo(light: Light, points: torch.Tensor, normals: torch.Tensor, num_samples: int):
-    """(mean, standard error) (N,) of sum cos+ / pdf over uniform area samples reaching the front."""
+    """(mean, standard error) (N,) of cos+ / pdf over the light's own samples (`sample_light`, the
+    reference's sampler): its unshadowed irradiance at unit radiance."""
     u = torch.rand(points.shape[0], num_samples, 2, generator=torch.Generator().manual_seed(3), dtype=points.dtype)
     sample = sample_light(light, points, u)
     estimate = (

@@ -10,11 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from relight_torch.lights.emission import sample_light
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.ratio import analytic_ratio, closed_form, has_closed_form
 from relight_torch.lights.sphere_cap import sphere_cosine_integral
-from relight_torch.math.frame import dot
+from test_lights_polygon import monte_carlo
 
 
 def sphere(centre, radius: float, scale: float = 1.0) -> Light:
@@ -35,18 +34,6 @@ def quadrature(alpha: float, theta: float, steps: int = 3000) -> float:
     # The axis in the (x, z) plane at angle theta from the normal +z; omega around it.
     cosine = mu * math.cos(theta) + sin_mu * torch.cos(phi) * math.sin(theta)
     return float(cosine.clamp_min(0.0).mean()) * 2.0 * math.pi * (1.0 - cos_alpha)
-
-
-def monte_carlo(light: Light, points: torch.Tensor, normals: torch.Tensor, num_samples: int):
-    """(mean, standard error) (N,) of sum cos+ / pdf over the sphere's cap samples."""
-    u = torch.rand(points.shape[0], num_samples, 2, generator=torch.Generator().manual_seed(3), dtype=points.dtype)
-    sample = sample_light(light, points, u)
-    estimate = (
-        torch.isfinite(sample.distance)
-        * dot(sample.direction, normals.unsqueeze(1)).clamp_min(0.0)
-        * sample.inverse_pdf()
-    )
-    return estimate.mean(1), estimate.std(1) / math.sqrt(num_samples)
 
 
 def test_a_cap_above_the_horizon_is_pi_sin2_alpha_cos_theta():

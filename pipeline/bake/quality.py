@@ -285,19 +285,7 @@ def bake_for_quality(
         log.warning("bake --quality %g: %s measured %.2f dB at full size after a retry", target_db, point, measured_db)
     target_met = measured_db >= target_db
     reference_spp = round(full_reference.num_paths / (camera.width * camera.height))
-    _record(
-        layer,
-        point,
-        target_db,
-        chosen.psnr_db,
-        measured_db,
-        raw_db,
-        target_met,
-        energy_ratio,
-        reference_spp,
-        (width, height),
-    )
-    return QualityResult(
+    result = QualityResult(
         layer,
         point,
         chosen.psnr_db,
@@ -309,33 +297,24 @@ def bake_for_quality(
         (width, height),
         tuple(candidates),
     )
+    _record(result, target_db)
+    return result
 
 
-def _record(
-    layer: Path,
-    point: dict[str, object],
-    target_db: float,
-    predicted_db: float,
-    measured_db: float,
-    raw_db: float,
-    target_met: bool,
-    energy_ratio: float,
-    reference_spp: int,
-    pilot: tuple[int, int],
-) -> None:
-    """Add the quality parameters to the cache layer."""
+def _record(result: QualityResult, target_db: float) -> None:
+    """Add the quality parameters of `result` to its cache layer."""
     add_parameters(
-        layer,
+        result.layer,
         {
-            "qualityChoice": format_params(point),
+            "qualityChoice": format_params(result.point),
             "qualityTarget": float(target_db),
-            "qualityPredicted": float(predicted_db),
-            "qualityMeasured": float(measured_db),
-            "qualityRawPsnr": float(raw_db),
-            "qualityTargetMet": int(target_met),
-            "qualityEnergyRatio": round(energy_ratio, 4),
-            "qualityReferenceSpp": int(reference_spp),
-            "qualityPilot": f"{pilot[0]}x{pilot[1]}",
+            "qualityPredicted": float(result.predicted_db),
+            "qualityMeasured": float(result.measured_db),
+            "qualityRawPsnr": float(result.raw_db),
+            "qualityTargetMet": int(result.target_met),
+            "qualityEnergyRatio": round(result.energy_ratio, 4),
+            "qualityReferenceSpp": int(result.reference_spp),
+            "qualityPilot": f"{result.pilot[0]}x{result.pilot[1]}",
         },
     )
 

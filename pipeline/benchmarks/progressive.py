@@ -24,7 +24,6 @@ import dataclasses
 import math
 import os
 import statistics
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -35,6 +34,7 @@ import torch
 from pipeline.bake.direct.bake import bake_direct
 from pipeline.bake.methods import bake_method
 from pipeline.bake.shot import DEFAULT_TARGET_DB, bake_shot
+from pipeline.benchmarks import run_in_work
 from pipeline.benchmarks.bench.measure import machine_description, moved
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
@@ -208,10 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    if args.work is None:
-        with tempfile.TemporaryDirectory() as work:
-            return _run(args, Path(work))
-    return _run(args, args.work)
+    return run_in_work(args.work, lambda work: _run(args, work))
 
 
 def _cached(path: Path, make: Callable[[], Path]) -> Path:

@@ -18,7 +18,6 @@ import argparse
 import csv
 import dataclasses
 import datetime
-import tempfile
 import time
 from pathlib import Path
 
@@ -27,6 +26,7 @@ import numpy as np
 from pipeline.bake.adapter import cache_bytes
 from pipeline.bake.methods import bake_method
 from pipeline.bake.shot import DEFAULT_TARGET_DB, bake_shot
+from pipeline.benchmarks import run_in_work
 from pipeline.benchmarks.bench.measure import machine_description, moved
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
@@ -165,10 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    if args.work is None:
-        with tempfile.TemporaryDirectory() as work:
-            return _run(args, Path(work))
-    return _run(args, args.work)
+    return run_in_work(args.work, lambda work: _run(args, work))
 
 
 def _run(args: argparse.Namespace, work: Path) -> int:
