@@ -60,7 +60,10 @@ def displayed(page) -> np.ndarray:
 
 
 def wait_for_version_after(page, version: int) -> int:
-    page.wait_for_function(f"window.relight.displayedVersion > {version}", timeout=WAIT_MS)
+    """Wait until the page shows the final (converged) frame of a version after `version`."""
+    page.wait_for_function(
+        f"window.relight.displayedVersion > {version} && window.relight.displayedFinal", timeout=WAIT_MS
+    )
     return int(page.evaluate("window.relight.displayedVersion"))
 
 
@@ -81,7 +84,9 @@ def test_slider_drag_changes_the_displayed_frame(served):
     for step in range(1, 6):  # a drag towards the right end: brighter
         page.mouse.move(box["x"] + box["width"] * (0.3 + 0.12 * step), box["y"] + box["height"] / 2)
     page.mouse.up()
-    page.wait_for_function(f"window.relight.displayedVersion >= {session.version}", timeout=WAIT_MS)
+    page.wait_for_function(
+        f"window.relight.displayedVersion >= {session.version} && window.relight.displayedFinal", timeout=WAIT_MS
+    )
     assert page.evaluate("window.relight.displayedVersion") > version
     after = displayed(page)
     assert after.sum() > before.sum()
@@ -114,7 +119,7 @@ def test_save_writes_a_layer_that_renders_the_last_frame(served, layer, tmp_path
     number = page.locator('#attributes [data-attribute="inputs:exposure"] input[type=number]')
     number.fill("1.5")
     number.dispatch_event("change")
-    page.wait_for_function(f"window.relight.displayedVersion > {version}", timeout=WAIT_MS)
+    wait_for_version_after(page, version)
     page.fill("#save-path", "from_page.usda")
     page.click("#save")
     page.wait_for_function("document.getElementById('saved').textContent.includes('SphereLight')", timeout=WAIT_MS)
