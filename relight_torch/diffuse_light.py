@@ -3,7 +3,7 @@
 Shared by the transfer method (its gather cloud, g_d) and the clustered-gather method (D(g) of
 the clustered-gather paper's equations 2 and 3), through the same light kernels and visibility as the view samples,
 and the same UsdLux linking: a light's light link masks the points of the objects it does not
-light (as `Relighter._mask` does for view samples), and its shadow link picks the occluders its
+light (as `Relighter.light_mask` does for view samples), and its shadow link picks the occluders its
 shadow rays see (`visibility.occluder_distance` honours `Light.shadow_link`).
 """
 

@@ -280,21 +280,20 @@ class Session:
 
     def undo(self) -> int:
         """Go back one step. Raises RelightError when there is none."""
-        with self._lock:
-            if not self._undo:
-                raise RelightError("nothing to undo")
-            self._redo.append(self._rig)
-            self._gesture = None
-            return self._set(self._undo.pop())
+        return self._step(self._undo, self._redo, "undo")
 
     def redo(self) -> int:
         """Go forward one undone step. Raises RelightError when there is none."""
+        return self._step(self._redo, self._undo, "redo")
+
+    def _step(self, source: list[Rig], target: list[Rig], name: str) -> int:
+        """Make the last rig of `source` current, the current one going to `target`."""
         with self._lock:
-            if not self._redo:
-                raise RelightError("nothing to redo")
-            self._undo.append(self._rig)
+            if not source:
+                raise RelightError(f"nothing to {name}")
+            target.append(self._rig)
             self._gesture = None
-            return self._set(self._redo.pop())
+            return self._set(source.pop())
 
     # --- layers --------------------------------------------------------------------------------
 

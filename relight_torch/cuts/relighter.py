@@ -362,7 +362,7 @@ class CutsRelighter:
         box-filtered, camera exposure applied."""
         if self._samples is None:
             self._samples = self.cut_samples(self._cut_lights(), emission=True, keep=True)
-        return self.direct._to_image(self._samples)
+        return self.direct.to_image(self._samples)
 
     def indirect_image(self) -> torch.Tensor:
         """(H, W, 3) indirect light alone (indirect mode; zero in env mode), exposure applied."""
@@ -382,14 +382,14 @@ class CutsRelighter:
             for group, image in direct.items():
                 lights = [light for light in self.direct.lights if light_group(light) == group]
                 images[f"{group}_direct"] = image
-                images[f"{group}_indirect"] = self.direct._to_image(self.cut_samples(lights))
+                images[f"{group}_indirect"] = self.direct.to_image(self.cut_samples(lights))
             return images
         images = dict(direct)
         groups: dict[str, list[Light]] = {}
         for light in self._domes.values():
             groups.setdefault(light_group(light), []).append(light)
         for group, lights in groups.items():
-            image = self.direct._to_image(self.cut_samples(lights))
+            image = self.direct.to_image(self.cut_samples(lights))
             images[group] = images[group] + image if group in images else image
         return images
 
@@ -397,7 +397,7 @@ class CutsRelighter:
         """(H, W, 3) the surfaces' own emission (indirect mode: also seen through one bounce)."""
         if self.mode == "env":
             return self.direct.emission_image()
-        return self.direct.emission_image() + self.direct._to_image(self.cut_samples([], emission=True))
+        return self.direct.emission_image() + self.direct.to_image(self.cut_samples([], emission=True))
 
     def _cut_lights(self) -> list[Light]:
         return list(self._domes.values()) if self.mode == "env" else self.direct.lights

@@ -59,7 +59,7 @@ from relight_torch.levels import Level, build_level
 from relight_torch.light_samples import adaptive_sample_count, angular_radius, fixed_light_samples
 from relight_torch.lights.emission import is_delta_light, light_radiance_scale, sample_light, validate_light
 from relight_torch.lights.geometry import LightFrame
-from relight_torch.lights.light import Light, LightKind, lights_equal
+from relight_torch.lights.light import Light, LightKind, light_snapshot, lights_equal
 from relight_torch.lights.linking import decode_paths, linked_points
 from relight_torch.lights.ratio import closed_form, has_closed_form, ratio_of
 from relight_torch.lights.shadow import shadow_factor, shadow_strength
@@ -204,14 +204,8 @@ def _reorder(values: torch.Tensor | None, order: torch.Tensor) -> torch.Tensor |
 
 
 def _key(light: Light, names: tuple[str, ...]) -> tuple[object, ...]:
-    """A hashable snapshot of some fields of a light (arrays by content)."""
-    values: list[object] = []
-    for name in names:
-        value = getattr(light, name)
-        if isinstance(value, np.ndarray):
-            value = (value.shape, value.tobytes())
-        values.append(value)
-    return tuple(values)
+    """A hashable snapshot of some fields of a light (arrays by content, `light_snapshot`)."""
+    return tuple(light_snapshot(getattr(light, name)) for name in names)
 
 
 def _geometry_fields() -> tuple[str, ...]:
@@ -583,11 +577,11 @@ class Relighter:
 
     def render(self) -> torch.Tensor:
         """(H, W, 3) linear image: sub-samples shaded, box-filtered, camera exposure applied."""
-        return self._to_image(self.render_samples())
+        return self.to_image(self.render_samples())
 
     def light_image(self, path: str) -> torch.Tensor:
         """(H, W, 3) image of one light alone (for AOVs and tests)."""
-        return self._to_image(self._add_light(torch.zeros_like(self.gbuffer.position), self._lights[path]))
+        return self.to_image(self._add_light(torch.zeros_like(self.gbuffer.position), self._lights[path]))
 
     def light_group_images(self) -> dict[str, torch.Tensor]:
         """Light group (`light_group`) -> (H, W, 3) image of its lights, in the order groups first appear.
@@ -600,11 +594,11 @@ class Relighter:
             if group not in totals:
                 totals[group] = torch.zeros_like(self.gbuffer.position)
             self._add_light(totals[group], state)
-        return {group: self._to_image(total) for group, total in totals.items()}
+        return {group: self.to_image(total) for group, total in totals.items()}
 
     def emission_image(self) -> torch.Tensor:
         """(H, W, 3) the surfaces' own emission (UsdPreviewSurface emissiveColor), no light's."""
-        return self._to_image(self.gbuffer.params.emissive_color)
+        return self.to_image(self.gbuffer.params.emissive_color)
 
     def scene_diagonal(self) -> float:
         """`protocol.GradientRelighter.scene_diagonal` (1 for an image that covers nothing)."""
@@ -624,18 +618,6 @@ class Relighter:
         return gradients.light_image(self, light, pose, frozen)
 
     def to_image(self, values: torch.Tensor) -> torch.Tensor:
-        """Sub-sample values (N, 3) to the (H, W, 3) image (`_to_image`; differentiable)."""
-        return self._to_image(values)
-
-    def light_mask(self, light: Light) -> torch.Tensor | None:
-        """(N, 1) the light's light-link mask, None when it links every object (`_mask`)."""
-        return self._mask(light)
-
-    def fixed_samples(self, num_samples: int) -> torch.Tensor:
-        """(N, S, 2) the fixed light-sample numbers of every point for S samples (`light_samples`)."""
-        return self._fixed_u(num_samples)
-
-    def _to_image(self, values: torch.Tensor) -> torch.Tensor:
         """Sub-sample values (N, 3) to the (H, W, 3) image: scattered, box-filtered, exposed."""
         height, width = self.gbuffer.image_size
         image = values.reshape(height, width, 3) if self._dense else self.gbuffer.scatter(values)
@@ -809,7 +791,7 @@ class Relighter:
             torch.as_tensor(scale * lobe, device=values.device, dtype=values.dtype)
             for lobe in (light.diffuse, light.specular)
         )
-        mask = self._mask(light)
+        mask = self.light_mask(light)
         if mask is not None:
             diffuse_scale, specular_scale = diffuse_scale * _take(mask, points), specular_scale * _take(mask, points)
         values.addcmul_(unit[1], specular_scale)
@@ -835,7 +817,7 @@ class Relighter:
                 self._add_light(samples, state)
             if only_active:
                 self._others = samples
-        self._static = (key, self._to_image(samples))
+        self._static = (key, self.to_image(samples))
         return self._static[1]
 
     def _add_light(self, total: torch.Tensor, state: _LightState, in_place: bool = True) -> torch.Tensor:
@@ -849,7 +831,7 @@ class Relighter:
             torch.as_tensor(scale * lobe, device=total.device, dtype=total.dtype)
             for lobe in (light.diffuse, light.specular)
         )
-        mask = self._mask(light)
+        mask = self.light_mask(light)
         if mask is not None:
             diffuse_scale, specular_scale = diffuse_scale * mask, specular_scale * mask
         # Without a mask the (3,) scales broadcast along rows of 3: read (N, 3) as rows of k
@@ -865,7 +847,7 @@ class Relighter:
 
     # -- per-light stages -----------------------------------------------------------------------
 
-    def _mask(self, light: Light) -> torch.Tensor | None:
+    def light_mask(self, light: Light) -> torch.Tensor | None:
         """(N, 1) 1 where the light's light link includes the sample's object, 0 elsewhere; None
         when it links every object. Cached per distinct link."""
         link = light.light_link
@@ -920,7 +902,8 @@ class Relighter:
             np.radians(settings.full_sampling_angle),
         )
 
-    def _fixed_u(self, num_samples: int) -> torch.Tensor:
+    def fixed_samples(self, num_samples: int) -> torch.Tensor:
+        """(N, S, 2) the fixed light-sample numbers of every point for S samples, made once per S."""
         if num_samples not in self._u:
             g = self.gbuffer
             self._u[num_samples] = fixed_light_samples(
@@ -939,7 +922,7 @@ class Relighter:
         threads = tile_threads(self.gbuffer.device, self.visibility.thread_safe)
         for points, num_samples in self._sample_groups(light):
             chunks = self._chunks(num_samples, points, threads)
-            u, viewer = self._fixed_u(num_samples), self._view_directions()  # made here, shared by the tiles
+            u, viewer = self.fixed_samples(num_samples), self._view_directions()  # made here, shared by the tiles
             shade = functools.partial(self._chunk_transport, light, u=u, viewer=viewer)
             parts = parallel_map(shade, chunks, threads)
             state.transports.append(parts[0] if len(parts) == 1 else self._joined(parts, chunks))
@@ -1251,7 +1234,7 @@ class Relighter:
                 if points.numel() == 0:
                     continue
             chunks = self._chunks(num_samples, points, threads)
-            u, viewer = self._fixed_u(num_samples), self._view_directions()
+            u, viewer = self.fixed_samples(num_samples), self._view_directions()
 
             def tile(
                 chunk: slice | torch.Tensor,

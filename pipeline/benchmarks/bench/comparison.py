@@ -1,7 +1,7 @@
 """What a user would compare a relighting method with: re-rendering with the reference path tracer.
 
-The path tracer's error falls as 1/spp. Against the bench's reference (N spp, random seed 0), a render
-of s spp (another random seed, independent noise) has
+The path tracer's error falls as 1/spp. Against the bench's reference (N spp, its generator seeded with zero), a
+render of s spp (seeded otherwise, so its noise is independent) has
 
     MSE(s) = a (1/s + 1/N)
 
@@ -37,7 +37,7 @@ from pipeline.benchmarks.rows import NAN, SweepRow
 from relight_torch.metrics import psnr, psnr_from_mse
 
 CURVE_SEED = 1
-"""Random seed of the low-spp renders (the reference uses random seed 0: their noise must be independent)."""
+"""Seed of the low-spp renders' generator (the reference's is seeded with zero: their noise must be independent)."""
 
 
 @dataclass(frozen=True)
