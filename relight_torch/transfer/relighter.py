@@ -109,6 +109,11 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
             index_add_) cost 30-80x more per entry there, more than any culling saved (docs/TRANSFER.md).
     """
 
+    progressive = True  # `pending` and `refine` (`CacheRelighter`)
+    # `relight solve` differentiates the direct light and the gathers' direct light, which the
+    # transport carries linearly (`protocol.GradientRelighter`).
+    gradient_kinds = frozenset(gradients.GEOMETRY_KINDS)
+
     def __init__(
         self,
         direct: Relighter,
@@ -149,12 +154,6 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         self._column_norms = column_norms(final_gather) if cull_tolerance > 0 else None
         self.counters: collections.Counter[str] = collections.Counter()
         self._emission_indirect: torch.Tensor | None = None
-
-    progressive = True
-
-    # `relight solve` differentiates the direct light and the gathers' direct light, which the
-    # transport carries linearly (`protocol.GradientRelighter`).
-    gradient_kinds = frozenset(gradients.GEOMETRY_KINDS)
 
     def scene_diagonal(self) -> float:
         """`protocol.GradientRelighter.scene_diagonal`: the direct relighter's."""
