@@ -50,7 +50,7 @@ def add_parser(subparsers) -> None:
         "--iterations",
         type=int,
         default=defaults.iterations,
-        help=f"gradient steps at most (default {defaults.iterations})",
+        help=f"evaluations of the loss at most (default {defaults.iterations})",
     )
     parser.add_argument(
         "--regularisation",

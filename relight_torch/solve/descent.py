@@ -7,22 +7,27 @@ The frame is modelled as
 with `rest` and the unit images U_i of lights whose geometry is fixed taken from the relighter
 (`linear.unit_images`), U_i of lights whose geometry is free from the differentiable direct
 relighter: each step takes their value from the relighter at the current parameters and their
-gradient from the relighter's differentiable twin (`protocol.GradientRelighter`, built on
+derivatives from the relighter's differentiable twin (`protocol.GradientRelighter`, built on
 `relight_torch.direct.gradients`: visibility traced at the current parameters and held fixed
-through the gradient), and s_i the emission factor: the closed-form start times a free non-negative
-multiple (per channel when colours are free) times blackbody(T) / blackbody(T_0).
+through the derivative), and s_i the emission factor: the closed-form start times a free
+non-negative multiple (per channel when colours are free) times blackbody(T) / blackbody(T_0).
 
-Adam (Kingma & Ba 2015) runs on normalised unknowns z, so one learning rate fits all: position
-offsets in units of the scene's diagonal (the G-buffer's bounding box), rotations in radians,
-sizes as log(size / size_0), cone angle in units of 90 degrees, softness and focus as they are,
-temperature in units of 1000 K, emission multiples as (multiple - 1). Limits are kept by
-reparametrisation (sizes: the log) or by projection after each step (emission multiples >= 0,
-cone angle in [0.5, 180] degrees, softness in [0, 1], focus >= 0, temperature in
-`rig.TEMPERATURE_RANGE`). A step that raises the loss (the relighter's, with the visibility of
-where the step landed) is refused and the step size halved, then grown back toward its schedule
-by 1.5x per accepted step, so the descent is monotone in the true loss even where the frozen
-visibility misleads a gradient (the Cornell box's ceiling light, 1 mm under the ceiling, is
-pushed up by it while its x and z are wrong). The loss is the mask-weighted squared error over
+The unknowns are few (a handful per light) and the residual is a whole image, so the solve is a
+damped Gauss-Newton one, Levenberg-Marquardt (Levenberg 1944, Marquardt 1963): each step takes
+the Jacobian of the weighted residual, one forward-mode derivative of the frame per unknown
+(`torch.autograd.forward_ad`), and solves (J^T J + lambda diag(J^T J)) d = -J^T r. Unlike a
+first-order method with one step size it scales each unknown by its own curvature: a narrow spot
+light whose pool moves off a glossy floor within a few millimetres and a broad key light that
+needs tens of centimetres take the steps each needs. The unknowns are normalised: position offsets
+in units of the scene's diagonal (the G-buffer's bounding box), rotations in radians, sizes as
+log(size / size_0), cone angle in units of 90 degrees, softness and focus as they are, temperature
+in units of 1000 K, emission multiples as (multiple - 1). Limits are kept by reparametrisation
+(sizes: the log) or by projection after each step (emission multiples >= 0, cone angle in
+[0.5, 180] degrees, softness in [0, 1], focus >= 0, temperature in `rig.TEMPERATURE_RANGE`). A step
+is taken only if it lowers the loss measured by the relighter with the visibility of where the step
+lands, and lambda grows until one does, so the solve is monotone in the true loss even where the
+frozen visibility misleads a derivative (the Cornell box's ceiling light, 1 mm under the ceiling,
+is pushed up by it while its x and z are wrong). The loss is the mask-weighted squared error over
 the target's weighted energy plus `regularisation` x |z|^2, a pull toward the starting rig that
 keeps lights the target says nothing about where they were.
 """
@@ -37,6 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.autograd.forward_ad as forward_ad
 
 from relight_torch.direct import gradients
 from relight_torch.direct.gradients import LightPose, applies
@@ -55,22 +61,20 @@ class DescentSettings:
     """The gradient solve's settings.
 
     Attributes:
-        iterations: Adam steps at most.
-        learning_rate: the first step size, in normalised units (module doc); it decays
-            geometrically to `final_learning_rate` over `iterations`, and halves at each refused
-            step (one that raised the loss).
-        final_learning_rate: the last step size.
+        iterations: evaluations of the loss at most (each a relighter render of the moving lights
+            and, for an accepted step, one Jacobian).
+        damping: the first Levenberg-Marquardt lambda, relative to the diagonal of J^T J; divided by 3
+            after an accepted step, multiplied by 4 after a refused one.
         regularisation: weight of the pull |z|^2 toward the starting rig against the relative
             squared error (1e-4: a 10 % move costs 1e-4 x 1, far below the error it explains).
         gradient_samples: light samples per shading point of the differentiable images (delta
             lights take one).
-        tolerance: stop once the loss fell by less than this fraction over the last 20 accepted
-            steps, or when refused steps have cut the step size below 1/1000 of the final one.
+        tolerance: stop once an accepted step lowers the loss by less than this fraction, or when
+            lambda passes 1e10 (no step lowers it).
     """
 
-    iterations: int = 200
-    learning_rate: float = 0.03
-    final_learning_rate: float = 0.002
+    iterations: int = 60
+    damping: float = 1e-3
     regularisation: float = 1e-4
     gradient_samples: int = 4
     tolerance: float = 1e-5
@@ -78,6 +82,9 @@ class DescentSettings:
 
 SHAPING_UNITS = (90.0, 1.0, 1.0)
 """The units of the shaping unknowns: cone angle (degrees), softness, focus."""
+
+_UNKNOWN_FIELDS = ("multiple", "temperature", "position", "rotation", "size", "shaping")
+_GEOMETRY_FIELDS = frozenset(("position", "rotation", "size", "shaping"))
 
 
 @dataclass
@@ -95,12 +102,15 @@ class _Unknowns:
     shaping: torch.Tensor | None = None
     visibility: object | None = None  # the relighter's `freeze_light` at the current pose
 
+    def fields(self) -> list[str]:
+        """The names of the unknowns that are free, in a fixed order."""
+        return [name for name in _UNKNOWN_FIELDS if getattr(self, name) is not None]
+
     def tensors(self) -> list[torch.Tensor]:
-        values = (self.multiple, self.temperature, self.position, self.rotation, self.size, self.shaping)
-        return [t for t in values if t is not None]
+        return [getattr(self, name) for name in self.fields()]
 
     def current_pose(self, diagonal: float) -> LightPose:
-        """The pose the unknowns stand for (tensors in the graph)."""
+        """The pose the unknowns stand for."""
         start = self.pose
         assert start is not None, "only a light with free geometry has a pose"
         return LightPose(
@@ -114,18 +124,17 @@ class _Unknowns:
 
     def project(self) -> None:
         """Keep the limits (module doc) after a step."""
-        with torch.no_grad():
-            if self.multiple is not None:
-                self.multiple.clamp_(min=-1.0)
-            if self.temperature is not None:
-                kelvin = self.light.color_temperature
-                low, high = ((bound - kelvin) / 1000.0 for bound in TEMPERATURE_RANGE)
-                self.temperature.clamp_(low, high)
-            if self.shaping is not None and self.pose is not None and self.pose.shaping is not None:
-                units = self.pose.shaping.new_tensor(SHAPING_UNITS)
-                values = self.pose.shaping + self.shaping * units
-                values = torch.stack((values[0].clamp(0.5, 180.0), values[1].clamp(0.0, 1.0), values[2].clamp_min(0.0)))
-                self.shaping.copy_((values - self.pose.shaping) / units)
+        if self.multiple is not None:
+            self.multiple.clamp_(min=-1.0)
+        if self.temperature is not None:
+            kelvin = self.light.color_temperature
+            low, high = ((bound - kelvin) / 1000.0 for bound in TEMPERATURE_RANGE)
+            self.temperature.clamp_(low, high)
+        if self.shaping is not None and self.pose is not None and self.pose.shaping is not None:
+            units = self.pose.shaping.new_tensor(SHAPING_UNITS)
+            values = self.pose.shaping + self.shaping * units
+            values = torch.stack((values[0].clamp(0.5, 180.0), values[1].clamp(0.0, 1.0), values[2].clamp_min(0.0)))
+            self.shaping.copy_((values - self.pose.shaping) / units)
 
 
 @dataclass(frozen=True)
@@ -139,6 +148,20 @@ class DescentResult:
     seconds: float
 
 
+@dataclass(frozen=True)
+class _Problem:
+    """What every evaluation of the model shares (`descend`'s arguments, in float64)."""
+
+    relighter: CacheRelighter
+    rest: torch.Tensor  # (H, W, 3)
+    images: torch.Tensor  # (L, H, W, 3)
+    target: torch.Tensor  # (H, W, 3)
+    root_weights: torch.Tensor  # (H, W, 1) sqrt(weight / target energy)
+    starts: list[torch.Tensor]  # (3,) each light's emission factor at the start, no blackbody
+    diagonal: float
+    samples: int
+
+
 def descend(
     relighter: CacheRelighter,
     lights: Sequence[Light],
@@ -150,7 +173,7 @@ def descend(
     settings: DescentSettings = DescentSettings(),
     progress: Progress | None = None,
 ) -> DescentResult:
-    """Solve the free kinds of `lights` by Adam through the relighter (module doc).
+    """Solve the free kinds of `lights` by Levenberg-Marquardt through the relighter (module doc).
 
     Args:
         relighter: the relighter; a geometry kind needs its `gradient_kinds` (checked by the caller).
@@ -158,78 +181,133 @@ def descend(
         rest: (H, W, 3) the frame without the solved lights; images: (L, H, W, 3) their unit images.
         target: (H, W, 3) linear target; weights: (H, W) non-negative pixel weights.
         free: the free kinds.
-        progress: called with (step, iterations) after each step.
+        progress: called with (evaluation, iterations) after each evaluation of the loss.
     """
     start_time = time.perf_counter()
     dtype = torch.float64
-    rest, images, target = rest.to(dtype), images.to(dtype), target.to(dtype)
-    weights = weights.to(dtype).unsqueeze(-1)
-    energy = float((weights * target.square()).sum()) or 1.0
-    diagonal = _scene_diagonal(relighter)
     device = rest.device
+    target = target.to(dtype)
+    energy = float((weights.to(dtype) * target.square().sum(-1)).sum()) or 1.0
+    problem = _Problem(
+        relighter,
+        rest.to(dtype),
+        images.to(dtype),
+        target,
+        torch.sqrt(weights.to(dtype) / energy).unsqueeze(-1),
+        [torch.as_tensor(_factor(light), dtype=dtype, device=device) for light in lights],
+        _scene_diagonal(relighter),
+        settings.gradient_samples,
+    )
     unknowns = [_unknowns(light, free, dtype, device) for light in lights]
-    parameters = [t for u in unknowns for t in u.tensors()]
-    if not parameters:
+    if not any(u.tensors() for u in unknowns):
         return DescentResult(list(lights), math.nan, math.nan, 0, 0.0)
-    optimiser = torch.optim.Adam(parameters, lr=settings.learning_rate)
-    decay = (settings.final_learning_rate / settings.learning_rate) ** (1.0 / max(settings.iterations, 1))
-    starts = [torch.as_tensor(_factor(light), dtype=dtype, device=device) for light in lights]
-    rate, best, kept = settings.learning_rate, math.inf, [t.detach().clone() for t in parameters]
-    history: list[float] = []
-    step = 0
-    for step in range(1, settings.iterations + 1):
-        # The moving lights' images at the current unknowns, from the relighter itself (the loss's
-        # value is the relighter's), and their differentiable twins at frozen visibility (its gradient).
-        exact = _moving_images(relighter, unknowns, diagonal, settings.gradient_samples)
-        optimiser.zero_grad()
-        frame = rest
-        for index, (u, start) in enumerate(zip(unknowns, starts, strict=True)):
-            image = images[index]
-            if u.visibility is not None:
-                assert isinstance(relighter, GradientRelighter)
-                twin = relighter.differentiable_light_image(u.light, u.current_pose(diagonal), u.visibility).to(dtype)
-                image = exact[u.light.path].to(dtype) + (twin - twin.detach())
-            frame = frame + _scale(u, start) * image
-        data = (weights * (frame - target).square()).sum() / energy
-        pull = sum((t.square().sum() for t in parameters), torch.zeros((), dtype=dtype))
-        loss = data + settings.regularisation * pull
-        value = float(loss.detach())
-        if progress is not None:
-            progress(step, settings.iterations)
-        if value > best:
-            # The step made things worse, through what the frozen visibility could not see (a light
-            # moved behind an occluder) or a step too long: back to the kept unknowns, half the step.
-            _restore(parameters, kept)
-            rate *= 0.5
-            _set_rate(optimiser, rate)
-            if rate < 1e-3 * settings.final_learning_rate:
+    loss, exact = _evaluate(problem, unknowns, settings.regularisation)
+    history, damping, evaluations = [loss], settings.damping, 1
+    while evaluations < settings.iterations and damping < 1e10:
+        residual, jacobian = _linearised(problem, unknowns, exact)
+        z = torch.cat([t.reshape(-1) for u in unknowns for t in u.tensors()])
+        normal = jacobian.T @ jacobian + settings.regularisation * torch.eye(z.shape[0], dtype=dtype, device=device)
+        gradient = jacobian.T @ residual + settings.regularisation * z
+        kept = [t.clone() for u in unknowns for t in u.tensors()]
+        while evaluations < settings.iterations and damping < 1e10:
+            damped = normal + damping * torch.diag(torch.diagonal(normal).clamp_min(1e-12))
+            # Least squares rather than a solve: an unknown the target cannot see has a zero column.
+            _assign(unknowns, z - torch.linalg.lstsq(damped, gradient.unsqueeze(1)).solution.squeeze(1))
+            tried, tried_exact = _evaluate(problem, unknowns, settings.regularisation)
+            evaluations += 1
+            if progress is not None:
+                progress(evaluations, settings.iterations)
+            if tried < loss:
+                damping = max(damping / 3.0, 1e-9)
                 break
-            continue
-        best, kept = value, [t.detach().clone() for t in parameters]
-        history.append(value)
-        if len(history) > 20 and history[-21] - history[-1] < settings.tolerance * history[-21]:
+            # Worse, through what the frozen visibility could not see (a light moved behind an
+            # occluder) or a step past where the linear model holds: back, and a shorter step.
+            _restore(unknowns, kept)
+            damping *= 4.0
+        else:
             break
-        loss.backward()
-        optimiser.step()
-        for u in unknowns:
-            u.project()
-        # Back toward the schedule after refused steps: one wall met need not slow every later step.
-        rate = min(rate * 1.5, settings.learning_rate * decay**step)
-        _set_rate(optimiser, rate)
-    _restore(parameters, kept)  # the last step taken was never evaluated, or was refused
-    solved = [_solved_light(u, start, diagonal, free) for u, start in zip(unknowns, starts, strict=True)]
-    return DescentResult(solved, history[0], history[-1], step, time.perf_counter() - start_time)
+        improvement = (loss - tried) / loss
+        loss, exact = tried, tried_exact
+        history.append(loss)
+        if improvement < settings.tolerance:
+            break
+    solved = [
+        _solved_light(u, start, problem.diagonal, free) for u, start in zip(unknowns, problem.starts, strict=True)
+    ]
+    return DescentResult(solved, history[0], history[-1], len(history) - 1, time.perf_counter() - start_time)
 
 
-def _restore(parameters: list[torch.Tensor], values: list[torch.Tensor]) -> None:
+def _evaluate(
+    problem: _Problem, unknowns: list[_Unknowns], regularisation: float
+) -> tuple[float, dict[str, torch.Tensor]]:
+    """The loss at the unknowns' values (the relighter's images of the moving lights there, their
+    visibility frozen there for the next Jacobian) and those images."""
+    exact = _moving_images(problem.relighter, unknowns, problem.diagonal, problem.samples)
     with torch.no_grad():
-        for parameter, value in zip(parameters, values, strict=True):
-            parameter.copy_(value)
+        residual = problem.root_weights * (_frame(problem, unknowns, exact, None) - problem.target)
+        pull = sum((t.square().sum() for u in unknowns for t in u.tensors()), torch.zeros((), dtype=residual.dtype))
+        return float(residual.square().sum() + regularisation * pull), exact
 
 
-def _set_rate(optimiser: torch.optim.Optimizer, rate: float) -> None:
-    for group in optimiser.param_groups:
-        group["lr"] = rate
+def _linearised(
+    problem: _Problem, unknowns: list[_Unknowns], exact: dict[str, torch.Tensor]
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(M,) the weighted residual and (M, n) its Jacobian in the n unknowns (flattened in
+    `_Unknowns.fields` order, light by light), one forward-mode derivative per unknown."""
+    with torch.no_grad():
+        residual = problem.root_weights * (_frame(problem, unknowns, exact, None) - problem.target)
+    columns = []
+    for index, u in enumerate(unknowns):
+        for name in u.fields():
+            value = getattr(u, name)
+            twin = index if name in _GEOMETRY_FIELDS else None
+            for element in range(value.numel()):
+                direction = torch.zeros_like(value).reshape(-1)
+                direction[element] = 1.0
+                with forward_ad.dual_level():
+                    dual = forward_ad.make_dual(value, direction.reshape(value.shape))
+                    moved = list(unknowns)
+                    moved[index] = dataclasses.replace(u, **{name: dual})
+                    frame = _frame(problem, moved, exact, twin)
+                    tangent = forward_ad.unpack_dual(frame).tangent
+                columns.append((problem.root_weights * tangent).reshape(-1))
+    return residual.reshape(-1), torch.stack(columns, dim=1)
+
+
+def _frame(
+    problem: _Problem, unknowns: list[_Unknowns], exact: dict[str, torch.Tensor], twin: int | None
+) -> torch.Tensor:
+    """(H, W, 3) the model frame (module doc). The relighter's exact images carry the values; light
+    `twin`'s differentiable image adds its derivative in the pose (value zero: twin - twin)."""
+    frame = problem.rest
+    for index, (u, start) in enumerate(zip(unknowns, problem.starts, strict=True)):
+        image = problem.images[index]
+        if u.visibility is not None:
+            image = exact[u.light.path].to(frame.dtype)
+            if index == twin:
+                relighter = problem.relighter
+                assert isinstance(relighter, GradientRelighter)
+                moved = relighter.differentiable_light_image(u.light, u.current_pose(problem.diagonal), u.visibility)
+                image = image + (moved - moved.detach()).to(frame.dtype)
+        frame = frame + _scale(u, start) * image
+    return frame
+
+
+def _assign(unknowns: list[_Unknowns], z: torch.Tensor) -> None:
+    """Set the unknowns from the flat vector z and keep their limits."""
+    offset = 0
+    for u in unknowns:
+        for t in u.tensors():
+            t.copy_(z[offset : offset + t.numel()].reshape(t.shape))
+            offset += t.numel()
+        u.project()
+
+
+def _restore(unknowns: list[_Unknowns], values: list[torch.Tensor]) -> None:
+    """Set the unknowns (flattened light by light, as `_Unknowns.tensors`) to `values`."""
+    tensors = [t for u in unknowns for t in u.tensors()]
+    for tensor, value in zip(tensors, values, strict=True):
+        tensor.copy_(value)
 
 
 def _unknowns(light: Light, free: Sequence[str], dtype: torch.dtype, device: torch.device) -> _Unknowns:
@@ -237,10 +315,10 @@ def _unknowns(light: Light, free: Sequence[str], dtype: torch.dtype, device: tor
     scale_free = [kind for kind in SCALE_KINDS if kind in free]
     multiple = None
     if scale_free:
-        multiple = torch.zeros(3 if "color" in scale_free else 1, dtype=dtype, device=device, requires_grad=True)
+        multiple = torch.zeros(3 if "color" in scale_free else 1, dtype=dtype, device=device)
     temperature = None
     if "temperature" in free and light.enable_color_temperature:
-        temperature = torch.zeros((), dtype=dtype, device=device, requires_grad=True)
+        temperature = torch.zeros((), dtype=dtype, device=device)
     pose = LightPose.of(light, dtype, device) if kinds else None
     u = _Unknowns(light, pose, kinds, multiple, temperature)
     if pose is not None:
@@ -253,7 +331,7 @@ def _unknowns(light: Light, free: Sequence[str], dtype: torch.dtype, device: tor
         for kind in kinds:
             value = zeros[kind]
             if value is not None:
-                setattr(u, "rotation" if kind == "orientation" else kind, value.requires_grad_(True))
+                setattr(u, "rotation" if kind == "orientation" else kind, value)
     return u
 
 

@@ -57,20 +57,30 @@ def blackbody(temperature: float) -> np.ndarray:
 
 
 class _Blackbody(torch.autograd.Function):
-    """UsdLux's blackbody colour of a 0-d temperature tensor, differentiated by central differences
-    of the same function (1 K steps: its table is smooth on that scale)."""
+    """UsdLux's blackbody colour of a 0-d temperature tensor, differentiated (reverse and forward
+    mode) by central differences of the same function (1 K steps: its table is smooth on that scale)."""
 
     @staticmethod
     def forward(ctx, temperature: torch.Tensor) -> torch.Tensor:
         ctx.save_for_backward(temperature)
+        ctx.save_for_forward(temperature)
         return temperature.new_tensor(blackbody(float(temperature)))
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
         (temperature,) = ctx.saved_tensors
-        kelvin = float(temperature)
-        slope = (blackbody(kelvin + 1.0) - blackbody(kelvin - 1.0)) / 2.0
-        return (grad * grad.new_tensor(slope)).sum()
+        return (grad * _blackbody_slope(temperature)).sum()
+
+    @staticmethod
+    def jvp(ctx, tangent: torch.Tensor) -> torch.Tensor:
+        (temperature,) = ctx.saved_tensors
+        return tangent * _blackbody_slope(temperature)
+
+
+def _blackbody_slope(temperature: torch.Tensor) -> torch.Tensor:
+    """(3,) d blackbody / d kelvin at a 0-d temperature, by central differences."""
+    kelvin = float(temperature)
+    return temperature.new_tensor((blackbody(kelvin + 1.0) - blackbody(kelvin - 1.0)) / 2.0)
 
 
 def blackbody_tensor(temperature: torch.Tensor) -> torch.Tensor:

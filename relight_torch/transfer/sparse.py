@@ -131,18 +131,51 @@ class SparseRows:
         offsets = self.offsets.to(indices.dtype)
 
         def bag(table: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-            return torch.nn.functional.embedding_bag(
-                indices,
-                table.contiguous(),
-                offsets,
-                mode="sum",
-                per_sample_weights=weights.contiguous(),
-                include_last_offset=True,
-            )
+            result: torch.Tensor = _WeightedBag.apply(table.contiguous(), indices, offsets, weights.contiguous())
+            return result
 
         if self.row_colour is not None:
             return bag(dense, self.values[:, 0]) * self.row_colour
         return torch.cat([bag(dense[:, c : c + 1], self.values[:, c]) for c in range(3)], dim=1)
+
+
+def _weighted_bag(
+    table: torch.Tensor, indices: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor
+) -> torch.Tensor:
+    """(R, C) out[r] = sum_k weights[k] table[indices[k]] over row r's entries (`SparseRows` layout)."""
+    return torch.nn.functional.embedding_bag(
+        indices, table, offsets, mode="sum", per_sample_weights=weights, include_last_offset=True
+    )
+
+
+class _WeightedBag(torch.autograd.Function):
+    """`_weighted_bag`, differentiable in the table in reverse and in forward mode: torch's
+    embedding_bag has no forward-mode derivative, which the light solver's Jacobians need
+    (`relight_torch.solve.descent`). The product is linear in the table, so its forward derivative
+    is the product of the table's tangent; the rows' weights are cache data and take no gradient."""
+
+    @staticmethod
+    def forward(ctx, table: torch.Tensor, indices: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor):
+        if weights.requires_grad:
+            raise ValueError("the sparse rows' values take no gradient")
+        ctx.save_for_backward(indices, offsets, weights)
+        ctx.save_for_forward(indices, offsets, weights)
+        ctx.table_rows = table.shape[0]
+        return _weighted_bag(table, indices, offsets, weights)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        indices, offsets, weights = ctx.saved_tensors
+        counts = offsets[1:] - offsets[:-1]
+        rows = torch.repeat_interleave(torch.arange(counts.shape[0], device=grad.device), counts.long())
+        table_grad = grad.new_zeros((ctx.table_rows, grad.shape[1]))
+        table_grad.index_add_(0, indices.long(), grad.index_select(0, rows) * weights.unsqueeze(1))
+        return table_grad, None, None, None
+
+    @staticmethod
+    def jvp(ctx, table_tangent: torch.Tensor, *_: object) -> torch.Tensor:
+        indices, offsets, weights = ctx.saved_tensors
+        return _weighted_bag(table_tangent.contiguous(), indices, offsets, weights)
 
 
 def keep_top_k(coefficients: torch.Tensor, num_kept: int) -> SparseRows:
