@@ -20,6 +20,7 @@ from pipeline import cli
 from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
+from pipeline.serve.session import Session
 from relight_torch.direct.relighter import MEMORY_BUDGET_FRACTION, Relighter, RelightSettings, default_memory_budget
 from relight_torch.io.exr import read_exr
 from test_relighter_cache_counters import SETTINGS, assert_same_image, baked, low_rect, moved, spot  # noqa: F401
@@ -165,6 +166,14 @@ def test_render_memory_budget_option(tmp_path, capsys):
     assert abs(a - b).max() <= 2e-3 * abs(a).max()
     assert cli.main(["render", str(layer), "-o", str(small), "--memory-budget", "-1"]) == 2
     assert "--memory-budget" in capsys.readouterr().err
+    # `relight serve` takes the same option, checked before it listens, and hands it to the relighter.
+    assert cli.main(["serve", str(layer), "--memory-budget", "-1"]) == 2
+    assert "--memory-budget" in capsys.readouterr().err
+    session = Session.open(layer, out_dir=tmp_path, settings=RelightSettings(memory_budget=12345))
+    try:
+        assert session._relighter.memory_budget == 12345
+    finally:
+        session.close()
 
 
 def test_default_budget_is_a_share_of_the_machine(baked):
