@@ -1,15 +1,16 @@
 """Speed and accuracy of moving one light in the direct relighter: the lighting artist's main edit.
 
     python -m pipeline.benchmarks.light_move CACHE [--light PRIM] [--repeats N] [--reference REF.exr]
-        [--area-samples S] [--filtered-samples F] [--filter-radius R] [--profile N]
+        [--area-samples S] [--filtered-samples F] [--filter-radius R] [--profile N] [--threads T]
 
 Opens CACHE with the shot's lights and renders the first frame; with `--reference` (a
 `relight reference --max-bounces 0` render of the same shot, camera and size) prints its PSNR,
 relMSE and energy ratio against it. Then moves one light (`--light`, default the shot's first
 SphereLight) `repeats` times by a few centimetres, each move followed by `render()`, and prints
 the median wall and CPU milliseconds per move. `--profile N` also prints the N functions with the
-most cumulative time over the moves (cProfile). On a shared machine the wall times count other
-people's work; the CPU times do not.
+most cumulative time over the moves (cProfile, which sees the calling thread only: profile with
+`--threads 1`, which runs torch and the relighter's tiles on that thread). On a shared machine the
+wall times count other people's work; the CPU times do not.
 """
 
 from __future__ import annotations
@@ -102,7 +103,10 @@ def main() -> None:
     parser.add_argument("--filtered-samples", type=int, help="RelightSettings.filtered_area_samples")
     parser.add_argument("--filter-radius", type=int, help="RelightSettings.shadow_filter_radius")
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="print the N costliest functions")
+    parser.add_argument("--threads", type=int, metavar="T", help="torch threads (default: torch's own count)")
     args = parser.parse_args()
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
     for name, value in measure(args).items():
         print(f"{name}: {value:.4g}" if isinstance(value, float) else f"{name}: {value}")
 

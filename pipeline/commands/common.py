@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 
+from pipeline.errors import RelightError
+from relight_torch.direct.relighter import MEMORY_BUDGET_FRACTION, RelightSettings
+
 
 def add_camera_options(parser: argparse.ArgumentParser, required: bool = True) -> None:
     """--camera PRIM, --width W, --height H, --time T."""
@@ -37,3 +40,28 @@ def add_device_option(parser: argparse.ArgumentParser) -> None:
         choices=("cpu", "cuda"),
         help="torch device for the relighting kernels (default: cpu)",
     )
+
+
+def add_memory_budget_option(parser: argparse.ArgumentParser) -> None:
+    """--memory-budget GB: `RelightSettings.memory_budget` (read back by `relight_settings`)."""
+    parser.add_argument(
+        "--memory-budget",
+        type=float,
+        metavar="GB",
+        help="memory the relighter's per-light caches may keep, in GB (default: "
+        f"{MEMORY_BUDGET_FRACTION:.3g} of this machine's memory); less keeps fewer lights' "
+        "transports and unit images in half precision",
+    )
+
+
+def relight_settings(args: argparse.Namespace) -> RelightSettings:
+    """The relighter's settings from --memory-budget (GB).
+
+    Raises:
+        RelightError: a negative budget.
+    """
+    if args.memory_budget is None:
+        return RelightSettings()
+    if args.memory_budget < 0:
+        raise RelightError(f"--memory-budget must be >= 0 GB, got {args.memory_budget}")
+    return RelightSettings(memory_budget=int(args.memory_budget * 1e9))

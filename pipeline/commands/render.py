@@ -10,11 +10,10 @@ import numpy as np
 import torch
 
 from pipeline.bake.methods import bake_method, bake_methods
-from pipeline.commands.common import add_device_option, add_lights_option
+from pipeline.commands.common import add_device_option, add_lights_option, add_memory_budget_option, relight_settings
 from pipeline.errors import RelightError
 from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.direct.relighter import MEMORY_BUDGET_FRACTION, RelightSettings
 from relight_torch.io.exr import exr_layer_names, write_rgb_exr
 from relight_torch.io.preview import write_png
 from relight_torch.progressive import DEFAULT_BUDGET_MS, check_progressive, progressive_frames
@@ -41,14 +40,7 @@ def add_parser(subparsers) -> None:
         choices=("embree", "shadowmaps"),
         help="exact Embree shadow rays (CPU) or torch shadow maps (default: embree)",
     )
-    parser.add_argument(
-        "--memory-budget",
-        type=float,
-        metavar="GB",
-        help="memory the relighter's per-light caches may keep, in GB (default: "
-        f"{MEMORY_BUDGET_FRACTION:.3g} of this machine's memory); less keeps fewer lights' "
-        "transports and unit images in half precision",
-    )
+    add_memory_budget_option(parser)
     parser.add_argument(
         "--aov",
         action="append",
@@ -161,19 +153,6 @@ def run_views(args: argparse.Namespace, start: float, render_views) -> int:
     render_views(relighter, args, light_group_layers if "lightgroups" in args.aov else None)
     print(f"{time.perf_counter() - start:.2f} s including load")
     return 0
-
-
-def relight_settings(args: argparse.Namespace) -> RelightSettings:
-    """The relighter's settings from --memory-budget (GB).
-
-    Raises:
-        RelightError: a negative budget.
-    """
-    if args.memory_budget is None:
-        return RelightSettings()
-    if args.memory_budget < 0:
-        raise RelightError(f"--memory-budget must be >= 0 GB, got {args.memory_budget}")
-    return RelightSettings(memory_budget=int(args.memory_budget * 1e9))
 
 
 def light_group_layers(relighter) -> dict[str, np.ndarray]:

@@ -7,7 +7,7 @@ import logging
 import secrets
 from pathlib import Path
 
-from pipeline.commands.common import add_device_option, add_lights_option
+from pipeline.commands.common import add_device_option, add_lights_option, add_memory_budget_option, relight_settings
 from pipeline.errors import RelightError
 
 log = logging.getLogger("relight")
@@ -37,6 +37,7 @@ def add_parser(subparsers) -> None:
         "-o", "--out", default=".", metavar="DIR", help="the folder saved and loaded layers live in (default: .)"
     )
     parser.add_argument("--shadows", default="embree", choices=("embree", "shadowmaps"), help="as for `relight render`")
+    add_memory_budget_option(parser)
     parser.set_defaults(run=run)
 
 
@@ -48,8 +49,9 @@ def run(args: argparse.Namespace) -> int:
 
     if not 0 <= args.port <= 65535:
         raise RelightError(f"--port {args.port}: must be 0..65535")
+    settings = relight_settings(args)
     listener = bind(args.host, args.port)
-    session = Session.open(args.cache, args.lights, args.reference, Path(args.out), args.device, args.shadows)
+    session = Session.open(args.cache, args.lights, args.reference, Path(args.out), args.device, args.shadows, settings)
     token = secrets.token_urlsafe(32)
     # Bound to every interface, the page may be reached by any of the machine's names.
     everywhere = args.host in ("0.0.0.0", "::")

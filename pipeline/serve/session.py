@@ -35,7 +35,7 @@ from pipeline.serve.rig import SWITCHES, Rig, RigLight, silenced
 from relight_torch import open_cache
 from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import load_gbuffer
-from relight_torch.direct.relighter import light_group, shot_lights
+from relight_torch.direct.relighter import RelightSettings, light_group, shot_lights
 from relight_torch.io.exr import read_rgb_exr
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.overrides import light_overrides_text, write_light_overrides
@@ -114,8 +114,9 @@ class Session:
         out_dir: str | os.PathLike[str] = ".",
         device: str = "cpu",
         shadows: str = "embree",
+        settings: RelightSettings = RelightSettings(),
     ) -> Session:
-        """Open a cache for editing.
+        """Open a cache for editing with the relighter's `settings` (its memory budget).
 
         Raises:
             RelightError: the cache cannot be opened, is of a method that needs a view (its camera
@@ -129,7 +130,7 @@ class Session:
             )
         if not Path(out_dir).is_dir():
             raise RelightError(f"--out {out_dir}: not a folder")
-        relighter = open_cache(cache, device=device, shadows=shadows, lights_layer=lights_layer)
+        relighter = open_cache(cache, device=device, shadows=shadows, lights_layer=lights_layer, settings=settings)
         lookup = SurfaceLookup(load_gbuffer(Path(cache), description), description.supersampling)
         image = None
         if reference is not None:
