@@ -15,6 +15,7 @@ from pipeline.commands import scenes as scenes_command
 from pipeline.errors import RelightError
 from pipeline.scene import load_scene
 from pipeline.scenes import (
+    LAYERED_SCENES,
     SCENES,
     cornell_box,
     dome,
@@ -517,11 +518,18 @@ def test_cli_lists_and_writes(tmp_path, capsys):
     assert "scenes" in COMMANDS
     assert _run_scenes_command(["list"]) == 0
     listed = capsys.readouterr().out.splitlines()
-    assert [line.split()[:2] for line in listed] == [[name, scene.camera] for name, scene in SCENES.items()]
+    assert [line.split()[:2] for line in listed] == [[name, scene.camera] for name, scene in SCENES.items()] + [
+        [name, SCENES[layered.base].camera] for name, layered in LAYERED_SCENES.items()
+    ]
     assert _run_scenes_command(["write", str(tmp_path), "--name", "cornell_box"]) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
         ["cornell_box.usda"] + [f"cornell_box.lights.{e.name}.usda" for e in cornell_box.LIGHT_EDITS]
     )
+    capsys.readouterr()
+    assert _run_scenes_command(["write", str(tmp_path / "layered"), "--name", "glossy+dome"]) == 0
+    written = capsys.readouterr().out.splitlines()
+    assert written[0].endswith("glossy.usda --lights " + str(tmp_path / "layered" / "glossy.lights.dome.usda"))
+    assert len(written) == 1 + len(dome.GLOSSY_DOME.light_edits)
     (tmp_path / "a_file").write_text("")
     with pytest.raises(RelightError, match="a_file"):
         _run_scenes_command(["write", str(tmp_path / "a_file")])
