@@ -63,7 +63,7 @@ def sky_texture(height: int = TEXTURE_SIZE[0], width: int = TEXTURE_SIZE[1]) -> 
     return image.astype(np.float32)
 
 
-def _define_dome(stage, intensity: float) -> None:
+def _define_dome(stage: Usd.Stage, intensity: float) -> None:
     """Define /World/Lights/Dome on `stage`: the lat-long sky (DIR/textures/dome_sky.exr) at `intensity`."""
     dome = UsdLux.DomeLight.Define(stage, DOME)
     authoring.set_light(dome.LightAPI(), intensity=intensity)
