@@ -111,8 +111,8 @@ def test_every_edit_kind_is_timed_or_named(glossy_dome):
 def test_a_dome_added_by_a_lights_layer_reaches_the_transfer_caches_indirect_light(tmp_path):
     # The dome is not in the baked shot: its gather light is made at relight time like any light's.
     # Against the path tracer's one-bounce indirect light the transfer keeps ~0.85 of it on the
-    # glossy scene: what metals reflect onto other surfaces (caustics) is not carried by diffuse
-    # gathers; that gap is the same for the shot's own sphere lights.
+    # glossy scene, as for the shot's own sphere lights: the light the metals reflect onto other
+    # surfaces (diffuse gathers do not carry it) and the normal-mapped floor's share are the gap.
     shot = shot_accuracy.shot_of("glossy+dome", tmp_path)
     only_dome = Sdf.Layer.CreateAnonymous(".usda")
     for path in (glossy.KEY, glossy.SPOT):
