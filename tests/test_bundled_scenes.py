@@ -13,7 +13,17 @@ from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, UsdValidation
 from pipeline.cli import COMMANDS
 from pipeline.commands import scenes as scenes_command
 from pipeline.errors import RelightError
-from pipeline.scenes import SCENES, cornell_box, example_light_edits, glossy, write_light_edits
+from pipeline.scene import load_scene
+from pipeline.scenes import (
+    LAYERED_SCENES,
+    SCENES,
+    cornell_box,
+    dome,
+    example_light_edits,
+    glossy,
+    layered_edit_layers,
+    write_light_edits,
+)
 from pipeline.scenes import set as set_scene
 from pipeline.scenes.authoring import aim_rotation_xyz, place
 from pipeline.scenes.colorimetry import (
@@ -24,8 +34,10 @@ from pipeline.scenes.colorimetry import (
     linear_rec709_from_xyz_matrix,
     reflectance_to_linear_rec709,
 )
+from pipeline.scenes.lights import NEW_LIGHT_PATH, new_sphere_layer
 from pipeline.scenes.meshes import MeshData, box, newell_normals, revolve, torus, uv_sphere
 from pipeline.scenes.textures import brick_height, normal_map_from_height
+from relight_torch.lights.light import LightKind
 
 EXPECTED = {
     # name: (metersPerUnit, resolution, {light type: count}, number of materials)
@@ -506,11 +518,64 @@ def test_cli_lists_and_writes(tmp_path, capsys):
     assert "scenes" in COMMANDS
     assert _run_scenes_command(["list"]) == 0
     listed = capsys.readouterr().out.splitlines()
-    assert [line.split()[:2] for line in listed] == [[name, scene.camera] for name, scene in SCENES.items()]
+    assert [line.split()[:2] for line in listed] == [[name, scene.camera] for name, scene in SCENES.items()] + [
+        [name, SCENES[layered.base].camera] for name, layered in LAYERED_SCENES.items()
+    ]
     assert _run_scenes_command(["write", str(tmp_path), "--name", "cornell_box"]) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
         ["cornell_box.usda"] + [f"cornell_box.lights.{e.name}.usda" for e in cornell_box.LIGHT_EDITS]
     )
+    capsys.readouterr()
+    assert _run_scenes_command(["write", str(tmp_path / "layered"), "--name", "glossy+dome"]) == 0
+    written = capsys.readouterr().out.splitlines()
+    assert written[0].endswith("glossy.usda --lights " + str(tmp_path / "layered" / "glossy.lights.dome.usda"))
+    assert len(written) == 1 + len(dome.GLOSSY_DOME.light_edits)
     (tmp_path / "a_file").write_text("")
     with pytest.raises(RelightError, match="a_file"):
         _run_scenes_command(["write", str(tmp_path / "a_file")])
+
+
+# ------------------------------------------------------------------------------- layered scenes
+
+
+def test_glossy_dome_layer_adds_the_dome_and_keeps_the_shots_lights(tmp_path):
+    layers = layered_edit_layers("glossy+dome", tmp_path)
+    assert list(layers) == ["shot", *(edit.name for edit in dome.GLOSSY_DOME.light_edits)]
+    shot = tmp_path / "glossy.usda"
+    lights = {light.path: light for light in load_scene(shot, lights_layer=layers["shot"], width=8, height=6).lights}
+    assert {path: light.kind for path, light in lights.items()} == {
+        glossy.KEY: LightKind.SPHERE,
+        glossy.SPOT: LightKind.SPHERE,
+        dome.DOME: LightKind.DOME,
+    }
+    assert lights[dome.DOME].intensity == pytest.approx(dome.FILL_INTENSITY)
+    np.testing.assert_allclose(lights[dome.DOME].texture, dome.sky_texture(), rtol=1e-3, atol=1e-3)
+    # The layer only adds: the shot's Lights prim keeps its type, the shot's file is glossy's own.
+    composed = Usd.Stage.Open(str(shot))
+    composed.GetRootLayer().subLayerPaths.insert(0, str(layers["shot"]))
+    assert composed.GetPrimAtPath("/World/Lights").GetTypeName() == "Xform"
+    assert shot.read_text() == glossy.write(tmp_path / "plain").read_text()
+
+
+def test_glossy_dome_edits_go_over_its_layer(tmp_path):
+    layers = layered_edit_layers("glossy+dome", tmp_path)
+    shot = tmp_path / "glossy.usda"
+    before = {light.path: light for light in load_scene(shot, lights_layer=layers["shot"], width=8, height=6).lights}
+    after = {light.path: light for light in load_scene(shot, lights_layer=layers["rotate"], width=8, height=6).lights}
+    turn = np.radians(120.0)
+    about_y = np.array([[np.cos(turn), 0, np.sin(turn)], [0, 1, 0], [-np.sin(turn), 0, np.cos(turn)]])
+    np.testing.assert_allclose(after[dome.DOME].world_from_light[:3, :3], about_y, atol=1e-6)
+    np.testing.assert_allclose(before[dome.DOME].world_from_light[:3, :3], np.eye(3), atol=1e-6)
+    np.testing.assert_array_equal(after[glossy.KEY].world_from_light, before[glossy.KEY].world_from_light)
+    moved = {light.path: light for light in load_scene(shot, lights_layer=layers["move"], width=8, height=6).lights}
+    assert dome.DOME in moved and not np.allclose(
+        moved[glossy.KEY].world_from_light, before[glossy.KEY].world_from_light
+    )
+    added = new_sphere_layer(shot, glossy.CAMERA, tmp_path / "new.usda", over=layers["shot"])
+    paths = {light.path for light in load_scene(shot, lights_layer=added, width=8, height=6).lights}
+    assert paths == {glossy.KEY, glossy.SPOT, dome.DOME, NEW_LIGHT_PATH}
+
+
+def test_unknown_layered_scene_is_one_error(tmp_path):
+    with pytest.raises(RelightError, match=r"unknown layered scene 'glossy\+sky'"):
+        layered_edit_layers("glossy+sky", tmp_path)

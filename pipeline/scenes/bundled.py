@@ -48,3 +48,25 @@ class BundledScene:
     description: str
     write: Callable[[Path], Path]
     light_edits: tuple[LightEdit, ...] = field(default=())
+
+
+@dataclass(frozen=True)
+class LayeredScene:
+    """A bundled scene relit through a lights layer that adds lights its shot does not have.
+
+    A cache is baked from the base scene; the layer (and every edit, authored over it) reaches it
+    through `--lights`, as a user adds lights to a baked shot.
+
+    Attributes:
+        name: e.g. 'glossy+dome'.
+        base: the `BundledScene` name the layer goes over.
+        description: one line.
+        write_layer: directory -> path of the lights layer (the base scene written beside it).
+        light_edits: example edits, each authored over the layer (`pipeline.scenes.lights`).
+    """
+
+    name: str
+    base: str
+    description: str
+    write_layer: Callable[[Path], Path]
+    light_edits: tuple[LightEdit, ...] = field(default=())

@@ -11,6 +11,10 @@ texture (DIR/textures/dome_sky.exr, float32 linear RGB, row 0 = zenith):
     window   a warm rectangle low on the opposite side (radiance 4), for a second shadow
 
 Intensity 1 (radiance = texture), camera, materials and geometry are the glossy scene's.
+
+`GLOSSY_DOME` ('glossy+dome') is the same dome added to the glossy shot by a lights layer instead
+(DIR/glossy.lights.dome.usda, `write_lights_layer`): the Key and Spot stay, the dome at half
+intensity fills in; a cache baked from glossy.usda relights it with `--lights`.
 """
 
 from __future__ import annotations
@@ -19,11 +23,11 @@ import math
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Sdf, UsdLux
+from pxr import Gf, Sdf, Usd, UsdLux
 
 from pipeline.scenes import authoring, glossy
-from pipeline.scenes.bundled import BundledScene, LightEdit, LightOverride
-from relight_torch.io.atomic import atomic_path
+from pipeline.scenes.bundled import BundledScene, LayeredScene, LightEdit, LightOverride
+from relight_torch.io.atomic import atomic_path, write_text_atomic
 from relight_torch.io.exr import write_rgb_exr
 
 NAME = "dome"
@@ -32,6 +36,9 @@ TEXTURE = "textures/dome_sky.exr"
 TEXTURE_SIZE = (128, 256)
 SUN_DIRECTION = (0.55, 0.643, 0.533)
 """Unit world direction towards the sun (elevation 40 degrees, in front-right of the camera's view)."""
+LIGHTS_LAYER = f"{glossy.NAME}.lights.dome.usda"
+FILL_INTENSITY = 0.5
+"""The dome's intensity beside the glossy shot's own lights (`write_lights_layer`)."""
 
 
 def sky_texture(height: int = TEXTURE_SIZE[0], width: int = TEXTURE_SIZE[1]) -> np.ndarray:
@@ -56,6 +63,31 @@ def sky_texture(height: int = TEXTURE_SIZE[0], width: int = TEXTURE_SIZE[1]) -> 
     return image.astype(np.float32)
 
 
+def _define_dome(stage: Usd.Stage, intensity: float) -> None:
+    """Define /World/Lights/Dome on `stage`: the lat-long sky (DIR/textures/dome_sky.exr) at `intensity`."""
+    dome = UsdLux.DomeLight.Define(stage, DOME)
+    authoring.set_light(dome.LightAPI(), intensity=intensity)
+    dome.CreateTextureFileAttr(f"./{TEXTURE}")
+    dome.CreateTextureFormatAttr(UsdLux.Tokens.latlong)
+    authoring.place(dome, (0.0, 0.0, 0.0), rotate_xyz=(0.0, 0.0, 0.0))
+
+
+def write_lights_layer(directory: Path) -> Path:
+    """Write DIR/glossy.lights.dome.usda, a lights layer adding the dome to the glossy shot (its
+    Key and Spot kept), with the glossy scene and the sky texture beside it; return the layer's path."""
+    directory = Path(directory)
+    glossy.write(directory)
+    write_rgb_exr(directory / TEXTURE, sky_texture())
+    stage = Usd.Stage.CreateInMemory()
+    stage.GetRootLayer().documentation = f"Lights layer over {glossy.NAME}.usda: {GLOSSY_DOME_DESCRIPTION}."
+    _define_dome(stage, FILL_INTENSITY)
+    for ancestor in (authoring.WORLD, authoring.LIGHTS):  # `over`s: the shot defines them
+        stage.GetPrimAtPath(ancestor).SetSpecifier(Sdf.SpecifierOver)
+    path = directory / LIGHTS_LAYER
+    write_text_atomic(path, stage.GetRootLayer().ExportToString())
+    return path
+
+
 def write(directory: Path) -> Path:
     """Write DIR/dome.usda (and the glossy scene and textures it uses); return the layer's path."""
     directory = Path(directory)
@@ -64,11 +96,7 @@ def write(directory: Path) -> Path:
     stage = authoring.create_stage(0.01, "The glossy scene under a textured dome light (centimetres).")
     for light in (glossy.KEY, glossy.SPOT):
         stage.OverridePrim(light).SetActive(False)
-    dome = UsdLux.DomeLight.Define(stage, DOME)
-    authoring.set_light(dome.LightAPI(), intensity=1.0)
-    dome.CreateTextureFileAttr(f"./{TEXTURE}")
-    dome.CreateTextureFormatAttr(UsdLux.Tokens.latlong)
-    authoring.place(dome, (0.0, 0.0, 0.0), rotate_xyz=(0.0, 0.0, 0.0))
+    _define_dome(stage, 1.0)
     stage.SetMetadata("renderSettingsPrimPath", authoring.RENDER_SETTINGS)
     # The sublayer is added to a detached copy of the layer: an in-memory stage cannot resolve
     # the relative path (USD would warn), the file written beside glossy.usda can.
@@ -82,12 +110,13 @@ def write(directory: Path) -> Path:
     return path
 
 
+ROTATE = LightEdit(
+    "rotate",
+    "turn the dome 120 degrees about +Y (the sun moves round to the left)",
+    (LightOverride(DOME, {"xformOp:rotateXYZ": ("float3", Gf.Vec3f(0.0, 120.0, 0.0))}),),
+)
 LIGHT_EDITS = (
-    LightEdit(
-        "rotate",
-        "turn the dome 120 degrees about +Y (the sun moves round to the left)",
-        (LightOverride(DOME, {"xformOp:rotateXYZ": ("float3", Gf.Vec3f(0.0, 120.0, 0.0))}),),
-    ),
+    ROTATE,
     LightEdit(
         "warm",
         "warm the dome's colour and raise its exposure",
@@ -106,4 +135,13 @@ SCENE = BundledScene(
     description="the glossy scene lit only by a textured dome (generated lat-long EXR sky with a sun)",
     write=write,
     light_edits=LIGHT_EDITS,
+)
+
+GLOSSY_DOME_DESCRIPTION = "the glossy shot with the textured dome added at half intensity, its own lights kept"
+GLOSSY_DOME = LayeredScene(
+    name=f"{glossy.NAME}+{NAME}",
+    base=glossy.NAME,
+    description=GLOSSY_DOME_DESCRIPTION,
+    write_layer=write_lights_layer,
+    light_edits=(*glossy.LIGHT_EDITS, ROTATE),
 )
