@@ -11,12 +11,12 @@ method's upsampling takes): a quarter of the work at 2 x 2 supersampling and no 
 (10 s against ~2.5 s per level at 640 x 480 on a loaded 2-core machine), for frames that are
 approximations anyway; a pixel that any sub-sample covers counts as covered in them.
 
-The coarsest levels upsample to blocks of b x b pixels rather than to every pixel (`Level.block`,
-b = p / `PIXELS_PER_BLOCK_STRIDE`, at least 1): each block takes the weights of its first covered
-sub-sample and its value is repeated over the block. Filtering every pixel cost more than all
-else in a first frame (2.7 million weights at 640 x 480 for 1,200 points at p = 16); at b = 2 the
-weights and the per-pixel arithmetic after them (the ratio estimator's division) fall 4-fold, and
-an edge between two surfaces is placed to 2 pixels in a frame that the next level refines.
+A level of stride 32 or more upsamples to blocks of b x b pixels rather than to every pixel
+(`Level.block`, b = p / `PIXELS_PER_BLOCK_STRIDE`): each block takes the weights of its first
+covered sub-sample and its value is repeated over the block, for large images, where filtering
+every pixel is the largest cost of a first frame. The default levels (16 to 1) filter every pixel:
+at 640 x 480 blocks at stride 16 saved a fraction of the first frame's time for a visible loss
+(edges placed to 2 pixels; docs/PROGRESSIVE.md).
 """
 
 from __future__ import annotations
@@ -29,9 +29,9 @@ import torch
 from relight_torch.gbuffer import GBuffer
 from relight_torch.upsample import EdgeAwareUpsampler, edge_aware_upsampler
 
-PIXELS_PER_BLOCK_STRIDE = 8
-"""A level of stride p upsamples to blocks of p / 8 pixels per side (p = 16: 2 x 2 blocks; finer
-levels to every pixel)."""
+PIXELS_PER_BLOCK_STRIDE = 16
+"""A level of stride p upsamples to blocks of p / 16 pixels per side (p = 32: 2 x 2 blocks; the
+default levels, 16 and finer, to every pixel)."""
 
 
 @dataclass(frozen=True)

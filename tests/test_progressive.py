@@ -265,16 +265,23 @@ def test_a_shaping_edit_after_a_progressive_move_traces_nothing(caches, settings
     assert _max_difference(frames[-1].image, reference.render()) <= TOLERANCE
 
 
-def test_coarsest_level_fills_pixel_blocks(caches):
-    """A level of stride 16 upsamples to 2 x 2 pixel blocks (`levels.Level.block`): adding its
-    values equals adding them repeated over each block, and a constant field stays constant."""
-    from relight_torch.levels import build_level
+def test_coarse_levels_fill_pixel_blocks(caches, monkeypatch):
+    """A level of stride 2 x PIXELS_PER_BLOCK_STRIDE upsamples to 2 x 2 pixel blocks
+    (`levels.Level.block`): adding its values equals adding them repeated over each block, and a
+    constant field stays constant; the default levels filter every pixel. A level whose block
+    corners are all uncovered upsamples to zeros."""
+    from relight_torch import levels
 
     relighter = open_cache(caches["direct"])
     gbuffer, supersampling = _gbuffer(relighter)
-    level = build_level(gbuffer, supersampling, 16)
+    assert levels.build_level(gbuffer, supersampling, 16).block == 1
+    empty = levels.build_level(gbuffer, supersampling, 64)  # one block corner, uncovered
+    assert empty.points.numel() == 0
+    assert float(empty.upsampler(torch.zeros(0, 3, dtype=gbuffer.position.dtype)).abs().sum()) == 0.0
+    monkeypatch.setattr(levels, "PIXELS_PER_BLOCK_STRIDE", 2)
+    level = levels.build_level(gbuffer, supersampling, 4)
     assert level.block == 2 and level.image_size == (HEIGHT, WIDTH)
-    fine = build_level(gbuffer, supersampling, 4)
+    fine = levels.build_level(gbuffer, supersampling, 1)
     assert fine.block == 1
     values = torch.rand(level.points.shape[0], 3, dtype=gbuffer.position.dtype)
     blocks = level.upsampler(values)
