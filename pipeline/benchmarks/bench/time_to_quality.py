@@ -370,6 +370,7 @@ def _run(args: argparse.Namespace, work: Path) -> int:
 
 def _write(args, setup: Setup, points: list[Point], rows: dict[str, list[dict]], notes: list[str], load) -> None:
     out = args.out
+    relighter_names = [name for name in dict.fromkeys(p.renderer for p in points) if name.startswith("relighter")]
     lines = [",".join(FIELDS)] + [",".join(_csv(getattr(point, name)) for name in FIELDS) for point in points]
     write_text_atomic(out / "time_to_quality.csv", "\n".join(lines) + "\n")
     names = ("edit", "relighter", "path_tracer", "level_db", "relighter_ms", "path_tracer_ms", "speedup", "note")
@@ -399,6 +400,20 @@ def _write(args, setup: Setup, points: list[Point], rows: dict[str, list[dict]],
         "spp are cumulative; relighter steps are the progressive levels (1/p: one shaded point per p x p pixels).",
         "",
     ]
+    move = [p for p in points if p.renderer == relighter_names[0] and p.edit == "move"]
+    if move:
+        reached = next((p for p in move if p.psnr_db >= 35.0), None)
+        text += [
+            "Time to 35 dB after a light move, "
+            + relighter_names[0]
+            + (
+                f": {reached.cpu_ms:.0f} CPU ms, {reached.elapsed_ms:.0f} wall ms (level {reached.step}, "
+                f"{reached.psnr_db:.1f} dB)."
+                if reached
+                else f": not reached (converged frame {move[-1].psnr_db:.1f} dB)."
+            ),
+            "",
+        ]
     titles = {"cpu_ms": "CPU ms (all threads: the work)", "elapsed_ms": "wall ms (disturbed by the machine's load)"}
     for clock in CLOCKS:
         text += [
@@ -408,12 +423,24 @@ def _write(args, setup: Setup, points: list[Point], rows: dict[str, list[dict]],
             "|---|---|---|---|---|---|---|---|",
         ]
         for row in rows[clock]:
+            if row["relighter_ms"] is None:
+                continue  # listed below the tables
             speedup = "-" if row["speedup"] is None else f"{row['speedup']:.0f}x"
             text.append(
                 f"| {row['edit']} | {row['relighter']} | {row['path_tracer']} | {row['level_db']:g} | "
                 f"{_ms(row['relighter_ms'])} | {_ms(row['path_tracer_ms'])} | {speedup} | {row['note']} |"
             )
         text.append("")
+    never = sorted(
+        {(row["edit"], row["relighter"], row["level_db"]) for row in rows[CLOCKS[0]] if row["relighter_ms"] is None}
+    )
+    if never:
+        text += [
+            "Levels a relighter never reaches (its converged frame is below them against the full-GI reference): "
+            + "; ".join(f"{relighter}, {edit}: {level:g} dB" for edit, relighter, level in never)
+            + ".",
+            "",
+        ]
     text += ["## Curves (step: CPU ms / wall ms after the edit, PSNR dB)", ""]
     for edit in args.edits:
         text += [f"**{edit}**", ""]
