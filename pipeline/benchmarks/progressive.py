@@ -241,8 +241,11 @@ def prepare(args: argparse.Namespace, work: Path) -> Setup:
     work.mkdir(parents=True, exist_ok=True)
     shot = SCENES[SCENE].write(work / "scene")
     camera_path = SCENES[SCENE].camera
-    scene = load_scene(shot, width=args.width, height=args.height)
-    camera = find_camera(scene, camera_path)
+
+    def full():  # the scene at --width x --height and its camera, for a bake only
+        scene = load_scene(shot, width=args.width, height=args.height)
+        return scene, find_camera(scene, camera_path)
+
     if args.shot_cache is not None:
         shot_layer = args.shot_cache
         description = read_cache_layer(shot_layer)
@@ -255,12 +258,12 @@ def prepare(args: argparse.Namespace, work: Path) -> Setup:
         method = "direct" if choice.components == "direct" else "transfer"
         shot_layer = _cached(
             work / "shot" / f"{SCENE}.relight.usda",
-            lambda: bake_method(method).adapter.bake(scene, camera, work / "shot", SCENE, result.point, 1, 2),
+            lambda: bake_method(method).adapter.bake(*full(), work / "shot", SCENE, result.point, 1, 2),
         )
         sizes, label = result.point, f"shot ({choice.components})"
     direct_layer = args.direct_cache or _cached(
         work / "direct" / f"{SCENE}.relight.usda",
-        lambda: bake_direct(scene, camera, work / "direct", SCENE, supersampling=2),
+        lambda: bake_direct(*full(), work / "direct", SCENE, supersampling=2),
     )
     description = read_cache_layer(direct_layer)
     lights = shot_lights(description)
