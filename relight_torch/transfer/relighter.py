@@ -220,7 +220,7 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         """Drop every cached indirect image (after `num_bounces` changes); the gather light is kept."""
         self._emission_indirect = self._static = None
         for state in self._per_light.values():
-            state.unit_indirect = state.rows = None
+            state.unit_indirect = state.rows = state.vector = None
 
     def _rows_to_image(self, rows: torch.Tensor) -> torch.Tensor:
         """(R, 3) values at the F rows' view samples -> (H, W, 3) image, camera exposure applied."""
@@ -240,7 +240,7 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         rows = [state.rows for state in self._per_light.values() if state.rows is not None]
         return tensor_bytes(
             self._emission_indirect,
-            *(t for state in self._per_light.values() for t in (state.radiance, state.unit_indirect)),
+            *(t for state in self._per_light.values() for t in (state.radiance, state.unit_indirect, state.vector)),
             *(t for part in rows for t in (part.vector, part.values, part.done)),
         )
 
