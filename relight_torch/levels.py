@@ -10,6 +10,13 @@ each pixel's first covered sub-sample (not the mean of its sub-samples' weights,
 method's upsampling takes): a quarter of the work at 2 x 2 supersampling and no merge of entries
 (10 s against ~2.5 s per level at 640 x 480 on a loaded 2-core machine), for frames that are
 approximations anyway; a pixel that any sub-sample covers counts as covered in them.
+
+A level of stride 32 or more upsamples to blocks of b x b pixels rather than to every pixel
+(`Level.block`, b = p / `PIXELS_PER_BLOCK_STRIDE`): each block takes the weights of its first
+covered sub-sample and its value is repeated over the block, for large images, where filtering
+every pixel is the largest cost of a first frame. The default levels (16 to 1) filter every pixel:
+at 640 x 480 blocks at stride 16 saved a fraction of the first frame's time for a visible loss
+(edges placed to 2 pixels; docs/PROGRESSIVE.md).
 """
 
 from __future__ import annotations
@@ -22,6 +29,10 @@ import torch
 from relight_torch.gbuffer import GBuffer
 from relight_torch.upsample import EdgeAwareUpsampler, edge_aware_upsampler
 
+PIXELS_PER_BLOCK_STRIDE = 16
+"""A level of stride p upsamples to blocks of p / 16 pixels per side (p = 32: 2 x 2 blocks; the
+default levels, 16 and finer, to every pixel)."""
+
 
 @dataclass(frozen=True)
 class Level:
@@ -30,13 +41,27 @@ class Level:
     Attributes:
         stride: p, pixels per block side.
         points: (M,) int64 G-buffer indices of the covered block corners, ascending.
-        upsampler: (M, C) values at `points` -> (H W, C) values at the image's pixels (box filter
-            over each pixel's sub-samples included).
+        upsampler: (M, C) values at `points` -> (H W / b^2, C) values at the image's b x b pixel
+            blocks, row-major.
+        block: b, pixels per block side (1: every pixel).
+        image_size: (H, W) of the image, pixels.
     """
 
     stride: int
     points: torch.Tensor
     upsampler: EdgeAwareUpsampler
+    block: int = 1
+    image_size: tuple[int, int] = (0, 0)
+
+    def add_to(self, image: torch.Tensor, blocks: torch.Tensor) -> torch.Tensor:
+        """(H, W, C) `image` plus the (H W / b^2, C) values of the blocks, each repeated over its
+        block (broadcast, not materialised)."""
+        height, width = self.image_size
+        b = self.block
+        if b == 1:
+            return image + blocks.reshape(height, width, -1)
+        total = image.reshape(height // b, b, width // b, b, -1) + blocks.reshape(height // b, 1, width // b, 1, -1)
+        return total.reshape(height, width, -1)
 
 
 def level_points(gbuffer: GBuffer, supersampling: int, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -60,17 +85,21 @@ def level_points(gbuffer: GBuffer, supersampling: int, stride: int) -> tuple[tor
 def build_level(gbuffer: GBuffer, supersampling: int, stride: int) -> Level:
     """The level of stride `stride` pixels of a G-buffer whose pixels have s x s sub-samples."""
     points, blocks = level_points(gbuffer, supersampling, stride)
+    height, width = (size // supersampling for size in gbuffer.image_size)
+    block = max(1, stride // PIXELS_PER_BLOCK_STRIDE)
+    if height % block or width % block:
+        block = 1
     upsampler = edge_aware_upsampler(
-        pixel_representatives(gbuffer, supersampling),
+        pixel_representatives(gbuffer, supersampling * block),
         1,
-        stride,
+        stride // block,
         blocks,
         gbuffer.position[points],
         gbuffer.geometric_normal[points],
         gbuffer.object_id[points],
         sample_offset=0.5 / (supersampling * stride) - 0.5,
     )
-    return Level(stride, points, upsampler)
+    return Level(stride, points, upsampler, block, (height, width))
 
 
 def pixel_representatives(gbuffer: GBuffer, supersampling: int) -> GBuffer:

@@ -97,6 +97,10 @@ def edge_aware_upsampler(
     height, width = sub_height // supersampling, sub_width // supersampling
     coarse_height, coarse_width = -(-height // scale), -(-width // scale)
     num_rows = coarse_pixels.shape[0]
+    if num_rows == 0:  # no coarse sample (a coarse level whose block corners are all uncovered): zeros
+        empty = torch.zeros(0, dtype=torch.int64, device=device)
+        offsets = torch.zeros(height * width + 1, dtype=torch.int64, device=device)
+        return EdgeAwareUpsampler(empty, empty.to(fine.position.dtype), offsets)
     row_of_pixel = torch.full((coarse_height * coarse_width,), -1, dtype=torch.int64, device=device)
     row_of_pixel[coarse_pixels.to(device)] = torch.arange(num_rows, device=device)
     coarse = (coarse_position.to(fine.position), coarse_normal.to(fine.position), coarse_object.to(device))

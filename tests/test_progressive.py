@@ -263,3 +263,61 @@ def test_a_shaping_edit_after_a_progressive_move_traces_nothing(caches, settings
     assert progressive.counters["visibility"] == traced
     reference.set_light(shaped)
     assert _max_difference(frames[-1].image, reference.render()) <= TOLERANCE
+
+
+def test_coarse_levels_fill_pixel_blocks(caches, monkeypatch):
+    """A level of stride 2 x PIXELS_PER_BLOCK_STRIDE upsamples to 2 x 2 pixel blocks
+    (`levels.Level.block`): adding its values equals adding them repeated over each block, and a
+    constant field stays constant; the default levels filter every pixel. A level whose block
+    corners are all uncovered upsamples to zeros."""
+    from relight_torch import levels
+
+    relighter = open_cache(caches["direct"])
+    gbuffer, supersampling = _gbuffer(relighter)
+    assert levels.build_level(gbuffer, supersampling, 16).block == 1
+    empty = levels.build_level(gbuffer, supersampling, 64)  # one block corner, uncovered
+    assert empty.points.numel() == 0
+    assert float(empty.upsampler(torch.zeros(0, 3, dtype=gbuffer.position.dtype)).abs().sum()) == 0.0
+    monkeypatch.setattr(levels, "PIXELS_PER_BLOCK_STRIDE", 2)
+    level = levels.build_level(gbuffer, supersampling, 4)
+    assert level.block == 2 and level.image_size == (HEIGHT, WIDTH)
+    fine = levels.build_level(gbuffer, supersampling, 1)
+    assert fine.block == 1
+    values = torch.rand(level.points.shape[0], 3, dtype=gbuffer.position.dtype)
+    blocks = level.upsampler(values)
+    assert blocks.shape == (HEIGHT * WIDTH // 4, 3)
+    image = torch.rand(HEIGHT, WIDTH, 3, dtype=gbuffer.position.dtype)
+    repeated = blocks.reshape(HEIGHT // 2, WIDTH // 2, 3).repeat_interleave(2, 0).repeat_interleave(2, 1)
+    assert _max_difference(level.add_to(image, blocks), image + repeated) == 0.0
+    constant = level.upsampler(torch.ones_like(values))
+    covered = constant.sum(-1) > 0
+    assert bool(covered.any()) and _max_difference(constant[covered], torch.ones_like(constant[covered])) < 1e-5
+
+
+def test_first_transfer_frame_after_a_move_waits_for_no_gather_light(caches):
+    """The first coarse frame after a move multiplies the light's vector from before the edit (no
+    gather light traced, no bounces); the next frame makes the light's own, and the frames end in
+    render(). A new light's first frame takes its one-sample, PREVIEW_BOUNCES stand-in."""
+    relighter, reference = open_cache(caches["transfer"]), open_cache(caches["transfer"])
+    light = relighter.lights[0]
+    relighter.render()
+    relighter.set_light(_moved(light, 0.02))
+    reference.set_light(_moved(light, 0.02))
+    frames = progressive_frames(relighter, budget_ms=0.0, strides=STRIDES)
+    traced = relighter.counters["gather_light"]
+    first = next(frames)
+    assert relighter.counters["gather_light"] == traced and not first.done
+    second = next(frames)
+    assert relighter.counters["gather_light"] == traced + 1 and second.stride == STRIDES[1]
+    *_, last = frames
+    assert _max_difference(last.image, reference.render()) <= TOLERANCE
+
+    second_light = dataclasses.replace(_moved(light, 0.1), path="/World/SecondLight")
+    relighter.set_light(second_light)
+    reference.set_light(second_light)
+    frames = progressive_frames(relighter, budget_ms=0.0, strides=STRIDES)
+    first = next(frames)
+    assert relighter.counters["gather_light"] == traced + 1  # the stand-in is not the light's gather light
+    assert bool(torch.isfinite(first.image).all())
+    *_, last = frames
+    assert _max_difference(last.image, reference.render()) <= TOLERANCE

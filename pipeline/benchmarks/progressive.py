@@ -215,13 +215,36 @@ def _cached(path: Path, make: Callable[[], Path]) -> Path:
     return path if path.exists() else make()
 
 
-def _run(args: argparse.Namespace, work: Path) -> int:
+@dataclasses.dataclass(frozen=True)
+class Setup:
+    """The bench's Cornell box, its two caches and its edits.
+
+    Attributes:
+        shot: the written stage; camera_path: its camera prim.
+        shot_layer, shot_label, sizes: the shot cache, its row label and its baked sizes.
+        direct_layer: the direct cache.
+        rigs: edit kind -> k -> (rig before, rig after) (`edit_rigs`).
+    """
+
+    shot: Path
+    camera_path: str
+    shot_layer: Path
+    shot_label: str
+    sizes: object
+    direct_layer: Path
+    rigs: dict[str, Callable[[int], tuple[Rig, Rig]]]
+
+
+def prepare(args: argparse.Namespace, work: Path) -> Setup:
+    """Write the Cornell box into `work`, take or bake its shot and direct caches at --width x
+    --height (args.shot_cache, args.direct_cache, args.shot_size, args.quality) and make the edits."""
     work.mkdir(parents=True, exist_ok=True)
     shot = SCENES[SCENE].write(work / "scene")
     camera_path = SCENES[SCENE].camera
-    scene = load_scene(shot, width=args.width, height=args.height)
-    camera = find_camera(scene, camera_path)
-    load = os.getloadavg()
+
+    def full():  # the scene at --width x --height and its camera, for a bake only
+        scene = load_scene(shot, width=args.width, height=args.height)
+        return scene, find_camera(scene, camera_path)
 
     if args.shot_cache is not None:
         shot_layer = args.shot_cache
@@ -235,34 +258,43 @@ def _run(args: argparse.Namespace, work: Path) -> int:
         method = "direct" if choice.components == "direct" else "transfer"
         shot_layer = _cached(
             work / "shot" / f"{SCENE}.relight.usda",
-            lambda: bake_method(method).adapter.bake(scene, camera, work / "shot", SCENE, result.point, 1, 2),
+            lambda: bake_method(method).adapter.bake(*full(), work / "shot", SCENE, result.point, 1, 2),
         )
         sizes, label = result.point, f"shot ({choice.components})"
     direct_layer = args.direct_cache or _cached(
         work / "direct" / f"{SCENE}.relight.usda",
-        lambda: bake_direct(scene, camera, work / "direct", SCENE, supersampling=2),
+        lambda: bake_direct(*full(), work / "direct", SCENE, supersampling=2),
     )
-
     description = read_cache_layer(direct_layer)
     lights = shot_lights(description)
     layer = new_sphere_layer(shot, camera_path, work / "new_light.usda")
     new_light = next(light for light in shot_lights(description, layer) if light.path == NEW_LIGHT_PATH)
-    rigs = edit_rigs(lights, new_light)
+    return Setup(shot, camera_path, shot_layer, label, sizes, direct_layer, edit_rigs(lights, new_light))
 
-    reference_scene = load_scene(shot, width=args.reference_size[0], height=args.reference_size[1])
-    reference_camera = find_camera(reference_scene, camera_path)
+
+def references_of(setup: Setup, edits, size: tuple[int, int], spp: int, work: Path) -> dict[str, np.ndarray]:
+    """Edit kind -> the path tracer's full frame (H', W', 3) at `size` = (W', H') of the rig after
+    its edit k = 0, rendered once and kept in `work`."""
+    reference_scene = load_scene(setup.shot, width=size[0], height=size[1])
+    reference_camera = find_camera(reference_scene, setup.camera_path)
     references = {}
-    for edit, rig in rigs.items():
-        if edit not in args.edits:
+    for edit, rig in setup.rigs.items():
+        if edit not in edits:
             continue
-        path = work / f"reference-{edit.replace(' ', '_')}-{args.reference_size[0]}-{args.spp}.npy"
+        path = work / f"reference-{edit.replace(' ', '_')}-{size[0]}-{spp}.npy"
         if not path.exists():
-            np.save(path, reference_image(reference_scene, reference_camera, rig(0)[1], args.spp))
+            np.save(path, reference_image(reference_scene, reference_camera, rig(0)[1], spp))
         references[edit] = np.load(path)
+    return references
 
-    rows = measure(shot_layer, label, rigs, args, references)
-    rows += measure(direct_layer, "direct", rigs, args, references)
-    _write(args, rows, sizes, load + os.getloadavg())
+
+def _run(args: argparse.Namespace, work: Path) -> int:
+    load = os.getloadavg()
+    setup = prepare(args, work)
+    references = references_of(setup, args.edits, tuple(args.reference_size), args.spp, work)
+    rows = measure(setup.shot_layer, setup.shot_label, setup.rigs, args, references)
+    rows += measure(setup.direct_layer, "direct", setup.rigs, args, references)
+    _write(args, rows, setup.sizes, load + os.getloadavg())
     return 0
 
 

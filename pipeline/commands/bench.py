@@ -9,6 +9,7 @@ from pathlib import Path
 import torch
 
 from pipeline.bake.methods import bake_methods
+from pipeline.benchmarks.bench import time_to_quality
 from pipeline.benchmarks.bench.runner import BenchConfig, run_bench
 from pipeline.commands.common import add_device_option
 from pipeline.errors import RelightError
@@ -61,11 +62,22 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="spp of the path-tracer renders fitted for the comparison rows (default 1 2 4 8 16; --quick 1 4)",
     )
     parser.add_argument("--repeats", type=int, metavar="N", help="timed light moves per relight time (default 7)")
+    parser.add_argument(
+        "--progressive",
+        action="store_true",
+        help="instead of the sweep, the time-to-quality run: PSNR against time after each light edit for the "
+        "relighter's progressive frames (shot and direct caches of the Cornell box) and for the path tracers, "
+        "the project's and Mitsuba 3's, re-rendering from the same start; OUT/time_to_quality.{csv,md,png} "
+        "(default size 640x480, reference 512 spp)",
+    )
+    time_to_quality.add_progressive_options(parser)
     add_device_option(parser)
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.progressive:
+        return time_to_quality.run(time_to_quality.with_defaults(args))
     for option in ("width", "height", "spp", "repeats"):
         value = getattr(args, option)
         if value is not None and value < 1:

@@ -661,6 +661,8 @@ class Relighter:
                 progress = self._progress(state)
                 if points is None:
                     todo = progress.done.shape[0] - progress.num_done
+                elif progress.num_done == 0:  # just edited: no pass over the level's points
+                    todo = points.shape[0]
                 else:
                     todo = int((~_take(progress.done, points)).sum())
                 total += todo * progress.samples_per_point
@@ -721,14 +723,13 @@ class Relighter:
         diffuse light upsampled times the ratio of its upsampled sums of w V and w: the ratio
         estimator (Heitz et al. 2018) with the upsampling as the filter, where each point's own
         ratio (one light sample at matte points) would show as blotches."""
-        height, width = (size // self.supersampling for size in self.gbuffer.image_size)
-        upsampled = level.upsampler(values)
+        upsampled = level.upsampler(values)  # at the level's pixel blocks (`Level.block`)
         coarse = upsampled[:, :3]
         for first in range(3, upsampled.shape[1], 5):
             unshadowed, sums = upsampled[:, first : first + 3], upsampled[:, first + 3 : first + 5]
             visible = torch.where(sums[:, 1] > 0, sums[:, 0] / sums[:, 1].clamp(min=1e-30), 0.0)
             coarse = coarse + unshadowed * visible.unsqueeze(-1)
-        return self._static_image(self._changed()) + coarse.reshape(height, width, 3) * self.exposure_scale
+        return level.add_to(self._static_image(self._changed()), coarse * self.exposure_scale)
 
     def _changed(self) -> list[_LightState]:
         """The lights set since the last exact frame."""

@@ -22,7 +22,7 @@ from relight_torch.direct.relighter import Relighter, unit_light
 from relight_torch.indirect import IndirectRelighter, gather_light_key
 from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.light_samples import fixed_light_samples
-from relight_torch.lights.light import Light
+from relight_torch.lights.light import Light, light_snapshot
 from relight_torch.protocol import tensor_bytes
 from relight_torch.transfer.haar import haar2d
 from relight_torch.transfer.sparse import SparseRows, column_norms, cull_light
@@ -30,6 +30,10 @@ from relight_torch.upsample import EdgeAwareUpsampler
 
 GATHER_SAMPLES = 4
 """Light samples per gather for area lights by default (see `TransferRelighter`)."""
+
+PREVIEW_BOUNCES = 2
+"""Terms of the bounce series (g, M g) of the stand-in light vector of a first coarse frame
+(`TransferRelighter._preview_vector`); each further one costs a product with M."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,13 +75,19 @@ class _IndirectState:
     light_link: tuple[str, ...] | None = None  # the link `unit_indirect` was masked with
     unit_indirect: torch.Tensor | None = None  # (R, 3) its indirect radiance at the F rows
     rows: _Rows | None = None  # `unit_indirect` in the making, while it is None or stale
+    vector: torch.Tensor | None = None  # (G, 3) the light vector `unit_indirect` was made of
+    shaping: object = None  # light_snapshot of the light's (shaping, barzel) (`_preview_vector`)
 
 
 class TransferRelighter(IndirectRelighter[_IndirectState]):
     """Direct + indirect relighting of one transfer cache.
 
     Progressive (`CacheRelighter.refine`): a coarse frame multiplies only the F rows of its
-    level's pixels, and keeps them (`_Rows`) for the finer frames and the exact one.
+    level's pixels, and keeps them (`_Rows`) for the finer frames and the exact one. The first
+    coarse frame after a light's edit takes a stand-in light vector (`_preview_vector`: the
+    light's vector before the edit, else its gather light at one sample with PREVIEW_BOUNCES
+    terms), so that it never waits for the gather light and the bounces; the next frame makes the
+    light's own.
 
     Args:
         direct: the direct relighter of the cache's deep framebuffer (lights live there; its
@@ -154,6 +164,7 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         self._column_norms = column_norms(final_gather) if cull_tolerance > 0 else None
         self.counters: collections.Counter[str] = collections.Counter()
         self._emission_indirect: torch.Tensor | None = None
+        self._previewed: dict[str, object] = {}  # light path -> gather key of its last stand-in frame
 
     def scene_diagonal(self) -> float:
         """`protocol.GradientRelighter.scene_diagonal`: the direct relighter's."""
@@ -190,11 +201,11 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         light reaches only a few gathers, and reflected radiance never is."""
         return self.final_gather.matmul(self.light_vector(radiance)).clamp_(min=0.0)
 
-    def light_vector(self, radiance: torch.Tensor) -> torch.Tensor:
+    def light_vector(self, radiance: torch.Tensor, num_bounces: int | None = None) -> torch.Tensor:
         """(G, 3) gather radiance -> (G, 3) the wavelet light F multiplies in `transfer`: the
-        bounces added, Haar-transformed, weak wavelet lights culled."""
+        bounces added (`num_bounces` terms, default all), Haar-transformed, weak wavelet lights culled."""
         total, bounced = radiance, radiance
-        for _ in range(self.num_bounces - 1):
+        for _ in range((self.num_bounces if num_bounces is None else min(num_bounces, self.num_bounces)) - 1):
             assert self.bounce is not None  # __init__ requires M for more than one bounce
             bounced = self.bounce.matmul(self._wavelet(bounced))
             total = total + bounced
@@ -209,7 +220,7 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         """Drop every cached indirect image (after `num_bounces` changes); the gather light is kept."""
         self._emission_indirect = self._static = None
         for state in self._per_light.values():
-            state.unit_indirect = state.rows = None
+            state.unit_indirect = state.rows = state.vector = None
 
     def _rows_to_image(self, rows: torch.Tensor) -> torch.Tensor:
         """(R, 3) values at the F rows' view samples -> (H, W, 3) image, camera exposure applied."""
@@ -229,7 +240,7 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         rows = [state.rows for state in self._per_light.values() if state.rows is not None]
         return tensor_bytes(
             self._emission_indirect,
-            *(t for state in self._per_light.values() for t in (state.radiance, state.unit_indirect)),
+            *(t for state in self._per_light.values() for t in (state.radiance, state.unit_indirect, state.vector)),
             *(t for part in rows for t in (part.vector, part.values, part.done)),
         )
 
@@ -246,16 +257,23 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         if state.unit_indirect is None or state.light_link != light.light_link:
             rows = state.rows
             if rows is None or rows.light_link != light.light_link:
-                state.unit_indirect = self.transfer(self._linked_radiance(state, light))
+                state.vector = self.light_vector(self._linked_radiance(state, light))
+                state.unit_indirect = self.final_gather.matmul(state.vector).clamp_(min=0.0)
             else:
                 self._fill_rows(rows, torch.nonzero(~rows.done).squeeze(-1))
-                state.unit_indirect = rows.values
+                state.unit_indirect, state.vector = rows.values, rows.vector
             state.light_link, state.rows = light.light_link, None
         return state.unit_indirect
 
     def _unit_indirect_at(self, light: Light, rows: torch.Tensor) -> torch.Tensor:
         """(K, 3) the unit light's indirect radiance at F rows `rows` (K,): from `unit_indirect`
-        when current, else those rows multiplied (once) and kept for the rest."""
+        when current, else those rows multiplied (once) and kept for the rest; in the first frame
+        after the light's edit, those rows of a stand-in vector (`_preview_vector`), not kept."""
+        preview = self._preview_vector(light)
+        if preview is not None:
+            needed, inverse = torch.unique(rows, return_inverse=True)
+            product = self.final_gather.select_rows(needed).matmul(preview).clamp_(min=0.0)
+            return product.index_select(0, inverse)
         state = self._gather_state(light)
         if state.unit_indirect is not None and state.light_link == light.light_link:
             return state.unit_indirect.index_select(0, rows)
@@ -267,6 +285,29 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
         needed = torch.unique(rows)
         self._fill_rows(state.rows, needed[~state.rows.done.index_select(0, needed)])
         return state.rows.values.index_select(0, rows)
+
+    def _preview_vector(self, light: Light) -> torch.Tensor | None:
+        """A stand-in light vector for the first coarse frame after the light's edit, None when
+        the light's own is current or its stand-in frame was made: its vector before the edit (a
+        move changes the indirect light little, and it costs nothing), else (a new light, a
+        reshaped one, a new light link) its gather light at one sample per gather with PREVIEW_BOUNCES
+        terms of the bounce series (the first frame then misses the later bounces)."""
+        gather_light = dataclasses.replace(unit_light(light), light_link=None)
+        key = gather_light_key(gather_light)
+        state = self._per_light.get(light.path)
+        if (state is not None and state.gather_key == key) or self._previewed.get(light.path) == key:
+            return None
+        self._previewed[light.path] = key
+        if state is not None and state.shaping == light_snapshot((light.shaping, light.barzel)):
+            if state.rows is not None and state.rows.light_link == light.light_link:
+                return state.rows.vector
+            if state.vector is not None and state.light_link == light.light_link:
+                return state.vector
+        radiance = gather_radiance(gather_light, self.gathers, self.direct.visibility, 1, self.direct.settings.seed)
+        linked = link_mask(light, self.gathers.object_id, self.direct.object_paths)
+        if linked is not None:
+            radiance = radiance * linked.unsqueeze(-1).to(radiance)
+        return self.light_vector(radiance, PREVIEW_BOUNCES)
 
     def _fill_rows(self, rows: _Rows, todo: torch.Tensor) -> None:
         """Multiply the F rows `todo` (K,) by the kept vector into `rows`."""
@@ -292,6 +333,6 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
             num_samples = self._gather_samples(unit, self.gather_samples)
             radiance = gather_radiance(gather_light, self.gathers, self.direct.visibility, num_samples, settings.seed)
             self.counters["gather_light"] += 1
-            state = _IndirectState(key, radiance)
+            state = _IndirectState(key, radiance, shaping=light_snapshot((light.shaping, light.barzel)))
             self._per_light[light.path] = state
         return state
