@@ -7,14 +7,16 @@ lights and compares the frame with `relight reference` of the full frame (every 
 same size. It records whether the bake and the render succeeded (else the command's one-line
 error: no cell may be a traceback), the PSNR, the bake and render seconds and the cache bytes.
 
-    python -m pipeline.benchmarks.asset_table --out docs/bench/ASSET_TABLE.md
+    python -m pipeline.benchmarks.asset_table [--sizes 32x24 64x48] [--spp 64] [--work DIR]
 
+writes docs/bench/ASSET_TABLE.md.
 Timings are wall-clock seconds on whatever else the machine is running; re-measure on a quiet one.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -33,9 +35,9 @@ from relight_torch.metrics import psnr
 SHOT_CACHE = "shot"
 """The row of the default shot cache (`relight bake` without --method)."""
 METHODS = (*METHOD_OPTIONS, SHOT_CACHE)
-SIZES = ((48, 36), (96, 72))
+SIZES = ((32, 24), (64, 48))
 """The full table's resolutions (width, height)."""
-REFERENCE_SPP = 256
+REFERENCE_SPP = 64
 """Path-tracer samples per pixel of the references."""
 
 
@@ -98,9 +100,7 @@ def reference(shot: Path, camera: str, size: tuple[int, int], out: Path, spp: in
     return out
 
 
-def measure_cell(
-    asset: SuiteAsset, method: str, size: tuple[int, int], work: Path, spp: int = REFERENCE_SPP
-) -> Cell:
+def measure_cell(asset: SuiteAsset, method: str, size: tuple[int, int], work: Path, spp: int = REFERENCE_SPP) -> Cell:
     """Bake, render and compare one cell in `work`/<asset> (the shot and its references are shared
     by the asset's cells)."""
     folder = work / asset.name
@@ -164,7 +164,7 @@ def table_markdown(cells: Sequence[Cell], command: str, spp: int) -> str:
         "",
         "Every suite asset (`pipeline/benchmarks/suite_assets.py`, provenance in tests/data/scene/PROVENANCE.md)",
         "x relighting method (small settings; `shot` is the default shot cache) x resolution, baked with",
-        f"`relight bake`, relit with `relight render` under the shot's lights, and compared with `relight reference`'s",
+        "`relight bake`, relit with `relight render` under the shot's lights, and compared with `relight reference`'s",
         f"full frame (every bounce, {spp} samples per pixel) at the same size. Seconds are wall-clock on a shared",
         "machine (other work running); the PSNR includes the reference's own noise.",
         "",
@@ -193,7 +193,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
     args = parser.parse_args(argv)
     assets = [a for a in SUITE if a.name in args.assets]
-    command = "python -m pipeline.benchmarks.asset_table" + ("" if argv is None else " " + " ".join(argv))
+    given = sys.argv[1:] if argv is None else argv
+    command = " ".join(["python -m pipeline.benchmarks.asset_table", *given])
 
     def run(work: Path) -> int:
         cells = measure_table(work, assets, args.methods, args.sizes, args.spp)

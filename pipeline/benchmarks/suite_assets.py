@@ -37,7 +37,9 @@ CAMERAS = {
 
 
 def _look_at(
-    eye: tuple[float, float, float], target: tuple[float, float, float], up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    eye: tuple[float, float, float],
+    target: tuple[float, float, float],
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0),
 ) -> list[list[float]]:
     """USD row-vector world-from-camera matrix of a camera at `eye` looking at `target` (`up` up)."""
     forward = [t - e for t, e in zip(target, eye, strict=True)]
@@ -68,7 +70,7 @@ def write_exterior_shot(
     Args:
         teapots: teapots in all, half as instanceable references on a row, half as one
             PointInstancer's instances on a grid behind them (2,472 triangles each).
-        sphere_lights: coloured sphere lights in a ring above the teapots (plus one distant light).
+        sphere_lights: coloured sphere lights in a ring above the teapots (plus a distant sun of 2 lux).
         width, height: the RenderSettings resolution.
     """
     directory.mkdir(parents=True, exist_ok=True)
@@ -193,6 +195,7 @@ def write_exterior_shot(
         "        {",
         "            float inputs:angle = 1",
         "            float inputs:intensity = 2",
+        "            bool inputs:normalize = 1",  # 2 lux: without it a 1-degree sun gives 5e-4
         "            color3f inputs:color = (1, 0.95, 0.85)",
         "            float3 xformOp:rotateXYZ = (-50, 30, 0)",
         '            uniform token[] xformOpOrder = ["xformOp:rotateXYZ"]',
@@ -301,8 +304,8 @@ class SuiteAsset:
         name: the table's row name.
         write: directory -> the shot's path (written there, or the committed file).
         camera: the camera prim to bake.
-        bake_options: method -> extra `relight bake` arguments this shot needs (the exterior's
-            floor reaches 200 m out, so multiview's workspace is boxed around the teapots).
+        bake_options: method -> extra `relight bake` arguments this shot needs (multiview's
+            workspace where the stage's bounds do not suit it: a 400 m floor, a flat stage).
     """
 
     name: str
@@ -324,6 +327,8 @@ SUITE = (
         "preview_opacity_threshold",
         lambda d: frame_asset(_PREVIEW / "testPreviewSurfaceOpacityThreshold.usda", d, "opacity_threshold"),
         "/Frame/Cam",
+        # Flat (z = 0): the default workspace, the stage's bounds, has no depth to place cameras in.
+        {"multiview": ("--box", "-1", "-1", "-2", "9.5", "2", "4")},
     ),
     SuiteAsset(
         "preview_translucent",

@@ -351,9 +351,11 @@ def read_geometry(
     """
     walker = _Walker(time, warnings)
     surfaces = _Surfaces(time, dicing.views_from_cameras(cameras or {}), warnings)
-    dropped: dict[str, list] = {}  # surface key -> [first prim path, triangles dropped]
     averaged_keys: set[str] = set()
-    parts: list[tuple[np.ndarray, ...]] = []
+    # First every placement's surfaces (the levels chosen), then the soup written straight into
+    # arrays sized for all of them: no list of parts held beside the joined soup (the small parts
+    # of far instances would stay in the heap and double the peak).
+    jobs: list[tuple[str, str, Surface, np.ndarray, np.ndarray, np.ndarray]] = []
     objects: list[SceneObject] = []
     for placement in walker.walk(stage.GetPseudoRoot(), np.eye(4)[None], [""]):
         placement = _invertible(placement, warnings)
@@ -376,39 +378,40 @@ def read_geometry(
         face_ids = _face_material_ids(prim, groups[0][0].num_faces, display_color, library, time, warnings)
         double_sided = bool(UsdGeom.Gprim(prim).GetDoubleSidedAttr().Get(time))
         for surface, rows in groups:
-            for num_dropped, part in _soup_parts(
-                surface, face_ids[surface.face_ids], placement.world_from_local[rows], len(objects) + rows
-            ):
-                if num_dropped:
-                    dropped.setdefault(key, [str(prim.GetPath()), 0])[1] += num_dropped
-                parts.append(part)
+            world_from_local = placement.world_from_local[rows]
+            jobs.append(
+                (key, str(prim.GetPath()), surface, face_ids[surface.face_ids], world_from_local, len(objects) + rows)
+            )
         objects.extend(SceneObject(path, double_sided) for path in placement.paths)
+    return _write_soup(jobs, warnings), objects
+
+
+def _write_soup(
+    jobs: list[tuple[str, str, Surface, np.ndarray, np.ndarray, np.ndarray]], warnings: list[str]
+) -> Geometry:
+    """The soup of every (surface key, prim path, surface, material ids (T,), placements (I, 4, 4),
+    object ids (I,)) job, written part by part into arrays sized for all their triangles (the pages
+    of the triangles dropped as degenerate are never touched), with a warning per surface that
+    lost triangles."""
+    total = sum(surface.num_triangles * len(placements) for _, _, surface, _, placements, _ in jobs)
+    joined = [
+        np.empty((total, 3, 3), np.float32),
+        np.empty((total, 3, 3), np.float32),
+        np.empty((total, 3, 2), np.float32),
+        np.empty(total, np.int32),
+        np.empty(total, np.int32),
+    ]
+    dropped: dict[str, list] = {}  # surface key -> [first prim path, triangles dropped]
+    start = 0
+    for key, path, surface, material_ids, placements, object_ids in jobs:
+        for num_dropped, part in _soup_parts(surface, material_ids, placements, object_ids):
+            if num_dropped:
+                dropped.setdefault(key, [path, 0])[1] += num_dropped
+            stop = start + part[0].shape[0]
+            for target, array in zip(joined, part, strict=True):
+                target[start:stop] = array
+            start = stop
     for path, count in dropped.values():
         warn(f"{path}: dropped {count} degenerate or non-finite triangles", warnings)
-    return _concatenate(parts), objects
-
-
-def _concatenate(parts: list[tuple[np.ndarray, ...]]) -> Geometry:
-    if not parts:
-        return Geometry(
-            positions=np.zeros((0, 3, 3), np.float32),
-            normals=np.zeros((0, 3, 3), np.float32),
-            uvs=np.zeros((0, 3, 2), np.float32),
-            material_ids=np.zeros(0, np.int32),
-            object_ids=np.zeros(0, np.int32),
-        )
-    # Copied part by part into the joined arrays, each part freed once copied: the peak is about one
-    # soup, not two.
-    total = sum(part[0].shape[0] for part in parts)
-    joined = [np.empty((total,) + array.shape[1:], array.dtype) for array in parts[0]]
-    start = 0
-    for index, part in enumerate(parts):
-        stop = start + part[0].shape[0]
-        for target, array in zip(joined, part, strict=True):
-            target[start:stop] = array
-        parts[index], start = (), stop
-    del part
-    positions, normals, uvs, material_ids, object_ids = joined
-    return Geometry(
-        positions=positions, normals=normals, uvs=uvs, material_ids=material_ids.astype(np.int32), object_ids=object_ids
-    )
+    positions, normals, uvs, material_ids, object_ids = (array[:start] for array in joined)
+    return Geometry(positions=positions, normals=normals, uvs=uvs, material_ids=material_ids, object_ids=object_ids)

@@ -11,7 +11,6 @@ bilinear cage). A 'loop' mesh with non-triangular faces is refined with Catmull-
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
