@@ -348,6 +348,20 @@ def test_projected_lengths_per_placement_match_one_at_a_time():
     assert dicing.max_projected_length(starts, ends, placements, views) == pytest.approx(max(one_at_a_time))
 
 
+def test_placements_outside_every_frustum_set_no_rate():
+    """A cube in front of the camera, one behind it, one beside the frustum and one straddling its
+    edge: only the ones reaching into the frustum have a projected length (what no camera sees
+    takes the coarsest level)."""
+    views = dicing.views_from_cameras({"/Cam": _camera([0, 0, 10])})  # looking down -Z
+    half_width = 10 * 18 / 50  # tan(half angle) x distance at z = 0
+    placements = np.tile(np.eye(4), (4, 1, 1))
+    placements[:, :3, 3] = [[0, 0, 0], [0, 0, 20], [half_width + 3, 0, 0], [half_width + 0.5, 0, 0]]
+    edges = _cube_edges()
+    lengths = dicing.projected_lengths(CUBE_POINTS[edges[:, 0]], CUBE_POINTS[edges[:, 1]], placements, views)
+    assert lengths[0] > 1 and lengths[3] > 1
+    assert lengths[1] == 0 and lengths[2] == 0
+
+
 def test_each_instance_is_refined_for_its_own_size_on_screen():
     """Two PointInstancer instances of one subdivision cube, one by the camera and one far away:
     the near one is refined as the cube alone at its place is, the far one less (before, every

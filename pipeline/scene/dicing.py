@@ -15,7 +15,9 @@ warning says what was given up). A stage without cameras refines `FALLBACK_LEVEL
 
 Each placement of an instanced mesh takes its own level (`projected_lengths` per placement): a
 teapot twenty pixels wide is refined far less than the one by the camera, and the placements at
-one level share that level's refined surface.
+one level share that level's refined surface. A camera sets no rate for what lies outside its
+frustum (a bounding sphere per placement against its side and near planes): what no camera sees
+is only in shadows and reflections and takes the coarsest level.
 """
 
 from __future__ import annotations
@@ -49,11 +51,28 @@ class View:
         position: (3,) float64 world position of the pinhole.
         focal_pixels: focal length in pixels, divided by cos^2 of the image corner's angle.
         near: near clipping distance (scene units).
+        world_from_camera: (3, 3) float64 orthonormal rotation (the camera looks down its -Z), or
+            None: the view sees every direction.
+        tan_half: (2,) tangents of the half-angles of the frustum (x, y; aperture offsets included).
     """
 
     position: np.ndarray
     focal_pixels: float
     near: float
+    world_from_camera: np.ndarray | None = None
+    tan_half: tuple[float, float] = (math.inf, math.inf)
+
+    def sees(self, centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        """(I,) whether spheres (centres (I, 3), radii (I,), world) reach into the view's frustum
+        (conservatively: the sphere against each side plane and the near plane)."""
+        if self.world_from_camera is None:
+            return np.ones(len(centres), bool)
+        x, y, z = ((centres - self.position) @ self.world_from_camera).T
+        inside = -z + radii >= self.near
+        for offset, tangent in ((x, self.tan_half[0]), (y, self.tan_half[1])):
+            if math.isfinite(tangent):
+                inside &= np.abs(offset) + z * tangent <= radii * math.sqrt(1.0 + tangent * tangent)
+        return inside
 
 
 def views_from_cameras(cameras: dict[str, Camera]) -> list[View]:
@@ -69,11 +88,18 @@ def views_from_cameras(cameras: dict[str, Camera]) -> list[View]:
         half_x = camera.horizontal_aperture / 2 + abs(camera.horizontal_aperture_offset)
         half_y = camera.vertical_aperture / 2 + abs(camera.vertical_aperture_offset)
         tan_corner2 = (half_x**2 + half_y**2) / camera.focal_length**2
+        axes = np.asarray(camera.world_from_camera[:3, :3], np.float64)
+        rotation = axes / np.linalg.norm(axes, axis=0)
+        tan_half = (half_x / camera.focal_length, half_y / camera.focal_length)
+        orthonormal = np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-6) and all(map(math.isfinite, tan_half))
         views.append(
             View(
                 position=np.asarray(camera.world_from_camera[:3, 3], np.float64),
                 focal_pixels=focal_pixels * (1.0 + tan_corner2),
                 near=max(camera.clipping_range[0], 0.0),
+                # A sheared camera transform keeps no frustum test (it sees everything).
+                world_from_camera=rotation if orthonormal else None,
+                tan_half=tan_half if orthonormal else (math.inf, math.inf),
             )
         )
     return views
@@ -104,6 +130,12 @@ def projected_lengths(
     # Camera positions in each placement's local space: (I, C, 3).
     local_from_world = np.linalg.inv(world_from_local)
     cameras_local = positions @ local_from_world[:, :3, :3].transpose(0, 2, 1) + local_from_world[:, None, :3, 3]
+    # Placements outside every view's frustum are not seen (their shadows and reflections take the
+    # coarsest level): a bounding sphere of the segments per placement against each frustum.
+    centre = midpoints.mean(axis=0)
+    radius = float((np.linalg.norm(midpoints - centre, axis=-1) + half_lengths).max())
+    centres = world_from_local[:, :3, :3] @ centre + world_from_local[:, :3, 3]
+    seen = np.stack([view.sees(centres, radius * s_max) for view in views], axis=-1)  # (I, C)
     chunk = max(1, _CHUNK_ELEMENTS // (len(starts) * len(views)))
     for first in range(0, len(world_from_local), chunk):
         rows = slice(first, first + chunk)
@@ -113,7 +145,7 @@ def projected_lengths(
         # distances by at least s_min.
         scale_max, scale_min = s_max[rows, None, None], s_min[rows, None, None]
         pixels = focal * scale_max * (2 * half_lengths[None, :, None]) / np.maximum(scale_min * distance, near)
-        lengths[rows] = pixels.max(axis=(1, 2))
+        lengths[rows] = np.where(seen[rows, None, :], pixels, 0.0).max(axis=(1, 2))
     return lengths
 
 
