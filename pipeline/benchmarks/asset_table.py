@@ -194,7 +194,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     assets = [a for a in SUITE if a.name in args.assets]
     given = sys.argv[1:] if argv is None else argv
-    command = " ".join(["python -m pipeline.benchmarks.asset_table", *given])
+    # The work folder changes nothing measured (and is a machine path): not recorded.
+    shown = [a for i, a in enumerate(given) if a != "--work" and (i == 0 or given[i - 1] != "--work")]
+    command = " ".join(["python -m pipeline.benchmarks.asset_table", *shown])
 
     def run(work: Path) -> int:
         cells = measure_table(work, assets, args.methods, args.sizes, args.spp)
