@@ -26,6 +26,7 @@ from functools import cached_property
 import numpy as np
 
 from pipeline.scene.opacity import scene_opacity
+from pipeline.scene.surface import triangle_tangents
 from pipeline.scene.types import Geometry, Scene
 from relight_torch.visibility.embree import CHUNK_RAYS, EmbreeCaster
 from relight_torch.visibility.opacity import OpacityTable
@@ -164,6 +165,12 @@ class Tracer(EmbreeCaster):
     def geometry(self) -> Geometry:
         return self._surface.geometry
 
+    @cached_property
+    def tangents(self) -> np.ndarray:
+        """(T, 3) float32 per-triangle tangents (`pipeline.scene.surface.triangle_tangents`), computed
+        once per tracer (a bake's chunks share them)."""
+        return triangle_tangents(self.geometry.positions, self.geometry.uvs)
+
     def intersect(self, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray | None = None) -> Hits:
         """Closest hit of each ray; its surface attributes are computed when first read.
 
@@ -180,11 +187,14 @@ def _unit_face_normals(corners: np.ndarray) -> np.ndarray:
     Computed in float64 so that thin triangles keep an accurate direction; degenerate triangles
     (which Embree never reports as hit) get zero normals.
     """
-    corners64 = corners.astype(np.float64)
-    normals = np.cross(corners64[:, 1] - corners64[:, 0], corners64[:, 2] - corners64[:, 0])
-    length = np.linalg.norm(normals, axis=-1, keepdims=True)
-    unit = np.where(length > 0, normals / np.where(length > 0, length, 1), 0)
-    return np.concatenate([unit, np.zeros((1, 3))]).astype(np.float32)
+    unit = np.zeros((corners.shape[0] + 1, 3), np.float32)
+    # In chunks: the float64 temporaries stay bounded on big soups.
+    for start in range(0, corners.shape[0], CHUNK_RAYS):
+        corners64 = corners[start : start + CHUNK_RAYS].astype(np.float64)
+        normals = np.cross(corners64[:, 1] - corners64[:, 0], corners64[:, 2] - corners64[:, 0])
+        length = np.linalg.norm(normals, axis=-1, keepdims=True)
+        unit[start : start + len(corners64)] = np.where(length > 0, normals / np.where(length > 0, length, 1), 0)
+    return unit
 
 
 def _check_geometry(geometry: Geometry) -> None:

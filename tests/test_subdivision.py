@@ -8,10 +8,11 @@ import dataclasses
 
 import numpy as np
 import pytest
-from pxr import Usd, UsdGeom
+from pxr import Gf, Usd, UsdGeom
 
 from pipeline.benchmarks.subdivision import CUBE_FACES, CUBE_POINTS, cube_cage_stage, silhouette_error
 from pipeline.scene import dicing
+from pipeline.scene import geometry as geometry_module
 from pipeline.scene.geometry import read_geometry
 from pipeline.scene.load import read_scene
 from pipeline.scene.materials import MaterialLibrary
@@ -333,8 +334,8 @@ def test_projected_length_bound_and_levels():
     assert dicing.level_for_pixels(1e30) == dicing.MAX_LEVEL
 
 
-def test_nearest_placement_first_matches_every_placement():
-    """Many instances: the early-stopping search finds the same longest edge as a brute force."""
+def test_projected_lengths_per_placement_match_one_at_a_time():
+    """Many instances evaluated in chunks: each placement's longest edge is the one it has alone."""
     rng = np.random.default_rng(4)
     placements = np.tile(np.eye(4), (300, 1, 1))
     placements[:, :3, 3] = rng.uniform(-20, 20, (300, 3))
@@ -342,8 +343,64 @@ def test_nearest_placement_first_matches_every_placement():
     views = dicing.views_from_cameras({"/A": _camera([0, 0, 30]), "/B": _camera([5, 1, -25])})
     edges = _cube_edges()
     starts, ends = CUBE_POINTS[edges[:, 0]], CUBE_POINTS[edges[:, 1]]
-    brute = max(dicing.max_projected_length(starts, ends, placements[i : i + 1], views) for i in range(300))
-    assert dicing.max_projected_length(starts, ends, placements, views) == pytest.approx(brute)
+    one_at_a_time = [dicing.max_projected_length(starts, ends, placements[i : i + 1], views) for i in range(300)]
+    np.testing.assert_allclose(dicing.projected_lengths(starts, ends, placements, views), one_at_a_time)
+    assert dicing.max_projected_length(starts, ends, placements, views) == pytest.approx(max(one_at_a_time))
+
+
+def test_placements_outside_every_frustum_set_no_rate():
+    """A cube in front of the camera, one behind it, one beside the frustum and one straddling its
+    edge: only the ones reaching into the frustum have a projected length (what no camera sees
+    takes the coarsest level)."""
+    views = dicing.views_from_cameras({"/Cam": _camera([0, 0, 10])})  # looking down -Z
+    half_width = 10 * 18 / 50  # tan(half angle) x distance at z = 0
+    placements = np.tile(np.eye(4), (4, 1, 1))
+    placements[:, :3, 3] = [[0, 0, 0], [0, 0, 20], [half_width + 3, 0, 0], [half_width + 0.5, 0, 0]]
+    edges = _cube_edges()
+    lengths = dicing.projected_lengths(CUBE_POINTS[edges[:, 0]], CUBE_POINTS[edges[:, 1]], placements, views)
+    assert lengths[0] > 1 and lengths[3] > 1
+    assert lengths[1] == 0 and lengths[2] == 0
+
+
+def test_each_instance_is_refined_for_its_own_size_on_screen():
+    """Two PointInstancer instances of one subdivision cube, one by the camera and one far away:
+    the near one is refined as the cube alone at its place is, the far one less (before, every
+    instance took the nearest one's level and a shot of a thousand teapots ran out of memory)."""
+    stage, _ = cube_cage_stage(camera_distance=3.0)
+    instancer = UsdGeom.PointInstancer.Define(stage, "/Many")
+    stage.DefinePrim("/Many/Prototypes", "Scope")
+    prototype = stage.DefinePrim("/Many/Prototypes/Cube")
+    prototype.GetReferences().AddInternalReference("/Cube")
+    UsdGeom.Imageable(prototype).CreateVisibilityAttr(UsdGeom.Tokens.inherited)
+    instancer.CreatePrototypesRel().SetTargets([prototype.GetPath()])
+    instancer.CreatePositionsAttr([(0, 0, 0), (0, 0, -60)])
+    instancer.CreateProtoIndicesAttr([0, 0])
+    UsdGeom.Imageable(stage.GetPrimAtPath("/Cube")).MakeInvisible()
+    geometry, warnings, _ = _read(stage)
+    assert not warnings
+    counts = np.bincount(geometry.object_ids)
+    assert counts[1] < counts[0] / 4  # at least a level coarser
+
+    near, _ = cube_cage_stage(camera_distance=3.0)
+    alone, _, _ = _read(near)
+    np.testing.assert_array_equal(geometry.positions[geometry.object_ids == 0], alone.positions)
+    np.testing.assert_array_equal(geometry.normals[geometry.object_ids == 0], alone.normals)
+
+
+def test_many_instances_are_placed_in_chunks_identically(monkeypatch):
+    """Placing instances a few at a time (bounded temporaries) gives the same soup as all at once."""
+    stage, _ = cube_cage_stage(camera_distance=3.0)
+    instancer = UsdGeom.PointInstancer.Define(stage, "/Many")
+    instancer.CreatePrototypesRel().SetTargets(["/Cube"])
+    instancer.CreatePositionsAttr([(x, 0, -4.0) for x in range(-3, 4)])
+    instancer.CreateOrientationsAttr([Gf.Quath(1, 0, 0, 0)] * 6 + [Gf.Quath(0, 0, 1, 0)])
+    instancer.CreateScalesAttr([(1, 1, 1)] * 6 + [(-1, 1, 1)])  # one mirrored instance
+    instancer.CreateProtoIndicesAttr([0] * 7)
+    whole, _, _ = _read(stage)
+    monkeypatch.setattr(geometry_module, "_PLACE_TRIANGLES", 1)
+    chunked, _, _ = _read(stage)
+    for name in ("positions", "normals", "uvs", "material_ids", "object_ids"):
+        np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.scene.camera import camera_rays
-from pipeline.scene.surface import tangent_about, triangle_tangents
+from pipeline.scene.surface import tangent_about
 from pipeline.scene.types import Camera, Scene
 from pipeline.shading_points import ShadingPoints, shading_points
 from pipeline.tracing import Tracer
@@ -98,7 +98,7 @@ def bake_deep_framebuffer(
     if not 0 <= first < last <= camera.height:
         raise ValueError(f"rows must lie in [0, {camera.height}), got [{first}, {last})")
     height, width, s = camera.height, camera.width, supersampling
-    tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs)
+    tangents = tracer.tangents
     origins, directions = grid_rays(camera, s, (first, last))
     hits = tracer.intersect(origins, directions)
     points = shading_points(scene, tangents, hits, directions)

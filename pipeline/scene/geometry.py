@@ -171,29 +171,34 @@ def _place(surface: Surface, world_from_local: np.ndarray):
     """Transform a surface to each of I placements.
 
     Returns:
-        positions (I*T, 3, 3), normals (I*T, 3, 3) (unnormalised, zero where unknown),
-        uvs (I*T, 3, 2); triangles of a mirrored placement are re-wound.
+        positions (I*T, 3, 3) float64, normals (I*T, 3, 3) float64 (unnormalised, zero where
+        unknown), uvs (I*T, 3, 2); triangles of a mirrored placement are re-wound.
     """
+    count, num_triangles = len(world_from_local), surface.num_triangles
     rotation = world_from_local[:, :3, :3]
-    num_triangles = surface.num_triangles
-    # (I, T*3, 3) batched matrix products: one GEMM per placement (einsum was 5x slower).
-    positions = (
-        surface.positions.reshape(1, -1, 3).astype(np.float64) @ rotation.transpose(0, 2, 1)
-        + world_from_local[:, None, :3, 3]
-    ).reshape(-1, num_triangles, 3, 3)
     det = np.linalg.det(rotation)
     invertible = np.abs(det) > 0
     normal_from_local = np.zeros_like(rotation)
     normal_from_local[invertible] = np.linalg.inv(rotation[invertible]).transpose(0, 2, 1)
-    normals = (surface.normals.reshape(1, -1, 3).astype(np.float64) @ normal_from_local.transpose(0, 2, 1)).reshape(
-        -1, num_triangles, 3, 3
-    )
-    uvs = np.broadcast_to(surface.uvs, positions.shape[:3] + (2,))
+    local_positions = surface.positions.reshape(-1, 3).astype(np.float64)
+    local_normals = surface.normals.reshape(-1, 3).astype(np.float64)
+    positions = np.empty((count,) + local_positions.shape)
+    normals = np.empty_like(positions)
+    # One (3 T, 3) x (3, 3) BLAS product per placement: numpy's batched matmul does not use BLAS
+    # for the broadcast (1, 3 T, 3) x (I, 3, 3) product and is several times slower.
+    for index in range(count):
+        np.matmul(local_positions, rotation[index].T, out=positions[index])
+        positions[index] += world_from_local[index, :3, 3]
+        np.matmul(local_normals, normal_from_local[index].T, out=normals[index])
+    positions = positions.reshape(count, num_triangles, 3, 3)
+    normals = normals.reshape(count, num_triangles, 3, 3)
+    uvs = np.broadcast_to(surface.uvs, (count, num_triangles, 3, 2))
     mirrored = det < 0
-    winding = [0, 2, 1]
-    positions[mirrored] = positions[mirrored][:, :, winding]
-    normals[mirrored] = normals[mirrored][:, :, winding]
-    uvs = np.where(mirrored[:, None, None, None], uvs[:, :, winding], uvs)
+    if mirrored.any():
+        winding = [0, 2, 1]
+        positions[mirrored] = positions[mirrored][:, :, winding]
+        normals[mirrored] = normals[mirrored][:, :, winding]
+        uvs = np.where(mirrored[:, None, None, None], uvs[:, :, winding], uvs)
     return positions.reshape(-1, 3, 3), normals.reshape(-1, 3, 3), uvs.reshape(-1, 3, 2)
 
 
@@ -209,14 +214,22 @@ def _finish_triangles(positions: np.ndarray, normals: np.ndarray, uvs: np.ndarra
     cross = np.cross(positions[:, 1] - positions[:, 0], positions[:, 2] - positions[:, 0])
     with np.errstate(invalid="ignore", over="ignore"):
         twice_area = np.linalg.norm(cross, axis=-1)
-        longest_edge2 = np.max(np.sum((positions - np.roll(positions, 1, axis=1)) ** 2, -1), -1)
-        keep = np.isfinite(positions).all(axis=(1, 2)) & (twice_area > _DEGENERATE_RELATIVE_AREA * longest_edge2)
+        edges = positions - positions[:, [2, 0, 1]]
+        longest_edge2 = np.max(np.sum(np.square(edges, out=edges), -1), -1)
+        del edges
+        keep = np.isfinite(twice_area) & (twice_area > _DEGENERATE_RELATIVE_AREA * longest_edge2)
+        keep &= np.isfinite(positions).all(axis=(1, 2))
+    all_kept = bool(keep.all())
     face_normal = cross[keep] / twice_area[keep, None]
-    normals = np.where(np.isfinite(normals[keep]), normals[keep], 0.0)
+    del cross
+    normals = normals if all_kept else normals[keep]
+    if not np.isfinite(normals).all():
+        normals = np.where(np.isfinite(normals), normals, 0.0)
     length = np.linalg.norm(normals, axis=-1, keepdims=True)
     unit = np.where(length > 0, normals / np.where(length > 0, length, 1.0), face_normal[:, None])
-    uvs = np.nan_to_num(uvs[keep], nan=0.0, posinf=0.0, neginf=0.0)
-    return keep, positions[keep].astype(np.float32), unit.astype(np.float32), uvs.astype(np.float32)
+    uvs = np.nan_to_num(uvs if all_kept else uvs[keep], nan=0.0, posinf=0.0, neginf=0.0)
+    kept_positions = positions if all_kept else positions[keep]
+    return keep, kept_positions.astype(np.float32), unit.astype(np.float32), uvs.astype(np.float32)
 
 
 def _display_color(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[np.ndarray | None, str | None]:
@@ -253,25 +266,31 @@ def _face_material_ids(
     return ids
 
 
-def _soup_part(
-    surface: Surface, material_ids: np.ndarray, world_from_local: np.ndarray, first_object_id: int
-) -> tuple[int, tuple[np.ndarray, ...]]:
-    """One gprim's triangles at all its I placements (object ids first_object_id + i).
+# Triangles placed at once: bounds the float64 temporaries of `_place` and `_finish_triangles`
+# (about 400 bytes a triangle) however many instances a prototype has.
+_PLACE_TRIANGLES = 1 << 20
+
+
+def _soup_parts(
+    surface: Surface, material_ids: np.ndarray, world_from_local: np.ndarray, object_ids: np.ndarray
+) -> Iterator[tuple[int, tuple[np.ndarray, ...]]]:
+    """One gprim's triangles at its I placements, in chunks of placements of at most about
+    `_PLACE_TRIANGLES` triangles.
 
     Args:
         surface: the gprim's local triangles (T). material_ids: (T,) per triangle.
-        world_from_local: (I, 4, 4) placements.
+        world_from_local: (I, 4, 4) placements. object_ids: (I,) their object ids.
 
-    Returns:
-        (number of triangles dropped, (positions, normals, uvs, material_ids, object_ids)).
+    Yields:
+        (number of triangles dropped, (positions, normals, uvs, material_ids, object_ids)) per chunk.
     """
-    num_placements = len(world_from_local)
-    keep, positions, normals, uvs = _finish_triangles(*_place(surface, world_from_local))
-    object_ids = np.repeat(
-        np.arange(first_object_id, first_object_id + num_placements, dtype=np.int32), surface.num_triangles
-    )
-    part = (positions, normals, uvs, np.tile(material_ids, num_placements)[keep], object_ids[keep])
-    return int((~keep).sum()), part
+    step = max(1, _PLACE_TRIANGLES // max(surface.num_triangles, 1))
+    for first in range(0, len(world_from_local), step):
+        chunk = world_from_local[first : first + step]
+        keep, positions, normals, uvs = _finish_triangles(*_place(surface, chunk))
+        chunk_ids = np.repeat(object_ids[first : first + step].astype(np.int32), surface.num_triangles)
+        part = (positions, normals, uvs, np.tile(material_ids, len(chunk))[keep], chunk_ids[keep])
+        yield int((~keep).sum()), part
 
 
 class _Surfaces:
@@ -279,32 +298,38 @@ class _Surfaces:
 
     def __init__(self, time: Usd.TimeCode, views: list[dicing.View], warnings: list[str]):
         self.time, self.views, self.warnings = time, views, warnings
-        self._surfaces: dict[tuple[str, int], Surface | None] = {}
+        self._surfaces: dict[str, Surface | None] = {}
         self._subdivision: dict[str, Refinement | None] = {}
         self._budget_warned: set[str] = set()
 
-    def get(self, prim: Usd.Prim, key: str, world_from_local: np.ndarray) -> Surface | None:
-        """The surface of `prim` (source path `key`) for placements (I, 4, 4)."""
-        level = 0
+    def get(self, prim: Usd.Prim, key: str, world_from_local: np.ndarray) -> list[tuple[Surface | None, np.ndarray]]:
+        """The surfaces of `prim` (source path `key`) for placements (I, 4, 4): (surface, the (K,)
+        placement rows it serves) per subdivision level the placements need (one for other gprims)."""
         if prim.IsA(UsdGeom.Mesh) and is_subdivision(UsdGeom.Mesh(prim), self.time):
             if key not in self._subdivision:
                 mesh = read_subdivision_mesh(UsdGeom.Mesh(prim), self.time, self.warnings)
                 self._subdivision[key] = None if mesh is None else Refinement(mesh)
             refinement = self._subdivision[key]
             if refinement is not None:
-                level, budget_warning = refinement.choose_level(world_from_local, self.views)
+                levels, budget_warning = refinement.choose_levels(world_from_local, self.views)
                 if budget_warning and key not in self._budget_warned:
                     self._budget_warned.add(key)
                     warn(budget_warning, self.warnings)
-                if level > 0:
-                    return refinement.surface(level)
-        if (key, level) not in self._surfaces:
-            self._surfaces[key, level] = (
+                return [
+                    (refinement.surface(level) if level > 0 else self._cage(prim, key), np.flatnonzero(levels == level))
+                    for level in np.unique(levels).tolist()
+                ]
+        return [(self._cage(prim, key), np.arange(len(world_from_local)))]
+
+    def _cage(self, prim: Usd.Prim, key: str) -> Surface | None:
+        """The gprim as authored: a mesh's (unrefined) faces, or an implicit gprim's tessellation."""
+        if key not in self._surfaces:
+            self._surfaces[key] = (
                 mesh_surface(UsdGeom.Mesh(prim), self.time, self.warnings)
                 if prim.IsA(UsdGeom.Mesh)
                 else implicit_surface(prim, self.time)
             )
-        return self._surfaces[key, level]
+        return self._surfaces[key]
 
 
 def read_geometry(
@@ -326,9 +351,11 @@ def read_geometry(
     """
     walker = _Walker(time, warnings)
     surfaces = _Surfaces(time, dicing.views_from_cameras(cameras or {}), warnings)
-    dropped: dict[str, list] = {}  # surface key -> [first prim path, triangles dropped]
     averaged_keys: set[str] = set()
-    parts: list[tuple[np.ndarray, ...]] = []
+    # First every placement's surfaces (the levels chosen), then the soup written straight into
+    # arrays sized for all of them: no list of parts held beside the joined soup (the small parts
+    # of far instances would stay in the heap and double the peak).
+    jobs: list[tuple[str, str, Surface, np.ndarray, np.ndarray, np.ndarray]] = []
     objects: list[SceneObject] = []
     for placement in walker.walk(stage.GetPseudoRoot(), np.eye(4)[None], [""]):
         placement = _invertible(placement, warnings)
@@ -337,37 +364,54 @@ def read_geometry(
         prim = placement.prim
         source = prim.GetPrimInPrototype() if prim.IsInstanceProxy() else prim
         key = str(source.GetPath())
-        surface = surfaces.get(prim, key, placement.world_from_local)
-        if surface is None or surface.num_triangles == 0:
+        groups = [
+            (surface, rows)
+            for surface, rows in surfaces.get(prim, key, placement.world_from_local)
+            if surface is not None and surface.num_triangles
+        ]
+        if not groups:
             continue
         display_color, averaged = _display_color(prim, time)
         if averaged and key not in averaged_keys:  # once per surface, not per instance
             averaged_keys.add(key)
             warn(f"{prim.GetPath()}: per-{averaged} displayColor averaged to one colour", warnings)
-        material_ids = _face_material_ids(prim, surface.num_faces, display_color, library, time, warnings)[
-            surface.face_ids
-        ]
-        num_dropped, part = _soup_part(surface, material_ids, placement.world_from_local, len(objects))
-        if num_dropped:
-            dropped.setdefault(key, [str(prim.GetPath()), 0])[1] += num_dropped
-        parts.append(part)
+        face_ids = _face_material_ids(prim, groups[0][0].num_faces, display_color, library, time, warnings)
         double_sided = bool(UsdGeom.Gprim(prim).GetDoubleSidedAttr().Get(time))
+        for surface, rows in groups:
+            world_from_local = placement.world_from_local[rows]
+            jobs.append(
+                (key, str(prim.GetPath()), surface, face_ids[surface.face_ids], world_from_local, len(objects) + rows)
+            )
         objects.extend(SceneObject(path, double_sided) for path in placement.paths)
+    return _write_soup(jobs, warnings), objects
+
+
+def _write_soup(
+    jobs: list[tuple[str, str, Surface, np.ndarray, np.ndarray, np.ndarray]], warnings: list[str]
+) -> Geometry:
+    """The soup of every (surface key, prim path, surface, material ids (T,), placements (I, 4, 4),
+    object ids (I,)) job, written part by part into arrays sized for all their triangles (the pages
+    of the triangles dropped as degenerate are never touched), with a warning per surface that
+    lost triangles."""
+    total = sum(surface.num_triangles * len(placements) for _, _, surface, _, placements, _ in jobs)
+    joined = [
+        np.empty((total, 3, 3), np.float32),
+        np.empty((total, 3, 3), np.float32),
+        np.empty((total, 3, 2), np.float32),
+        np.empty(total, np.int32),
+        np.empty(total, np.int32),
+    ]
+    dropped: dict[str, list] = {}  # surface key -> [first prim path, triangles dropped]
+    start = 0
+    for key, path, surface, material_ids, placements, object_ids in jobs:
+        for num_dropped, part in _soup_parts(surface, material_ids, placements, object_ids):
+            if num_dropped:
+                dropped.setdefault(key, [path, 0])[1] += num_dropped
+            stop = start + part[0].shape[0]
+            for target, array in zip(joined, part, strict=True):
+                target[start:stop] = array
+            start = stop
     for path, count in dropped.values():
         warn(f"{path}: dropped {count} degenerate or non-finite triangles", warnings)
-    return _concatenate(parts), objects
-
-
-def _concatenate(parts: list[tuple[np.ndarray, ...]]) -> Geometry:
-    if not parts:
-        return Geometry(
-            positions=np.zeros((0, 3, 3), np.float32),
-            normals=np.zeros((0, 3, 3), np.float32),
-            uvs=np.zeros((0, 3, 2), np.float32),
-            material_ids=np.zeros(0, np.int32),
-            object_ids=np.zeros(0, np.int32),
-        )
-    positions, normals, uvs, material_ids, object_ids = (np.concatenate(a) for a in zip(*parts, strict=True))
-    return Geometry(
-        positions=positions, normals=normals, uvs=uvs, material_ids=material_ids.astype(np.int32), object_ids=object_ids
-    )
+    positions, normals, uvs, material_ids, object_ids = (array[:start] for array in joined)
+    return Geometry(positions=positions, normals=normals, uvs=uvs, material_ids=material_ids, object_ids=object_ids)

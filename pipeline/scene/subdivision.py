@@ -11,7 +11,6 @@ bilinear cage). A 'loop' mesh with non-triangular faces is refined with Catmull-
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -191,47 +190,69 @@ class Refinement:
         along = np.sum((limit - cage.points) * vertex_normals, axis=-1, keepdims=True)
         return cage.points, cage.points + along * vertex_normals
 
-    def _flatness(self, level: int, world_from_local: np.ndarray, views: list[dicing.View]) -> float:
-        """How far the control points of `level` are from the limit, over the tolerance: the
-        projected distance / `dicing.FLAT_PIXELS`, or without cameras the distance / 1e-6 of the
-        cage's size (only a flat cage stops early)."""
+    def _flatness(self, level: int, world_from_local: np.ndarray, views: list[dicing.View]) -> np.ndarray:
+        """(I,) how far the control points of `level` are from the limit, over the tolerance, per
+        placement: the projected distance / `dicing.FLAT_PIXELS`, or without cameras the distance /
+        1e-6 of the cage's size (only a flat cage stops early)."""
         starts, ends = self._deviation(level)
         if views:
-            return dicing.max_projected_length(starts, ends, world_from_local, views) / dicing.FLAT_PIXELS
+            return dicing.projected_lengths(starts, ends, world_from_local, views) / dicing.FLAT_PIXELS
         size = float(np.ptp(self.mesh.cage.points, axis=0).max(initial=0.0))
         distance = float(np.linalg.norm(ends - starts, axis=-1).max(initial=0.0))
-        return distance / (1e-6 * size) if size > 0 else 0.0
+        return np.full(len(world_from_local), distance / (1e-6 * size) if size > 0 else 0.0)
 
-    def choose_level(self, world_from_local: np.ndarray, views: list[dicing.View]) -> tuple[int, str | None]:
-        """The level for placements (I, 4, 4) seen by `views` (empty: the fallback level), and a
-        warning when the triangle budget cut it; 0 means the cage (no level fits the budget)."""
+    def choose_levels(self, world_from_local: np.ndarray, views: list[dicing.View]) -> tuple[np.ndarray, str | None]:
+        """The level of each of I placements (I, 4, 4) seen by `views` (empty: the fallback level),
+        and a warning when the triangle budget cut one; 0 means the cage (no level fits the budget).
+
+        Returns:
+            ((I,) int64 levels, warning or None).
+        """
         mesh = self.mesh
+        count = len(world_from_local)
         pixels = None
         if views:
-            pixels = dicing.max_projected_length(
+            pixels = dicing.projected_lengths(
                 mesh.cage.points[mesh.edges[:, 0]], mesh.cage.points[mesh.edges[:, 1]], world_from_local, views
             )
-            wanted = max(1, dicing.level_for_pixels(pixels))
+            wanted = np.maximum(1, dicing.levels_for_pixels(pixels))
         else:
-            wanted = dicing.FALLBACK_LEVEL
-        level = wanted
-        while level >= 1 and triangle_count(mesh.cage.counts, mesh.scheme, level) > dicing.TRIANGLE_BUDGET:
-            level -= 1
-        # The distance to the limit shrinks about 4x a level (quadratic convergence): predict the
-        # flat level from level 1's, then confirm it on the level itself (its limit is needed anyway).
-        flat_level = 1
-        while flat_level < level:
-            excess = self._flatness(flat_level, world_from_local, views)
-            if excess <= 1.0:
-                return flat_level, None
-            flat_level = min(level, max(flat_level + 1, flat_level + math.ceil(math.log(excess, 4))))
-        if level == wanted or (level >= 1 and self._flatness(level, world_from_local, views) <= 1.0):
-            return level, None
-        reached = "" if pixels is None else f" (edges up to {pixels / 2**level:.1f} pixels)"
-        return level, (
-            f"mesh {mesh.path}: subdivision level {wanted} would make "
-            f"{triangle_count(mesh.cage.counts, mesh.scheme, wanted):,} triangles, over the budget "
-            f"of {dicing.TRIANGLE_BUDGET:,} per mesh; refined to level {level}{reached}"
+            wanted = np.full(count, dicing.FALLBACK_LEVEL, np.int64)
+        cap = int(wanted.max(initial=0))
+        while cap >= 1 and triangle_count(mesh.cage.counts, mesh.scheme, cap) > dicing.TRIANGLE_BUDGET:
+            cap -= 1
+        levels = np.minimum(wanted, cap)
+        # The distance to the limit shrinks about 4x a level (quadratic convergence): predict each
+        # placement's flat level from level 1's, then confirm it on the level itself (its limit is
+        # needed anyway). Placements are visited in groups at the same trial level.
+        chosen = levels.copy()
+        trial = np.ones(count, np.int64)
+        pending = trial < levels
+        while pending.any():
+            flat_level = int(trial[pending].min())
+            rows = np.flatnonzero(pending & (trial == flat_level))
+            excess = self._flatness(flat_level, world_from_local[rows], views)
+            flat = excess <= 1.0
+            chosen[rows[flat]] = flat_level
+            pending[rows[flat]] = False
+            rows, excess = rows[~flat], excess[~flat]
+            steps = np.ceil(np.minimum(np.log(excess) / np.log(4), dicing.MAX_LEVEL)).astype(np.int64)
+            trial[rows] = np.minimum(levels[rows], np.maximum(flat_level + 1, flat_level + steps))
+            pending[rows] = trial[rows] < levels[rows]
+        cut = np.flatnonzero((chosen == levels) & (levels < wanted) & (levels >= 1))
+        if cut.size:
+            still_rough = self._flatness(cap, world_from_local[cut], views) > 1.0
+            cut = cut[still_rough]
+        elif cap < 1:
+            cut = np.flatnonzero(levels < wanted)
+        if cut.size == 0:
+            return chosen, None
+        most = int(wanted[cut].max())
+        reached = "" if pixels is None else f" (edges up to {float(pixels[cut].max()) / 2**cap:.1f} pixels)"
+        return chosen, (
+            f"mesh {mesh.path}: subdivision level {most} would make "
+            f"{triangle_count(mesh.cage.counts, mesh.scheme, most):,} triangles, over the budget "
+            f"of {dicing.TRIANGLE_BUDGET:,} per mesh; refined to level {cap}{reached}"
         )
 
     def surface(self, level: int) -> Surface:

@@ -31,6 +31,8 @@ _TEXTURED_FIELDS = {
     "opacity": ("opacity", 1),
     "normal_tangent": ("normal", 3),
 }
+# Triangles per chunk of `triangle_tangents`.
+_TANGENT_CHUNK = 1 << 18
 # Below this squared length a vector is treated as zero (float32 unit-vector arithmetic).
 _DEGENERATE_SQUARED = 1e-12
 
@@ -126,6 +128,16 @@ def triangle_tangents(positions: np.ndarray, uvs: np.ndarray) -> np.ndarray:
     Returns:
         (T, 3) float32 unit tangents (not yet orthogonal to any normal).
     """
+    tangents = np.empty((positions.shape[0], 3), np.float32)
+    # In chunks: the float64 temporaries (about 300 bytes a triangle) stay bounded on big soups.
+    for start in range(0, positions.shape[0], _TANGENT_CHUNK):
+        chunk = slice(start, start + _TANGENT_CHUNK)
+        tangents[chunk] = _tangents(positions[chunk], uvs[chunk])
+    return tangents
+
+
+def _tangents(positions: np.ndarray, uvs: np.ndarray) -> np.ndarray:
+    """`triangle_tangents` of one chunk of triangles."""
     positions = np.asarray(positions, np.float64)
     uvs = np.asarray(uvs, np.float64)
     edges = positions[:, 1:] - positions[:, :1]

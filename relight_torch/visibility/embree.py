@@ -307,9 +307,11 @@ def _scene_epsilon(corners: np.ndarray) -> float:
     """Ray offset for a (T, 3, 3) soup: see `Tracer.epsilon`. 0 for an empty soup."""
     if corners.shape[0] == 0:
         return 0.0
-    points = corners.reshape(-1, 3).astype(np.float64)
-    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-    magnitude = float(np.abs(points).max())
+    # float32 extremes are exact: no float64 copy of a big soup.
+    points = corners.reshape(-1, 3)
+    low, high = points.min(axis=0).astype(np.float64), points.max(axis=0).astype(np.float64)
+    diagonal = float(np.linalg.norm(high - low))
+    magnitude = float(max(np.abs(low).max(), np.abs(high).max()))
     return max(EPSILON_DIAGONAL_FRACTION * diagonal, EPSILON_ULPS * float(np.spacing(np.float32(magnitude))))
 
 

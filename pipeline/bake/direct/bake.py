@@ -10,7 +10,7 @@ Writes into OUT:
     <stem>.opacity*.npy     only when some occluder is cut out or partially opaque: its opacity
                             table (`relight_torch.visibility.opacity.OpacityTable.to_arrays`), so
                             that shadow rays and shadow maps pass through the holes
-The deep framebuffer is traced in bands of ROWS_PER_CHUNK pixel rows, chunks of
+The deep framebuffer is traced in bands of `rows_per_chunk` pixel rows, chunks of
 `pipeline.bake.scheduler` kept in `.<stem>.direct-<hash>/` until the layer is written, so a killed
 bake resumes from its finished bands. Each file is written atomically; the layer last, so a cache
 layer never names a missing payload.
@@ -49,9 +49,16 @@ from relight_torch.io.atomic import atomic_path, remove_temp_files
 from relight_torch.io.exr import write_exr
 from relight_torch.lights.linking import encode_paths
 
-ROWS_PER_CHUNK = 64
-"""Pixel rows per deep-framebuffer chunk: at 2048 px wide, supersampling 2 and 2 x 2 texture
-samples, 64 rows are 524,288 sub-samples and 2.1 M texture rays per chunk."""
+SUBSAMPLES_PER_CHUNK = 1 << 17
+"""Sub-samples per deep-framebuffer chunk (whole pixel rows, at least one): a chunk's memory follows
+this, not the image width (with supersampling 2 and 2 x 2 texture samples, 524,288 probe rays)."""
+
+
+def rows_per_chunk(width: int, supersampling: int) -> int:
+    """Pixel rows per chunk of an image `width` pixels wide: `SUBSAMPLES_PER_CHUNK` sub-samples."""
+    return max(1, SUBSAMPLES_PER_CHUNK // (width * supersampling * supersampling))
+
+
 _PARAM_PREFIX = "param_"
 _BACK_FACING = "numBackFacing"
 BACK_FACING_WARNING = 0.5
@@ -142,7 +149,7 @@ def direct_payloads(
             first,
             last,
         )
-        for first, last in chunk_ranges(camera.height, ROWS_PER_CHUNK)
+        for first, last in chunk_ranges(camera.height, rows_per_chunk(camera.width, supersampling))
     ]
     paths = run_chunks(_direct_chunk, specs, chunk_dir, "deep framebuffer", "rows")
     camera_position = camera.world_from_camera[:3, 3]
@@ -167,9 +174,14 @@ def direct_payloads(
         channels=tuple(sorted(channels)),
         constants=constants,
     )
-    occluders = write_npy(out_dir / f"{stem}.occluders.npy", scene.geometry.positions.astype(np.float32), "occluders")
+    # The soup is float32 / int32 already: written without a copy.
+    occluders = write_npy(
+        out_dir / f"{stem}.occluders.npy", np.ascontiguousarray(scene.geometry.positions, np.float32), "occluders"
+    )
     occluder_objects = write_npy(
-        out_dir / f"{stem}.occluderObjects.npy", scene.geometry.object_ids.astype(np.int32), "occluderObjects"
+        out_dir / f"{stem}.occluderObjects.npy",
+        np.ascontiguousarray(scene.geometry.object_ids, np.int32),
+        "occluderObjects",
     )
     object_paths = write_npy(
         out_dir / f"{stem}.objectPaths.npy", encode_paths([obj.path for obj in scene.objects]), "objectPaths"
