@@ -14,10 +14,10 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from pipeline.bake.adapter import Variant
 import numpy as np
 import torch
 
+from pipeline.bake.adapter import Variant
 from pipeline.bake.transfer.bake import F_PREFIX, PROBES_PAYLOAD, TransferSettings, bake_transfer, matrix_payloads
 from pipeline.scene.types import Camera, Scene
 from relight_torch.cache.layer import read_cache_layer

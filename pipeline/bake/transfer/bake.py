@@ -162,9 +162,7 @@ def auto_indirect_scale(width: int, height: int) -> int:
     return 2 if min(width, height) >= 240 and width % 2 == 0 and height % 2 == 0 else 1
 
 
-def compress_rows(
-    dense: torch.Tensor, num_kept: int, factor: bool, probes: torch.Tensor | None = None
-) -> SparseRows:
+def compress_rows(dense: torch.Tensor, num_kept: int, factor: bool, probes: torch.Tensor | None = None) -> SparseRows:
     """(R, n, n, 3) dense matrix rows -> their top-k Haar coefficients, optionally colour-factored,
     refitted to keep their products with the (Q, n^2) wavelet `probes` when given (`refit_rows`)."""
     coefficients = haar2d(dense)
