@@ -22,6 +22,13 @@ StateT = TypeVar("StateT")
 """A subclass's cached indirect work per light."""
 
 
+def gather_sample_count(light: Light, area_samples: int, dome_samples: int) -> int:
+    """Light samples per gather: 1 for a delta light, `dome_samples` for a dome, else `area_samples`."""
+    if is_delta_light(light):
+        return 1
+    return dome_samples if light.kind is LightKind.DOME else area_samples
+
+
 def gather_light_key(unit: Light) -> object:
     """What a unit light's diffuse light on gathers depends on: all of it but its AOV group and its
     specular multiplier (gathers reflect diffusely)."""
@@ -199,11 +206,8 @@ class IndirectRelighter(Generic[StateT]):
         )
 
     def _gather_samples(self, light: Light, area_samples: int) -> int:
-        """Light samples per gather: 1 for a delta light, the direct settings' dome count for a dome,
-        else `area_samples`."""
-        if is_delta_light(light):
-            return 1
-        return self.direct.settings.dome_samples if light.kind is LightKind.DOME else area_samples
+        """Light samples per gather (`gather_sample_count`, the direct settings' dome count)."""
+        return gather_sample_count(light, area_samples, self.direct.settings.dome_samples)
 
     @staticmethod
     def _scale(light: Light, like: torch.Tensor) -> torch.Tensor:

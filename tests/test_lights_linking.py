@@ -246,7 +246,10 @@ def test_links_govern_the_light_reaching_the_gathers(transfer, name, linked_db, 
     if name == "light_link":  # only the tall block's gathers are lit: far less light bounces around
         assert indirect.sum() < 0.4 * ignored.sum()
     else:  # the floor in the short block's shadow now lights the room: nothing gets darker
-        assert indirect.sum() > 1.03 * ignored.sum() and (indirect - ignored).min() > -1e-4 * ignored.max()
+        # beyond the truncated rows' ringing: F's rows refitted to the shot's lamp
+        # (`relight_torch.transfer.responses`) ring a little more than plain top-k ones (measured:
+        # -9e-4 of the peak, was within -1e-4).
+        assert indirect.sum() > 1.03 * ignored.sum() and (indirect - ignored).min() > -2e-3 * ignored.max()
 
 
 def test_light_link_edit_remasks_the_gathers_without_tracing(cornell, transfer):

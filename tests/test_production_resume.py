@@ -51,11 +51,12 @@ def test_bake_killed_at_several_points_resumes_to_the_uninterrupted_cache(tmp_pa
     assert first.returncode == -signal.SIGKILL, first.stderr
     assert len(_chunks(killed)) == 1 and not list(killed.glob("*.relight.usda"))
 
-    # Killed inside its first chunk write (the final-gather rows), the temp file not yet renamed.
+    # Killed inside its first chunk write (the bounce rows: M is baked before F, whose rows are
+    # refitted to the shot's lights carried through M), the temp file not yet renamed.
     second = _bake_killed_at("chunk-write", arguments)
     assert second.returncode == -signal.SIGKILL, second.stderr
     assert "deep framebuffer: 1 of 1 chunks already baked" in second.stderr
-    assert len(list(killed.rglob(".finalGather*.tmp-*"))) == 1 and len(_chunks(killed)) == 1
+    assert len(list(killed.rglob(".bounce*.tmp-*"))) == 1 and len(_chunks(killed)) == 1
 
     # Killed inside the cache layer's write: finished chunks are not recomputed, a half-written
     # layer is never in place.

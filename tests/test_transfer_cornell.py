@@ -26,7 +26,7 @@ from relight_torch.io.exr import read_exr
 from relight_torch.lights.light import Light, LightKind, Shaping
 from relight_torch.metrics import psnr
 from relight_torch.transfer.open import open_transfer_relighter
-from relight_torch.transfer.relighter import TransferRelighter
+from relight_torch.transfer.relighter import TransferRelighter, wavelet_light
 from relight_torch.transfer.sparse import column_norms
 from relight_torch.upsample import edge_aware_upsampler
 
@@ -188,14 +188,17 @@ def _light_at(light: Light, kind: LightKind, position, emit_direction, **fields)
 # spot light covers ~2 gathers of the floor, which the gathers' point-sampled irradiance mostly
 # misses (34.6 and 38.2 dB only because that indirect light is dim; indirect mean 0.51 of the
 # reference at the default 4 light samples per gather, 0.32 / 0.34 / 0.42 at 1 / 16 / 64: the two
-# gathers' sampled irradiance decides it). Bounds: the measured figures less ~1.5 dB, and the mean
-# ratio as measured +- ~0.15 (an improvement should move them).
+# gathers' sampled irradiance decides it). Since the F rows are refitted to transfer the shot's
+# ceiling lamp exactly (`relight_torch.transfer.responses`), lights far from it get its correction
+# too: the lamp at the wall 19.2 / 20.8 dB with an indirect mean of 1.11 of the reference, the spot
+# 35.5 / 40.6 dB and 0.65. Bounds: the measured figures less ~1.5 dB, and the mean ratio as
+# measured +- ~0.15 (an improvement should move them).
 FAILURES = {
     "lamp_at_wall": (
         dict(kind=LightKind.RECT, position=(278.0, 274.0, 549.2), emit_direction=(0.0, 0.0, 1.0)),
         17.5,
         19.0,
-        (0.8, 1.1),
+        (0.95, 1.25),
     ),
     "narrow_spot": (
         dict(
@@ -208,7 +211,7 @@ FAILURES = {
         ),
         33.0,
         36.5,
-        (0.35, 0.65),
+        (0.5, 0.8),
     ),
 }
 
@@ -261,8 +264,8 @@ def test_culling_weak_wavelet_lights_stays_within_its_bound(cornell):
     light = exact.lights[0]
     exact._unit_indirect(light)
     radiance = exact._per_light[light.path].radiance  # F multiplies g_d + M g_d (two bounces)
-    bounced = radiance + exact.bounce.matmul(exact._wavelet(radiance))
-    weights = exact._wavelet(bounced).norm(dim=-1) * column_norms(exact.final_gather)
+    light_vector = wavelet_light(radiance, exact.bounce, 2, exact.gathers.side)
+    weights = light_vector.norm(dim=-1) * column_norms(exact.final_gather)
     difference = culled._unit_indirect(light) - exact._unit_indirect(light)
     assert 0.0 < float(difference.norm()) <= 0.05 * float(weights.sum())
     # Measured when written: tolerance 0.05 moved the unit indirect light by 1.2 % (L2; 0.002 of the
@@ -301,9 +304,12 @@ def test_reduced_resolution_indirect_is_upsampled_along_edges(cornell, tmp_path)
         ),
     )
     # Measured when written (32 x 32, 1,024 gathers, k = 100, F for 16 x 16): 37.9 dB, and 36.3 dB
-    # with a plain tent filter that blends across edges.
+    # with a plain tent filter that blends across edges. With the F rows refitted to the shot's
+    # lamp (`relight_torch.transfer.responses`) both filters give 38.0 dB at this size: the tent's
+    # loss came with the truncated rows' error, not the silhouettes. The edge-aware filter must stay
+    # at least as good.
     assert psnr(indirect, reference) >= 37.0
-    assert psnr(indirect, reference) >= psnr(plain.indirect_image().numpy(), reference) + 1.0
+    assert psnr(indirect, reference) >= psnr(plain.indirect_image().numpy(), reference) - 0.2
     # The light-group AOVs (direct and upsampled indirect per group) still sum to the beauty.
     groups = relighter.light_group_images()
     assert sorted(groups) == ["CeilingLight_direct", "CeilingLight_indirect"]

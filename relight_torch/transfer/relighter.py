@@ -36,6 +36,29 @@ PREVIEW_BOUNCES = 2
 (`TransferRelighter._preview_vector`); each further one costs a product with M."""
 
 
+def wavelet_light(radiance: torch.Tensor, bounce: SparseRows | None, num_bounces: int, side: int) -> torch.Tensor:
+    """(G, 3) gather radiance g_d, texture order -> (G, 3) the Haar coefficients (flattened row-major)
+    of the light that F multiplies: (I + M + ... + M^(B-1)) g_d, M applied to wavelet light.
+
+    Args:
+        radiance: (G, 3) light leaving the gathers after one reflection.
+        bounce: M, G wavelet rows over G (None when `num_bounces` is 1).
+        num_bounces: B >= 1.
+        side: the gathers' texture side (G = side^2).
+    """
+
+    def wavelet(values: torch.Tensor) -> torch.Tensor:
+        return haar2d(values.reshape(side, side, 3)).reshape(-1, 3)
+
+    total, bounced = radiance, radiance
+    for _ in range(num_bounces - 1):
+        if bounce is None:
+            raise ValueError(f"{num_bounces} bounces need the bounce matrix M")
+        bounced = bounce.matmul(wavelet(bounced))
+        total = total + bounced
+    return wavelet(total)
+
+
 @dataclasses.dataclass(frozen=True)
 class FrozenTransfer:
     """A light's visibility at one pose for `TransferRelighter.differentiable_light_image`.
@@ -204,13 +227,9 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
     def light_vector(self, radiance: torch.Tensor, num_bounces: int | None = None) -> torch.Tensor:
         """(G, 3) gather radiance -> (G, 3) the wavelet light F multiplies in `transfer`: the
         bounces added (`num_bounces` terms, default all), Haar-transformed, weak wavelet lights culled."""
-        total, bounced = radiance, radiance
-        for _ in range((self.num_bounces if num_bounces is None else min(num_bounces, self.num_bounces)) - 1):
-            assert self.bounce is not None  # __init__ requires M for more than one bounce
-            bounced = self.bounce.matmul(self._wavelet(bounced))
-            total = total + bounced
         self.counters["transfer"] += 1
-        light = self._wavelet(total)
+        bounces = self.num_bounces if num_bounces is None else min(num_bounces, self.num_bounces)
+        light = wavelet_light(radiance, self.bounce, bounces, self.gathers.side)
         if self.cull_tolerance > 0.0:
             assert self._column_norms is not None  # computed whenever culling is on
             light = cull_light(light, self._column_norms, self.cull_tolerance)
@@ -228,11 +247,6 @@ class TransferRelighter(IndirectRelighter[_IndirectState]):
             return super()._rows_to_image(rows)
         height, width = (size // self.direct.supersampling for size in self.direct.gbuffer.image_size)
         return self.upsampler(rows).reshape(height, width, 3) * self.direct.exposure_scale
-
-    def _wavelet(self, radiance: torch.Tensor) -> torch.Tensor:
-        """(G, 3) gather values in texture order -> (G, 3) Haar coefficients, flattened row-major."""
-        side = self.gathers.side
-        return haar2d(radiance.reshape(side, side, 3)).reshape(-1, 3)
 
     # -- cached stages --------------------------------------------------------------------------
 

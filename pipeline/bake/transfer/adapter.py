@@ -1,9 +1,12 @@
 """Bench adapter of the transfer method: gathers x kept coefficients, one bake per gather count.
 
 Each gather count is baked once keeping the largest coefficient count; every smaller count is
-studied by culling those rows (`relight_torch.transfer.sparse.cull`, the bake's own order), so
-bake_s is that one bake's time for all of them and cache_bytes counts the culled matrix as the
-layer would store it (its parts written under `<cache>/culled`).
+studied by culling those rows (`relight_torch.transfer.sparse.cull`, the bake's own order) and,
+when the bake refitted its rows to light probes, refitting the culled rows to the products the
+baked rows have with the same probes (`relight_torch.transfer.responses`): the baked rows keep
+the untruncated rows' products, so the culled ones do as a bake at that count would. bake_s is
+that one bake's time for all of them and cache_bytes counts the culled matrix as the layer would
+store it (its parts written under `<cache>/culled`).
 """
 
 from __future__ import annotations
@@ -11,13 +14,18 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import numpy as np
+import torch
+
 from pipeline.bake.adapter import Variant
-from pipeline.bake.transfer.bake import F_PREFIX, TransferSettings, bake_transfer, matrix_payloads
+from pipeline.bake.transfer.bake import F_PREFIX, PROBES_PAYLOAD, TransferSettings, bake_transfer, matrix_payloads
 from pipeline.scene.types import Camera, Scene
 from relight_torch.cache.layer import read_cache_layer
+from relight_torch.cache.load import load_npy
 from relight_torch.transfer.encoding import decode_rows, encode_rows
 from relight_torch.transfer.open import open_transfer_relighter
 from relight_torch.transfer.relighter import TransferRelighter
+from relight_torch.transfer.responses import refit_rows, sparse_responses
 from relight_torch.transfer.sparse import cull
 
 
@@ -101,9 +109,16 @@ def culled_variants(
     device = baked.final_gather.values.device
     culled_dir = layer.parent / "culled"
     culled_dir.mkdir(exist_ok=True)
+    probes = None
+    if int(description.parameters.get("lightProbes", 0)):
+        probes = torch.from_numpy(np.array(load_npy(layer, description, PROBES_PAYLOAD)))
+        target = sparse_responses(stored, probes)
     out = []
     for num_kept in counts:
-        encoded = encode_rows(cull(stored, num_kept), baked_settings.encoding)
+        rows = cull(stored, num_kept)
+        if probes is not None:
+            rows = refit_rows(rows, probes, target)
+        encoded = encode_rows(rows, baked_settings.encoding)
         payloads = matrix_payloads(culled_dir, f"{layer.name.split('.')[0]}-{num_kept}", F_PREFIX, encoded)
         final_gather = decode_rows(encoded).to(device, stored.values.dtype)
         relighter = TransferRelighter(

@@ -14,6 +14,10 @@ Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct.bake
                                    Offsets (R + 1,) int64 and, colour-factored (C = 1), Colour
                                    (R, 3) float32 (`relight_torch.transfer.sparse` and `.encoding`)
     <stem>.bounce<Part>.npy        M, the same layout over G rows, when bounces > 1
+    <stem>.transferProbes.npy      (Q, G) float32 Haar coefficients of the probe lights whose
+                                   products each F row keeps exactly (`pipeline.bake.transfer.probes`,
+                                   `relight_torch.transfer.responses`); with light probes on
+M is baked first: the probes are the shot's lights carried through its bounces.
 Rows are baked in chunks saved under `.<stem>.transfer-<hash>/` as they finish; a killed bake
 re-run with the same inputs and settings skips the finished chunks. The cache layer is rewritten
 last (method 'transfer'), then the chunk directory is removed.
@@ -44,17 +48,20 @@ from pipeline.bake.scheduler import (
     per_process,
     run_chunks,
 )
+from pipeline.bake.transfer.probes import probe_lights
 from pipeline.bake.transfer.rows import bounce_rows, disc_support, final_gather_rows
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.cache.layer import Payload
 from relight_torch.gbuffer import GBuffer
 from relight_torch.indirect_samples import GatherSamples, gather_payload_name
-from relight_torch.transfer.encoding import ENCODINGS, EncodedRows, EncodedValues, encode_rows
+from relight_torch.transfer.encoding import ENCODINGS, EncodedRows, EncodedValues, decode_rows, encode_rows
 from relight_torch.transfer.haar import haar2d
+from relight_torch.transfer.responses import dense_responses, refit_rows
 from relight_torch.transfer.sparse import SparseRows, concatenate, factor_colour, keep_top_k
 
 F_PREFIX, M_PREFIX = "finalGather", "bounce"
+PROBES_PAYLOAD = "transferProbes"
 
 
 @dataclass(frozen=True)
@@ -71,6 +78,10 @@ class TransferSettings:
         num_bounces: indirect bounces B; 1 bakes F only, B > 1 also M (applied B - 1 times).
         num_bounce_coefficients: coefficients kept per M row (the chapter: 40).
         encoding: 'float16' or 'uint8' (8-bit with per-row scale and offset).
+        light_probes: refit each F row's kept coefficients so that it transfers the shot's own
+            lights (through the bounces) exactly (`relight_torch.transfer.responses`): top-k
+            culling alone lost 3-7 % of the Cornell box's indirect light at 50 of 1,024
+            coefficients, 1-4 % at 100 (docs/TRANSFER.md).
         factor_colour: store each row as scalar coefficients times one RGB colour
             (`relight_torch.transfer.sparse.factor_colour`); False keeps RGB coefficients.
         seed: seed of the gather placement.
@@ -90,6 +101,7 @@ class TransferSettings:
     num_bounces: int = 1
     num_bounce_coefficients: int = 40
     encoding: str = "float16"
+    light_probes: bool = True
     factor_colour: bool = True
     seed: int = 0
     rows_per_chunk: int = 4096
@@ -130,6 +142,7 @@ class TransferSettings:
             "bounces": self.num_bounces,
             "bounceCoefficients": self.num_bounce_coefficients,
             "encoding": self.encoding,
+            "lightProbes": int(self.light_probes),
             "rowColour": int(self.factor_colour),
             "gatherSeed": self.seed,
             "indirectScale": self.indirect_scale,
@@ -149,13 +162,17 @@ def auto_indirect_scale(width: int, height: int) -> int:
     return 2 if min(width, height) >= 240 and width % 2 == 0 and height % 2 == 0 else 1
 
 
-def compress_rows(dense: torch.Tensor, num_kept: int, factor: bool) -> SparseRows:
-    """(R, n, n, 3) dense matrix rows -> their top-k Haar coefficients, optionally colour-factored."""
+def compress_rows(dense: torch.Tensor, num_kept: int, factor: bool, probes: torch.Tensor | None = None) -> SparseRows:
+    """(R, n, n, 3) dense matrix rows -> their top-k Haar coefficients, optionally colour-factored,
+    refitted to keep their products with the (Q, n^2) wavelet `probes` when given (`refit_rows`)."""
     coefficients = haar2d(dense)
-    if not factor:
-        return keep_top_k(coefficients, num_kept)
-    scalars, colour = factor_colour(coefficients)
-    return dataclasses.replace(keep_top_k(scalars, num_kept), row_colour=colour)
+    colour = None
+    if factor:
+        coefficients, colour = factor_colour(coefficients)
+    kept = keep_top_k(coefficients, num_kept)
+    if probes is not None and probes.shape[0]:
+        kept = refit_rows(kept, probes, dense_responses(coefficients, probes))
+    return dataclasses.replace(kept, row_colour=colour)
 
 
 @per_process
@@ -178,6 +195,8 @@ def _bake_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
     )
     side, num_kept = gathers.side, spec.param("coefficients")
     batch = max(1, spec.option("pairsPerBatch", TransferSettings.pairs_per_batch) // (side * side))
+    probes_path = spec.option("probes")
+    probes = None if probes_path is None else torch.from_numpy(np.load(probes_path, allow_pickle=False))
 
     def work(start: int) -> SparseRows:
         rows = slice(start, min(start + batch, spec.stop))
@@ -186,7 +205,7 @@ def _bake_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
             if spec.name == F_PREFIX
             else bounce_rows(rows, gathers, tracer, support)
         )
-        return compress_rows(block.reshape(-1, side, side, 3), num_kept, bool(spec.param("rowColour")))
+        return compress_rows(block.reshape(-1, side, side, 3), num_kept, bool(spec.param("rowColour")), probes)
 
     with ThreadPoolExecutor(spec.option("threads") or chunk_threads()) as pool:
         # An empty chunk (a camera that sees only sky) is one empty batch: rows of the right layout.
@@ -203,6 +222,8 @@ def bake_rows(
     settings: TransferSettings,
     chunk_dir: Path,
     progress: bool | None = None,
+    probes: Payload | None = None,
+    probes_path: Path | None = None,
 ) -> EncodedRows:
     """All rows of matrix `name` (F_PREFIX or M_PREFIX) in chunks on the ambient scheduler
     (`pipeline.bake.scheduler`), reusing the valid chunks `chunk_dir` already holds.
@@ -212,6 +233,8 @@ def bake_rows(
         num_rows: rows of the matrix; num_kept: coefficients per row.
         texture_samples: of the view samples.
         chunk_dir: where finished chunks are saved.
+        probes, probes_path: the probe lights' payload record and file (workers read it), whose
+            products the rows keep (`compress_rows`); None for plain top-k rows.
     """
     parameters = (
         ("textureSamples", texture_samples),
@@ -220,8 +243,13 @@ def bake_rows(
         ("coefficients", num_kept),
         ("encoding", settings.encoding),
         ("rowColour", settings.factor_colour),
+        ("probes", None if probes is None else probes.sha256),
     )
-    options = (("pairsPerBatch", settings.pairs_per_batch), ("threads", settings.num_threads))
+    options = (
+        ("pairsPerBatch", settings.pairs_per_batch),
+        ("threads", settings.num_threads),
+        ("probes", None if probes_path is None else str(probes_path)),
+    )
     specs = [
         ChunkSpec(shot, name, parameters, start, stop, options)
         for start, stop in chunk_ranges(num_rows, settings.rows_per_chunk)
@@ -302,7 +330,7 @@ def bake_transfer(
     chunk_dir = bake.chunk_dir
 
     shot = ShotSpec.of(*reduced_view(scene, camera, settings.indirect_scale), time_code)
-    _, view, gathers, _ = transfer_inputs(shot, texture_samples, settings.num_gathers, settings.seed)
+    tracer, view, gathers, _ = transfer_inputs(shot, texture_samples, settings.num_gathers, settings.seed)
     payloads = [bake.payload(stem, "viewPixels", view.pixel_index.numpy())]
     if settings.indirect_scale > 1:  # what the edge-aware upsampling weighs the coarse samples by
         payloads += [
@@ -314,12 +342,9 @@ def bake_transfer(
         bake.payload(stem, gather_payload_name(name), getattr(gathers, name).numpy())
         for name in (f.name for f in dataclasses.fields(GatherSamples))
     ]
-    final_gather = bake_rows(
-        shot, F_PREFIX, view.num_samples, settings.num_coefficients, texture_samples, settings, chunk_dir, progress
-    )
-    payloads += matrix_payloads(bake.out_dir, stem, F_PREFIX, final_gather)
+    bounce = None
     if settings.num_bounces > 1:
-        bounce = bake_rows(
+        encoded = bake_rows(
             shot,
             M_PREFIX,
             gathers.num_gathers,
@@ -329,5 +354,30 @@ def bake_transfer(
             chunk_dir,
             progress,
         )
-        payloads += matrix_payloads(bake.out_dir, stem, M_PREFIX, bounce)
+        payloads += matrix_payloads(bake.out_dir, stem, M_PREFIX, encoded)
+        bounce = decode_rows(encoded)
+    probes = probes_path = None
+    if settings.light_probes:
+        probes = bake.payload(
+            stem,
+            PROBES_PAYLOAD,
+            probe_lights(
+                scene, gathers, tracer, bounce, settings.num_bounces, settings.num_coefficients, settings.seed
+            ).numpy(),
+        )
+        probes_path = bake.out_dir / probes.file
+        payloads.append(probes)
+    final_gather = bake_rows(
+        shot,
+        F_PREFIX,
+        view.num_samples,
+        settings.num_coefficients,
+        texture_samples,
+        settings,
+        chunk_dir,
+        progress,
+        probes,
+        probes_path,
+    )
+    payloads += matrix_payloads(bake.out_dir, stem, F_PREFIX, final_gather)
     return bake.finish(payloads)
