@@ -302,7 +302,7 @@ def _write(args: argparse.Namespace, rows: list[dict[str, object]], point, load:
     """progressive.csv and summary.md in args.out."""
     lines = [",".join(FIELDS)]
     for row in rows:
-        lines.append(",".join(_csv(row.get(name, "")) for name in FIELDS))
+        lines.append(",".join(csv_cell(row.get(name, "")) for name in FIELDS))
     write_text_atomic(args.out / "progressive.csv", "\n".join(lines) + "\n")
     command = (
         f"python -m pipeline.benchmarks.progressive --width {args.width} --height {args.height} --shot-size "
@@ -352,7 +352,10 @@ def _write(args: argparse.Namespace, rows: list[dict[str, object]], point, load:
     write_text_atomic(args.out / "summary.md", "\n".join(text))
 
 
-def _csv(value: object) -> str:
+def csv_cell(value: object) -> str:
+    """One CSV cell: floats to 6 significant digits, None empty, text with a comma quoted."""
+    if value is None:
+        return ""
     if isinstance(value, float):
         return f"{value:.6g}"
     text = str(value)

@@ -201,19 +201,19 @@ def descend(
     unknowns = [_unknowns(light, free, dtype, device) for light in lights]
     if not any(u.tensors() for u in unknowns):
         return DescentResult(list(lights), math.nan, math.nan, 0, 0.0)
-    loss, exact = _evaluate(problem, unknowns, settings.regularisation)
+    loss, exact, residual = _evaluate(problem, unknowns, settings.regularisation)
     history, damping, evaluations = [loss], settings.damping, 1
     while evaluations < settings.iterations and damping < 1e10:
-        residual, jacobian = _linearised(problem, unknowns, exact)
-        z = torch.cat([t.reshape(-1) for u in unknowns for t in u.tensors()])
+        jacobian = _jacobian(problem, unknowns, exact)
+        kept = [t.clone() for u in unknowns for t in u.tensors()]
+        z = torch.cat([t.reshape(-1) for t in kept])
         normal = jacobian.T @ jacobian + settings.regularisation * torch.eye(z.shape[0], dtype=dtype, device=device)
         gradient = jacobian.T @ residual + settings.regularisation * z
-        kept = [t.clone() for u in unknowns for t in u.tensors()]
         while evaluations < settings.iterations and damping < 1e10:
             damped = normal + damping * torch.diag(torch.diagonal(normal).clamp_min(1e-12))
             # Least squares rather than a solve: an unknown the target cannot see has a zero column.
             _assign(unknowns, z - torch.linalg.lstsq(damped, gradient.unsqueeze(1)).solution.squeeze(1))
-            tried, tried_exact = _evaluate(problem, unknowns, settings.regularisation)
+            tried, tried_exact, tried_residual = _evaluate(problem, unknowns, settings.regularisation)
             evaluations += 1
             if progress is not None:
                 progress(evaluations, settings.iterations)
@@ -227,7 +227,7 @@ def descend(
         else:
             break
         improvement = (loss - tried) / loss
-        loss, exact = tried, tried_exact
+        loss, exact, residual = tried, tried_exact, tried_residual
         history.append(loss)
         if improvement < settings.tolerance:
             break
@@ -239,23 +239,19 @@ def descend(
 
 def _evaluate(
     problem: _Problem, unknowns: list[_Unknowns], regularisation: float
-) -> tuple[float, dict[str, torch.Tensor]]:
+) -> tuple[float, dict[str, torch.Tensor], torch.Tensor]:
     """The loss at the unknowns' values (the relighter's images of the moving lights there, their
-    visibility frozen there for the next Jacobian) and those images."""
+    visibility frozen there for the next Jacobian), those images and the (M,) weighted residual."""
     exact = _moving_images(problem.relighter, unknowns, problem.diagonal, problem.samples)
     with torch.no_grad():
-        residual = problem.root_weights * (_frame(problem, unknowns, exact, None) - problem.target)
+        residual = (problem.root_weights * (_frame(problem, unknowns, exact, None) - problem.target)).reshape(-1)
         pull = sum((t.square().sum() for u in unknowns for t in u.tensors()), torch.zeros((), dtype=residual.dtype))
-        return float(residual.square().sum() + regularisation * pull), exact
+        return float(residual.square().sum() + regularisation * pull), exact, residual
 
 
-def _linearised(
-    problem: _Problem, unknowns: list[_Unknowns], exact: dict[str, torch.Tensor]
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """(M,) the weighted residual and (M, n) its Jacobian in the n unknowns (flattened in
-    `_Unknowns.fields` order, light by light), one forward-mode derivative per unknown."""
-    with torch.no_grad():
-        residual = problem.root_weights * (_frame(problem, unknowns, exact, None) - problem.target)
+def _jacobian(problem: _Problem, unknowns: list[_Unknowns], exact: dict[str, torch.Tensor]) -> torch.Tensor:
+    """(M, n) the weighted residual's Jacobian in the n unknowns (flattened in `_Unknowns.fields`
+    order, light by light), one forward-mode derivative per unknown."""
     columns = []
     for index, u in enumerate(unknowns):
         for name in u.fields():
@@ -271,7 +267,7 @@ def _linearised(
                     frame = _frame(problem, moved, exact, twin)
                     tangent = forward_ad.unpack_dual(frame).tangent
                 columns.append((problem.root_weights * tangent).reshape(-1))
-    return residual.reshape(-1), torch.stack(columns, dim=1)
+    return torch.stack(columns, dim=1)
 
 
 def _frame(

@@ -18,10 +18,11 @@ is installed, Mitsuba 3 (`pipeline.reference.mitsuba_scene`, the bridge the agre
 an edit it cannot convert, such as shaping, is noted and skipped).
 
 Every image is compared with the same full-GI reference: the project's path tracer at
---reference-size and --spp (seed 0; the passes use other seeds), the relit frames box-filtered to
-it and the path tracers rendered at that size. Rendering the path tracers at the reference size
-costs the same per path as rendering --width x --height and box-filtering (each reference pixel
-averages as many paths either way), and keeps the comparison within reach of a CPU.
+--reference-size and --spp, seeded apart from every pass so that its noise is independent of
+theirs; the relit frames are box-filtered to it and the path tracers rendered at that size.
+Rendering the path tracers at the reference size costs the same per path as rendering --width x
+--height and box-filtering (each reference pixel averages as many paths either way), and keeps the
+comparison within reach of a CPU.
 
 The speed-up at L dB (30, 35, 40) is the time the path tracer needs to reach L over the time the
 relighter needs: the relighter's time is the first frame at or above L; the path tracer's is
@@ -48,7 +49,7 @@ import numpy as np
 from pipeline.bake.shot import DEFAULT_TARGET_DB
 from pipeline.benchmarks import run_in_work
 from pipeline.benchmarks.bench.measure import machine_description
-from pipeline.benchmarks.progressive import Setup, downsampled, prepare, references_of
+from pipeline.benchmarks.progressive import Setup, csv_cell, downsampled, prepare, references_of
 from pipeline.errors import RelightError
 from pipeline.reference.path_tracer import FULL_FRAME_BOUNCES, PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
@@ -371,11 +372,11 @@ def _run(args: argparse.Namespace, work: Path) -> int:
 def _write(args, setup: Setup, points: list[Point], rows: dict[str, list[dict]], notes: list[str], load) -> None:
     out = args.out
     relighter_names = [name for name in dict.fromkeys(p.renderer for p in points) if name.startswith("relighter")]
-    lines = [",".join(FIELDS)] + [",".join(_csv(getattr(point, name)) for name in FIELDS) for point in points]
+    lines = [",".join(FIELDS)] + [",".join(csv_cell(getattr(point, name)) for name in FIELDS) for point in points]
     write_text_atomic(out / "time_to_quality.csv", "\n".join(lines) + "\n")
     names = ("edit", "relighter", "path_tracer", "level_db", "relighter_ms", "path_tracer_ms", "speedup", "note")
     lines = ["clock," + ",".join(names)] + [
-        ",".join([clock] + [_csv(row[name]) for name in names]) for clock in CLOCKS for row in rows[clock]
+        ",".join([clock] + [csv_cell(row[name]) for name in names]) for clock in CLOCKS for row in rows[clock]
     ]
     write_text_atomic(out / "time_to_quality_speedups.csv", "\n".join(lines) + "\n")
     write_chart(points, args.edits, out / "time_to_quality.png")
@@ -463,15 +464,6 @@ def _write(args, setup: Setup, points: list[Point], rows: dict[str, list[dict]],
 
 def _ms(value: float | None) -> str:
     return "-" if value is None else f"{value:.0f}"
-
-
-def _csv(value: object) -> str:
-    if value is None:
-        return ""
-    if isinstance(value, float):
-        return f"{value:.6g}"
-    text = str(value)
-    return f'"{text}"' if "," in text else text
 
 
 if __name__ == "__main__":
