@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from relight_torch.transfer.sparse import SparseRows
+from relight_torch.transfer.sparse import SparseRows, entry_rows
 
 ENCODINGS = ("float16", "uint8")
 PARTS = ("Values", "Scale", "Low", "Indices", "Offsets", "Colour")
@@ -45,11 +45,6 @@ class EncodedValues:
     low: torch.Tensor
 
 
-def _row_of(offsets: torch.Tensor) -> torch.Tensor:
-    """(nnz,) row of each entry of a CSR layout with (R + 1,) offsets."""
-    return torch.repeat_interleave(torch.arange(offsets.shape[0] - 1, device=offsets.device), offsets.diff())
-
-
 def _segment_reduce(
     values: torch.Tensor, row: torch.Tensor, num_rows: int, reduce: str, initial: float
 ) -> torch.Tensor:
@@ -62,7 +57,7 @@ def encode(values: torch.Tensor, offsets: torch.Tensor, encoding: str) -> Encode
     if encoding not in ENCODINGS:
         raise ValueError(f"encoding must be one of {ENCODINGS}, got {encoding!r}")
     values = values.float()
-    row, num_rows = _row_of(offsets), offsets.shape[0] - 1
+    row, num_rows = entry_rows(offsets), offsets.shape[0] - 1
     if encoding == "float16":
         scale = _segment_reduce(values.abs(), row, num_rows, "amax", 0.0)
         scale = torch.where(scale > 0, scale, torch.ones_like(scale))
@@ -76,7 +71,7 @@ def encode(values: torch.Tensor, offsets: torch.Tensor, encoding: str) -> Encode
 
 def decode(encoded: EncodedValues, offsets: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """(nnz, C) values of `dtype` back from their encoding."""
-    row = _row_of(offsets)
+    row = entry_rows(offsets)
     scale, low = encoded.scale.to(dtype), encoded.low.to(dtype)
     if encoded.stored.dtype == torch.uint8:
         return low[row] + scale[row] * (encoded.stored.to(dtype) / 255.0)

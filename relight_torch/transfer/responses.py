@@ -5,8 +5,8 @@ coefficient always survives: every other Haar function sums to zero), so a unifo
 loses nothing. Real gather light is far from uniform: a lamp lights a patch of the floor, the
 light bounced between the walls gathers in the corners, and the fine structure of the rows (the
 near-field peaks of receivers beside a wall, the gathers a block hides) correlates with it. On the
-Cornell box (1,024 gathers) the indirect light kept 0.93-0.97 of its energy with 50 of 1,024
-coefficients per row and 0.96-0.99 with 100, against 0.99-1.01 untruncated (docs/TRANSFER.md).
+Cornell box the indirect light lost several per cent of its energy with 50 of 1,024 coefficients
+per row (docs/TRANSFER.md has the measurement).
 
 `refit_rows` therefore changes the kept coefficients of each row, and only those (the cache keeps
 its size), by the least-norm correction that makes the truncated row reproduce the untruncated
@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import torch
 
-from relight_torch.transfer.sparse import SparseRows
+from relight_torch.transfer.sparse import SparseRows, entry_rows
 
 ROWS_PER_SOLVE = 1024
 """Rows refitted together (bounds the (rows, Q, k) temporaries)."""
@@ -51,7 +51,7 @@ def dense_responses(coefficients: torch.Tensor, probes: torch.Tensor) -> torch.T
 def sparse_responses(rows: SparseRows, probes: torch.Tensor) -> torch.Tensor:
     """(R, Q, C) the products of sparse rows' values (row colours not applied) with probe lights
     (`probes` (Q, D) as in `dense_responses`)."""
-    row_of = torch.repeat_interleave(torch.arange(rows.num_rows, device=rows.offsets.device), rows.offsets.diff())
+    row_of = entry_rows(rows.offsets)
     at = probes.to(rows.values.dtype).t().index_select(0, rows.indices.long())  # (nnz, Q)
     products = at.unsqueeze(-1) * rows.values.unsqueeze(1)  # (nnz, Q, C)
     out = products.new_zeros(rows.num_rows, probes.shape[0], rows.values.shape[1])
@@ -85,7 +85,7 @@ def refit_rows(kept: SparseRows, probes: torch.Tensor, target: torch.Tensor) -> 
     values = kept.values.double()
     counts = kept.offsets.diff()
     width = int(counts.max())
-    row_of = torch.repeat_interleave(torch.arange(kept.num_rows, device=counts.device), counts)
+    row_of = entry_rows(kept.offsets)
     slot = torch.arange(kept.indices.shape[0], device=counts.device) - kept.offsets[row_of]
     padded_index = torch.zeros(kept.num_rows, width, dtype=torch.long, device=counts.device)
     padded_value = values.new_zeros(kept.num_rows, width, values.shape[1])

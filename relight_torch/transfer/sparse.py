@@ -30,6 +30,11 @@ import torch
 from relight_torch.transfer.haar import support_area
 
 
+def entry_rows(offsets: torch.Tensor) -> torch.Tensor:
+    """(nnz,) int64 row of each entry of a CSR layout with (R + 1,) offsets."""
+    return torch.repeat_interleave(torch.arange(offsets.shape[0] - 1, device=offsets.device), offsets.diff().long())
+
+
 @dataclass(frozen=True)
 class SparseRows:
     """R sparse rows over `num_columns` wavelet coefficients (see the module doc).
@@ -96,7 +101,7 @@ class SparseRows:
             raise ValueError("offsets must be non-decreasing")
         if nnz and (int(self.indices.min()) < 0 or int(self.indices.max()) >= self.num_columns):
             raise ValueError(f"indices must lie in [0, {self.num_columns})")
-        row_of = torch.repeat_interleave(torch.arange(self.num_rows, device=offsets.device), offsets.diff())
+        row_of = entry_rows(offsets)
         same_row = row_of[1:] == row_of[:-1]
         if bool((same_row & (self.indices[1:] <= self.indices[:-1])).any()):
             raise ValueError("indices must be strictly increasing within each row")
@@ -166,8 +171,7 @@ class _WeightedBag(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
         indices, offsets, weights = ctx.saved_tensors
-        counts = offsets[1:] - offsets[:-1]
-        rows = torch.repeat_interleave(torch.arange(counts.shape[0], device=grad.device), counts.long())
+        rows = entry_rows(offsets)
         table_grad = grad.new_zeros((ctx.table_rows, grad.shape[1]))
         table_grad.index_add_(0, indices.long(), grad.index_select(0, rows) * weights.unsqueeze(1))
         return table_grad, None, None, None
@@ -243,7 +247,7 @@ def cull(rows: SparseRows, num_kept: int) -> SparseRows:
     side = math.isqrt(rows.num_columns)
     area = support_area(side, rows.indices.device).reshape(-1).to(rows.values.dtype)
     importance = rows.values.abs().sum(-1) * area[rows.indices.long()]
-    row_of = torch.repeat_interleave(torch.arange(rows.num_rows, device=rows.offsets.device), rows.offsets.diff())
+    row_of = entry_rows(rows.offsets)
     # Most important first, then (stable) grouped by row: rank within the row is position - row start.
     by_importance = torch.argsort(importance, descending=True, stable=True)
     order = by_importance[torch.argsort(row_of[by_importance], stable=True)]
@@ -282,7 +286,7 @@ def column_norms(rows: SparseRows) -> torch.Tensor:
     Column c is the image that wavelet light c (Haar basis function c of the gather light) casts
     on the view samples (the chapter's Figure 9-3); `cull_light` weighs lights by these norms.
     """
-    row_of = torch.repeat_interleave(torch.arange(rows.num_rows, device=rows.offsets.device), rows.offsets.diff())
+    row_of = entry_rows(rows.offsets)
     squares = rows.values.square().sum(-1)
     if rows.row_colour is not None:
         squares = squares * rows.row_colour.square().sum(-1)[row_of]
