@@ -87,7 +87,14 @@ class GBuffer:
 
     def scatter(self, values: torch.Tensor, background: float = 0.0) -> torch.Tensor:
         """Place per-sample values (N, C) into the sub-sample image (H, W, C)."""
-        height, width = self.image_size
-        image = values.new_full((height * width, values.shape[-1]), background)
-        image.index_copy_(0, self.pixel_index, values)  # on the CPU 2-3x faster than image[index] = values
-        return image.reshape(height, width, values.shape[-1])
+        return scatter_points(self.image_size, self.pixel_index, values, background)
+
+
+def scatter_points(
+    image_size: tuple[int, int], pixel_index: torch.Tensor, values: torch.Tensor, background: float = 0.0
+) -> torch.Tensor:
+    """Place per-point values (N, C) at their flat `pixel_index` (N,) of an (H, W, C) image."""
+    height, width = image_size
+    image = values.new_full((height * width, values.shape[-1]), background)
+    image.index_copy_(0, pixel_index, values)  # on the CPU 2-3x faster than image[index] = values
+    return image.reshape(height, width, values.shape[-1])

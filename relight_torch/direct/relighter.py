@@ -53,6 +53,7 @@ from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import check_inputs, load_gbuffer, load_npy
 from relight_torch.direct import gradients
 from relight_torch.direct.gradients import GEOMETRY_KINDS
+from relight_torch.direct.sharing import PixelGroups, take_rows
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.levels import Level, build_level
@@ -134,6 +135,11 @@ class RelightSettings:
             precision (a relative rounding of 2^-11, far below the light samples' noise). The
             G-buffer, the BVH, the sum of the lights not being edited and one frame's temporaries
             are outside it.
+        shared_lighting: the sub-samples of a pixel on one surface share one evaluation of each
+            light (`direct.sharing`): its samples, shadow rays and BRDF factors, combined with each
+            sub-sample's own material; False evaluates every sub-sample (supersampling 1 always
+            does). Lights whose radiance is not one colour times a scalar (textured lights,
+            coloured shadows) are always evaluated per sub-sample.
     """
 
     area_samples: int = 16
@@ -148,6 +154,7 @@ class RelightSettings:
     shadow_filter_radius: int | None = None
     filtered_area_samples: int = 1
     memory_budget: int | None = None
+    shared_lighting: bool = True
 
 
 MEMORY_BUDGET_FRACTION = 1 / 8
@@ -313,14 +320,24 @@ class _Transport:
         """The transport at those of the shading points `todo` ((K,) ascending indices) it holds,
         `points` naming them (for progressive refinement, `Relighter.refine`)."""
         if self.points is None:
-            where = points = todo
-        else:
-            where = torch.searchsorted(self.points, todo).clamp_(max=max(self.points.shape[0] - 1, 0))
-            held = self.points[where] == todo if self.points.numel() else torch.zeros_like(todo, dtype=torch.bool)
-            where, points = where[held], todo[held]
+            return dataclasses.replace(self.gathered(todo, todo), shadow_sums=None)
+        where, held = self.locate(todo)
+        return dataclasses.replace(self.gathered(where[held], todo[held]), shadow_sums=None)
+
+    def locate(self, wanted: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(where, held): for each of the shading points `wanted` (K,), its row in this transport's
+        `points` and whether it holds that point at all (rows where not are arbitrary)."""
+        assert self.points is not None, "a transport of all points holds every point at its own row"
+        where = torch.searchsorted(self.points, wanted).clamp_(max=max(self.points.shape[0] - 1, 0))
+        held = self.points[where] == wanted if self.points.numel() else torch.zeros_like(wanted, dtype=torch.bool)
+        return where, held
+
+    def gathered(self, where: torch.Tensor, points: torch.Tensor | None) -> _Transport:
+        """The transport with each point's values taken from its row `where` (K,) of this one,
+        at the shading points `points` (K,) (None: all of them)."""
 
         def take(values: torch.Tensor | None, dim: int) -> torch.Tensor | None:
-            return None if values is None else values.index_select(dim, where)
+            return None if values is None else take_rows(values, dim, where)
 
         return _Transport(
             points,
@@ -329,7 +346,7 @@ class _Transport:
             take(self.diffuse_ratio, 0),
             take(self.factors, 2),
             self.colour,
-            None,
+            take(self.shadow_sums, 0),
             take(self.emission_local, 1),
         )
 
@@ -456,6 +473,11 @@ class Relighter:
         if glossy.any() and not self._all_glossy:
             self._glossy_split = (torch.nonzero(~glossy).squeeze(-1), torch.nonzero(glossy).squeeze(-1))
         self._factor_colours: torch.Tensor | None = None  # (F, N, 3), made on first use
+        # The sub-samples that share their light (`direct.sharing`), or None.
+        sharing = settings.shared_lighting and supersampling > 1 and self.filter_radius > 0
+        self._groups = PixelGroups(gbuffer, supersampling) if sharing else None
+        self._group_u: dict[int, torch.Tensor] = {}  # (R, S, 2) the groups' fixed samples, by S
+        self._group_viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
         self._u: dict[int, torch.Tensor] = {}
         # Every pixel covered in order: scattering into the image is a reshape.
         self._dense = gbuffer.num_samples == height * width and bool(
@@ -748,7 +770,7 @@ class Relighter:
             g = self.gbuffer
             done = torch.zeros(g.num_samples, dtype=torch.bool, device=g.device)
             groups = self._sample_groups(self._transport_light(state))
-            samples = sum((g.num_samples if p is None else p.shape[0]) * num for p, num in groups)
+            samples = sum((g.num_samples if p is None else p.shape[0]) * num for p, num, _ in groups)
             per_point = samples / max(g.num_samples, 1)
             state.progress = _Progress(g.position.new_empty(2, g.num_samples, 3), done, traced, per_point)
             if traced and self._transport_fits(state):
@@ -896,18 +918,19 @@ class Relighter:
         # No covered point (a camera that sees only sky) is one empty chunk: an empty transport.
         return [slice(i, min(i + step, n)) for i in range(0, n, step)] or [slice(0, 0)]
 
-    def _sample_groups(self, light: Light) -> list[tuple[torch.Tensor | None, int]]:
-        """(points or None for all, samples per point) of each group the light's transport is
-        made in: a light whose visibility is filtered takes `filtered_area_samples` at matte
-        points and its usual count at glossy ones (`RelightSettings.filtered_area_samples`)."""
+    def _sample_groups(self, light: Light) -> list[tuple[torch.Tensor | None, int, bool]]:
+        """(points or None for all, samples per point, shared) of each group the light's
+        transport is made in: a light whose visibility is filtered takes `filtered_area_samples`
+        at matte points, evaluated once per pixel group where `RelightSettings.shared_lighting`
+        (shared), and its usual count at glossy ones (`RelightSettings.filtered_area_samples`)."""
         samples = self.num_light_samples(light)
         if self.filter_radius == 0 or self._all_glossy or not has_closed_form(light):
-            return [(None, samples)]
-        few = self.settings.filtered_area_samples
+            return [(None, samples, False)]
+        few, shared = self.settings.filtered_area_samples, self._groups is not None and _scalar_radiance(light)
         if self._glossy_split is None:
-            return [(None, few)]
+            return [(None, few, shared)]
         matte, glossy = self._glossy_split
-        return [(matte, few), (glossy, samples)]
+        return [(matte, few, shared), (glossy, samples, False)]
 
     def num_light_samples(self, light: Light) -> int:
         """Light samples per point the light gets without a visibility filter (`RelightSettings`)."""
@@ -943,10 +966,10 @@ class Relighter:
         state.transports = []
         # Tiles of points on threads of their own on the CPU (`relight_torch.parallel`).
         threads = tile_threads(self.gbuffer.device, self.visibility.thread_safe)
-        for points, num_samples in self._sample_groups(light):
+        for points, num_samples, shared in self._sample_groups(light):
             chunks = self._chunks(num_samples, points, threads)
             u, viewer = self.fixed_samples(num_samples), self._view_directions()  # made here, shared by the tiles
-            shade = functools.partial(self._chunk_transport, light, u=u, viewer=viewer)
+            shade = functools.partial(self._chunk_transport, light, u=u, viewer=viewer, shared=shared)
             parts = parallel_map(shade, chunks, threads)
             state.transports.append(parts[0] if len(parts) == 1 else self._joined(parts, chunks))
         if state.transports[0].shadow_sums is not None:
@@ -970,9 +993,7 @@ class Relighter:
         The BRDF takes N.E and N.L of the unit normal: with E, L and N unit in one space, N.h
         never exceeds |h|, which a sharp lobe's peak would otherwise see."""
         if self._viewer is None:
-            wo, normal = self.gbuffer.wo_world(), self.gbuffer.normal
-            inverse_norm = dot(normal, normal).rsqrt_()
-            self._viewer = (wo, dot(wo, normal).mul_(inverse_norm), inverse_norm)
+            self._viewer = _viewer_of(self.gbuffer)
         return self._viewer
 
     def _kept_transport(self, group: list[tuple[torch.Tensor, _Transport]]) -> _Transport:
@@ -1056,9 +1077,14 @@ class Relighter:
         """(N,) filtered visibility F(sum w V) / F(sum w) of per-point (N, 2) sums (0 where unlit),
         filtered only near shadows (`SurfaceFilter.visibility`): the filter's weights are made once,
         and a moved light pays only for the tiles its shadows' edges cross."""
-        if self._surface_filter is None:
-            self._surface_filter = SurfaceFilter(self.gbuffer, self.filter_radius)
-        return self._surface_filter.visibility(sums)
+        if self._groups is None:
+            if self._surface_filter is None:
+                self._surface_filter = SurfaceFilter(self.gbuffer, self.filter_radius)
+            return self._surface_filter.visibility(sums)
+        if self._surface_filter is None:  # on the pixel grid: the radius in pixels
+            radius = max(1, self.filter_radius // self.supersampling)
+            self._surface_filter = SurfaceFilter(self._groups.grid, radius)
+        return self._groups.visibility(sums, self._surface_filter)
 
     def _chunk_transport(
         self,
@@ -1066,17 +1092,50 @@ class Relighter:
         chunk: slice | torch.Tensor,
         u: torch.Tensor,
         viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        shared: bool,
     ) -> _Transport:
         """The transport of an unshaped unit light at the shading points of `chunk` (a slice of
         all of them, or their indices), with the fixed light samples `u` (N, S, 2) of every point
-        and the `_view_directions` `viewer`.
+        and the `_view_directions` `viewer`; `shared`: evaluated once per pixel group at its
+        centroid with its owner's samples (`direct.sharing`) and taken by each of its points (the
+        materials' colours enter per point later, `_combined`)."""
+        if not shared:
+            return self._point_transport(light, chunk, u, viewer, self.gbuffer)
+        groups = self._groups
+        assert groups is not None, "shared transports come with pixel groups"
+        rows, which = groups.of(chunk)
+        num_samples = u.shape[1]
+        if num_samples not in self._group_u:  # the owners' fixed samples are their groups'
+            self._group_u[num_samples] = u.index_select(0, groups.owners)
+        if self._group_viewer is None:
+            self._group_viewer = _viewer_of(groups.gbuffer)
+        transport = self._point_transport(light, rows, self._group_u[num_samples], self._group_viewer, groups.gbuffer)
+        whole = None if isinstance(chunk, slice) else chunk
+        if transport.points is None or (not isinstance(rows, slice) and transport.points.shape == rows.shape):
+            return transport.gathered(which, whole)  # every group kept, in order
+        where, held = transport.locate(_take(groups.rank, chunk))
+        if bool(held.all()):
+            return transport.gathered(where, whole)
+        points = torch.arange(chunk.start, chunk.stop, device=u.device) if isinstance(chunk, slice) else chunk
+        return transport.gathered(where[held], points[held])
+
+    def _point_transport(
+        self,
+        light: Light,
+        chunk: slice | torch.Tensor,
+        u: torch.Tensor,
+        viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        g: GBuffer,
+    ) -> _Transport:
+        """The transport of an unshaped unit light evaluated at each shading point of `chunk` (a
+        slice of the points of `g`, or their indices), with the fixed light samples `u` (N, S, 2)
+        and the view directions `viewer` (`_viewer_of`) of every point of `g`.
 
         Points that no sample can light (facing away, inside the light, outside its cone of
         directions) cast no shadow rays and are dropped, unless they are fewer than half the
         chunk: then the whole chunk is kept, its rows read as views rather than gathered.
         Everything runs samples first, (S, P, ...): per-point values broadcast over whole slabs.
         """
-        g = self.gbuffer
         num_samples = u.shape[1]
         sample = sample_light(light, _take(g.position, chunk), _take(u, chunk))
         direction = sample.direction.transpose(0, 1)  # (S, C, 3), contiguous: see sample_light
@@ -1116,7 +1175,7 @@ class Relighter:
         ratio = None if exact is None else ratio_of(_take(exact, local), (scalar * reaching).sum(0))
         params, wo, shadow = g.params.index(rows), _take(wo, rows), light.shadow
         scale = light_radiance_scale(light)
-        if light.texture is None and scale.any() and len(set(shadow.color)) == 1:
+        if _scalar_radiance(light):
             # L_i V = colour x scalar: keep per-sample scalars, not (S, P, 3) colours.
             k = int(np.argmax(np.abs(scale)))
             unshadowed = scalar * radiance[..., k] / float(scale[k])
@@ -1194,7 +1253,7 @@ class Relighter:
         light = state.light
         size = self.gbuffer.position.element_size()
         per_sample = (6 + 3) * size if light.texture is None else (2 * 3 + 3) * size
-        samples = max(num for _, num in self._sample_groups(light))
+        samples = max(num for _, num, _ in self._sample_groups(light))
         needed = self.gbuffer.num_samples * samples * per_sample
         kept = sum(
             other.images.numel() * other.images.element_size()
@@ -1281,7 +1340,7 @@ class Relighter:
         light = self._transport_light(state)
         g = self.gbuffer
         threads = tile_threads(g.device, self.visibility.thread_safe)
-        for group, (points, num_samples) in enumerate(self._sample_groups(light)):
+        for group, (points, num_samples, shared) in enumerate(self._sample_groups(light)):
             if todo is not None:
                 if points is not None:  # the group's points among `todo`
                     member = torch.zeros(g.num_samples, dtype=torch.bool, device=g.device)
@@ -1298,8 +1357,9 @@ class Relighter:
                 chunk: slice | torch.Tensor,
                 u: torch.Tensor = u,
                 viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor] = viewer,
+                shared: bool = shared,
             ) -> tuple[torch.Tensor, torch.Tensor, _Transport]:
-                part = self._chunk_transport(light, chunk, u, viewer)
+                part = self._chunk_transport(light, chunk, u, viewer, shared)
                 if part.points is None:  # the whole tile: name its points, as `_joined` does
                     part.points = (
                         torch.arange(chunk.start, chunk.stop, device=g.device) if isinstance(chunk, slice) else chunk
@@ -1359,6 +1419,20 @@ class Relighter:
             position = _take(position, transport.points)
         origin = torch.as_tensor(light.world_from_light[:3, 3], device=position.device, dtype=position.dtype)
         return emission_factor(light, transport.emission_in(light), position, origin)
+
+
+def _viewer_of(g: GBuffer) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(N, 3) unit directions E from the points of `g` to the camera, (N,) N.E and (N,) 1 / |N| of
+    their shading normals N (`Relighter._view_directions`)."""
+    wo, normal = g.wo_world(), g.normal
+    inverse_norm = dot(normal, normal).rsqrt_()
+    return wo, dot(wo, normal).mul_(inverse_norm), inverse_norm
+
+
+def _scalar_radiance(light: Light) -> bool:
+    """Whether the unit light's shadowed radiance L_i V is one colour times a scalar (untextured,
+    grey shadow colour): its transport is then kept as scalar factors (`_Transport.factors`)."""
+    return light.texture is None and bool(light_radiance_scale(light).any()) and len(set(light.shadow.color)) == 1
 
 
 def embree_visibility(

@@ -19,9 +19,11 @@ halo of r; under a small light most of a large image is wholly lit or wholly sha
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
-from relight_torch.gbuffer import GBuffer
+from relight_torch.gbuffer import GBuffer, scatter_points
 
 MIN_NORMAL_COSINE = 0.95
 """Neighbours whose shading normal is further from the centre's count as another surface."""
@@ -34,15 +36,41 @@ MAX_TILE_FRACTION = 0.25
 instead (on the CPU the tiles' windows and weights cost more than the skipped tiles save)."""
 
 
+@dataclass(frozen=True)
+class FilterGrid:
+    """The points a `SurfaceFilter` filters over when they are not a whole G-buffer's.
+
+    Attributes:
+        image_size: (H, W) of their image.
+        pixel_index: (N,) int64 flat index of each point, distinct.
+        position: (N, 3) world position.
+        normal: (N, 3) unit shading normal.
+    """
+
+    image_size: tuple[int, int]
+    pixel_index: torch.Tensor
+    position: torch.Tensor
+    normal: torch.Tensor
+
+    @property
+    def device(self) -> torch.device:
+        return self.position.device
+
+    def scatter(self, values: torch.Tensor) -> torch.Tensor:
+        """Place per-point values (N, C) into the (H, W, C) image."""
+        return scatter_points(self.image_size, self.pixel_index, values)
+
+
 class SurfaceFilter:
     """Separable same-surface box filter of radius r over the G-buffer's (H, W) image.
 
     Args:
-        gbuffer: the shading points (N covered sub-samples, `pixel_index` into H x W).
+        gbuffer: the shading points (N covered sub-samples, `pixel_index` into H x W), or a
+            `FilterGrid` of other points.
         radius: r >= 1, taps each side per pass.
     """
 
-    def __init__(self, gbuffer: GBuffer, radius: int):
+    def __init__(self, gbuffer: GBuffer | FilterGrid, radius: int):
         if radius < 1:
             raise ValueError(f"radius must be at least 1, got {radius}")
         self.gbuffer, self.radius = gbuffer, radius
