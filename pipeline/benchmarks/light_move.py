@@ -53,6 +53,7 @@ def measure(args: argparse.Namespace) -> dict[str, object]:
         "shadow_filter_radius": args.filter_radius,
     }
     settings = dataclasses.replace(settings, **{k: v for k, v in overrides.items() if v is not None})
+    settings = dataclasses.replace(settings, shared_lighting=args.shared_lighting)
     first, moves = Stopwatch(), Stopwatch()
     with first.section():
         relighter = open_relighter(args.cache, settings=settings)
@@ -102,6 +103,12 @@ def main() -> None:
     parser.add_argument("--area-samples", type=int, help="RelightSettings.area_samples")
     parser.add_argument("--filtered-samples", type=int, help="RelightSettings.filtered_area_samples")
     parser.add_argument("--filter-radius", type=int, help="RelightSettings.shadow_filter_radius")
+    parser.add_argument(
+        "--shared-lighting",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="RelightSettings.shared_lighting (default: on)",
+    )
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="print the N costliest functions")
     parser.add_argument("--threads", type=int, metavar="T", help="torch threads (default: torch's own count)")
     args = parser.parse_args()
