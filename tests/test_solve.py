@@ -26,7 +26,7 @@ from relight_torch.io.exr import read_rgb_exr, write_rgb_exr
 from relight_torch.lights.light import Light, LightKind, Shaping
 from relight_torch.lights.overrides import write_light_overrides
 from relight_torch.protocol import GradientRelighter
-from relight_torch.solve import DescentSettings, solve_lights
+from relight_torch.solve import DescentSettings, descent, solve_lights
 from relight_torch.solve.descent import descend
 from relight_torch.solve.linear import unit_images
 from relight_torch.solve.rig import scaled_light
@@ -378,3 +378,15 @@ def test_mask_weights_the_pixels(cornell: tuple[Path, Path], tmp_path: Path) -> 
     solved = shot_lights(read_cache_layer(layer), out)[0]
     assert solved.intensity == pytest.approx(2.0 * relighter.lights[0].intensity, rel=1e-3)
     assert "inputs:color" not in out.read_text()  # colour was not free: not authored
+
+
+def test_unresolved_names_what_the_target_cannot_tell_apart() -> None:
+    rng = np.random.default_rng(1)
+    a, c = torch.from_numpy(rng.normal(size=(2, 50)))
+    # b moves the residual as a does, but twice as much: only a + b / 2 is fixed by the data.
+    jacobian = torch.stack((a, 2.0 * a + 1e-4 * c, c, torch.zeros(50, dtype=torch.float64)), dim=1)
+    lines = descent.unresolved(jacobian, ["a", "b", "c", "d"])
+    assert lines[0] == "d: the target does not depend on it"
+    assert len(lines) == 2 and lines[1].startswith("a and b: the target fixes only a trade-off between them")
+    # Independent unknowns leave nothing unresolved.
+    assert descent.unresolved(torch.stack((a, c), dim=1), ["a", "c"]) == []

@@ -120,6 +120,7 @@ def run_scene(name: str, size: tuple[int, int], spp: int, iterations: int, direc
         "psnr_db": float(psnr(torch.from_numpy(solved_image), torch.from_numpy(target))),
         "iterations": result.iterations,
         "seconds": seconds,
+        "unresolved": "; ".join(result.unresolved) or "none",
     }
 
 
@@ -215,11 +216,12 @@ def write_summary(
     ]
     if rows:
         lines += table(
-            ["scene", "lights", "free", "intensity err", "colour err", "position err / diag", "PSNR dB", "steps", "s"],
+            ["scene", "lights", "free", "intensity err", "colour err", "position err / diag", "PSNR dB", "steps", "s",
+             "what the target leaves open (`relight solve` warns)"],
             [
                 [row["scene"], row["lights"], row["free"], f"{row['intensity_error']:.2%}",
                  f"{row['colour_error']:.4f}", f"{row['position_error']:.2%}", f"{row['psnr_db']:.1f}",
-                 row["iterations"], f"{row['seconds']:.1f}"]
+                 row["iterations"], f"{row['seconds']:.1f}", row["unresolved"]]
                 for row in rows
             ],
         )  # fmt: skip

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from pipeline.commands.common import add_device_option, add_lights_option
 from pipeline.errors import RelightError
@@ -91,4 +92,6 @@ def run(args: argparse.Namespace) -> int:
         f"{result.loss_start:.4g} -> {result.loss_end:.4g}, {result.iterations} gradient steps, "
         f"{result.seconds:.1f} s"
     )
+    for line in result.unresolved:
+        print(f"relight: warning: {line}", file=sys.stderr)
     return 0

@@ -139,13 +139,74 @@ class _Unknowns:
 
 @dataclass(frozen=True)
 class DescentResult:
-    """The lights after descent, the loss before and after, the steps taken and the seconds."""
+    """The lights after descent, the loss before and after, the steps taken, the seconds, and
+    what the target could not determine at the solution (`unresolved`)."""
 
     lights: list[Light]
     loss_start: float
     loss_end: float
     iterations: int
     seconds: float
+    unresolved: tuple[str, ...] = ()
+
+
+RIDGE_CURVATURE = 1e-3
+"""A combination of unknowns whose curvature of the loss is below this fraction of the single
+unknowns' (the normalised J^T J's smallest eigenvalues) is one the target cannot pin down."""
+RIDGE_SHARE = 0.3
+"""The unknowns named for a ridge: those with at least this component in its direction."""
+_ELEMENT_NAMES = {
+    "position": ("x", "y", "z"),
+    "rotation": ("x", "y", "z"),
+    "shaping": ("cone angle", "cone softness", "focus"),
+}
+
+
+def unresolved(jacobian: torch.Tensor, labels: Sequence[str]) -> list[str]:
+    """What a least-squares solution cannot determine, from the Jacobian (M, n) of its residual in
+    n unknowns named by `labels`: one line per unknown the residual does not depend on, and per
+    ridge, a combination of unknowns along which the loss curves less than RIDGE_CURVATURE
+    times as much as along any one of them (its Gauss-Newton curvature, the eigenvalues of J^T J
+    with each unknown scaled to unit curvature). On a ridge the data only fix a trade-off (a
+    light further away and brighter): the solve's answer along it follows the start and the
+    pull toward it, not the target."""
+    normal = jacobian.T @ jacobian
+    scale = torch.diagonal(normal).sqrt()
+    seen = scale > 1e-12 * float(scale.max().clamp_min(1e-300))
+    blind = zip(labels, seen.tolist(), strict=True)
+    lines = [f"{label}: the target does not depend on it" for label, ok in blind if not ok]
+    index = torch.nonzero(seen).squeeze(-1)
+    if index.numel() < 2:
+        return lines
+    kept = normal.index_select(0, index).index_select(1, index) / torch.outer(scale[index], scale[index])
+    values, vectors = torch.linalg.eigh(kept)
+    for value, vector in zip(values.tolist(), vectors.T, strict=True):
+        if value >= RIDGE_CURVATURE:
+            break
+        names = [labels[int(index[k])] for k in torch.nonzero(vector.abs() >= RIDGE_SHARE).squeeze(-1).tolist()]
+        lines.append(
+            f"{' and '.join(names)}: the target fixes only a trade-off between them "
+            f"(curvature {value:.1e} of theirs alone); the solved values along it follow the start"
+        )
+    return lines
+
+
+def _labels(unknowns: list[_Unknowns]) -> list[str]:
+    """One label per unknown, in the Jacobian's column order (`_jacobian`)."""
+    labels = []
+    for u in unknowns:
+        for name in u.fields():
+            count = getattr(u, name).numel()
+            if name == "multiple":
+                parts = ("red", "green", "blue") if count == 3 else ("",)
+                labels += [f"{u.light.path} intensity" + (f" ({part})" if part else "") for part in parts]
+            elif name in _ELEMENT_NAMES:
+                labels += [f"{u.light.path} {name} {part}" for part in _ELEMENT_NAMES[name][:count]]
+            elif count == 1:
+                labels.append(f"{u.light.path} {name}")
+            else:
+                labels += [f"{u.light.path} {name} {k}" for k in range(count)]
+    return labels
 
 
 @dataclass(frozen=True)
@@ -231,10 +292,15 @@ def descend(
         history.append(loss)
         if improvement < settings.tolerance:
             break
+    # What the target leaves open, at the solution: evaluated there again, as a refused last step
+    # left the relighter and the frozen visibility where it tried.
+    _, exact, _ = _evaluate(problem, unknowns, settings.regularisation)
+    lines = unresolved(_jacobian(problem, unknowns, exact), _labels(unknowns))
     solved = [
         _solved_light(u, start, problem.diagonal, free) for u, start in zip(unknowns, problem.starts, strict=True)
     ]
-    return DescentResult(solved, history[0], history[-1], len(history) - 1, time.perf_counter() - start_time)
+    seconds = time.perf_counter() - start_time
+    return DescentResult(solved, history[0], history[-1], len(history) - 1, seconds, tuple(lines))
 
 
 def _evaluate(

@@ -39,6 +39,8 @@ class SolveResult:
             sum w |target|^2 of the relighter's frame under `before` and `after`.
         iterations: gradient steps taken (0 for the closed form alone).
         seconds: wall time of the whole solve.
+        unresolved: one line per unknown or combination of unknowns of the gradient solve that
+            the target does not determine (`descent.unresolved`).
     """
 
     before: list[Light]
@@ -48,6 +50,7 @@ class SolveResult:
     loss_end: float
     iterations: int
     seconds: float
+    unresolved: tuple[str, ...] = ()
 
 
 def solve_lights(
@@ -94,16 +97,18 @@ def solve_lights(
     if scale_kinds:
         solved = _closed_form(solved, rest, images, target_t, weights, kinds)
     iterations = 0
+    lines: tuple[str, ...] = ()
     if any(kind in kinds for kind in GEOMETRY_KINDS + ("temperature",)):
         result = descend(relighter, solved, rest, images, target_t, weights, kinds, settings, progress)
-        solved, iterations = result.lights, result.iterations
+        solved, iterations, lines = result.lights, result.iterations, result.unresolved
         if scale_kinds:  # the closed form again, now through the relighter at the solved geometry
             _set(relighter, before, solved)
             rest, images = unit_images(relighter, paths)
             solved = _closed_form(solved, rest, images, target_t, weights, kinds)
     after = _set(relighter, before, solved)
     loss_end = _loss(relighter.render(), target_t, weights)
-    return SolveResult(before, after, tuple(paths), loss_start, loss_end, iterations, time.perf_counter() - start_time)
+    seconds = time.perf_counter() - start_time
+    return SolveResult(before, after, tuple(paths), loss_start, loss_end, iterations, seconds, lines)
 
 
 def _closed_form(
