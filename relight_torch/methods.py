@@ -25,7 +25,7 @@ import torch
 from relight_torch.errors import RelightError
 
 if TYPE_CHECKING:  # types only: the direct method's package is imported by its entry, not here
-    from relight_torch.direct.relighter import RelightSettings
+    from relight_torch.direct.settings import RelightSettings
     from relight_torch.protocol import CacheRelighter
 
 METHOD_NAMES = ("direct", "transfer", "gather", "cuts", "multiview")

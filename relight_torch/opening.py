@@ -7,7 +7,7 @@ import os
 import torch
 
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.direct.relighter import RelightSettings
+from relight_torch.direct.settings import RelightSettings
 from relight_torch.methods import relight_method
 from relight_torch.protocol import CacheRelighter
 

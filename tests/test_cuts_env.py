@@ -28,7 +28,8 @@ from relight_torch.cache.layer import read_cache_layer
 from relight_torch.cuts import relighter as cuts_relighter
 from relight_torch.cuts.merge import refine
 from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
-from relight_torch.direct.relighter import RelightSettings, open_relighter
+from relight_torch.direct.relighter import open_relighter
+from relight_torch.direct.settings import RelightSettings
 from relight_torch.math.frame import to_local
 from relight_torch.metrics import psnr
 from relight_torch.parallel import torch_threads

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from cache_support import bake_bundled
-from relight_torch.direct.relighter import RelightSettings, open_relighter
+from relight_torch.direct.relighter import open_relighter
+from relight_torch.direct.settings import RelightSettings
 from relight_torch.parallel import in_worker, parallel_map, tile_threads, torch_threads
 
 

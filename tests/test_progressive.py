@@ -20,7 +20,7 @@ import torch
 from pipeline import cli
 from pipeline.scenes import SCENES
 from relight_torch import open_cache
-from relight_torch.direct.relighter import RelightSettings
+from relight_torch.direct.settings import RelightSettings
 from relight_torch.errors import RelightError
 from relight_torch.io.exr import read_rgb_exr
 from relight_torch.levels import level_points

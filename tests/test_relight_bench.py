@@ -9,7 +9,7 @@ import csv
 import pytest
 
 from pipeline.benchmarks.direct import EDIT_KINDS, edit_kind_rows, format_table, run_benchmark, write_csv
-from relight_torch.direct.relighter import RelightSettings
+from relight_torch.direct.settings import RelightSettings
 
 # kind -> (visibility, shading, masks) passes one edit of one light runs.
 EXPECTED_PASSES = {"colour": (0, 0, 0), "shaping": (0, 1, 0), "move": (1, 1, 0), "link": (0, 0, 1)}

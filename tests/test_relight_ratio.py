@@ -17,7 +17,8 @@ import torch
 from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
-from relight_torch.direct.relighter import Relighter, RelightSettings, auto_filter_radius, open_relighter
+from relight_torch.direct.relighter import Relighter, open_relighter
+from relight_torch.direct.settings import RelightSettings, auto_filter_radius
 from relight_torch.lights import ratio as ratio_estimator
 from relight_torch.lights.light import LightKind, Shaping
 from relight_torch.metrics import psnr

@@ -16,7 +16,8 @@ import torch
 from pipeline import cli
 from pipeline.scenes import SCENES
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
-from relight_torch.direct.relighter import Relighter, RelightSettings, open_relighter
+from relight_torch.direct.relighter import Relighter, open_relighter
+from relight_torch.direct.settings import RelightSettings
 from relight_torch.direct.sharing import PixelGroups, pixel_owners, take_rows
 from relight_torch.gbuffer import GBuffer
 from relight_torch.metrics import psnr

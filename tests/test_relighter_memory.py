@@ -21,7 +21,8 @@ from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from pipeline.serve.session import Session
-from relight_torch.direct.relighter import MEMORY_BUDGET_FRACTION, Relighter, RelightSettings, default_memory_budget
+from relight_torch.direct.relighter import Relighter
+from relight_torch.direct.settings import MEMORY_BUDGET_FRACTION, RelightSettings, default_memory_budget
 from relight_torch.io.exr import read_exr
 from test_relighter_cache_counters import SETTINGS, assert_same_image, baked, low_rect, moved, spot  # noqa: F401
 

@@ -369,7 +369,8 @@ def test_open_relighter_builds_maps_at_the_settings_resolution(tmp_path):
     from pipeline.bake.direct.bake import bake_direct
     from pipeline.scene import find_camera, load_scene
     from pipeline.scenes import SCENES
-    from relight_torch.direct.relighter import RelightSettings, open_relighter
+    from relight_torch.direct.relighter import open_relighter
+    from relight_torch.direct.settings import RelightSettings
     from relight_torch.metrics import psnr
 
     shot = SCENES["cornell_box"].write(tmp_path / "scene")

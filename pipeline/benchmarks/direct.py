@@ -45,7 +45,8 @@ from pipeline.bake.direct.bake import bake_direct
 from pipeline.benchmarks.stopwatch import Stopwatch
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
-from relight_torch.direct.relighter import Relighter, RelightSettings, open_relighter
+from relight_torch.direct.relighter import Relighter, open_relighter
+from relight_torch.direct.settings import RelightSettings
 from relight_torch.io.atomic import write_text_atomic
 from relight_torch.lights.light import BarzelShaping, Light, LightKind, Shaping
 from relight_torch.metrics import psnr

@@ -25,7 +25,8 @@ import numpy as np
 import torch
 
 from pipeline.benchmarks.stopwatch import Stopwatch
-from relight_torch.direct.relighter import RelightSettings, open_relighter
+from relight_torch.direct.relighter import open_relighter
+from relight_torch.direct.settings import RelightSettings
 from relight_torch.io.exr import read_rgb_exr
 from relight_torch.lights.light import LightKind
 from relight_torch.metrics import psnr, rel_mse

@@ -59,7 +59,8 @@ from pipeline.scene.types import Camera, Scene
 from pipeline.scenes import SCENES
 from pipeline.tracing import Tracer
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.direct.relighter import Relighter, RelightSettings
+from relight_torch.direct.relighter import Relighter
+from relight_torch.direct.settings import RelightSettings
 from relight_torch.io.atomic import atomic_path, write_text_atomic
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.multiview.relighter import open_multiview_relighter

@@ -20,7 +20,8 @@ import time
 import numpy as np
 
 from pipeline.benchmarks.stopwatch import Stopwatch
-from relight_torch.direct.relighter import RelightSettings, open_relighter
+from relight_torch.direct.relighter import open_relighter
+from relight_torch.direct.settings import RelightSettings
 
 
 def peak_rss_bytes() -> int:

@@ -22,7 +22,8 @@ from pathlib import Path
 from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
-from relight_torch.direct.relighter import RelightSettings, open_relighter
+from relight_torch.direct.relighter import open_relighter
+from relight_torch.direct.settings import RelightSettings
 from relight_torch.metrics import psnr
 
 SETTINGS = {

@@ -26,7 +26,8 @@ import torch
 from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
-from relight_torch.direct.relighter import RelightSettings, open_relighter, shot_lights, unit_light
+from relight_torch.direct.relighter import open_relighter, shot_lights, unit_light
+from relight_torch.direct.settings import RelightSettings
 from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light
 from relight_torch.metrics import psnr

@@ -11,7 +11,7 @@ from pipeline.benchmarks.direct import format_table, run_benchmark, write_csv
 from pipeline.commands.common import add_device_option
 from pipeline.errors import RelightError
 from pipeline.scenes import SCENES
-from relight_torch.direct.relighter import RelightSettings
+from relight_torch.direct.settings import RelightSettings
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:

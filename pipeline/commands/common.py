@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from pipeline.errors import RelightError
-from relight_torch.direct.relighter import MEMORY_BUDGET_FRACTION, RelightSettings
+from relight_torch.direct.settings import MEMORY_BUDGET_FRACTION, RelightSettings
 
 
 def add_camera_options(parser: argparse.ArgumentParser, required: bool = True) -> None:

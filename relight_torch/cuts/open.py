@@ -12,7 +12,8 @@ from relight_torch.cache.load import load_npy
 from relight_torch.cuts.cuts import MEAN_LEVELS, Cuts, indirect_scale
 from relight_torch.cuts.relighter import CutsCache, CutsRelighter, CutsRelightSettings
 from relight_torch.cuts.tree import LightTree
-from relight_torch.direct.relighter import RelightSettings, open_relighter
+from relight_torch.direct.relighter import open_relighter
+from relight_torch.direct.settings import RelightSettings
 from relight_torch.errors import RelightError
 from relight_torch.indirect_samples import GatherSamples
 

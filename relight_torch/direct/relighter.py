@@ -53,13 +53,14 @@ from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import check_inputs, load_gbuffer, load_npy
 from relight_torch.direct import gradients
 from relight_torch.direct.gradients import GEOMETRY_KINDS
-from relight_torch.direct.sharing import PixelGroups, take_rows
+from relight_torch.direct.settings import RelightSettings, auto_filter_radius, default_memory_budget
+from relight_torch.direct.sharing import PixelGroups
+from relight_torch.direct.transport import Transport
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.levels import Level, build_level
 from relight_torch.light_samples import adaptive_sample_count, angular_radius, fixed_light_samples
 from relight_torch.lights.emission import is_delta_light, light_radiance_scale, sample_light, validate_light
-from relight_torch.lights.geometry import LightFrame
 from relight_torch.lights.light import Light, LightKind, light_snapshot, lights_equal
 from relight_torch.lights.linking import decode_paths, linked_points
 from relight_torch.lights.ratio import closed_form, has_closed_form, ratio_of
@@ -91,101 +92,6 @@ _SHADING_FIELDS = ("shaping", "barzel")
 _TILE_PIXELS = 1024
 # The kinds whose emission ShapingAPI and Barzel controls shape (see lights/emission.py).
 _SHAPED_KINDS = (LightKind.SPHERE, LightKind.RECT, LightKind.DISK, LightKind.CYLINDER)
-
-
-@dataclass(frozen=True)
-class RelightSettings:
-    """Sampling of the relighter.
-
-    Attributes:
-        area_samples: fixed samples per shading point for sphere, rect, disk, cylinder and distant
-            lights with an angle (delta lights take one).
-        dome_samples: fixed samples per shading point for dome lights.
-        seed: seed of the per-point sample rotations.
-        chunk_samples: light samples processed together (bounds the (N, S, 3) temporaries).
-        full_sampling_angle: angular radius (degrees) from which a light gets all `area_samples`;
-            smaller lights get fewer, in proportion to their solid angle
-            (`light_samples.adaptive_sample_count`). 0 gives every light `area_samples`.
-        min_area_samples: the fewest samples a small light gets.
-        shadow_map_resolution: texels per side of each shadow-map face (`shadows='shadowmaps'`);
-            512 builds ~5x faster than 1024 with the 'pcss' lookup within 0.3 dB of it on the
-            Cornell box (`pipeline.benchmarks.shadow_map_accuracy`).
-        shadow_map_lookup: 'pcss' (at most three depth reads per shadow ray) or 'march' (the
-            exact march of `shadow_map_march_steps` reads), see `visibility.shadow_maps`.
-        shadow_map_march_steps: depth-map reads per shadow ray of the 'march' lookup.
-        shadow_filter_radius: r in sub-samples of the same-surface box filter
-            (`visibility.surface_filter`, 2r + 1 taps per pass) over the shadowed and unshadowed
-            estimates of lights with a closed-form irradiance (the ratio estimator's denoised
-            visibility); 0: no filter; None: sized from the image (`auto_filter_radius`). It pays
-            where penumbrae span many pixels and samples are few (Cornell box 640x480, 1 sample:
-            35.7 -> 45.0 dB at r = 4) and blurs where they do not (64x64 with 16 samples: -1.3 to
-            -1.6 dB at r = 2).
-        filtered_area_samples: samples per matte shading point of a light whose visibility is
-            filtered (the filter averages (2r + 1)^2 neighbours' samples); glossy points
-            (`preview_surface.glossy`) keep `area_samples`: the filter denoises the diffuse term
-            only, not highlights (the set at 640x480, against 64 samples: 1 filtered at matte
-            points and 16 at glossy ones 38.5 dB, 1 everywhere 34.8, 16 unfiltered 37.9).
-        memory_budget: bytes the per-light caches (transports and unit images, `cache_bytes`)
-            may hold between renders; None: MEMORY_BUDGET_FRACTION of the machine's memory
-            (`default_memory_budget`). Over it, the relighter drops the transports of the lights
-            edited longest ago (a later shaping edit of one traces it again), makes a light's
-            images tile by tile without keeping its transport when that would not fit, then folds
-            the unit images of the lights edited longest ago into one (N, 3) sum (the frame is
-            unchanged; editing a folded light traces it again), and last keeps unit images in half
-            precision (a relative rounding of 2^-11, far below the light samples' noise). The
-            G-buffer, the BVH, the sum of the lights not being edited and one frame's temporaries
-            are outside it.
-        shared_lighting: the sub-samples of a pixel on one surface share one evaluation of each
-            light (`direct.sharing`): its samples, shadow rays and BRDF factors, combined with each
-            sub-sample's own material; False evaluates every sub-sample (supersampling 1 always
-            does). Lights whose radiance is not one colour times a scalar (textured lights,
-            coloured shadows) are always evaluated per sub-sample.
-    """
-
-    area_samples: int = 16
-    dome_samples: int = 64
-    seed: int = 0
-    chunk_samples: int = 1 << 20
-    full_sampling_angle: float = 0.0
-    min_area_samples: int = 1
-    shadow_map_resolution: int = 512
-    shadow_map_lookup: str = "pcss"
-    shadow_map_march_steps: int = 16
-    shadow_filter_radius: int | None = None
-    filtered_area_samples: int = 1
-    memory_budget: int | None = None
-    shared_lighting: bool = True
-
-
-MEMORY_BUDGET_FRACTION = 1 / 8
-"""Share of the machine's physical memory the per-light caches get by default: on a 24 GB machine
-3 GB, which leaves the rest of an 8 GB relighter for the G-buffer and a frame at 1920x1080."""
-
-
-def default_memory_budget() -> int:
-    """MEMORY_BUDGET_FRACTION of this machine's physical memory, in bytes."""
-    return int(MEMORY_BUDGET_FRACTION * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-
-
-AUTO_FILTER_MIN_PIXELS = 240
-"""Shorter image side (pixels) from which `auto_filter_radius` filters visibility."""
-AUTO_FILTER_PIXELS_PER_TAP = 120
-AUTO_FILTER_MAX_RADIUS = 4
-
-
-def auto_filter_radius(image_size: tuple[int, int], supersampling: int) -> int:
-    """The visibility filter's radius in sub-samples for a sub-sample image (H, W) when
-    `RelightSettings.shadow_filter_radius` is None.
-
-    One pixel of radius per AUTO_FILTER_PIXELS_PER_TAP pixels of the shorter side, at most
-    AUTO_FILTER_MAX_RADIUS, and none below AUTO_FILTER_MIN_PIXELS, where penumbrae span few
-    pixels and 16 unfiltered samples stay cheap: 640x480 -> 4 pixels (1 sample: 45.2 dB on the
-    Cornell box, 16 unfiltered: 45.3), 400x400 -> 3, 160x160 -> 0.
-    """
-    pixels = min(image_size) // supersampling
-    if pixels < AUTO_FILTER_MIN_PIXELS:
-        return 0
-    return supersampling * min(AUTO_FILTER_MAX_RADIUS, pixels // AUTO_FILTER_PIXELS_PER_TAP)
 
 
 def box_filter(image: torch.Tensor, s: int) -> torch.Tensor:
@@ -262,107 +168,6 @@ def colour_scale(light: Light) -> np.ndarray:
 
 
 @dataclass
-class _Transport:
-    """A light's cached transport: P shading points it reaches, S samples each.
-
-    Attributes:
-        points: (P,) int64 indices of the shading points, ascending, or None for all N (the
-            light reaches most of them: a scatter per shading pass would cost more than the
-            unlit points' zeros).
-        directions: (S, P, 3) unit world directions from the points towards the light's
-            samples, or None when shaping does not apply (distant and dome lights, whose
-            samples are then summed: S = 1).
-        lobes: (2, S, P, 3) each sample's diffuse [0] and specular [1] f cos(theta_i) L_i V /
-            (pdf S) for the unshaped unit light (V: the ShadowAPI factor); None when `factors`
-            holds the transport.
-        diffuse_ratio: (P,) the ratio estimator's factor on the diffuse sum (closed-form
-            unshadowed irradiance over the samples' estimate of it, `lights.ratio`), or None
-            for lights without a closed form.
-        factors: (F, S, P) the same as per-sample scalars, for lights whose L_i V is one colour
-            times a scalar w (untextured, grey shadow colour): w cos(theta_i) / (pdf S) times the
-            BRDF's `preview_surface.split_factors` (F = 4, or 6 with a clearcoat); the
-            materials' colours enter per point when the images are made (`combine_factors`).
-            None when `lobes` holds the transport.
-        colour: (3,) that colour (the unit light's radiance scale) when `factors` is set.
-        shadow_sums: (P, 2) per point sum_s w V and sum_s w (w: the samples' cos / (pdf S)
-            weights) while the transport is being made, when its visibility is filtered: the
-            diffuse factors then carry no V, and `diffuse_ratio` takes the filtered V instead.
-        emission_local: (S, P, 3) unit emission directions in the light's frame, from the
-            samples towards the points: made from `directions` (then dropped) when a shaping or
-            Barzel control first needs them, so a light without them never pays for the change
-            of frame.
-
-    Samples lead and colours trail so that the shaping factor broadcasts over whole (P, 3)
-    slabs and sums over samples add slabs: torch's CPU kernels vectorise those, while a
-    broadcast or a reduction over a middle axis of (P, S, 2, 3) ran 10-20x slower.
-    """
-
-    points: torch.Tensor | None
-    directions: torch.Tensor | None
-    lobes: torch.Tensor | None
-    diffuse_ratio: torch.Tensor | None = None
-    factors: torch.Tensor | None = None
-    colour: torch.Tensor | None = None
-    shadow_sums: torch.Tensor | None = None
-    emission_local: torch.Tensor | None = None
-
-    @property
-    def num_bytes(self) -> int:
-        tensors = (self.points, self.directions, self.lobes, self.diffuse_ratio, self.factors, self.emission_local)
-        return sum(t.numel() * t.element_size() for t in tensors if t is not None)
-
-    @property
-    def shapeable(self) -> bool:
-        """Whether the samples keep their directions (shaping and Barzel controls apply)."""
-        return self.directions is not None or self.emission_local is not None
-
-    def subset(self, todo: torch.Tensor) -> _Transport:
-        """The transport at those of the shading points `todo` ((K,) ascending indices) it holds,
-        `points` naming them (for progressive refinement, `Relighter.refine`)."""
-        if self.points is None:
-            return dataclasses.replace(self.gathered(todo, todo), shadow_sums=None)
-        where, held = self.locate(todo)
-        return dataclasses.replace(self.gathered(where[held], todo[held]), shadow_sums=None)
-
-    def locate(self, wanted: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(where, held): for each of the shading points `wanted` (K,), its row in this transport's
-        `points` and whether it holds that point at all (rows where not are arbitrary)."""
-        assert self.points is not None, "a transport of all points holds every point at its own row"
-        where = torch.searchsorted(self.points, wanted).clamp_(max=max(self.points.shape[0] - 1, 0))
-        held = self.points[where] == wanted if self.points.numel() else torch.zeros_like(wanted, dtype=torch.bool)
-        return where, held
-
-    def gathered(self, where: torch.Tensor, points: torch.Tensor | None) -> _Transport:
-        """The transport with each point's values taken from its row `where` (K,) of this one,
-        at the shading points `points` (K,) (None: all of them)."""
-
-        def take(values: torch.Tensor | None, dim: int) -> torch.Tensor | None:
-            return None if values is None else take_rows(values, dim, where)
-
-        return _Transport(
-            points,
-            take(self.directions, 1),
-            take(self.lobes, 2),
-            take(self.diffuse_ratio, 0),
-            take(self.factors, 2),
-            self.colour,
-            take(self.shadow_sums, 0),
-            take(self.emission_local, 1),
-        )
-
-    def emission_in(self, light: Light) -> torch.Tensor:
-        """`emission_local` for the light the transport was traced for (its transform)."""
-        if self.emission_local is None:
-            directions = self.directions
-            assert directions is not None, "a transport without emission_local keeps its directions (shapeable)"
-            self.emission_local = torch.nn.functional.normalize(
-                LightFrame.of(light, directions).vector_to_local(-directions), dim=-1
-            )
-            self.directions = None
-        return self.emission_local
-
-
-@dataclass
 class _Progress:
     """A light's unit images made point by point (progressive refinement, `Relighter.refine`).
 
@@ -379,7 +184,7 @@ class _Progress:
         traced: whether they come from shadow rays traced for them (the light kept no transport)
             or from its kept transport.
         shadow_sums: (N, 2) sum_s w V and sum_s w at the points done, for a traced light whose
-            visibility is filtered (`_Transport.shadow_sums`): its filtered visibility needs every
+            visibility is filtered (`Transport.shadow_sums`): its filtered visibility needs every
             point's sums and multiplies `images[0]` once the last point is done. None otherwise.
     """
 
@@ -389,7 +194,7 @@ class _Progress:
     samples_per_point: float
     num_done: int = 0
     shadow_sums: torch.Tensor | None = None
-    parts: list[list[tuple[torch.Tensor, _Transport]]] | None = None
+    parts: list[list[tuple[torch.Tensor, Transport]]] | None = None
 
     @property
     def num_bytes(self) -> int:
@@ -403,7 +208,7 @@ class _LightState:
     light: Light
     geometry_key: tuple[object, ...]
     shading_key: tuple[object, ...]
-    transports: list[_Transport] | None = None  # one per sample group (`Relighter._sample_groups`)
+    transports: list[Transport] | None = None  # one per sample group (`Relighter._sample_groups`)
     images: torch.Tensor | None = None  # (2, N, 3) diffuse and specular unit images
     edited: int = 0  # when it was last set (`Relighter._edits`): the budget drops the oldest first
     progress: _Progress | None = None  # `images` made so far, point by point, while they are None
@@ -957,7 +762,7 @@ class Relighter:
             )
         return self._u[num_samples]
 
-    def _transports(self, state: _LightState) -> list[_Transport]:
+    def _transports(self, state: _LightState) -> list[Transport]:
         """Light samples, shadow rays and BRDF of the unshaped unit light at the points it reaches,
         one transport per sample group (`_sample_groups`)."""
         if state.transports is not None:
@@ -996,7 +801,7 @@ class Relighter:
             self._viewer = _viewer_of(self.gbuffer)
         return self._viewer
 
-    def _kept_transport(self, group: list[tuple[torch.Tensor, _Transport]]) -> _Transport:
+    def _kept_transport(self, group: list[tuple[torch.Tensor, Transport]]) -> Transport:
         """One sample group's transport from the parts traced for its points, point by point
         (`_Progress.parts`): joined as `_transports` joins its tiles, its points ascending."""
         chunks: list[slice | torch.Tensor] = [chunk for chunk, _ in group]
@@ -1009,7 +814,7 @@ class Relighter:
             subset, points=transport.points[order], shadow_sums=_reorder(transport.shadow_sums, order)
         )
 
-    def _joined(self, parts: list[_Transport], chunks: list[slice | torch.Tensor]) -> _Transport:
+    def _joined(self, parts: list[Transport], chunks: list[slice | torch.Tensor]) -> Transport:
         """One transport from the transports of consecutive chunks of shading points.
 
         Sparse parts keep their point lists; when the points reached are over half of all, every
@@ -1017,7 +822,7 @@ class Relighter:
         """
         n = self.gbuffer.num_samples
 
-        def reached(chunk: slice | torch.Tensor, part: _Transport) -> torch.Tensor:
+        def reached(chunk: slice | torch.Tensor, part: Transport) -> torch.Tensor:
             if part.points is not None:
                 return part.points
             assert isinstance(chunk, slice), "only a transport of a slice of all points drops its point list"
@@ -1040,7 +845,7 @@ class Relighter:
                 joined = joined.new_full(shape, fill).index_copy_(dim, dense_points, joined)
             return joined
 
-        return _Transport(
+        return Transport(
             None if dense else points,
             join("directions", 1, 0.0),
             join("lobes", 2, 0.0),
@@ -1050,7 +855,7 @@ class Relighter:
             join("shadow_sums", 0, 0.0),
         )
 
-    def _filter_visibility(self, transports: list[_Transport], visibility: torch.Tensor | None = None) -> None:
+    def _filter_visibility(self, transports: list[Transport], visibility: torch.Tensor | None = None) -> None:
         """Fold the filtered visibility F(sum w V) / F(sum w) into the transports' diffuse ratios
         (Heitz et al. 2018; `visibility.surface_filter`) and drop the sums. The groups' sums
         are filtered together: each sum is already its group's mean over its samples. A
@@ -1093,7 +898,7 @@ class Relighter:
         u: torch.Tensor,
         viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
         shared: bool,
-    ) -> _Transport:
+    ) -> Transport:
         """The transport of an unshaped unit light at the shading points of `chunk` (a slice of
         all of them, or their indices), with the fixed light samples `u` (N, S, 2) of every point
         and the `_view_directions` `viewer`; `shared`: evaluated once per pixel group at its
@@ -1126,7 +931,7 @@ class Relighter:
         u: torch.Tensor,
         viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
         g: GBuffer,
-    ) -> _Transport:
+    ) -> Transport:
         """The transport of an unshaped unit light evaluated at each shading point of `chunk` (a
         slice of the points of `g`, or their indices), with the fixed light samples `u` (N, S, 2)
         and the view directions `viewer` (`_viewer_of`) of every point of `g`.
@@ -1187,7 +992,7 @@ class Relighter:
             factors = preview_surface.split_factors(
                 params, _take(cos_e, rows), cosine * _take(inverse_norm, rows), dot(direction, wo), self._coat
             )
-            # With a filtered visibility the diffuse factors stay unshadowed (see _Transport).
+            # With a filtered visibility the diffuse factors stay unshadowed (see Transport).
             factors[:2] *= unshadowed if filtered else weight
             factors[2:] *= weight
             sums = None
@@ -1201,8 +1006,8 @@ class Relighter:
                 factors[0, 0, uncovered] = _take(exact, local)[uncovered]
             colour = torch.as_tensor(scale, device=factors.device, dtype=factors.dtype)
             if light.kind not in _SHAPED_KINDS:
-                return _Transport(points, None, None, ratio, factors.sum(1, keepdim=True), colour, sums)
-            return _Transport(points, direction, None, ratio, factors, colour, sums)
+                return Transport(points, None, None, ratio, factors.sum(1, keepdim=True), colour, sums)
+            return Transport(points, direction, None, ratio, factors, colour, sums)
         weight = radiance * scalar.unsqueeze(-1)
         if shadow.enable:
             weight = weight * shadow_factor(shadow, distance < math.inf, distance)
@@ -1212,8 +1017,8 @@ class Relighter:
         torch.mul(diffuse, weight, out=lobes[0])
         torch.mul(specular, weight, out=lobes[1])
         if light.kind not in _SHAPED_KINDS:
-            return _Transport(points, None, lobes.sum(1, keepdim=True), ratio)
-        return _Transport(points, direction, lobes, ratio)
+            return Transport(points, None, lobes.sum(1, keepdim=True), ratio)
+        return Transport(points, direction, lobes, ratio)
 
     def _images(self, state: _LightState) -> torch.Tensor:
         """The light's diffuse and specular unit images (2, N, 3): transport x shaping, per point."""
@@ -1247,7 +1052,7 @@ class Relighter:
     def _transport_fits(self, state: _LightState) -> bool:
         """Whether the light's whole transport, kept, would leave the caches within the budget.
 
-        Estimated from the kept layout (`_Transport`): per point and sample up to six scalar
+        Estimated from the kept layout (`Transport`): per point and sample up to six scalar
         factors and a direction, or two RGB lobes and a direction, in the G-buffer's dtype.
         """
         light = state.light
@@ -1330,7 +1135,7 @@ class Relighter:
         todo: torch.Tensor | None,
         images: torch.Tensor,
         sums: torch.Tensor | None,
-        parts: list[list[tuple[torch.Tensor, _Transport]]] | None = None,
+        parts: list[list[tuple[torch.Tensor, Transport]]] | None = None,
     ) -> torch.Tensor | None:
         """Add the light's unit images at the shading points `todo` ((K,) ascending; None: all) to
         `images` (2, N, 3), traced tile by tile; the per-point sums of a filtered visibility go to
@@ -1358,7 +1163,7 @@ class Relighter:
                 u: torch.Tensor = u,
                 viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor] = viewer,
                 shared: bool = shared,
-            ) -> tuple[torch.Tensor, torch.Tensor, _Transport]:
+            ) -> tuple[torch.Tensor, torch.Tensor, Transport]:
                 part = self._chunk_transport(light, chunk, u, viewer, shared)
                 if part.points is None:  # the whole tile: name its points, as `_joined` does
                     part.points = (
@@ -1377,7 +1182,7 @@ class Relighter:
                     sums.index_add_(0, index, shadow_sums)
         return sums
 
-    def _per_point(self, light: Light, transport: _Transport) -> torch.Tensor:
+    def _per_point(self, light: Light, transport: Transport) -> torch.Tensor:
         """(2, P, 3) diffuse and specular sums of one transport's samples at its points, shaped."""
         factor = self._emission_factor(light, transport)
         if transport.factors is not None:
@@ -1392,7 +1197,7 @@ class Relighter:
             per_point[0].mul_(transport.diffuse_ratio.unsqueeze(-1))
         return per_point
 
-    def _combined(self, transport: _Transport, factor: torch.Tensor | None) -> torch.Tensor:
+    def _combined(self, transport: Transport, factor: torch.Tensor | None) -> torch.Tensor:
         """(2, P, 3) diffuse and specular sums of a transport kept as scalar factors, each sample
         times its shaping `factor` (S, P, 3) when given."""
         factors = transport.factors
@@ -1410,7 +1215,7 @@ class Relighter:
             colours = colours.index_select(1, transport.points)
         return torch.stack(preview_surface.combine_factors(colours, sums)).mul_(transport.colour)
 
-    def _emission_factor(self, light: Light, transport: _Transport) -> torch.Tensor | None:
+    def _emission_factor(self, light: Light, transport: Transport) -> torch.Tensor | None:
         """(S, P, 3) ShapingAPI x Barzel factor of each cached sample; None when nothing applies."""
         if not transport.shapeable or (light.shaping is None and light.barzel is None):
             return None
@@ -1431,7 +1236,7 @@ def _viewer_of(g: GBuffer) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
 
 def _scalar_radiance(light: Light) -> bool:
     """Whether the unit light's shadowed radiance L_i V is one colour times a scalar (untextured,
-    grey shadow colour): its transport is then kept as scalar factors (`_Transport.factors`)."""
+    grey shadow colour): its transport is then kept as scalar factors (`Transport.factors`)."""
     return light.texture is None and bool(light_radiance_scale(light).any()) and len(set(light.shadow.color)) == 1
 
 

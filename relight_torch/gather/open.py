@@ -9,7 +9,8 @@ import numpy as np
 import torch
 
 from relight_torch.cache.load import load_npy
-from relight_torch.direct.relighter import RelightSettings, open_relighter
+from relight_torch.direct.relighter import open_relighter
+from relight_torch.direct.settings import RelightSettings
 from relight_torch.errors import RelightError
 from relight_torch.gather.relighter import DEFAULT_GATHER_SAMPLES, SET_NAMES, GatherRelighter, GatherSet, SurfacePoints
 

@@ -11,7 +11,8 @@ import torch
 
 from relight_torch.cache.layer import CacheDescription
 from relight_torch.cache.load import load_npy
-from relight_torch.direct.relighter import RelightSettings, open_relighter
+from relight_torch.direct.relighter import open_relighter
+from relight_torch.direct.settings import RelightSettings
 from relight_torch.errors import RelightError
 from relight_torch.indirect_samples import GatherSamples, gather_payload_name
 from relight_torch.transfer.encoding import PARTS, EncodedRows, decode_rows

@@ -13,7 +13,8 @@ from pathlib import Path
 from pipeline.bake.adapter import Variant, cache_bytes
 from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene.types import Camera, Scene
-from relight_torch.direct.relighter import RelightSettings, open_relighter
+from relight_torch.direct.relighter import open_relighter
+from relight_torch.direct.settings import RelightSettings
 
 
 def setting_values(point: dict[str, object], key: str, default: int) -> list[int]:

@@ -20,7 +20,7 @@ import dataclasses
 import torch
 
 from pipeline.scene.types import Scene
-from relight_torch.direct.relighter import RelightSettings
+from relight_torch.direct.settings import RelightSettings
 from relight_torch.indirect import gather_sample_count
 from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.transfer.relighter import GATHER_SAMPLES, wavelet_light
