@@ -5,17 +5,21 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from pxr import UsdLux
 
 from pipeline.bake.gather_cloud import create_gathers
+from pipeline.bake.methods import bake_method
 from pipeline.bake.transfer.probes import PROBES_PER_LIGHT, probe_budget, probe_lights, uniform_object_lights
-from pipeline.scene import load_scene
-from pipeline.scenes import authoring, meshes
+from pipeline.scene import find_camera, load_scene
+from pipeline.scenes import SCENES, authoring, meshes
 from pipeline.tracing import Tracer
 from relight_torch.indirect_samples import GatherSamples
 from relight_torch.transfer.haar import haar2d
+from relight_torch.transfer.open import open_transfer_relighter
+from relight_torch.transfer.responses import sparse_responses
 
 # Nine floor tiles whose reflected power (area x albedo) falls by 1.5x from one to the next, their
 # albedo alternating so that the area alone would rank them otherwise, then eleven small grey tiles.
@@ -108,3 +112,22 @@ def test_a_smaller_budgets_probes_are_the_first_of_a_larger_one(tiles):
     for num_kept in (12, 50, 100):
         small = probe_lights(scene, gathers, tracer, None, 1, num_kept, seed=0)
         assert torch.equal(small, large[: probe_budget(num_kept)])
+
+
+def test_culled_variants_refit_to_the_probes_a_bake_at_their_count_keeps(tmp_path):
+    # The pilot bakes the most coefficients once and culls; an 8-coefficient variant was refitted
+    # to all 10 probes of the 100-coefficient bake (least squares: more constraints than values),
+    # which bent even the lamp's light. It now keeps the 3 a bake at 8 would: the lamp's, exactly.
+    bundled = SCENES["cornell_box"]
+    scene = load_scene(bundled.write(tmp_path), width=16, height=16)
+    adapter = bake_method("transfer").adapter
+    point = {"gathers": 256, "coefficients": (8, 100), "bounces": 1}
+    layer = adapter.bake(scene, find_camera(scene, bundled.camera), tmp_path, "cb", point, 1, 1)
+    probes = torch.from_numpy(np.load(tmp_path / "cb.transferProbes.npy"))
+    assert probe_budget(8) == PROBES_PER_LIGHT < 8 < probes.shape[0] <= probe_budget(100)
+    baked = open_transfer_relighter(layer).final_gather
+    culled = adapter.variants(layer, point, "cpu")[0].relighter.final_gather
+    lamp = probes[:PROBES_PER_LIGHT]
+    exact = sparse_responses(baked, lamp)
+    error = (sparse_responses(culled, lamp) - exact).abs().max() / exact.abs().max()
+    assert float(error) < 2e-3  # float16 values
