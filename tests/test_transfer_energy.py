@@ -150,9 +150,9 @@ def test_truncated_rows_keep_the_indirect_energy_of_the_untruncated_ones(tmp_pat
     # 3-7 % low against the path tracer, all of it from the culling (every coefficient kept: within
     # 1 %). Culling keeps each row's sum, so uniform light loses nothing; a lamp's light on the
     # gathers is far from uniform. The kept coefficients are now refitted to transfer the shot's own
-    # lights exactly, which also carries lights near them (a move), and each object's uniform light,
+    # lights exactly, which also carries lights near them (a move), and the largest objects' uniform light,
     # which carries a light narrowed onto the floor (ShapingAPI focus 4). Measured when written:
-    # 1.0000, 0.9992 and 0.9994 of the untruncated light, against 0.947, 0.943 and 0.926 with plain
+    # 1.0000, 0.9993 and 0.9992 of the untruncated light, against 0.947, 0.943 and 0.926 with plain
     # culling; the focused lamp was 0.982 with the shot's lights alone as probes.
     bundled = SCENES["cornell_box"]
     scene = load_scene(bundled.write(tmp_path), width=32, height=24)

@@ -12,7 +12,13 @@ from pxr import UsdLux
 
 from pipeline.bake.gather_cloud import create_gathers
 from pipeline.bake.methods import bake_method
-from pipeline.bake.transfer.probes import PROBES_PER_LIGHT, probe_budget, probe_lights, uniform_object_lights
+from pipeline.bake.transfer.probes import (
+    MAX_OBJECT_PROBES,
+    PROBES_PER_LIGHT,
+    probe_budget,
+    probe_lights,
+    uniform_object_lights,
+)
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, authoring, meshes
 from pipeline.tracing import Tracer
@@ -22,7 +28,8 @@ from relight_torch.transfer.open import open_transfer_relighter
 from relight_torch.transfer.responses import sparse_responses
 
 # Nine floor tiles whose reflected power (area x albedo) falls by 1.5x from one to the next, their
-# albedo alternating so that the area alone would rank them otherwise, then eleven small grey tiles.
+# albedo alternating so that the area alone would rank them otherwise (0, 2, 1, ...), then eleven
+# small grey tiles.
 RANKED_TILES = [(math.sqrt(100.0 * 1.5 ** (8 - i) / albedo), albedo) for i, albedo in enumerate([0.3, 0.9] * 4 + [0.3])]
 TILES = RANKED_TILES + [(8.0, 0.5)] * 11
 
@@ -92,13 +99,14 @@ def test_uniform_object_lights_rank_objects_by_reflected_light_and_stop_at_the_c
 def test_probes_of_a_scene_with_many_objects_keep_the_shot_then_its_largest_objects(tiles):
     scene, gathers, tracer = tiles
     probes = probe_lights(scene, gathers, tracer, None, 1, 50, seed=0)
-    # The budget of 50 coefficients: the lamp's three channels, the whole floor, its 8 largest tiles.
-    assert probes.shape == (probe_budget(50), gathers.num_gathers) == (12, 1024)
+    # Within the budget of 50 coefficients (12): the lamp's three channels, the whole floor lit
+    # uniformly and its three tiles that reflect most of such light.
+    assert probes.shape == (PROBES_PER_LIGHT + MAX_OBJECT_PROBES, gathers.num_gathers) == (7, 1024)
     assert float(probes[:PROBES_PER_LIGHT].abs().sum()) > 0
     reflected = gathers.albedo / math.pi
     assert torch.allclose(probes[PROBES_PER_LIGHT], _wavelet(reflected), rtol=1e-5, atol=1e-7)
     paths = [obj.path for obj in scene.objects]
-    for row, tile in zip(probes[PROBES_PER_LIGHT + 1 :], range(8), strict=True):
+    for row, tile in zip(probes[PROBES_PER_LIGHT + 1 :], range(MAX_OBJECT_PROBES - 1), strict=True):
         mine = gathers.object_id == paths.index(f"{authoring.GEOMETRY}/Tile{tile:02d}")
         assert torch.allclose(row, _wavelet(reflected * mine.unsqueeze(-1)), rtol=1e-5, atol=1e-7)
 
@@ -108,23 +116,23 @@ def test_a_smaller_budgets_probes_are_the_first_of_a_larger_one(tiles):
     # the most coefficients, as a bake at k would have made them.
     scene, gathers, tracer = tiles
     large = probe_lights(scene, gathers, tracer, None, 1, 400, seed=0)
-    assert large.shape[0] == PROBES_PER_LIGHT + len(TILES)  # the lamp, the floor, all tiles but one
-    for num_kept in (12, 50, 100):
+    assert large.shape[0] == PROBES_PER_LIGHT + MAX_OBJECT_PROBES
+    for num_kept in (12, 24, 50):
         small = probe_lights(scene, gathers, tracer, None, 1, num_kept, seed=0)
         assert torch.equal(small, large[: probe_budget(num_kept)])
 
 
 def test_culled_variants_refit_to_the_probes_a_bake_at_their_count_keeps(tmp_path):
-    # The pilot bakes the most coefficients once and culls; an 8-coefficient variant was refitted
-    # to all 10 probes of the 100-coefficient bake (least squares: more constraints than values),
-    # which bent even the lamp's light. It now keeps the 3 a bake at 8 would: the lamp's, exactly.
+    # The pilot bakes the most coefficients once and culls; a 4-coefficient variant was refitted
+    # to all 7 probes of the 100-coefficient bake (least squares: more constraints than values),
+    # which bent even the lamp's light. It now keeps the 3 a bake at 4 would: the lamp's, exactly.
     bundled = SCENES["cornell_box"]
     scene = load_scene(bundled.write(tmp_path), width=16, height=16)
     adapter = bake_method("transfer").adapter
-    point = {"gathers": 256, "coefficients": (8, 100), "bounces": 1}
+    point = {"gathers": 256, "coefficients": (4, 100), "bounces": 1}
     layer = adapter.bake(scene, find_camera(scene, bundled.camera), tmp_path, "cb", point, 1, 1)
     probes = torch.from_numpy(np.load(tmp_path / "cb.transferProbes.npy"))
-    assert probe_budget(8) == PROBES_PER_LIGHT < 8 < probes.shape[0] <= probe_budget(100)
+    assert probe_budget(4) == PROBES_PER_LIGHT < 4 < probes.shape[0] <= probe_budget(100)
     baked = open_transfer_relighter(layer).final_gather
     culled = adapter.variants(layer, point, "cpu")[0].relighter.final_gather
     lamp = probes[:PROBES_PER_LIGHT]

@@ -13,17 +13,19 @@ Two kinds, in this order of priority:
 2. Objects lit uniformly. The gathers of an object under unit irradiance (radiance albedo / pi
    there, nothing elsewhere), carried through the bounces and summed over the channels (one
    scalar probe each): first the whole scene so lit, then one object at a time, those that reflect
-   most of such light first (the most gather area times albedo), all but the last of them. A light
-   that moves off the shot's lights, or narrows, lands on the same objects, and these probes keep
-   each object's share of its transport (docs/TRANSFER.md has the measurements).
+   most of such light first (the most gather area times albedo). A light that moves off the shot's
+   lights, or narrows, lands on the same objects, and these probes keep the largest objects' share
+   of its transport (docs/TRANSFER.md has the measurements).
 
 A row of k kept coefficients can honour few constraints without bending, so the probes are cut to
 `probe_budget(k)`, a quarter of k in whole lights: the shot's lights take it first, the objects
-what is left (on a shot with many lights, none). A scene with more objects than the budget holds
-probes the objects that carry the most gather area times albedo; the others stay in the probe of
-the whole scene. The order is also the priority: the first `probe_budget(k')` probes of a bake that
-kept k >= k' coefficients are those a bake keeping k' would make (cut there, the summed probes
-span what the dropped ones would have), which the pilot's culled variants rely on.
+what is left (on a shot with many lights, none), at most `MAX_OBJECT_PROBES`: the whole scene and
+the objects that carry the most gather area times albedo; the others stay in the probe of the
+whole scene. More object probes kept no more energy and bent the rows into ringing (a light added
+in one place darkened pixels elsewhere; docs/TRANSFER.md). The order is also the priority: the
+first `probe_budget(k')` probes of a bake that kept k >= k' coefficients are those a bake keeping
+k' would make (cut there, the summed probes span what the dropped ones would have), which the
+pilot's culled variants rely on.
 
 Shadow links are left out of the probes (their occluder sets need the cache's per-object casters);
 a probe only has to resemble the lights that will be relit.
@@ -46,6 +48,8 @@ from relight_torch.visibility.rays import RayCaster, RayVisibility
 
 PROBES_PER_LIGHT = 3
 """Scalar probes per light: its red, green and blue channels."""
+MAX_OBJECT_PROBES = 4
+"""Probes of objects lit uniformly: the whole scene and the three objects that reflect most."""
 
 
 def probe_budget(num_kept: int) -> int:
@@ -106,8 +110,8 @@ def probe_lights(
 
     Returns:
         float32 probes, Q <= `probe_budget(num_kept)`, in priority order: the lights'
-        `PROBES_PER_LIGHT` rows each, then the objects' one each; empty (0, G) when the shot has
-        neither lights, emission nor reflecting gathers.
+        `PROBES_PER_LIGHT` rows each, then up to `MAX_OBJECT_PROBES` of objects, one each; empty
+        (0, G) when the shot has neither lights, emission nor reflecting gathers.
     """
     visibility = RayVisibility(caster)
     object_paths = [obj.path for obj in scene.objects]
@@ -125,7 +129,8 @@ def probe_lights(
     budget = probe_budget(num_kept)
     lights = ([torch.stack(vectors).sum(0)] + vectors[:-1]) if vectors else []
     rows = [vector.t() for vector in lights[: budget // PROBES_PER_LIGHT]]
-    for radiance in uniform_object_lights(gathers, budget - PROBES_PER_LIGHT * len(rows)):
+    num_objects = min(MAX_OBJECT_PROBES, budget - PROBES_PER_LIGHT * len(rows))
+    for radiance in uniform_object_lights(gathers, num_objects):
         rows.append(wavelet_light(radiance, bounce, num_bounces, gathers.side).sum(-1).unsqueeze(0))
     if not rows:
         return torch.zeros(0, gathers.num_gathers)
