@@ -18,9 +18,10 @@ per row and value channel, with A (Q, k) the probes' wavelet coefficients at the
 indices, v its kept values and t its untruncated responses (Lawson & Hanson 1974, least squares
 with linear equality constraints, here with the objective the identity). A light in the span of
 the probes is then transferred exactly; any other light errs by the truncation's error on its
-difference to that span. The bake's probes are the shot's own lights carried through the bounces
-(`pipeline.bake.transfer.probes`): edits start from them, and a colour edit of a shot light stays
-in their span.
+difference to that span. The bake's probes are the shot's own lights carried through the bounces,
+then its largest objects lit uniformly (`pipeline.bake.transfer.probes`): edits start from the
+lights, a colour edit of a shot light stays in their span, and a light that moves or narrows keeps
+the largest objects' share of its transport.
 """
 
 from __future__ import annotations

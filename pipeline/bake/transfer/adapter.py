@@ -3,8 +3,9 @@
 Each gather count is baked once keeping the largest coefficient count; every smaller count is
 studied by culling those rows (`relight_torch.transfer.sparse.cull`, the bake's own order) and,
 when the bake refitted its rows to light probes, refitting the culled rows to the products the
-baked rows have with the same probes (`relight_torch.transfer.responses`): the baked rows keep
-the untruncated rows' products, so the culled ones do as a bake at that count would. bake_s is
+baked rows have with the probes a bake at that count keeps (the first `probe_budget(count)`,
+`pipeline.bake.transfer.probes`; `relight_torch.transfer.responses`): the baked rows keep the
+untruncated rows' products, so the culled ones do as a bake at that count would. bake_s is
 that one bake's time for all of them and cache_bytes counts the culled matrix as the layer would
 store it (its parts written under `<cache>/culled`).
 """
@@ -19,6 +20,7 @@ import torch
 
 from pipeline.bake.adapter import Variant
 from pipeline.bake.transfer.bake import F_PREFIX, PROBES_PAYLOAD, TransferSettings, bake_transfer, matrix_payloads
+from pipeline.bake.transfer.probes import probe_budget
 from pipeline.scene.types import Camera, Scene
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.cache.load import load_npy
@@ -117,7 +119,8 @@ def culled_variants(
     for num_kept in counts:
         rows = cull(stored, num_kept)
         if probes is not None:
-            rows = refit_rows(rows, probes, target)
+            kept_probes = probe_budget(num_kept)
+            rows = refit_rows(rows, probes[:kept_probes], target[:, :kept_probes])
         encoded = encode_rows(rows, baked_settings.encoding)
         payloads = matrix_payloads(culled_dir, f"{layer.name.split('.')[0]}-{num_kept}", F_PREFIX, encoded)
         final_gather = decode_rows(encoded).to(device, stored.values.dtype)
