@@ -25,7 +25,8 @@ class GatherSamples:
     Attributes:
         position: (G, 3) world position.
         normal: (G, 3) unit normal of the side that receives and emits (the triangle's winding).
-        albedo: (G, 3) diffuse albedo (UsdPreviewSurface `diffuse_albedo`).
+        albedo: (G, 3) albedo of the diffuse re-emission (the bake's: the BRDF's bihemispherical
+            reflectance, `pipeline.bake.gather_cloud.reemitted_albedo`).
         emission: (G, 3) emitted radiance (emissiveColor).
         area: (G,) world surface area each sample stands for.
         object_id: (G,) int64 index of each sample's object into the cache's object paths (for

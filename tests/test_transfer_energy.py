@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from pipeline.bake.gather_cloud import create_gathers
 from pipeline.bake.transfer.bake import TransferSettings, bake_transfer
@@ -82,7 +83,7 @@ def Xform "Room"
 
 def test_bounce_rows_conserve_energy_in_a_closed_room(tmp_path):
     # White furnace: inside a closed room every gather's hemisphere sees walls, so M applied to unit
-    # gather radiance must give back the albedo, corners included. Gathers whose disc crossed a wall's
+    # gather radiance must give back the gathers' albedo, corners included. Gathers whose disc crossed a wall's
     # edge, and receivers near a corner (whose light comes from closer than the disc points' spacing),
     # lost up to 70 % of it: the area-weighted mean was 0.928 with 256 gathers. The rows are now
     # normalised to the measured covered solid angle, which in a closed room is the whole hemisphere
@@ -91,7 +92,10 @@ def test_bounce_rows_conserve_energy_in_a_closed_room(tmp_path):
     tracer = Tracer.for_scene(scene)
     gathers = create_gathers(scene, 256, seed=0)
     rows = bounce_rows(slice(0, 256), gathers, tracer, disc_support(gathers, tracer))
-    ratio = (rows.sum(1).mean(-1) / ALBEDO).numpy()
+    # The gathers re-emit the material's bihemispherical reflectance (`reemitted_albedo`), within
+    # Storm's Fresnel of ALBEDO.
+    torch.testing.assert_close(gathers.albedo, torch.full_like(gathers.albedo, ALBEDO), rtol=0.01, atol=0.0)
+    ratio = (rows.sum(1) / gathers.albedo).mean(-1).numpy()
     area = gathers.area.numpy()
     assert float(np.sum(area * ratio) / area.sum()) == pytest.approx(1.0, abs=1e-4)
     assert float(np.max(np.abs(ratio - 1.0))) < 1e-4
