@@ -40,9 +40,13 @@ def fixed_light_samples(
         pattern = torch.stack(torch.meshgrid(grid, grid, indexing="ij"), dim=-1).reshape(-1, 2)
     else:
         pattern = sobol(num_samples, 2, seed=seed, dtype=torch.float64)
-    rotation = torch.rand((num_points, 1, 2), generator=generator, dtype=torch.float64)
-    u = torch.remainder(pattern.unsqueeze(1) + rotation.transpose(0, 1), 1.0)
-    return u.clamp(max=1.0 - 1e-7).to(device=device, dtype=dtype).transpose(0, 1)
+    rotation = torch.rand((num_points, 2), generator=generator, dtype=torch.float64)
+    # One sample at a time: the float64 sums of all S at once were 2-3x the result's size in
+    # temporaries (2.6 GB for 4 M points and 16 samples).
+    u = torch.empty((num_samples, num_points, 2), device=device, dtype=dtype)
+    for k in range(num_samples):
+        u[k] = torch.remainder(pattern[k] + rotation, 1.0).clamp_(max=1.0 - 1e-7)
+    return u.transpose(0, 1)
 
 
 def angular_radius(light: Light, points: torch.Tensor) -> float:
