@@ -34,6 +34,8 @@ TILE = 64
 MAX_TILE_FRACTION = 0.25
 """Above this share of tiles to filter, `SurfaceFilter.visibility` filters the whole image in one pass
 instead (on the CPU the tiles' windows and weights cost more than the skipped tiles save)."""
+TILE_BATCH = 64
+"""Tiles filtered together: bounds the windows and weights a batch holds (~15 MB at r = 8)."""
 
 
 class SurfaceFilter:
@@ -152,28 +154,31 @@ class SurfaceFilter:
                 filtered[:, 1] > 0, filtered[:, 0] / torch.where(filtered[:, 1] > 0, filtered[:, 1], 1.0), 0.0
             )
         if needed.numel():
-            filtered = self._filter_tiles(planes, needed, columns)  # (B, 2, T, T)
-            ratio = torch.where(
-                filtered[:, 1] > 0, filtered[:, 0] / torch.where(filtered[:, 1] > 0, filtered[:, 1], 1.0), 0.0
-            )
             padded = result.new_zeros(rows * tile, columns * tile)
             padded[:height, :width] = result
             view = padded.reshape(rows, tile, columns, tile).permute(0, 2, 1, 3).reshape(rows * columns, tile, tile)
-            view.index_copy_(0, needed, ratio)
+            r = self.radius
+            around = torch.nn.functional.pad(planes, (r, columns * tile - width + r, r, rows * tile - height + r))
+            for batch in needed.split(TILE_BATCH):
+                filtered = self._filter_tiles(around, batch, columns)  # (B, 2, T, T)
+                ratio = torch.where(
+                    filtered[:, 1] > 0, filtered[:, 0] / torch.where(filtered[:, 1] > 0, filtered[:, 1], 1.0), 0.0
+                )
+                view.index_copy_(0, batch, ratio)
             result = view.reshape(rows, columns, tile, tile).permute(0, 2, 1, 3).reshape(rows * tile, -1)
             result = result[:height, :width]
         return result.reshape(-1).index_select(0, self.gbuffer.pixel_index)
 
-    def _filter_tiles(self, planes: torch.Tensor, needed: torch.Tensor, columns: int) -> torch.Tensor:
+    def _filter_tiles(self, around: torch.Tensor, needed: torch.Tensor, columns: int) -> torch.Tensor:
         """(B, C, T, T) the separable filter's sums over the B tiles `needed` (flat tile indices,
-        `columns` tiles a row) of (C, H, W) planes: each tile's window with its halo of r, the
-        taps of `__call__` in the same order."""
+        `columns` tiles a row) of (C, H, W) planes zero-padded to (C, R T + 2r, C T + 2r) (a halo
+        of r around the tile grid): each tile's window with its halo, the taps of `__call__` in
+        the same order."""
         r, tile = self.radius, self.tile
         size = tile + 2 * r
-        windows = self._windows(planes, needed, columns)  # (B, C, size, size)
-        image = windows
+        image = self._windows(around, needed, columns)  # (B, C, size, size)
         for axis in (1, 0):
-            chosen = self._mask_windows(self.masks[axis], needed, columns).to(planes.dtype)  # (B, 2r, size, size)
+            chosen = self._windows(self.masks[axis], needed, columns).to(around.dtype)  # (B, 2r, size, size)
             total = image.clone()
             for k, offset in enumerate(self.offsets):
                 dim = axis + 2
@@ -184,15 +189,7 @@ class SurfaceFilter:
             image = total
         return image[:, :, r : r + tile, r : r + tile]
 
-    def _windows(self, planes: torch.Tensor, needed: torch.Tensor, columns: int) -> torch.Tensor:
-        """(B, C, T + 2r, T + 2r) windows of (C, H, W) planes around the tiles `needed`, zero outside the image."""
-        height, width = planes.shape[-2:]
-        r, tile = self.radius, self.tile
-        rows = -(-height // tile)
-        padded = torch.nn.functional.pad(planes, (r, columns * tile - width + r, r, rows * tile - height + r))
-        return self._mask_windows(padded, needed, columns)
-
-    def _mask_windows(self, padded: torch.Tensor, needed: torch.Tensor, columns: int) -> torch.Tensor:
+    def _windows(self, padded: torch.Tensor, needed: torch.Tensor, columns: int) -> torch.Tensor:
         """(B, C, T + 2r, T + 2r) windows of padded (C, R T + 2r, C T + 2r) planes around the tiles `needed`."""
         size, tile = self.tile + 2 * self.radius, self.tile
         starts = [(int(i) // columns * tile, int(i) % columns * tile) for i in needed.tolist()]
