@@ -23,7 +23,11 @@ def grid_soup(rng, num_quads: int = 24) -> np.ndarray:
 
 def random_rays(rng, num_rays: int = 3000):
     origins = np.concatenate(
-        [rng.uniform(-1.2, 1.2, (num_rays, 1)), rng.uniform(0.5, 1.5, (num_rays, 1)), rng.uniform(-1.2, 1.2, (num_rays, 1))],
+        [
+            rng.uniform(-1.2, 1.2, (num_rays, 1)),
+            rng.uniform(0.5, 1.5, (num_rays, 1)),
+            rng.uniform(-1.2, 1.2, (num_rays, 1)),
+        ],
         axis=1,
     ).astype(np.float32)
     directions = (rng.uniform(-1, 1, (num_rays, 3)) * [0.5, 1, 0.5] - [0, 1.5, 0]).astype(np.float32)
@@ -121,5 +125,7 @@ def test_a_shadow_link_caster_traces_its_objects_only():
     assert 0.2 < hits.hit.mean() < 0.8
     np.testing.assert_array_equal(hits.triangle_id, expected.triangle_id)  # ids into the link's triangles
     np.testing.assert_array_equal(hits.distance, expected.distance)
-    np.testing.assert_array_equal(linked.occluded(origins, directions, t_far), subset.occluded(origins, directions, t_far))
+    np.testing.assert_array_equal(
+        linked.occluded(origins, directions, t_far), subset.occluded(origins, directions, t_far)
+    )
     assert links(("/Rocks",)) is linked and linked.epsilon == 1e-4

@@ -11,8 +11,7 @@ import torch
 
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.gbuffer import GBuffer
-from relight_torch.light_samples import fixed_light_samples
-from relight_torch.math.sampling import sobol
+from relight_torch.light_samples import fixed_light_samples, point_rotations, sample_pattern
 from relight_torch.visibility import surface_filter
 from relight_torch.visibility.surface_filter import SurfaceFilter
 
@@ -71,10 +70,9 @@ def loop_filter(gbuffer: GBuffer, values: np.ndarray, radius: int) -> np.ndarray
         if np.isnan(position[p][0]) or np.isnan(position[q][0]):
             return False
         between = position[q] - position[p]
-        return (
-            float(normal[p] @ normal[q]) >= surface_filter.MIN_NORMAL_COSINE
-            and abs(float(between @ normal[p])) <= surface_filter.MAX_PLANE_SLOPE * float(np.linalg.norm(between))
-        )
+        return float(normal[p] @ normal[q]) >= surface_filter.MIN_NORMAL_COSINE and abs(
+            float(between @ normal[p])
+        ) <= surface_filter.MAX_PLANE_SLOPE * float(np.linalg.norm(between))
 
     for axis in (1, 0):
         total = image.copy()
@@ -122,16 +120,9 @@ def test_the_tiled_visibility_matches_the_whole_filter_across_tile_edges(monkeyp
 
 
 def all_at_once(num_points: int, num_samples: int, seed: int) -> torch.Tensor:
-    """Twin of `fixed_light_samples`: the rotation added to the whole (S, N, 2) pattern in one go."""
-    generator = torch.Generator().manual_seed(seed)
-    side = math.isqrt(num_samples)
-    if side * side == num_samples:
-        grid = (torch.arange(side, dtype=torch.float64) + 0.5) / side
-        pattern = torch.stack(torch.meshgrid(grid, grid, indexing="ij"), dim=-1).reshape(-1, 2)
-    else:
-        pattern = sobol(num_samples, 2, seed=seed, dtype=torch.float64)
-    rotation = torch.rand((num_points, 1, 2), generator=generator, dtype=torch.float64)
-    u = torch.remainder(pattern.unsqueeze(1) + rotation.transpose(0, 1), 1.0)
+    """Twin of `fixed_light_samples`: the rotations added to the whole (S, N, 2) pattern in one go."""
+    pattern, rotation = sample_pattern(num_samples, seed), point_rotations(num_points, seed)
+    u = torch.remainder(pattern.unsqueeze(1) + rotation.unsqueeze(0), 1.0)
     return u.clamp(max=1.0 - 1e-7).to(torch.float32).transpose(0, 1)
 
 
@@ -140,3 +131,7 @@ def test_fixed_light_samples_made_one_sample_at_a_time_are_the_same_numbers():
         expected = all_at_once(num_points, num_samples, seed)
         samples = fixed_light_samples(num_points, num_samples, seed)
         assert torch.equal(samples, expected) and samples.stride() == expected.stride()
+    # The numbers the relighter has always used: the seed's first draws are the rotations.
+    first = torch.rand((3, 1, 2), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    expected = torch.remainder(torch.full((1, 1, 2), 0.5, dtype=torch.float64) + first, 1.0).to(torch.float32)
+    assert torch.equal(fixed_light_samples(3, 1, 0), expected)

@@ -16,7 +16,9 @@ import numpy as np
 from numpy.lib.array_utils import byte_bounds
 
 
-def map_array(handle: BinaryIO, shape: tuple[int, ...], dtype: np.dtype, offset: int, fortran_order: bool) -> np.ndarray:
+def map_array(
+    handle: BinaryIO, shape: tuple[int, ...], dtype: np.dtype, offset: int, fortran_order: bool
+) -> np.ndarray:
     """A read-only array of `shape` and `dtype` over an open file's bytes from `offset` (no copy).
 
     The array keeps the mapping alive (its `base`); the file handle may be closed afterwards.
@@ -27,7 +29,7 @@ def map_array(handle: BinaryIO, shape: tuple[int, ...], dtype: np.dtype, offset:
 
 def _mapping(array: np.ndarray) -> mmap.mmap | None:
     """The mmap an array's memory belongs to (through its chain of bases), or None."""
-    base = array
+    base: object = array
     while base is not None and not isinstance(base, mmap.mmap):
         base = getattr(base, "base", None)
     return base

@@ -220,7 +220,7 @@ class EmbreeCaster:
             float32, barycentrics (F, 2) float32).
         """
         # Only called with an opacity table, which __init__ splits the clear triangles off with.
-        assert self.opacity is not None and self._clear_ids is not None
+        assert self.opacity is not None and self._clear_ids is not None and self._clear_scene is not None
         num_rays = origins.shape[0]
         found = np.zeros(num_rays, bool)
         triangle_id = np.full(num_rays, -1, np.int64)
