@@ -37,7 +37,7 @@ def rss_bytes() -> int:
         return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
-def measure(cache: str, memory_budget: float | None, repeats: int) -> dict[str, float]:
+def measure(cache: str, memory_budget: float | None, repeats: int) -> dict[str, float | int | str]:
     """The figures of the module doc for one cache; `memory_budget` in bytes (None: the default)."""
     settings = RelightSettings(memory_budget=None if memory_budget is None else int(memory_budget))
     start = time.perf_counter()
