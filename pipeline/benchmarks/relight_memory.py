@@ -23,6 +23,7 @@ import time
 import numpy as np
 
 from pipeline.benchmarks.stopwatch import Stopwatch
+from pipeline.heap import use_one_heap_arena
 from relight_torch.direct.relighter import RelightSettings, open_relighter
 
 
@@ -85,6 +86,7 @@ def measure(cache: str, memory_budget: float | None, repeats: int) -> dict[str, 
 
 
 def main() -> None:
+    use_one_heap_arena()  # as `relight render` does (pipeline/heap.py)
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("cache")
     parser.add_argument("--memory-budget", type=float, metavar="GB", help="RelightSettings.memory_budget in GB")
