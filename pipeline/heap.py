@@ -4,9 +4,10 @@ glibc gives each thread that allocates while another holds the heap lock an aren
 to 8 per core). The relighter's worker threads (Embree chunks, tiles of points) free large
 temporaries in one arena that the next tile, on another thread, cannot reuse, so the resident set
 grows by the arenas' free space. One arena (as `MALLOC_ARENA_MAX=1`) keeps that space shared: on
-the 1000-teapot exterior at 640x480 the relighter's peak fell from 3.59 to 3.38 GB with the same
-CPU time per light move (`pipeline/benchmarks/relight_memory.py`). The torch and numpy arrays
-these threads allocate are large and few, so the one lock is not contended.
+the 1000-teapot exterior the relighter's peak fell from 3.59 to 3.42 GB at 640x480 and from 8.09
+to 7.80 GB at 1920x1080 with a 1 GB budget, the CPU time per light move unchanged within a loaded
+machine's noise (`pipeline/benchmarks/relight_memory.py`). The torch and numpy arrays these
+threads allocate are large and few, so the one lock is not contended.
 """
 
 from __future__ import annotations
