@@ -22,6 +22,7 @@ from pathlib import Path
 
 from pipeline import __version__
 from pipeline.errors import RelightError
+from pipeline.heap import use_one_heap_arena
 
 # Subcommand modules, in the order `relight --help` lists them.
 COMMANDS = (
@@ -63,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    use_one_heap_arena()  # before any worker thread: see pipeline/heap.py
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format=LOG_FORMAT)

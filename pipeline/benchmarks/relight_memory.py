@@ -6,20 +6,24 @@ Opens CACHE with the shot's lights, renders the first frame, then times `repeats
 light (a translation: its transport is traced again) and `repeats` colour edits of it (a
 rescale), each followed by `render()`. Prints one line per figure: open and first-frame seconds,
 median wall and CPU ms of each edit, the bytes the relighter's per-light caches hold, and the
-process's peak resident set size (the whole process: torch, Embree, the G-buffer). On a shared
-machine the wall times count other people's work; the CPU times do not.
+process's resident set size (the whole process: torch, Embree, the G-buffer) after opening and
+after the first frame, with its peak by then (`*_peak_rss_gb`: what opening, the first frame,
+and the whole session needed at most). On a shared machine the wall times count other people's
+work; the CPU times do not.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import resource
 import time
 
 import numpy as np
 
 from pipeline.benchmarks.stopwatch import Stopwatch
+from pipeline.heap import use_one_heap_arena
 from relight_torch.direct.relighter import open_relighter
 from relight_torch.direct.settings import RelightSettings
 
@@ -29,14 +33,22 @@ def peak_rss_bytes() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
-def measure(cache: str, memory_budget: float | None, repeats: int) -> dict[str, float]:
+def rss_bytes() -> int:
+    """This process's resident set size now (Linux: /proc/self/statm's resident pages)."""
+    with open("/proc/self/statm") as statm:
+        return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def measure(cache: str, memory_budget: float | None, repeats: int) -> dict[str, float | int | str]:
     """The figures of the module doc for one cache; `memory_budget` in bytes (None: the default)."""
     settings = RelightSettings(memory_budget=None if memory_budget is None else int(memory_budget))
     start = time.perf_counter()
     relighter = open_relighter(cache, settings=settings)
     opened = time.perf_counter() - start
+    open_rss, open_peak = rss_bytes(), peak_rss_bytes()
     relighter.render()
     first = time.perf_counter() - start - opened
+    first_rss, first_peak = rss_bytes(), peak_rss_bytes()
     light = next(light for light in relighter.lights if light.kind.value == "SphereLight")
     moves, colours = Stopwatch(), Stopwatch()
     rng = np.random.default_rng(0)
@@ -66,11 +78,16 @@ def measure(cache: str, memory_budget: float | None, repeats: int) -> dict[str, 
         "colour_ms": colour_wall,
         "colour_cpu_ms": colour_cpu,
         "cache_mb": relighter.cache_bytes() / 1e6,
+        "open_rss_gb": open_rss / 1e9,
+        "open_peak_rss_gb": open_peak / 1e9,
+        "first_frame_rss_gb": first_rss / 1e9,
+        "first_frame_peak_rss_gb": first_peak / 1e9,
         "peak_rss_gb": peak_rss_bytes() / 1e9,
     }
 
 
 def main() -> None:
+    use_one_heap_arena()  # as `relight render` does (pipeline/heap.py)
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("cache")
     parser.add_argument("--memory-budget", type=float, metavar="GB", help="RelightSettings.memory_budget in GB")

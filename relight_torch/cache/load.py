@@ -9,7 +9,7 @@ hash so that a payload replaced by another file says what is wrong with it (anot
 other channels), not only that its bytes changed. A payload is checked and decoded through one open
 handle (`opened_payload`), so a file renamed over it meanwhile (a re-bake) is never decoded against
 the old record. No pickle anywhere: .npy headers are parsed here with `ast.literal_eval` and the
-arrays mapped with `np.memmap`.
+arrays mapped read-only (`relight_torch.io.mapped`: their pages can be given back once read).
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from relight_torch.cache.layer import CacheDescription, Payload, file_sha256, pl
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.io.exr import ExrHeader, read_exr, read_exr_header
+from relight_torch.io.mapped import map_array
 
 MAX_EXR_EXPANSION = 2048
 """An EXR payload whose header claims more raw pixel bytes than this many times its file size is
@@ -322,4 +323,4 @@ def load_npy(layer_path: Path, description: CacheDescription, name: str) -> np.n
         shape, dtype, fortran_order, offset = header
         if math.prod(shape) == 0:
             return np.empty(shape, dtype, order="F" if fortran_order else "C")
-        return np.memmap(handle, dtype=dtype, mode="r", offset=offset, shape=shape, order="F" if fortran_order else "C")
+        return map_array(handle, shape, dtype, offset, fortran_order)

@@ -1292,8 +1292,8 @@ def open_relighter(
     description = read_cache_layer(layer_path)
     check_inputs(layer_path, description)
     gbuffer = load_gbuffer(layer_path, description).to(device)
-    # A writable copy: Embree and torch both keep references to it; the .npy is mapped read-only.
-    occluders = np.array(load_npy(layer_path, description, "occluders"), dtype=np.float32)
+    # Mapped read-only, not loaded: Embree copies it block by block and gives its pages back.
+    occluders = load_npy(layer_path, description, "occluders")
     linking = {payload.name for payload in description.payloads} >= {"objectPaths", "occluderObjects"}
     object_paths = decode_paths(load_npy(layer_path, description, "objectPaths")) if linking else None
     visibility: Visibility
@@ -1306,7 +1306,7 @@ def open_relighter(
         # Always cube maps for spot lights: a cone edit does not re-run visibility, and a perspective
         # map sized for the old cone would leave the new one's receivers unshadowed.
         visibility = ShadowMapVisibility(
-            torch.from_numpy(occluders).to(device),
+            torch.from_numpy(np.array(occluders)).to(device),  # writable: torch keeps a reference
             settings.shadow_map_resolution,
             settings.shadow_map_march_steps,
             receivers=gbuffer.position,

@@ -11,7 +11,11 @@ Embreex facts this module relies on (embreex 4.4.0.post1, checked by the tests):
     * It WRITES the hit distances back into `dists` for intersect queries, so we pass a copy.
     * `run` releases the GIL while tracing, so chunks traced on a thread pool run in parallel.
     * The only build option exposed is the robust flag (`robust=True`: watertight traversal,
-      no cracks between triangles sharing an edge); build quality is not exposed.
+      no cracks between triangles sharing an edge); build quality and the compact flag are not.
+    * `TriangleMesh` copies the corners into Embree's own buffers (vertices padded to 16 bytes):
+      a soup costs 60 bytes a triangle there, an indexed mesh 12 plus 16 per distinct corner
+      (about 20 for a closed mesh), besides the BVH (about 64). Each mesh is one geometry; hits
+      report its geomID and the primID within it.
     * There are no intersection filter callbacks: cut-outs and partial opacity
       (`relight_torch.visibility.opacity`) are traced as a second scene of the non-opaque
       triangles, whose hits are looked up and passed through in a bounded loop.
@@ -28,6 +32,7 @@ import numpy as np
 import torch
 from embreex import mesh_construction, rtcore_scene
 
+from relight_torch.io.mapped import release_pages
 from relight_torch.lights.linking import linked_objects
 from relight_torch.parallel import parallel_map
 from relight_torch.visibility.opacity import OpacityTable, presence_random, ray_keys
@@ -41,6 +46,9 @@ EPSILON_DIAGONAL_FRACTION = 1e-4
 # Ray offset in float32 ulps of the largest absolute coordinate, so that it survives rounding (and
 # Embree's own intersection error) when the scene sits far from the origin.
 EPSILON_ULPS = 32
+# Triangles per Embree geometry: bounds the temporaries of indexing a block's shared corners, and
+# the resident pages of a memory-mapped soup, which are given back block by block.
+BUILD_BLOCK_TRIANGLES = 1 << 20
 # Non-opaque surfaces one ray may pass through before it is stopped at the next (bounds the loop
 # that continues rays through holes; a ray through a dense canopy crosses a few dozen leaves).
 MAX_TRANSPARENT_LAYERS = 64
@@ -71,11 +79,15 @@ class EmbreeCaster:
     """Closest-hit and occlusion queries against a (T, 3, 3) float32 triangle soup.
 
     Args:
-        corners: (T, 3, 3) float32 world-space triangle corners; kept by reference.
+        corners: (T, 3, 3) float32 world-space triangle corners; kept by reference, not copied
+            (Embree holds its own copy: a memory-mapped soup's pages are given back once read).
         num_threads: threads tracing chunks of a batch in parallel; default: the CPUs this
             process may use.
         epsilon: the ray offset; default: from the corners (below). A caster over a subset of a
             scene's triangles passes the whole scene's, so that its rays leave the same surfaces.
+        opacity: the non-opaque triangles among those traced, or None.
+        triangles: (K,) int64 ids of the triangles of `corners` to trace (default: all T); hits
+            then report indices into this list (and `opacity` describes these K triangles).
 
     Attributes:
         epsilon: ray offset in scene units: the larger of 1e-4 x the bounding-box diagonal and 32
@@ -88,26 +100,33 @@ class EmbreeCaster:
         num_threads: int | None = None,
         epsilon: float | None = None,
         opacity: OpacityTable | None = None,
+        triangles: np.ndarray | None = None,
     ):
         if corners.dtype != np.float32 or corners.ndim != 3 or corners.shape[1:] != (3, 3):
             raise ValueError(f"corners must be float32 (T, 3, 3), got {corners.dtype} {corners.shape}")
         self.num_threads = num_threads or len(os.sched_getaffinity(0))
-        self.corners = np.ascontiguousarray(corners)
+        self.corners = corners
         self.opacity = opacity if opacity is not None and opacity.num_triangles else None
         # With cut-outs, two scenes: the opaque triangles (traced as before) and the others, whose
         # hits are tested with the opacity lookup and passed through in a bounded loop (embreex has
-        # no filter callbacks). Each scene's primID indexes its own list of triangle ids.
+        # no filter callbacks). Each scene's hits index its own list of triangle ids.
         self._opaque_ids = self._clear_ids = self._clear_scene = None
-        opaque_corners = self.corners
+
+        def of_corners(ids: np.ndarray | None) -> np.ndarray | None:
+            """Traced triangles `ids` (default all) as ids into `corners`."""
+            return ids if triangles is None else triangles if ids is None else triangles[ids]
+
         if self.opacity is not None:
-            clear = self.opacity.transparent_mask(corners.shape[0])
+            clear = self.opacity.transparent_mask(corners.shape[0] if triangles is None else triangles.shape[0])
             self._opaque_ids, self._clear_ids = np.flatnonzero(~clear), np.flatnonzero(clear)
-            opaque_corners = np.ascontiguousarray(self.corners[~clear])
-            self._clear_corners = np.ascontiguousarray(self.corners[clear])
-            self._clear_scene = _build_scene(self._clear_corners)
-        self._opaque_corners = opaque_corners
-        self._scene = _build_scene(opaque_corners)
-        self.epsilon = _scene_epsilon(self.corners) if epsilon is None else epsilon
+            self._clear_scene = _TriangleScene(corners, of_corners(self._clear_ids))
+        self._scene = _TriangleScene(corners, of_corners(self._opaque_ids))
+        if epsilon is None:
+            low, high = self._scene.bounds
+            if self._clear_scene is not None:
+                low, high = np.minimum(low, self._clear_scene.bounds[0]), np.maximum(high, self._clear_scene.bounds[1])
+            epsilon = _bounds_epsilon(low, high)
+        self.epsilon = epsilon
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray | None = None) -> RayHits:
         """Closest hit of each ray: distance, triangle and barycentrics. Holes of cut-out and
@@ -151,12 +170,12 @@ class EmbreeCaster:
         blocked = np.zeros(num_rays, bool)
 
         def trace(chunk: slice) -> None:
-            geometry_ids = self._scene.run(
+            geometry_ids = self._scene.embree.run(
                 origins[chunk], directions[chunk], dists=np.array(t_far[chunk], np.float32), query="OCCLUDED"
             )
             blocked[chunk] = geometry_ids != -1
 
-        if self._opaque_corners.shape[0]:
+        if self._scene.num_triangles:
             self._map_chunks(trace, num_rays)
         if self.opacity is not None:
             open_rays = np.flatnonzero(~blocked)
@@ -164,19 +183,23 @@ class EmbreeCaster:
         return blocked
 
     def _closest(
-        self, scene, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray
+        self, scene: _TriangleScene, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(primID (N,) int32, -1 on a miss; distance (N,) float32, inf on a miss; barycentrics
-        (N, 2) float32) of the closest hits in one embreex scene."""
+        """(triangle (N,) int64 into the scene's triangles, -1 on a miss; distance (N,) float32, inf
+        on a miss; barycentrics (N, 2) float32) of the closest hits in one scene."""
         num_rays = origins.shape[0]
         distance = np.empty(num_rays, np.float32)
         triangle_id = np.empty(num_rays, np.int32)
         barycentrics = np.empty((num_rays, 2), np.float32)
 
         def trace(chunk: slice) -> None:
-            raw = scene.run(origins[chunk], directions[chunk], dists=np.array(t_far[chunk], np.float32), output=1)
+            raw = scene.embree.run(
+                origins[chunk], directions[chunk], dists=np.array(t_far[chunk], np.float32), output=1
+            )
             hit = raw["primID"] >= 0
-            triangle_id[chunk] = raw["primID"]
+            found = np.full(hit.shape, -1, np.int32)
+            found[hit] = scene.first_triangle[raw["geomID"][hit]] + raw["primID"][hit]
+            triangle_id[chunk] = found
             distance[chunk] = np.where(hit, raw["tfar"], np.inf)
             barycentrics[chunk, 0] = np.where(hit, raw["u"], 0)
             barycentrics[chunk, 1] = np.where(hit, raw["v"], 0)
@@ -197,7 +220,7 @@ class EmbreeCaster:
             float32, barycentrics (F, 2) float32).
         """
         # Only called with an opacity table, which __init__ splits the clear triangles off with.
-        assert self.opacity is not None and self._clear_ids is not None
+        assert self.opacity is not None and self._clear_ids is not None and self._clear_scene is not None
         num_rays = origins.shape[0]
         found = np.zeros(num_rays, bool)
         triangle_id = np.full(num_rays, -1, np.int64)
@@ -288,28 +311,74 @@ class ShadowLinkCasters:
                 keep = linked_objects(self.object_paths, link)[self.object_ids]
                 opacity = None if self.opacity is None else self.opacity.subset(keep)
                 self._casters[link] = EmbreeCaster(
-                    np.ascontiguousarray(self.corners[keep]), self.num_threads, self.epsilon, opacity
+                    self.corners, self.num_threads, self.epsilon, opacity, triangles=np.flatnonzero(keep)
                 )
             return self._casters[link]
 
 
-def _build_scene(corners: np.ndarray):
-    """A committed embreex scene over (T, 3, 3) float32 corners (kept by reference by the caller)."""
-    scene = rtcore_scene.EmbreeScene(robust=True)
-    if corners.shape[0]:
-        mesh_construction.TriangleMesh(scene, corners)
-    # An empty query commits (builds) the scene now rather than on the first real batch.
-    scene.run(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
-    return scene
+class _TriangleScene:
+    """A committed embreex scene over the triangles `ids` (all if None) of a (T, 3, 3) float32 soup,
+    added as indexed meshes of BUILD_BLOCK_TRIANGLES triangles each (`shared_corners`: the same
+    triangles corner for corner, so the same hits as one soup mesh), a memory-mapped soup's pages
+    given back after each block (`release_pages`).
+
+    Attributes:
+        embree: the committed `rtcore_scene.EmbreeScene`.
+        first_triangle: (G,) int64 index, into the selected triangles, of each geometry's first
+            triangle: a hit's triangle is first_triangle[geomID] + primID.
+        num_triangles: the selected triangles' count.
+        bounds: ((3,) low, (3,) high) float64 corners of the triangles' bounding box (+inf, -inf
+            when there are none).
+    """
+
+    def __init__(self, corners: np.ndarray, ids: np.ndarray | None = None):
+        self.num_triangles = int(corners.shape[0] if ids is None else ids.shape[0])
+        self.embree = rtcore_scene.EmbreeScene(robust=True)
+        self.first_triangle = np.arange(0, self.num_triangles, BUILD_BLOCK_TRIANGLES, dtype=np.int64)
+        low, high = np.full(3, np.inf), np.full(3, -np.inf)
+        for start in self.first_triangle.tolist():
+            stop = min(start + BUILD_BLOCK_TRIANGLES, self.num_triangles)
+            block = corners[start:stop] if ids is None else corners[ids[start:stop]]
+            vertices, triangles = shared_corners(block)
+            mesh_construction.TriangleMesh(self.embree, vertices, triangles)
+            # float32 extremes are exact: no float64 copy of a big soup.
+            low, high = np.minimum(low, vertices.min(axis=0)), np.maximum(high, vertices.max(axis=0))
+            release_pages(block)
+        # What reading the blocks mapped around them (the kernel maps pages near a fault, and a
+        # selection reads its blocks by fancy indexing) goes too.
+        release_pages(corners)
+        self.bounds = low, high
+        # An empty query commits (builds) the scene now rather than on the first real batch.
+        self.embree.run(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
 
 
-def _scene_epsilon(corners: np.ndarray) -> float:
-    """Ray offset for a (T, 3, 3) soup: see `Tracer.epsilon`. 0 for an empty soup."""
-    if corners.shape[0] == 0:
+def shared_corners(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An indexed mesh of a (T, 3, 3) float32 soup: corners with the same bits become one vertex.
+
+    Returns:
+        (vertices (V, 3) float32, triangles (T, 3) int32) with vertices[triangles] == corners
+        bit for bit (-0.0 and 0.0 stay apart). V is about T / 2 for a closed mesh.
+    """
+    points = np.ascontiguousarray(corners).reshape(-1, 3)
+    if points.shape[0] == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
+    bits = points.view(np.uint32)
+    # Sort by (x, y) packed in 64 bits, then z: a 2-key lexsort is ~2x faster than np.unique on rows.
+    xy = (bits[:, 0].astype(np.uint64) << np.uint64(32)) | bits[:, 1]
+    order = np.lexsort((bits[:, 2], xy))
+    xy, z = xy[order], bits[order, 2]
+    first = np.ones(order.size, bool)
+    first[1:] = (xy[1:] != xy[:-1]) | (z[1:] != z[:-1])
+    vertex_of = np.empty(order.size, np.int32)
+    vertex_of[order] = np.cumsum(first, dtype=np.int32) - 1
+    return points[order[first]], vertex_of.reshape(-1, 3)
+
+
+def _bounds_epsilon(low: np.ndarray, high: np.ndarray) -> float:
+    """Ray offset for triangles within the box (low, high) (3,): see `Tracer.epsilon`. 0 for an
+    empty box (low > high)."""
+    if not np.all(low <= high):
         return 0.0
-    # float32 extremes are exact: no float64 copy of a big soup.
-    points = corners.reshape(-1, 3)
-    low, high = points.min(axis=0).astype(np.float64), points.max(axis=0).astype(np.float64)
     diagonal = float(np.linalg.norm(high - low))
     magnitude = float(max(np.abs(low).max(), np.abs(high).max()))
     return max(EPSILON_DIAGONAL_FRACTION * diagonal, EPSILON_ULPS * float(np.spacing(np.float32(magnitude))))

@@ -8,7 +8,9 @@ while a fully lit (or fully shadowed) neighbourhood stays exactly 1 (or 0).
 The filter is separable (a horizontal then a vertical pass of 2r + 1 taps) and averages only over
 neighbours on the same surface as the centre: covered, normals within ~18 degrees, and lying
 within ~3 degrees of the centre's tangent plane. Those weights depend on the G-buffer alone, so
-they are made once; a filtering pass is then 4r multiply-adds per channel and pixel.
+they are made once, as one padded bool mask per axis and offset (4r bytes per sub-sample: as
+float32 masks and per-tile copies they took 1.5 GB at 3840x2160 with r = 8); a filtering pass is
+then 4r multiply-adds per channel and pixel.
 
 `SurfaceFilter.visibility` filters only where it can change anything: a point whose (2r + 1)^2
 window holds no shadowed sample (wV = w everywhere in it) gets exactly 1, and one whose window
@@ -34,6 +36,8 @@ TILE = 64
 MAX_TILE_FRACTION = 0.25
 """Above this share of tiles to filter, `SurfaceFilter.visibility` filters the whole image in one pass
 instead (on the CPU the tiles' windows and weights cost more than the skipped tiles save)."""
+TILE_BATCH = 64
+"""Tiles filtered together: bounds the windows and weights a batch holds (~15 MB at r = 8)."""
 
 
 @dataclass(frozen=True)
@@ -74,14 +78,23 @@ class SurfaceFilter:
         if radius < 1:
             raise ValueError(f"radius must be at least 1, got {radius}")
         self.gbuffer, self.radius = gbuffer, radius
+        self.tile = max(TILE, radius)  # a window then reaches at most into the neighbouring tiles
         covered = gbuffer.scatter(torch.ones_like(gbuffer.position[:, :1]))[..., 0] > 0
         position, normal = gbuffer.scatter(gbuffer.position), gbuffer.scatter(gbuffer.normal)
-        # weights[axis][k]: (H', W') float mask of the pairs (p, p + offset k) along axis (1: x, 0: y).
-        self.weights = [
-            [self._same_surface(covered, position, normal, axis, offset) for offset in self.offsets] for axis in (0, 1)
-        ]
-        self.tile = max(TILE, radius)  # a window then reaches at most into the neighbouring tiles
-        self._tile_weights: list[torch.Tensor] | None = None  # per axis (tiles, 2r, T + 2r, T + 2r), made on first use
+        height, width = gbuffer.image_size
+        rows, columns = -(-height // self.tile), -(-width // self.tile)
+        # masks[axis]: (2r, R T + 2r, C T + 2r) bool, [k] true at the centre p of each same-surface
+        # pair (p, p + offset k) along axis (0: y, 1: x), laid out as `_windows` pads the image, so
+        # a tile's window of weights is a slice of it.
+        self.masks = []
+        for axis in (0, 1):
+            size = (2 * radius, rows * self.tile + 2 * radius, columns * self.tile + 2 * radius)
+            mask = torch.zeros(size, dtype=torch.bool, device=gbuffer.device)
+            inside = mask.narrow(1, radius, height).narrow(2, radius, width)
+            for k, offset in enumerate(self.offsets):
+                pairs = self._same_surface(covered, position, normal, axis, offset)
+                inside[k].narrow(axis, max(0, -offset), inside.shape[axis + 1] - abs(offset)).copy_(pairs)
+            self.masks.append(mask)
 
     @property
     def offsets(self) -> list[int]:
@@ -107,7 +120,14 @@ class SurfaceFilter:
             & ((n * m).sum(-1) >= MIN_NORMAL_COSINE)
             & (plane <= MAX_PLANE_SLOPE * between.norm(dim=-1))
         )
-        return same.to(position.dtype)
+        return same
+
+    def weight(self, axis: int, k: int) -> torch.Tensor:
+        """(H', W') bool view: the pairs (p, p + offset k) along `axis` over the centres of `_pair`."""
+        height, width = self.gbuffer.image_size
+        offset, r = self.offsets[k], self.radius
+        inside = self.masks[axis][k].narrow(0, r, height).narrow(1, r, width)
+        return inside.narrow(axis, max(0, -offset), inside.shape[axis] - abs(offset))
 
     def __call__(self, values: torch.Tensor) -> torch.Tensor:
         """(N, C) per-point values filtered: sum over same-surface neighbours (the centre included)
@@ -124,10 +144,10 @@ class SurfaceFilter:
         image = planes.reshape(-1, height, width)
         for axis in (1, 0):
             total = image.clone()
-            for offset, weight in zip(self.offsets, self.weights[axis], strict=True):
+            for k, offset in enumerate(self.offsets):
                 centre, _ = self._pair(total, axis + 1, offset)
                 _, neighbour = self._pair(image, axis + 1, offset)
-                centre.addcmul_(neighbour, weight)
+                centre.addcmul_(neighbour, self.weight(axis, k).to(values.dtype))
             image = total
         return image.reshape(values.shape[-1], -1).index_select(1, self.gbuffer.pixel_index).t()
 
@@ -162,29 +182,31 @@ class SurfaceFilter:
                 filtered[:, 1] > 0, filtered[:, 0] / torch.where(filtered[:, 1] > 0, filtered[:, 1], 1.0), 0.0
             )
         if needed.numel():
-            filtered = self._filter_tiles(planes, needed, columns)  # (B, 2, T, T)
-            ratio = torch.where(
-                filtered[:, 1] > 0, filtered[:, 0] / torch.where(filtered[:, 1] > 0, filtered[:, 1], 1.0), 0.0
-            )
             padded = result.new_zeros(rows * tile, columns * tile)
             padded[:height, :width] = result
             view = padded.reshape(rows, tile, columns, tile).permute(0, 2, 1, 3).reshape(rows * columns, tile, tile)
-            view.index_copy_(0, needed, ratio)
+            r = self.radius
+            around = torch.nn.functional.pad(planes, (r, columns * tile - width + r, r, rows * tile - height + r))
+            for batch in needed.split(TILE_BATCH):
+                filtered = self._filter_tiles(around, batch, columns)  # (B, 2, T, T)
+                ratio = torch.where(
+                    filtered[:, 1] > 0, filtered[:, 0] / torch.where(filtered[:, 1] > 0, filtered[:, 1], 1.0), 0.0
+                )
+                view.index_copy_(0, batch, ratio)
             result = view.reshape(rows, columns, tile, tile).permute(0, 2, 1, 3).reshape(rows * tile, -1)
             result = result[:height, :width]
         return result.reshape(-1).index_select(0, self.gbuffer.pixel_index)
 
-    def _filter_tiles(self, planes: torch.Tensor, needed: torch.Tensor, columns: int) -> torch.Tensor:
+    def _filter_tiles(self, around: torch.Tensor, needed: torch.Tensor, columns: int) -> torch.Tensor:
         """(B, C, T, T) the separable filter's sums over the B tiles `needed` (flat tile indices,
-        `columns` tiles a row) of (C, H, W) planes: each tile's window with its halo of r, the
-        taps of `__call__` in the same order."""
+        `columns` tiles a row) of (C, H, W) planes zero-padded to (C, R T + 2r, C T + 2r) (a halo
+        of r around the tile grid): each tile's window with its halo, the taps of `__call__` in
+        the same order."""
         r, tile = self.radius, self.tile
         size = tile + 2 * r
-        weights = self._tiled_weights()
-        windows = self._windows(planes, needed, columns)  # (B, C, size, size)
-        image = windows
-        for axis, per_axis in ((1, weights[1]), (0, weights[0])):
-            chosen = per_axis.index_select(0, needed).to(planes.dtype)  # (B, 2r, size, size)
+        image = self._windows(around, needed, columns)  # (B, C, size, size)
+        for axis in (1, 0):
+            chosen = self._windows(self.masks[axis], needed, columns).to(around.dtype)  # (B, 2r, size, size)
             total = image.clone()
             for k, offset in enumerate(self.offsets):
                 dim = axis + 2
@@ -195,26 +217,8 @@ class SurfaceFilter:
             image = total
         return image[:, :, r : r + tile, r : r + tile]
 
-    def _windows(self, planes: torch.Tensor, needed: torch.Tensor, columns: int) -> torch.Tensor:
-        """(B, C, T + 2r, T + 2r) windows of (C, H, W) planes around the tiles `needed`, zero outside the image."""
-        height, width = planes.shape[-2:]
-        r, tile = self.radius, self.tile
-        rows = -(-height // tile)
-        padded = torch.nn.functional.pad(planes, (r, columns * tile - width + r, r, rows * tile - height + r))
+    def _windows(self, padded: torch.Tensor, needed: torch.Tensor, columns: int) -> torch.Tensor:
+        """(B, C, T + 2r, T + 2r) windows of padded (C, R T + 2r, C T + 2r) planes around the tiles `needed`."""
+        size, tile = self.tile + 2 * self.radius, self.tile
         starts = [(int(i) // columns * tile, int(i) % columns * tile) for i in needed.tolist()]
-        return torch.stack([padded[:, y : y + tile + 2 * r, x : x + tile + 2 * r] for y, x in starts])
-
-    def _tiled_weights(self) -> list[torch.Tensor]:
-        """Per axis (y, x), (tiles, 2r, T + 2r, T + 2r) uint8 0 / 1: each pair weight at its centre
-        point, in every tile's window (0 where the neighbour falls outside the image)."""
-        if self._tile_weights is None:
-            height, width = self.gbuffer.image_size
-            columns = -(-width // self.tile)
-            every = torch.arange(-(-height // self.tile) * columns, device=self.gbuffer.device)
-            self._tile_weights = []
-            for axis in (0, 1):
-                full = self.gbuffer.position.new_zeros(len(self.offsets), height, width, dtype=torch.uint8)
-                for k, (offset, weight) in enumerate(zip(self.offsets, self.weights[axis], strict=True)):
-                    full[k].narrow(axis, max(0, -offset), full.shape[axis + 1] - abs(offset)).copy_(weight > 0)
-                self._tile_weights.append(self._windows(full, every, columns))
-        return self._tile_weights
+        return torch.stack([padded[:, y : y + size, x : x + size] for y, x in starts])
