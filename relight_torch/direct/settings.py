@@ -70,9 +70,10 @@ class RelightSettings:
     shared_lighting: bool = True
 
 
-MEMORY_BUDGET_FRACTION = 1 / 8
+MEMORY_BUDGET_FRACTION = 1 / 24
 """Share of the machine's physical memory the per-light caches get by default: on a 24 GB machine
-3 GB, which leaves the rest of an 8 GB relighter for the G-buffer and a frame at 1920x1080."""
+1 GB, which keeps a relighter of a 1920x1080 shot of tens of millions of occluder triangles within
+8 GB (the BVH, the G-buffer and a frame's temporaries are the rest: docs/ARCHITECTURE.md, Measuring)."""
 
 
 def default_memory_budget() -> int:
