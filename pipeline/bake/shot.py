@@ -13,9 +13,10 @@ full-GI path tracer (every bounce) to a quality target, deciding by measurement 
    and its mean by less than `ENERGY_FRACTION`.
 3. Filtering. The direct part's pixel filtering (sub-samples per pixel side, material samples per
    sub-sample side) is measured at the full size, where textures and normal maps alias as they will
-   in the frame (the pilot's pixels cover several of the full frame's): `FILTER_LADDER`, cheapest
-   relighting first, until the direct part alone reaches `DIRECT_SHARE_DB` above the target against
-   the 0-bounce reference. Material samples cost only bake time; sub-samples cost every edit S^2.
+   in the frame (the pilot's pixels cover several of the full frame's), against the 0-bounce
+   reference (`direct_filtering`): material samples while they pay, then sub-samples until the
+   direct part alone reaches `DIRECT_SHARE_DB` above the target. Material samples cost only bake
+   time; sub-samples cost every edit S^2.
 4. Sizes. `bake_for_quality` sizes the chosen method along its ladder against the full-GI reference
    (pilot), bakes it at full size and measures it there; where no size reaches the target, the best
    one is baked and the layer says so (qualityTargetMet = 0).
@@ -80,6 +81,9 @@ FILTER_LADDER: tuple[tuple[int, int], ...] = ((2, 2), (2, 4), (2, 8), (3, 8), (4
 only bake time, so they grow first. Supersampling 2 at least: at 1 the edges alias. On the glossy scene
 (brick albedo and normal map) at 160 x 120 the direct part alone against the 0-bounce reference was
 30.7 / 33.3 / 34.9 dB for (2, 2) / (2, 4) / (2, 8) and 35.0 for (4, 2)."""
+TEXTURE_GAIN_DB = 0.5
+"""More material samples are taken only while doubling them gains at least this much under the probe
+dome: an untextured shot's direct part does not change with them (only its light samples' noise differs)."""
 PROBE_DOME = Light(path="/RelightShotProbe/Dome", kind=LightKind.DOME)
 """The uniform white dome `direct_filtering` also measures the direct part under (its intensity set there)."""
 DIRECT_SHARE_DB = 3.0
@@ -149,11 +153,18 @@ def direct_filtering(
     `MEASURE_HEADROOM_DB` below the direct part's threshold), the ladder's material samples raised to at
     least `min_texture_samples`.
 
-    A point's PSNR is the lower of two lightings: the shot's own lights, and a uniform white dome
-    (`PROBE_DOME`) as bright on average as they are. Lights layers added after the bake (a dome over
-    the glossy scene) light textures and normal maps the shot's lights leave dark or light from one
-    side only: the glossy shot's key and spot passed with 2 x 2 x 4 x 4 samples per pixel (38.8 dB),
-    and under the dome layer those gave 33.3 dB.
+    Two choices, each by the lighting that shows what it filters:
+    - material samples: at the ladder's first supersampling, raised while they gain at least
+      `TEXTURE_GAIN_DB` under the lower of two lightings, the shot's own lights and a uniform white
+      dome (`PROBE_DOME`) as bright on average as they are, and until the threshold is reached.
+      Lights layers added after the bake (a dome over the glossy scene) light textures and normal
+      maps the shot's lights leave dark or light from one side only: the glossy shot's key and spot
+      passed with 2 x 2 x 4 x 4 samples per pixel (38.8 dB), and under the dome layer those gave
+      33.3 dB;
+    - supersampling: the ladder's first at those material samples that reaches the threshold
+      under the shot's own lights. Supersampling costs every relight its square, and under the
+      probe dome it bought light samples, not filtering: the closed Cornell box, dimly lit through
+      its open side, took 3 x 3 for the dome's noise alone (a light move 215 against 140 ms).
     """
     threshold = target_db + DIRECT_SHARE_DB
     ladder = list(dict.fromkeys((s, max(t, min_texture_samples)) for s, t in FILTER_LADDER))
@@ -184,15 +195,44 @@ def direct_filtering(
         reference_for(replace(scene, lights=lights), camera, 0, threshold, MEASURE_HEADROOM_DB) for lights in lightings
     ]
 
-    def measure(supersampling: int, texture_samples: int) -> float:
+    def measure(supersampling: int, texture_samples: int, count: int = len(lightings)) -> float:
+        """The lowest PSNR of the point under the first `count` lightings."""
         relighter = open_cache(baked(supersampling, texture_samples))
         worst = math.inf
-        for lights, reference in zip(lightings, references, strict=True):
+        for lights, reference in list(zip(lightings, references, strict=True))[:count]:
             relighter.set_lights(list(lights))
             worst = min(worst, corrected_psnr(relighter.render().numpy(), reference)[0])
         return worst
 
-    return choose_filtering(measure, threshold, ladder)
+    first = ladder[0][0]
+    samples = choose_texture_samples(
+        lambda texture_samples: measure(first, texture_samples),
+        threshold,
+        [t for s, t in ladder if s == first],
+    )
+    supersamplings = [(s, samples) for s in dict.fromkeys(s for s, _ in ladder)]
+    return choose_filtering(lambda s, t: measure(s, t, count=1), threshold, supersamplings)
+
+
+def choose_texture_samples(measure: Callable[[int], float], threshold_db: float, options: Sequence[int]) -> int:
+    """The material samples of the direct part: `options` (increasing) taken in turn while the
+    measured PSNR is below `threshold_db` and the last step gained at least `TEXTURE_GAIN_DB`.
+
+    Args:
+        measure: texture samples -> the direct part's PSNR (dB).
+        threshold_db: the PSNR that needs no more.
+        options: the texture samples to try, cheapest first.
+    """
+    chosen, chosen_db = options[0], measure(options[0])
+    for samples in options[1:]:
+        if chosen_db >= threshold_db:
+            break
+        db = measure(samples)
+        log.info("shot: direct part with texture samples %d: %.2f dB (%d: %.2f dB)", samples, db, chosen, chosen_db)
+        if db < chosen_db + TEXTURE_GAIN_DB:
+            break
+        chosen, chosen_db = samples, db
+    return chosen
 
 
 def choose_bounces(images: list[np.ndarray], target_db: float) -> tuple[int, float, tuple[float, ...]]:
