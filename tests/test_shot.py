@@ -134,10 +134,13 @@ def test_material_samples_grow_only_while_they_pay():
         return lambda samples: figures[samples]
 
     # Untextured: more samples change nothing, so none are added even below the threshold.
-    assert shot.choose_texture_samples(measure({2: 30.0, 4: 30.1, 8: 30.2}), 38.0, [2, 4, 8]) == 2
+    assert shot.choose_texture_samples(measure({2: [30.0], 4: [30.1], 8: [30.2]}), 38.0, [2, 4, 8]) == 2
     # Textured: 2 -> 4 -> 8 each pay; and above the threshold nothing more is tried.
-    assert shot.choose_texture_samples(measure({2: 30.7, 4: 33.3, 8: 34.9}), 38.0, [2, 4, 8]) == 8
-    assert shot.choose_texture_samples(measure({2: 30.7, 4: 38.5}), 38.0, [2, 4, 8]) == 4
+    assert shot.choose_texture_samples(measure({2: [30.7], 4: [33.3], 8: [34.9]}), 38.0, [2, 4, 8]) == 8
+    assert shot.choose_texture_samples(measure({2: [30.7], 4: [38.5]}), 38.0, [2, 4, 8]) == 4
+    # A gain under one lighting pays, though another lighting's lower figure hardly moves.
+    glossy = {2: [36.0, 26.2], 4: [37.5, 26.4], 8: [38.4, 26.6]}
+    assert shot.choose_texture_samples(measure(glossy), 38.0, [2, 4, 8]) == 8
 
 
 @pytest.mark.slow
