@@ -44,6 +44,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -281,8 +282,7 @@ class Relighter:
         # The sub-samples that share their light (`direct.sharing`), or None.
         sharing = settings.shared_lighting and supersampling > 1 and self.filter_radius > 0
         self._groups = PixelGroups(gbuffer, supersampling) if sharing else None
-        self._group_u: dict[int, torch.Tensor] = {}  # (R, S, 2) the groups' fixed samples, by S
-        self._group_viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+        self._group_points: dict[int, _Points] = {}  # the groups as shading points, by samples per point
         self._u: dict[int, torch.Tensor] = {}
         # Every pixel covered in order: scattering into the image is a reshape.
         self._dense = gbuffer.num_samples == height * width and bool(
@@ -773,8 +773,8 @@ class Relighter:
         threads = tile_threads(self.gbuffer.device, self.visibility.thread_safe)
         for points, num_samples, shared in self._sample_groups(light):
             chunks = self._chunks(num_samples, points, threads)
-            u, viewer = self.fixed_samples(num_samples), self._view_directions()  # made here, shared by the tiles
-            shade = functools.partial(self._chunk_transport, light, u=u, viewer=viewer, shared=shared)
+            # Made here, shared by the tiles.
+            shade = functools.partial(self._chunk_transport, light, points=self._points(num_samples, shared))
             parts = parallel_map(shade, chunks, threads)
             state.transports.append(parts[0] if len(parts) == 1 else self._joined(parts, chunks))
         if state.transports[0].shadow_sums is not None:
@@ -891,56 +891,49 @@ class Relighter:
             self._surface_filter = SurfaceFilter(self._groups.grid, radius)
         return self._groups.visibility(sums, self._surface_filter)
 
-    def _chunk_transport(
-        self,
-        light: Light,
-        chunk: slice | torch.Tensor,
-        u: torch.Tensor,
-        viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-        shared: bool,
-    ) -> Transport:
-        """The transport of an unshaped unit light at the shading points of `chunk` (a slice of
-        all of them, or their indices), with the fixed light samples `u` (N, S, 2) of every point
-        and the `_view_directions` `viewer`; `shared`: evaluated once per pixel group at its
-        centroid with its owner's samples (`direct.sharing`) and taken by each of its points (the
-        materials' colours enter per point later, `_combined`)."""
+    def _points(self, num_samples: int, shared: bool) -> _Points:
+        """The points a sample group's transport is evaluated at (`_chunk_transport`), `num_samples`
+        fixed light samples each: every shading point, or with `shared` the pixel groups (their
+        owners' samples), made once."""
+        u = self.fixed_samples(num_samples)
         if not shared:
-            return self._point_transport(light, chunk, u, viewer, self.gbuffer)
+            return _Points(self.gbuffer, u, self._view_directions())
         groups = self._groups
         assert groups is not None, "shared transports come with pixel groups"
+        if num_samples not in self._group_points:
+            owned = u.index_select(0, groups.owners)
+            self._group_points[num_samples] = _Points(groups.gbuffer, owned, _viewer_of(groups.gbuffer), groups)
+        return self._group_points[num_samples]
+
+    def _chunk_transport(self, light: Light, chunk: slice | torch.Tensor, points: _Points) -> Transport:
+        """The transport of an unshaped unit light at the shading points of `chunk` (a slice of
+        all of them, or their indices), evaluated at `points`: at each shading point, or once per
+        pixel group at its centroid (`points.groups`, `direct.sharing`) and taken by each of the
+        group's points (the materials' colours enter per point later, `_combined`)."""
+        groups = points.groups
+        if groups is None:
+            return self._point_transport(light, chunk, points)
         rows, which = groups.of(chunk)
-        num_samples = u.shape[1]
-        if num_samples not in self._group_u:  # the owners' fixed samples are their groups'
-            self._group_u[num_samples] = u.index_select(0, groups.owners)
-        if self._group_viewer is None:
-            self._group_viewer = _viewer_of(groups.gbuffer)
-        transport = self._point_transport(light, rows, self._group_u[num_samples], self._group_viewer, groups.gbuffer)
+        transport = self._point_transport(light, rows, points)
         whole = None if isinstance(chunk, slice) else chunk
         if transport.points is None or (not isinstance(rows, slice) and transport.points.shape == rows.shape):
             return transport.gathered(which, whole)  # every group kept, in order
         where, held = transport.locate(_take(groups.rank, chunk))
         if bool(held.all()):
             return transport.gathered(where, whole)
-        points = torch.arange(chunk.start, chunk.stop, device=u.device) if isinstance(chunk, slice) else chunk
-        return transport.gathered(where[held], points[held])
+        indices = torch.arange(chunk.start, chunk.stop, device=which.device) if isinstance(chunk, slice) else chunk
+        return transport.gathered(where[held], indices[held])
 
-    def _point_transport(
-        self,
-        light: Light,
-        chunk: slice | torch.Tensor,
-        u: torch.Tensor,
-        viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-        g: GBuffer,
-    ) -> Transport:
-        """The transport of an unshaped unit light evaluated at each shading point of `chunk` (a
-        slice of the points of `g`, or their indices), with the fixed light samples `u` (N, S, 2)
-        and the view directions `viewer` (`_viewer_of`) of every point of `g`.
+    def _point_transport(self, light: Light, chunk: slice | torch.Tensor, at: _Points) -> Transport:
+        """The transport of an unshaped unit light evaluated at each of the points `at` in `chunk`
+        (a slice of them, or their indices).
 
         Points that no sample can light (facing away, inside the light, outside its cone of
         directions) cast no shadow rays and are dropped, unless they are fewer than half the
         chunk: then the whole chunk is kept, its rows read as views rather than gathered.
         Everything runs samples first, (S, P, ...): per-point values broadcast over whole slabs.
         """
+        g, u, viewer = at.gbuffer, at.samples, at.viewer
         num_samples = u.shape[1]
         sample = sample_light(light, _take(g.position, chunk), _take(u, chunk))
         direction = sample.direction.transpose(0, 1)  # (S, C, 3), contiguous: see sample_light
@@ -1156,15 +1149,13 @@ class Relighter:
                 if points.numel() == 0:
                     continue
             chunks = self._chunks(num_samples, points, threads)
-            u, viewer = self.fixed_samples(num_samples), self._view_directions()
+            shading = self._points(num_samples, shared)
 
             def tile(
                 chunk: slice | torch.Tensor,
-                u: torch.Tensor = u,
-                viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor] = viewer,
-                shared: bool = shared,
+                shading: _Points = shading,
             ) -> tuple[torch.Tensor, torch.Tensor, Transport]:
-                part = self._chunk_transport(light, chunk, u, viewer, shared)
+                part = self._chunk_transport(light, chunk, shading)
                 if part.points is None:  # the whole tile: name its points, as `_joined` does
                     part.points = (
                         torch.arange(chunk.start, chunk.stop, device=g.device) if isinstance(chunk, slice) else chunk
@@ -1224,6 +1215,16 @@ class Relighter:
             position = _take(position, transport.points)
         origin = torch.as_tensor(light.world_from_light[:3, 3], device=position.device, dtype=position.dtype)
         return emission_factor(light, transport.emission_in(light), position, origin)
+
+
+class _Points(NamedTuple):
+    """Where a transport is evaluated: the points of `gbuffer`, their fixed light samples (N, S, 2),
+    their `_viewer_of` terms, and the pixel groups they stand for (None: the shading points themselves)."""
+
+    gbuffer: GBuffer
+    samples: torch.Tensor
+    viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+    groups: PixelGroups | None = None
 
 
 def _viewer_of(g: GBuffer) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

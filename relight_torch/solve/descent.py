@@ -264,6 +264,7 @@ def descend(
         return DescentResult(list(lights), math.nan, math.nan, 0, 0.0)
     loss, exact, residual = _evaluate(problem, unknowns, settings.regularisation)
     history, damping, evaluations = [loss], settings.damping, 1
+    current = True  # the relighter and the frozen visibility stand at the unknowns' values
     while evaluations < settings.iterations and damping < 1e10:
         jacobian = _jacobian(problem, unknowns, exact)
         kept = [t.clone() for u in unknowns for t in u.tensors()]
@@ -275,7 +276,7 @@ def descend(
             # Least squares rather than a solve: an unknown the target cannot see has a zero column.
             _assign(unknowns, z - torch.linalg.lstsq(damped, gradient.unsqueeze(1)).solution.squeeze(1))
             tried, tried_exact, tried_residual = _evaluate(problem, unknowns, settings.regularisation)
-            evaluations += 1
+            evaluations, current = evaluations + 1, True
             if progress is not None:
                 progress(evaluations, settings.iterations)
             if tried < loss:
@@ -284,7 +285,7 @@ def descend(
             # Worse, through what the frozen visibility could not see (a light moved behind an
             # occluder) or a step past where the linear model holds: back, and a shorter step.
             _restore(unknowns, kept)
-            damping *= 4.0
+            damping, current = damping * 4.0, False
         else:
             break
         improvement = (loss - tried) / loss
@@ -292,9 +293,10 @@ def descend(
         history.append(loss)
         if improvement < settings.tolerance:
             break
-    # What the target leaves open, at the solution: evaluated there again, as a refused last step
+    # What the target leaves open, at the solution: evaluated there again when a refused last step
     # left the relighter and the frozen visibility where it tried.
-    _, exact, _ = _evaluate(problem, unknowns, settings.regularisation)
+    if not current:
+        _, exact, _ = _evaluate(problem, unknowns, settings.regularisation)
     lines = unresolved(_jacobian(problem, unknowns, exact), _labels(unknowns))
     solved = [
         _solved_light(u, start, problem.diagonal, free) for u, start in zip(unknowns, problem.starts, strict=True)
