@@ -12,9 +12,11 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from pxr import UsdGeom, UsdLux
 
 from pipeline import cli
-from pipeline.scenes import SCENES
+from pipeline.scenes import SCENES, authoring
+from pipeline.scenes.meshes import plane, torus, uv_sphere
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.direct.relighter import Relighter, open_relighter
 from relight_torch.direct.settings import RelightSettings
@@ -175,3 +177,55 @@ def test_shared_frames_against_the_truth(cornell):
     assert psnr(separate, truth) >= 45.7
     assert psnr(shared, truth) >= 43.7
     assert psnr(two, truth) >= 45.6
+
+
+def _curved_matte_shot(path) -> str:
+    """Large matte curved objects under a low side light: an implicit sphere, a coarse uv sphere
+    (20 x 10 facets, smooth normals) and a torus on a floor, metres."""
+    stage = authoring.create_stage(1.0, "curved matte objects")
+    material, _ = authoring.define_preview_material(stage, "Matte", diffuseColor=(0.5, 0.5, 0.5), roughness=0.7)
+    ball = UsdGeom.Sphere.Define(stage, "/World/Geometry/Ball")
+    ball.CreateRadiusAttr(1.5)
+    authoring.place(ball, (-1.6, 1.5, 0.0))
+    facets = authoring.define_mesh(stage, "/World/Geometry/Facets", uv_sphere(1.2, 20, 10))
+    authoring.place(facets, (1.8, 1.2, 0.5))
+    ring = authoring.define_mesh(stage, "/World/Geometry/Ring", torus(0.9, 0.35, 24, 12))
+    authoring.place(ring, (0.3, 0.35, 2.5))
+    floor = authoring.define_mesh(stage, "/World/Geometry/Floor", plane(20.0, 20.0))
+    for prim in (ball, facets, ring, floor):
+        authoring.bind_material(prim.GetPrim(), material)
+    light = UsdLux.SphereLight.Define(stage, "/World/Lights/Key")
+    light.CreateRadiusAttr(0.3)
+    authoring.set_light(light, intensity=40.0)
+    authoring.place(light, (-6.0, 2.5, 4.0))
+    authoring.define_camera(
+        stage,
+        "/World/Camera",
+        (0.0, 3.0, 9.0),
+        (0.0, 1.0, 0.0),
+        focal_length_mm=35,
+        aperture_mm=(36, 27),
+        clipping_range=(0.1, 100.0),
+    )
+    return str(authoring.save_stage(stage, path))
+
+
+@pytest.mark.parametrize("width, height", [(32, 24), (64, 48)])
+def test_curved_matte_surfaces_do_not_shadow_themselves(tmp_path, width, height):
+    """A group's centroid lies inside a convex surface; unlifted, a coarsely sampled sphere's groups
+    shadowed themselves: the implicit sphere lost 10 % of its light at 32 x 24, the faceted one 11 %
+    at 64 x 48, against their per-sub-sample frames. Lifted above its sub-samples' tangent planes,
+    each object keeps its light within 1 %."""
+    shot = _curved_matte_shot(tmp_path / "curved.usda")
+    arguments = ["bake", shot, "--camera", "/World/Camera", "--out", str(tmp_path / "cache"), "--method", "direct"]
+    arguments += ["--width", str(width), "--height", str(height), "--supersampling", "2", "--texture-samples", "1"]
+    assert cli.main(arguments) == 0
+    cache = open_relighter(next((tmp_path / "cache").glob("*.relight.usda")))
+    shared = _relighter(cache, shadow_filter_radius=RADIUS).render_samples().sum(-1)
+    separate = _relighter(cache, shadow_filter_radius=RADIUS, shared_lighting=False).render_samples().sum(-1)
+    for index, path in enumerate(cache.object_paths):
+        if path == "/World/Geometry/Floor":
+            continue
+        on = cache.gbuffer.object_id == index
+        assert int(on.sum()) > 100, path
+        assert float(shared[on].sum() / separate[on].sum()) == pytest.approx(1.0, abs=0.01), path

@@ -31,6 +31,8 @@ from relight_torch.visibility.surface_filter import MAX_PLANE_SLOPE, FilterGrid,
 SHARED_NORMAL_COSINE = 0.995
 """Sub-samples whose shading normals are further apart (~5.7 degrees) light separately: a glossy
 highlight moves that much across a pixel only on a surface curved within it."""
+MIN_LIFT_COSINE = 0.5
+"""A sub-sample's facet tilted further from its group's mean normal lifts it as if at 60 degrees."""
 
 
 def pixel_owners(gbuffer: GBuffer, supersampling: int) -> torch.Tensor:
@@ -150,14 +152,17 @@ class PixelGroups:
 
 def _group_gbuffer(gbuffer: GBuffer, owners: torch.Tensor, rank: torch.Tensor) -> GBuffer:
     """The R groups of sub-samples (`rank` (N,) numbering them, `owners` (R,)) as shading points:
-    centroids, unit mean shading normals, the owners' other fields."""
+    centroids lifted onto a convex surface (`_convex_lift`), unit mean shading normals, the
+    owners' other fields."""
 
     def mean(values: torch.Tensor) -> torch.Tensor:
         total = values.new_zeros(owners.shape[0], values.shape[1], dtype=torch.float32)
         return total.index_add_(0, rank, values.float())
 
     count = mean(torch.ones_like(gbuffer.depth).unsqueeze(-1))
-    normal = torch.nn.functional.normalize(mean(gbuffer.normal), dim=-1).to(gbuffer.normal.dtype)
+    normal = torch.nn.functional.normalize(mean(gbuffer.normal), dim=-1)
+    centroid = mean(gbuffer.position) / count
+    position = centroid + normal * _convex_lift(gbuffer, rank, centroid, normal).unsqueeze(-1)
     fields = {
         f.name: getattr(gbuffer, f.name).index_select(0, owners)
         for f in dataclasses.fields(gbuffer)
@@ -165,11 +170,28 @@ def _group_gbuffer(gbuffer: GBuffer, owners: torch.Tensor, rank: torch.Tensor) -
     }
     return dataclasses.replace(
         gbuffer,
-        position=(mean(gbuffer.position) / count).to(gbuffer.position.dtype),
-        normal=normal,
+        position=position.to(gbuffer.position.dtype),
+        normal=normal.to(gbuffer.normal.dtype),
         params=gbuffer.params.index(owners),
         **fields,
     )
+
+
+def _convex_lift(gbuffer: GBuffer, rank: torch.Tensor, centroid: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """(R,) height (scene units) up each group's mean normal (R, 3) that puts its centroid (R, 3)
+    on or above the tangent plane of every one of its sub-samples.
+
+    The centroid of points on a convex surface lies inside it: by the sagitta R (1 - cos t) of a
+    sphere of radius R whose normals turn by t across the group, or below the ridge where it spans a
+    crease between flat facets. On a large, coarsely sampled sphere that is deeper than the shadow
+    rays' offset, and the group shadows itself (acne). A convex surface lies below each of its
+    tangent planes (the sub-samples' geometric normals'), so a point above all of them is outside
+    it. A concave or flat group already lies on or in front of its surface and is not moved."""
+    geometric = gbuffer.geometric_normal.float()
+    below = dot(geometric, gbuffer.position.float() - centroid.index_select(0, rank))
+    slope = dot(geometric, normal.index_select(0, rank)).clamp(min=MIN_LIFT_COSINE)
+    lift = below.new_zeros(centroid.shape[0])
+    return lift.scatter_reduce_(0, rank, (below / slope).clamp(min=0.0), "amax")
 
 
 def take_rows(values: torch.Tensor, dim: int, index: torch.Tensor) -> torch.Tensor:
