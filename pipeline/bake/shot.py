@@ -232,11 +232,21 @@ def choose_texture_samples(
         if min(chosen_db) >= threshold_db:
             break
         db = list(measure(samples))
-        log.info("shot: direct part with texture samples %d: %s dB (%d: %s dB)", samples, db, chosen, chosen_db)
+        log.info(
+            "shot: direct part with texture samples %d: %s dB (%d: %s dB), under each lighting",
+            samples,
+            _decibels(db),
+            chosen,
+            _decibels(chosen_db),
+        )
         if max(new - old for new, old in zip(db, chosen_db, strict=True)) < TEXTURE_GAIN_DB:
             break
         chosen, chosen_db = samples, db
     return chosen
+
+
+def _decibels(figures: Sequence[float]) -> str:
+    return " / ".join(f"{figure:.2f}" for figure in figures)
 
 
 def choose_bounces(images: list[np.ndarray], target_db: float) -> tuple[int, float, tuple[float, ...]]:
