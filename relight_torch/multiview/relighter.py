@@ -559,8 +559,7 @@ def open_multiview_relighter(
     check_inputs(layer_path, description)
     table = load_camera_table(layer_path, description)
     views = CachingViews.build(table, [g.to(device) for g in load_view_gbuffers(layer_path, description, table)])
-    # A writable copy: Embree and torch both keep references to it; the .npy is mapped read-only.
-    occluders = np.array(load_npy(layer_path, description, "occluders"), dtype=np.float32)
+    occluders = load_npy(layer_path, description, "occluders")  # mapped: Embree copies it in blocks
     occluder_objects = np.asarray(load_npy(layer_path, description, "occluderObjects"))
     object_paths = decode_paths(load_npy(layer_path, description, "objectPaths"))
     corner_normals = np.asarray(load_npy(layer_path, description, "cornerNormals"))
