@@ -178,7 +178,7 @@ def table_markdown(cells: Sequence[Cell], command: str, spp: int) -> str:
     return "\n".join(lines)
 
 
-def _size(text: str) -> tuple[int, int]:
+def size_argument(text: str) -> tuple[int, int]:
     width, _, height = text.partition("x")
     return int(width), int(height)
 
@@ -187,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("docs/bench/ASSET_TABLE.md"))
     parser.add_argument("--work", type=Path, default=None, help="keep shots, caches and references here")
-    parser.add_argument("--sizes", type=_size, nargs="+", default=list(SIZES), metavar="WxH")
+    parser.add_argument("--sizes", type=size_argument, nargs="+", default=list(SIZES), metavar="WxH")
     parser.add_argument("--spp", type=int, default=REFERENCE_SPP)
     parser.add_argument("--assets", nargs="+", default=[a.name for a in SUITE], choices=[a.name for a in SUITE])
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))

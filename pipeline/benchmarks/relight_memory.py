@@ -16,27 +16,15 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
-import resource
 import time
 
 import numpy as np
 
+from pipeline.benchmarks.peak_rss import peak_rss_bytes, rss_bytes
 from pipeline.benchmarks.stopwatch import Stopwatch
 from pipeline.heap import use_one_heap_arena
 from relight_torch.direct.relighter import open_relighter
 from relight_torch.direct.settings import RelightSettings
-
-
-def peak_rss_bytes() -> int:
-    """This process's peak resident set size (Linux reports kilobytes)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-
-
-def rss_bytes() -> int:
-    """This process's resident set size now (Linux: /proc/self/statm's resident pages)."""
-    with open("/proc/self/statm") as statm:
-        return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
 def measure(cache: str, memory_budget: float | None, repeats: int) -> dict[str, float | int | str]:
