@@ -40,7 +40,8 @@ from relight_torch.cuts.cuts import Cuts, intensity_cut
 from relight_torch.cuts.env import cell_pattern, dome_leaf_light
 from relight_torch.cuts.merge import MergedCuts, leaf_cut_index, merge
 from relight_torch.cuts.tree import LightTree
-from relight_torch.direct.relighter import Relighter, light_group
+from relight_torch.direct.relighter import Relighter
+from relight_torch.direct.rig import light_group
 from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.lights.dome import REC709_LUMINANCE
 from relight_torch.lights.emission import validate_light
