@@ -13,7 +13,9 @@ from typing import Generic, TypeVar
 
 import torch
 
-from relight_torch.direct.relighter import Relighter, colour_scale, light_group
+from relight_torch.direct.images import colour_scale
+from relight_torch.direct.relighter import Relighter
+from relight_torch.direct.rig import light_group
 from relight_torch.lights.emission import is_delta_light
 from relight_torch.lights.light import Light, LightKind, light_snapshot
 from relight_torch.protocol import Refinement, refuse_material_edit, refuse_progressive
@@ -176,7 +178,7 @@ class IndirectRelighter(Generic[StateT]):
 
     def light_group_images(self) -> dict[str, torch.Tensor]:
         """'<group>_direct' and '<group>_indirect' -> (H, W, 3) images of each light group's lights
-        (`relighter.light_group`), exposure applied; with `emission_image()` they sum to `render()`
+        (`direct.rig.light_group`), exposure applied; with `emission_image()` they sum to `render()`
         within float rounding."""
         emission = self._emission_rows()
         indirect: dict[str, torch.Tensor] = {}

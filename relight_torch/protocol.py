@@ -114,7 +114,7 @@ class GradientRelighter(CacheRelighter, Protocol):
         the visibility `differentiable_light_image` holds fixed."""
 
     def differentiable_light_image(self, light: Light, pose: LightPose, frozen: object) -> torch.Tensor:
-        """(H, W, 3) image of the unit light (`relighter.unit_light`) at `pose`, differentiable in
+        """(H, W, 3) image of the unit light (`direct.images.unit_light`) at `pose`, differentiable in
         the pose's tensors, visibility `frozen`; exposure applied as in `render`."""
 
 

@@ -25,7 +25,9 @@ from pipeline.scenes import SCENES, write_light_edits
 from relight_torch import open_cache
 from relight_torch.brdf import preview_surface
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.cuts import relighter as cuts_relighter
+from relight_torch.cuts import batches as cuts_batches
+from relight_torch.cuts import columns as cuts_columns
+from relight_torch.cuts import node_table as cuts_node_table
 from relight_torch.cuts.merge import refine
 from relight_torch.cuts.relighter import CutsRelighter, CutsRelightSettings
 from relight_torch.direct.relighter import open_relighter
@@ -174,8 +176,9 @@ def test_kept_factor_columns_follow_light_and_material_edits(dome, monkeypatch):
     # roughness edit only its material's rows; each frame must equal a plain per-cluster evaluation.
     # Small chunks of rows for the merge (and a roughness edit's rows) and for the products, so
     # that batches of 97 rows are cut into several of each.
-    monkeypatch.setattr(cuts_relighter, "MERGE_ROWS", 13)
-    monkeypatch.setattr(cuts_relighter, "PRODUCT_ROWS", 11)
+    for module in (cuts_batches, cuts_columns):  # the merge's rows and the evaluated rows
+        monkeypatch.setattr(module, "MERGE_ROWS", 13)
+    monkeypatch.setattr(cuts_columns, "PRODUCT_ROWS", 11)
     scene, _, layer, _, _ = dome
     relighter = open_cache(layer)
     relighter.set_settings(CutsRelightSettings(rows_per_batch=97, factor_dtype=torch.float32))
@@ -216,12 +219,13 @@ def test_a_repeated_roughness_edit_keeps_its_rows_grids(dome, monkeypatch):
     # the same rows, until the illumination cut changes; each frame must equal a plain per-cluster
     # evaluation. Grids shaded on their live columns alone (here every grid with a dead column: a
     # first render, a turned dome's new nodes, a roughness edit's rows) give the sums of whole grids.
-    monkeypatch.setattr(cuts_relighter, "MERGE_ROWS", 13)
+    for module in (cuts_batches, cuts_columns):  # the merge's rows and the evaluated rows
+        monkeypatch.setattr(module, "MERGE_ROWS", 13)
     scene, _, layer, _, _ = dome
     index = next(i for i, material in enumerate(scene.materials) if material.path.endswith("RedPlastic"))
     images = []
     for share in (0.0, 1.0):  # never (unless no column is live), or whenever a column is dead
-        monkeypatch.setattr(cuts_relighter, "GRID_LIVE_SHARE", share)
+        monkeypatch.setattr(cuts_node_table, "GRID_LIVE_SHARE", share)
         relighter = open_cache(layer)
         relighter.set_settings(CutsRelightSettings(rows_per_batch=97, factor_dtype=torch.float32))
         frames = [relighter.cut_samples(relighter.lights, keep=True)]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from relight_torch.brdf import preview_surface
-from relight_torch.cuts.relighter import _assign_slots
+from relight_torch.cuts.columns import assign_slots
 
 
 def _random_params(n: int, generator: torch.Generator) -> preview_surface.PreviewSurfaceParams:
@@ -89,10 +89,10 @@ def test_factors_sum_to_split_times_light():
 
 def test_slots_keep_the_nodes_a_new_cut_keeps():
     slot_node = torch.full((5,), -1, dtype=torch.int64)
-    slot, new = _assign_slots(slot_node, torch.tensor([3, 7, 12]), 31)
+    slot, new = assign_slots(slot_node, torch.tensor([3, 7, 12]), 31)
     assert new.all() and sorted(slot.tolist()) == [0, 1, 2]
     first = dict(zip([3, 7, 12], slot.tolist(), strict=True))
-    slot, new = _assign_slots(slot_node, torch.tensor([3, 5, 6, 12, 20]), 31)
+    slot, new = assign_slots(slot_node, torch.tensor([3, 5, 6, 12, 20]), 31)
     assert new.tolist() == [False, True, True, False, True]
     assert slot[0] == first[3] and slot[3] == first[12]  # kept nodes keep their columns
     assert len(set(slot.tolist())) == 5  # 7's slot is free for a new node

@@ -25,7 +25,7 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import cornell_box
 from pipeline.scenes.authoring import set_light, shape_spot
 from relight_torch import open_cache
-from relight_torch.direct.relighter import shot_lights
+from relight_torch.direct.loading import shot_lights
 from relight_torch.gather.relighter import GatherRelighter
 from relight_torch.io.exr import read_exr
 from relight_torch.lights.light import Shaping

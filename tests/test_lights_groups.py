@@ -20,7 +20,9 @@ from pipeline import cli
 from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
-from relight_torch.direct.relighter import light_group, open_relighter, shot_lights
+from relight_torch.direct.loading import shot_lights
+from relight_torch.direct.relighter import open_relighter
+from relight_torch.direct.rig import light_group
 from relight_torch.direct.settings import RelightSettings
 from relight_torch.io.exr import exr_layer_names
 from relight_torch.lights.light import Light, LightKind

@@ -30,7 +30,8 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from pipeline.scenes.cornell_box import LIGHT
 from relight_torch import open_cache
-from relight_torch.direct.relighter import open_relighter, shot_lights
+from relight_torch.direct.loading import shot_lights
+from relight_torch.direct.relighter import open_relighter
 from relight_torch.direct.settings import RelightSettings
 from relight_torch.errors import RelightError
 from relight_torch.indirect_samples import gather_radiance

@@ -21,7 +21,8 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scene.types import MaterialInput
 from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.direct.relighter import open_relighter, shot_lights
+from relight_torch.direct.loading import shot_lights
+from relight_torch.direct.relighter import open_relighter
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.metrics import psnr
 from relight_torch.visibility.opacity import OPACITY_PAYLOADS

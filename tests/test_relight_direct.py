@@ -14,7 +14,8 @@ from pipeline.bake.direct.bake import bake_direct
 from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
-from relight_torch.direct.relighter import Relighter, shot_lights
+from relight_torch.direct.loading import shot_lights
+from relight_torch.direct.relighter import Relighter
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.metrics import psnr
 

@@ -186,7 +186,7 @@ def test_sphere_light_ratio_and_filtered_visibility(leaves, monkeypatch):
     # Measured: 4 samples plain 42.88, with the ratio 42.88 (the cap's samples already estimate the
     # unshadowed term well: the noise is the leaves' shadows); 1 sample plain 36.1, with the ratio
     # 36.2, filtered r = 1 39.0; 256 with the ratio 65.0 dB. The closed form pays for the sphere
-    # by what it enables: one filtered sample per matte point (Relighter._sample_groups).
+    # by what it enables: one filtered sample per matte point (LightStages.sample_groups).
     lights = leaves.lights
     truth = plain(leaves, lights, 256, monkeypatch)
     ratio4, plain4 = psnr(render(leaves, lights, 4), truth), psnr(plain(leaves, lights, 4, monkeypatch), truth)

@@ -160,7 +160,7 @@ def test_each_sub_sample_keeps_its_own_material(cornell):
     shared = _relighter(cornell, coloured, shadow_filter_radius=RADIUS)
     separate = _relighter(cornell, moved, shadow_filter_radius=RADIUS, shared_lighting=False)
     samples = separate.fixed_samples(1)
-    separate._u[1] = samples.index_select(0, groups.owner)  # the owners' fixed samples
+    samples.copy_(samples.index_select(0, groups.owner))  # the owners' fixed samples, in the kept tensor
     for relighter in (shared, separate):
         relighter.set_lights(unshadowed)
     torch.testing.assert_close(shared.render_samples(), separate.render_samples(), rtol=1e-5, atol=1e-6)

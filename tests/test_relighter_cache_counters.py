@@ -25,7 +25,8 @@ from pipeline.bake.direct.bake import bake_direct
 from pipeline.benchmarks.direct import checker_cookie, look_at
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
-from relight_torch.direct.relighter import Relighter, colour_scale, open_relighter, unit_light
+from relight_torch.direct.images import colour_scale, unit_light
+from relight_torch.direct.relighter import Relighter, open_relighter
 from relight_torch.direct.settings import RelightSettings
 from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light

@@ -59,7 +59,7 @@ def test_the_oldest_transports_are_dropped(baked):
     assert relighter.cache_bytes() <= budget < unbounded.cache_bytes()
     kept = _transports(relighter)
     assert any(kept.values()) and not all(kept.values())
-    assert not relighter._half_images
+    assert not relighter._budget.half_images
 
 
 def test_a_colour_edit_under_the_budget_shades_nothing(baked):
@@ -115,7 +115,7 @@ def test_a_tiny_budget_folds_the_lights_edited_longest_ago(baked):
     budget = per_light + per_light // 2  # (2, N, 3) unit images and the (N, 3) folded sum
     relighter = _relighter(baked, budget)
     assert_same_image(relighter.render(), expected)
-    assert relighter.held_bytes() <= budget and not relighter._half_images
+    assert relighter.held_bytes() <= budget and not relighter._budget.half_images
     folded = _folded(relighter)
     assert len(folded) == len(relighter.lights) - 1 and relighter._active not in folded
     edits = [
@@ -144,7 +144,7 @@ def test_half_precision_images_when_even_they_do_not_fit(baked):
     relighter = _relighter(baked, 0)
     image = relighter.render()
     # Every light but the active one folded; its images, the last ones held, in half precision.
-    assert relighter._half_images and len(_folded(relighter)) == len(relighter.lights) - 1
+    assert relighter._budget.half_images and len(_folded(relighter)) == len(relighter.lights) - 1
     num_samples = relighter.gbuffer.num_samples
     assert relighter.cache_bytes() == num_samples * 3 * 4 + _image_bytes(relighter, 2) // len(relighter.lights)
     assert_same_image(image, expected)  # this frame was made before the budget was applied

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from relight_torch.direct.relighter import box_filter
+from relight_torch.direct.images import box_filter
 from relight_torch.light_samples import adaptive_sample_count, angular_radius
 from relight_torch.lights.light import Light, LightKind
 

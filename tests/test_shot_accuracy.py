@@ -18,7 +18,7 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import glossy
 from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.direct.relighter import shot_lights
+from relight_torch.direct.loading import shot_lights
 from relight_torch.lights.light import LightKind
 
 

@@ -20,7 +20,8 @@ from pipeline.scenes import SCENES
 from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.direct import gradients
-from relight_torch.direct.relighter import Relighter, open_relighter, shot_lights
+from relight_torch.direct.loading import shot_lights
+from relight_torch.direct.relighter import Relighter, open_relighter
 from relight_torch.errors import RelightError
 from relight_torch.io.exr import read_rgb_exr, write_rgb_exr
 from relight_torch.lights.light import Light, LightKind, Shaping

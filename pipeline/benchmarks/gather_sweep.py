@@ -46,7 +46,7 @@ from pipeline.benchmarks.rows import COLUMNS, SweepRow, csv_line, write_csv
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.direct.relighter import shot_lights
+from relight_torch.direct.loading import shot_lights
 from relight_torch.direct.settings import RelightSettings
 from relight_torch.gather.open import open_gather_relighter
 from relight_torch.gather.relighter import DEFAULT_GATHER_SAMPLES, GatherRelighter

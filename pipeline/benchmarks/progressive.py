@@ -42,7 +42,8 @@ from pipeline.scenes import SCENES
 from pipeline.scenes.lights import NEW_LIGHT_PATH, new_sphere_layer
 from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.direct.relighter import box_filter, shot_lights
+from relight_torch.direct.images import box_filter
+from relight_torch.direct.loading import shot_lights
 from relight_torch.io.atomic import write_text_atomic
 from relight_torch.lights.light import Light, LightKind, Shaping
 from relight_torch.metrics import psnr

@@ -26,7 +26,9 @@ import torch
 from pipeline.bake.direct.bake import bake_direct
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
-from relight_torch.direct.relighter import open_relighter, shot_lights, unit_light
+from relight_torch.direct.images import unit_light
+from relight_torch.direct.loading import shot_lights
+from relight_torch.direct.relighter import open_relighter
 from relight_torch.direct.settings import RelightSettings
 from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light

@@ -53,7 +53,7 @@ from pipeline.scenes.lights import NEW_LIGHT_PATH, new_sphere_layer
 from pipeline.tracing_bench import median_seconds
 from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.direct.relighter import shot_lights
+from relight_torch.direct.loading import shot_lights
 from relight_torch.indirect import IndirectRelighter
 from relight_torch.io.atomic import write_text_atomic
 from relight_torch.lights.light import LightKind, Shaping

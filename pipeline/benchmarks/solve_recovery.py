@@ -29,7 +29,8 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.direct import gradients
-from relight_torch.direct.relighter import open_relighter, shot_lights
+from relight_torch.direct.loading import shot_lights
+from relight_torch.direct.relighter import open_relighter
 from relight_torch.io.exr import read_rgb_exr
 from relight_torch.lights.light import Light
 from relight_torch.lights.overrides import write_light_overrides

@@ -34,7 +34,8 @@ from pipeline.scene import find_camera, load_scene
 from pipeline.scene.types import Camera, Scene
 from pipeline.scenes import SCENES, light_edit_layers
 from pipeline.tracing import Tracer
-from relight_torch.direct.relighter import open_relighter, shot_lights
+from relight_torch.direct.loading import shot_lights
+from relight_torch.direct.relighter import open_relighter
 
 CLASSES = ("edge", "textured", "plain")
 CLASS_GRID = 4

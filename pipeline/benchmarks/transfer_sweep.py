@@ -46,7 +46,8 @@ from pipeline.benchmarks.rows import COLUMNS, NAN, SweepRow, csv_line
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES, light_edit_layers
 from relight_torch.cache.layer import CacheDescription
-from relight_torch.direct.relighter import open_relighter, shot_lights
+from relight_torch.direct.loading import shot_lights
+from relight_torch.direct.relighter import open_relighter
 from relight_torch.metrics import psnr, rel_mse
 from relight_torch.transfer.open import open_transfer_relighter
 from relight_torch.transfer.relighter import GATHER_SAMPLES, TransferRelighter

@@ -26,7 +26,7 @@ from pipeline.scenes.lights import new_sphere_layer
 from pipeline.tracing_bench import median_seconds
 from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.direct.relighter import shot_lights
+from relight_torch.direct.loading import shot_lights
 from relight_torch.io.atomic import atomic_path
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.io.preview import write_png

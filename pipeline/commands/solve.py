@@ -10,7 +10,7 @@ from pipeline.errors import RelightError
 from pipeline.progress import progress_bar
 from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.direct.relighter import shot_lights
+from relight_torch.direct.loading import shot_lights
 from relight_torch.io.images import read_image
 from relight_torch.lights.overrides import write_light_overrides
 from relight_torch.solve import FREE_KINDS, DescentSettings, parse_free, solve_lights

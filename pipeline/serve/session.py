@@ -35,7 +35,8 @@ from pipeline.serve.rig import SWITCHES, Rig, RigLight, silenced
 from relight_torch import open_cache
 from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import load_gbuffer
-from relight_torch.direct.relighter import light_group, shot_lights
+from relight_torch.direct.loading import shot_lights
+from relight_torch.direct.rig import light_group
 from relight_torch.direct.settings import RelightSettings
 from relight_torch.io.exr import read_rgb_exr
 from relight_torch.lights.light import Light, LightKind

@@ -7,7 +7,7 @@ lights integrated over each leaf's cell; indirect mode, the direct light reflect
 surface point) and the illumination cut refines the tree by intensity up to `max_cut` nodes. Per
 covered sub-sample, the cuts of its three lattice vertices are merged (`merge.merge`; once, then
 kept across frames: `CutsRelighter.visibility_batches`) and the illumination cut is merged into
-that (as `merge.refine_nodes`, batched in `CutsRelighter._factor_columns`), then
+that (as `merge.refine_nodes`, batched in `FactorEvaluator.columns`), then
 
     B = sum_k |C_k| <l_k> f_r(wo, <x_k>) cos(<x_k>) (w1 <v1_k> + w2 <v2_k> + w3 <v3_k>)
 
@@ -35,12 +35,15 @@ import torch
 
 from relight_torch.brdf import preview_surface
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
-from relight_torch.cuts.blocks import BlockEvaluator, add_factors, slabs
+from relight_torch.cuts.batches import VisibilityBatch, VisibilityBatches
+from relight_torch.cuts.columns import ColumnsFrame, FactorColumns
 from relight_torch.cuts.cuts import Cuts, intensity_cut
 from relight_torch.cuts.env import cell_pattern, dome_leaf_light
-from relight_torch.cuts.merge import MergedCuts, leaf_cut_index, merge
+from relight_torch.cuts.factors import FactorEvaluator
+from relight_torch.cuts.merge import MergedCuts
 from relight_torch.cuts.tree import LightTree
-from relight_torch.direct.relighter import Relighter, light_group
+from relight_torch.direct.relighter import Relighter
+from relight_torch.direct.rig import light_group
 from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.lights.dome import REC709_LUMINANCE
 from relight_torch.lights.emission import validate_light
@@ -49,26 +52,6 @@ from relight_torch.lights.linking import linked_points
 from relight_torch.math.frame import to_local
 from relight_torch.parallel import parallel_map, tile_threads
 from relight_torch.protocol import Refinement, refuse_progressive, tensor_bytes
-
-MERGE_ROWS = 2048
-"""Sub-samples whose visibility cuts are merged together (`CutsRelighter.visibility_batches`), and
-whose every merged entry is evaluated together (a new illumination cut, a roughness edit's rows),
-each chunk cut to its own longest row: bounds the temporaries (the column sums' scatter stays in
-cache), whatever `CutsRelightSettings.rows_per_batch`."""
-
-KEPT_GRID_SHARE = 0.5
-"""A roughness edit keeps its rows' grid weights (`FactorColumns.grids`) for the next edit of the
-same rows (a slider dragged) if they are at most this share of the sub-samples: (N / 2, K)
-float32 at most, a quarter of the factor columns' bytes."""
-
-GRID_LIVE_SHARE = 0.75
-"""A grid whose live columns (spanned by some row's cluster) are at most this share of its
-columns is shaded on those alone, its factors then added into their columns (`_grid`): ~2.3 ns
-per live cell for four factors (one core) against ~5.4 per cell shaded, dead or not."""
-
-PRODUCT_ROWS = 1024
-"""Sub-samples whose factor columns are updated and multiplied with the light together: 4 MiB of
-bfloat16 columns at a cut of 256, which stay in cache between the two."""
 
 
 @dataclass(frozen=True)
@@ -126,72 +109,6 @@ class CutsCache:
         return "env" if self.leaf_points is None else "indirect"
 
 
-@dataclass(frozen=True)
-class VisibilityBatch:
-    """The lit clusters of the merged visibility cuts of a batch of sub-samples (no lights, no
-    materials), one row per sub-sample, padded to the batch's largest row M.
-
-    Attributes:
-        rows: (P,) int64 the batch's sub-samples.
-        geometry: (P, 3, 4) their shading frames (tangent, bitangent, normal) and the direction
-            to the viewer in that frame taken back to world (frame @ wo_local), as columns: a
-            world direction's row times it gives its local coordinates and E.L (`_geometry`).
-        node: (P, M) int32 each row's merged clusters' nodes, ascending, then padding (2L - 1:
-            one past the last node).
-        visibility: (P, M) barycentric blend of the three vertices' means (> 0; padding 0).
-        length: (P,) int32 each row's clusters (the rest is padding): a roughness edit's rows are
-            cut to their longest without a pass over their entries.
-        inputs: entries of the batch's vertices' visibility cuts (the merge's input).
-        dark: merged clusters dark at all three vertices (dropped).
-    """
-
-    rows: torch.Tensor
-    geometry: torch.Tensor
-    node: torch.Tensor
-    visibility: torch.Tensor
-    length: torch.Tensor
-    inputs: int
-    dark: int
-
-
-@dataclass
-class FactorColumns:
-    """What the beauty render keeps between frames (`CutsRelighter.cuts_image`).
-
-    Per batch of `visibility_batches`, the BRDF factors (`preview_surface.split_factors`) of the
-    merged cut summed per illumination-cut node, in K = max_cut column slots: a light edit that
-    keeps a node keeps its column, a node new to the cut gets a free slot and only its column is
-    computed; a material edit recomputes the lobes' factors (the third on) of the rows whose
-    lobe changed (roughnesses).
-
-    Attributes:
-        key: (max_cut, factors F, dtype, rows per batch): a change starts afresh.
-        slot_node: (K,) int64 the illumination-cut node in each slot, -1 if free.
-        columns: per batch (P, F, K) factor sums (factor_dtype).
-        counts: per batch (K,) int64 merged entries per slot.
-        sums: (N, F, 3) float the factor sums times the light (diffuse light for the first two
-            factors, specular for the others), summed over the cut.
-        light_key: the illumination cut `sums` were made with.
-        table: (K, 6) the slots' diffuse and specular light `sums` were made with (factor_dtype):
-            a light edit that leaves it as it was (a dome moved: its directions are at infinity)
-            makes no products.
-        dirty: (N,) bool sub-samples whose columns are to be recomputed (material edits).
-        grids: per batch, the last roughness edit's rows (D,) int64 and their chunks' `_Grid`s
-            (of the illumination cut `light_key`; at most `KEPT_GRID_SHARE` of the sub-samples),
-            or None: an edit of the same rows shades them again without their bookkeeping.
-    """
-
-    key: tuple
-    slot_node: torch.Tensor
-    columns: list[torch.Tensor]
-    counts: list[torch.Tensor]
-    sums: torch.Tensor
-    light_key: tuple | None
-    table: torch.Tensor | None
-    dirty: torch.Tensor
-    grids: list[tuple[torch.Tensor, list[_Grid]] | None]
-
-
 class CutsRelighter:
     """Light by cuts plus the direct relighter, on one deep framebuffer.
 
@@ -239,7 +156,6 @@ class CutsRelighter:
         frames = torch.stack((g.tangent, g.bitangent, g.normal), dim=-1)
         wo_local = to_local(g.wo_world(), g.tangent, g.bitangent, g.normal)
         self._cos_e, self._view_sq = wo_local[:, 2], (wo_local * wo_local).sum(-1)
-        self._geometry = torch.cat((frames, (frames @ wo_local.unsqueeze(-1))), dim=-1)
         self._node_size = tree.size.to(g.position.dtype)
         # (3, 2L) per node its mean direction (env) or mean position (indirect) by component,
         # and a last column for the padding node of `VisibilityBatch` (weight 0).
@@ -254,11 +170,11 @@ class CutsRelighter:
         self._leaf_radiance: dict[str, tuple[Light, torch.Tensor]] = {}
         self._leaf_pattern: torch.Tensor | None = None  # env: the leaves' cells' directions (`env.cell_pattern`)
         self._samples: torch.Tensor | None = None
-        self._visibility_batches: tuple[int, list[VisibilityBatch]] | None = None
-        self._by_node: list[tuple[torch.Tensor, torch.Tensor] | None] | None = None
+        geometry = torch.cat((frames, (frames @ wo_local.unsqueeze(-1))), dim=-1)
+        self._batches = VisibilityBatches(tree, cuts.visibility, cuts.sample_vertices, cuts.sample_weights, geometry)
         # The last illumination cut: (key of its lights, the lights (kept alive, so their ids stay
         # theirs), (nodes, diffuse, specular)).
-        self._illumination: tuple[tuple, list[Light], tuple[torch.Tensor, ...]] | None = None
+        self._illumination: tuple[tuple, list[Light], tuple[torch.Tensor, torch.Tensor, torch.Tensor]] | None = None
         self._columns: FactorColumns | None = None
         self._edits = 0  # dome and material changes (the direct relighter counts its lights')
         self.set_lights(direct.lights)
@@ -477,7 +393,7 @@ class CutsRelighter:
         inside or under j, times l_j (one matrix product per batch), combined with the current
         materials' colours (`preview_surface.combine_factors`). With `keep` the factor columns
         are kept (`FactorColumns`): a new frame computes only the columns of nodes new to the
-        illumination cut and the rows whose lobes changed, then the products.
+        illumination cut and the rows whose lobes changed, then the products (`ColumnsFrame`).
         """
         g = self.direct.gbuffer
         out = torch.zeros_like(g.position)
@@ -488,8 +404,8 @@ class CutsRelighter:
         key = (tuple(map(id, lights)), emission and self.mode == "indirect", self.settings.max_cut)
         if self._illumination is None or self._illumination[0] != key:  # a material edit keeps the cut
             self._illumination = (key, lights, self.illumination_cut(lights, emission))
-        nodes, diffuse_light, specular_light = self._illumination[2]
-        self.stats["illumination_cut"] = int(nodes.shape[0])
+        cut = self._illumination[2]
+        self.stats["illumination_cut"] = int(cut[0].shape[0])
         settings = self.settings
         num_factors = 6 if bool(self.params.clearcoat.any()) else 4
         state_key = (settings.max_cut, num_factors, settings.factor_dtype, settings.rows_per_batch)
@@ -497,105 +413,23 @@ class CutsRelighter:
         keep = keep or (self._columns is not None and self._columns.light_key == key)
         state = self._columns if keep else None
         if state is None or state.key != state_key:
-            state = self._new_columns(state_key, keep)
+            batches = self.visibility_batches() if keep else []
+            state = FactorColumns.empty(state_key, batches, g.num_samples, g.position.dtype, g.position.device)
             if keep:
                 self._columns = state
-        slot, new = _assign_slots(state.slot_node, nodes, self.cuts.tree.num_nodes)
-        table = torch.zeros((state.slot_node.shape[0], 6), dtype=out.dtype, device=out.device)
-        table[slot] = torch.cat((diffuse_light, specular_light), dim=1)
-        table = table.to(settings.factor_dtype)
-        relit = state.table is None or not torch.equal(state.table, table)
-        if state.light_key != key:  # the kept grids are the last illumination cut's
-            state.grids = [None] * len(state.grids)
-        state.light_key, state.table = key, table
-        # Tables of the nodes to evaluate: every node into its slot (a new cut, dirty rows), or
-        # the nodes new to the cut in cut order.
-        num_slots = state.slot_node.shape[0]
-        every_table = (
-            _NodeTable.of(self.cuts.tree, nodes, torch.ones_like(new), self._node_size, slot, num_slots)
-            if (bool(new.all()) or bool(state.dirty.any()))
-            else None
+        position = None if self.mode == "env" else g.position
+        factors = FactorEvaluator(
+            self._node_points, self._cos_e, self._view_sq, position, self.params, settings.compiled
         )
-        new_table = (
-            every_table
-            if bool(new.all())
-            else (_NodeTable.of(self.cuts.tree, nodes, new, self._node_size) if bool(new.any()) else None)
-        )
+        frame = ColumnsFrame.start(state, keep, key, cut, self.cuts.tree, self._node_size, factors)
         batches = self.visibility_batches()
-        keep_grids = keep and int(state.dirty.sum()) <= KEPT_GRID_SHARE * g.num_samples
-
-        def frame_batch(index: int) -> collections.Counter[str]:
-            """Batch `index`'s columns brought to this frame and its rows' sums; its `stats`."""
-            batch = batches[index]
-            stats: collections.Counter[str] = collections.Counter()
-            stats["inputs"] += batch.inputs
-            stats["dark"] += batch.dark
-            shape = (batch.rows.shape[0], num_factors, state.slot_node.shape[0])
-            columns = (
-                state.columns[index] if keep else torch.zeros(shape, dtype=settings.factor_dtype, device=out.device)
-            )
-            counts = state.counts[index] if keep else torch.zeros(shape[2], dtype=torch.int64, device=out.device)
-            fresh = None  # (P, F, new nodes) float the columns of the nodes new to the cut, for their slots
-            if new_table is not None and new_table.everything:
-                counts.zero_()
-                # Chunks of rows, each without the padding all its rows have (the column sums'
-                # scatter stays in cache).
-                for part in torch.arange(shape[0], device=out.device).split(MERGE_ROWS):
-                    values, grid = self._factor_columns(batch, new_table, num_factors, part)
-                    columns[int(part[0]) : int(part[-1]) + 1].copy_(values[:, :, :num_slots].transpose(0, 1))
-                    counts += grid.counts
-                stats["evaluated"] += int(counts.sum())
-            elif new_table is not None:
-                values, grid = self._factor_columns(batch, new_table, num_factors, by_node=self._entries_by_node(index))
-                fresh = values[:, :, : grid.counts.shape[0]].transpose(0, 1)
-                counts[slot[new]] = grid.counts
-                stats["evaluated"] += int(grid.counts.sum())
-            dirty = state.dirty.index_select(0, batch.rows)
-            dirty_rows = torch.nonzero(dirty).squeeze(1)
-            if dirty_rows.shape[0] and not bool(new.all()):  # the lobes' factors (2 on) of their rows
-                # The grids of the last edit if it was of the same rows (a roughness slider dragged).
-                last = state.grids[index] if keep else None
-                kept = last[1] if last is not None and torch.equal(last[0], dirty_rows) else None
-                assert every_table is not None  # made whenever rows are dirty
-                grids = []
-                for number, part in enumerate(dirty_rows.split(MERGE_ROWS)):  # the column sums' scatter stays in cache
-                    values, grid = self._factor_columns(
-                        batch,
-                        every_table,
-                        num_factors,
-                        part,
-                        first_factor=2,
-                        grid=None if kept is None else kept[number],
-                    )
-                    grids.append(grid)
-                    stats["evaluated"] += int(grid.counts.sum())
-                    # The lobes' factors as one span of each row: ~25 % faster than a 3-D index_copy_.
-                    lobes = values[2:, :, :num_slots].transpose(0, 1).to(columns.dtype).contiguous()
-                    columns.view(shape[0], -1)[:, 2 * num_slots :].index_copy_(0, part, lobes.view(part.shape[0], -1))
-                if keep:
-                    state.grids[index] = (dirty_rows, grids) if keep_grids else None
-            stats["merged"] += int(counts[slot].sum())
-            if relit or bool(new.any()):
-                # Chunks of rows: the new slots written (scattered along the last axis: every
-                # cache line of the columns is read and written) just before the products read them.
-                for part in range(0, shape[0], PRODUCT_ROWS):
-                    chunk = columns[part : part + PRODUCT_ROWS]
-                    if fresh is not None:
-                        chunk.index_copy_(2, slot[new], fresh[part : part + PRODUCT_ROWS].to(chunk.dtype))
-                    state.sums.index_copy_(
-                        0, batch.rows[part : part + PRODUCT_ROWS], _light_sums(chunk, table, out.dtype)
-                    )
-            elif dirty_rows.shape[0]:
-                state.sums.index_copy_(
-                    0,
-                    batch.rows.index_select(0, dirty_rows),
-                    _light_sums(_rows_of(columns, dirty_rows), table, out.dtype),
-                )
-            return stats
-
         # Batches on the kept worker threads (`relight_torch.parallel`): much of a batch's
         # bookkeeping (nonzero, bincount, cumsum, scatters) runs on one thread under OpenMP.
         threads = 1 if settings.compiled else tile_threads(out.device)
+
+        def frame_batch(index: int) -> collections.Counter[str]:
+            return frame.batch(index, batches[index], self._batches.entries_by_node)
+
         for stats in parallel_map(frame_batch, range(len(batches)), threads):
             self.stats.update(stats)
         state.dirty.zero_()
@@ -603,166 +437,14 @@ class CutsRelighter:
         diffuse, specular = preview_surface.combine_factors(colours, state.sums.movedim(1, 0))
         return diffuse + specular
 
-    def _new_columns(self, key: tuple, keep: bool) -> FactorColumns:
-        """Empty `FactorColumns` (every row dirty-free, no slot used); batches' arrays only if kept."""
-        max_cut, num_factors, dtype, _ = key
-        device = self.direct.gbuffer.position.device
-        columns, counts = [], []
-        if keep:
-            for batch in self.visibility_batches():
-                columns.append(torch.zeros((batch.rows.shape[0], num_factors, max_cut), dtype=dtype, device=device))
-                counts.append(torch.zeros(max_cut, dtype=torch.int64, device=device))
-        num_samples = self.direct.gbuffer.num_samples
-        return FactorColumns(
-            key,
-            torch.full((max_cut,), -1, dtype=torch.int64, device=device),
-            columns,
-            counts,
-            torch.zeros((num_samples, num_factors, 3), dtype=self.direct.gbuffer.position.dtype, device=device),
-            None,
-            None,
-            torch.zeros(num_samples, dtype=torch.bool, device=device),
-            [None] * len(columns),
-        )
+    def visibility_batches(self) -> list[VisibilityBatch]:
+        """The merged visibility cuts of every covered sub-sample, in batches of
+        `settings.rows_per_batch`: computed on first use, then kept (`VisibilityBatches.batches`)."""
+        return self._batches.batches(self.settings.rows_per_batch)
 
-    def _factor_columns(
-        self,
-        batch: VisibilityBatch,
-        table: _NodeTable,
-        num_factors: int,
-        rows: torch.Tensor | None = None,
-        by_node: tuple[torch.Tensor, torch.Tensor] | None = None,
-        first_factor: int = 0,
-        grid: _Grid | None = None,
-    ) -> tuple[torch.Tensor, _Grid]:
-        """BRDF factors of a batch's merged cut (its visibility clusters merged with the
-        illumination cut), summed per wanted illumination-cut node (`table`).
-
-        A visibility cluster spanning several illumination-cut nodes is refined into them: each
-        node j inside it is one entry, in j's direction, weighted |C_j| <v>. A row's clusters
-        partition the leaves, so a row meets each node so at most once: these entries are shaded
-        on a (P, W) grid, one column per wanted node, whose factors are the column sums; each
-        cell's cluster is a running sum over the row of the clusters' ranges of wanted nodes
-        (`_grid`; only the columns some row's cluster spans if few are, `GRID_LIVE_SHARE`). A
-        cluster inside one illumination-cut node is one entry in its own direction, summed into
-        its column: shaded on the batch's (P, M) rows when every node is wanted (padding and
-        spanning clusters weigh 0, a row's frame and material broadcast over its entries), else
-        only the entries under or above wanted nodes are found (`by_node`) and shaded one by
-        one. The BRDF runs on cache-sized blocks (`blocks.BlockEvaluator`: `preview_surface.split_factors_cosines`,
-        eager or compiled, `CutsRelightSettings.compiled`).
-
-        Args:
-            table: the wanted nodes of the illumination cut and what each tree node is to them.
-            rows: (P,) int64 rows of the batch to compute (default: all; every node wanted).
-            by_node: the batch's `_entries_by_node` (needed unless every node is wanted).
-            first_factor: factors before it are not summed, their sums unset (a lobe's width changes
-                only the later ones).
-            grid: the `_Grid` of these rows and `table` if an earlier call made it.
-
-        Returns:
-            ((F, P, C + 2) float factor sums per column (`table`), then two zero columns; the
-            rows' `_Grid`, with the merged entries per column).
-        """
-        node, visibility = batch.node, batch.visibility
-        samples, geometry = batch.rows, batch.geometry
-        if rows is not None:  # their entries, less the padding all of them have
-            width = max(int(batch.length.index_select(0, rows).max()), 1)
-            node, visibility = node[:, :width].index_select(0, rows), visibility[:, :width].index_select(0, rows)
-            samples, geometry = samples.index_select(0, rows), geometry.index_select(0, rows)
-        (num_rows, width), num_columns = node.shape, table.nodes.shape[0]
-        flat_node, flat_visibility = node.view(-1), visibility.view(-1)
-        roughnesses = (self.params.roughness, self.params.clearcoat_roughness)[: num_factors // 2 - 1]
-        roughnesses = tuple(r.index_select(0, samples).unsqueeze(1) for r in roughnesses)
-        cos_e = self._cos_e.index_select(0, samples).unsqueeze(1)
-        view_sq = self._view_sq.index_select(0, samples).unsqueeze(1)
-        # Column of each entry: < C its wanted node's, C + 1 spanning several cut nodes (some
-        # wanted), C none (or padding); the sums have two dump columns C, C + 1 of weight 0.
-        if table.everything:
-            entry = None  # every entry of the (P, M) rows
-            column = table.column.index_select(0, flat_node)
-        else:  # only the entries of the wanted nodes' subtrees and of the nodes above them
-            assert by_node is not None  # callers pass it for a partial table
-            order, offsets = by_node
-            entry = order.index_select(
-                0,
-                _concatenated_ranges(
-                    offsets.index_select(0, table.ranges[0]).long(), offsets.index_select(0, table.ranges[1]).long()
-                ),
-            ).long()
-            column = table.column.index_select(0, flat_node.index_select(0, entry))
-        if grid is None:
-            grid = _grid(table, column, entry, flat_node, flat_visibility, num_rows, width)
-        sums = visibility.new_empty((num_factors, num_rows, num_columns + 2))
-        blocks = BlockEvaluator(num_factors, visibility.dtype, visibility.device, self.settings.compiled)
-        self._grid_sums(blocks, table, grid, (geometry, samples, roughnesses, cos_e, view_sq), sums, first_factor)
-        # Clusters inside one wanted illumination-cut node, summed into their columns: the
-        # (P, M) rows as they are (padding and spanning clusters weigh 0), or one per line.
-        if entry is None:
-            lines = torch.arange(num_rows, device=node.device)
-            column = column.view(num_rows, width)
-        else:
-            inside = torch.nonzero(column < num_columns).squeeze(1)
-            entry = entry.index_select(0, inside)
-            lines = torch.div(entry, width, rounding_mode="floor")
-            node = flat_node.index_select(0, entry).view(-1, 1)
-            visibility = flat_visibility.index_select(0, entry).view(-1, 1)
-            column = column.index_select(0, inside).view(-1, 1)
-        weight = table.inside_size.index_select(0, node.reshape(-1)).view(node.shape).mul_(visibility)
-        cell = column.add_((lines * (num_columns + 2)).unsqueeze(1))
-        flat = sums.view(-1)
-        picked = None if entry is None else lines  # one entry per line: its row's values gathered per block
-        for part in slabs(*node.shape):
-            blocks.dense(
-                self._node_points,
-                node[part],
-                _lines_of(geometry, part, picked),
-                self._positions(_lines_of(samples, part, picked)),
-                tuple(_lines_of(r, part, picked) for r in roughnesses),
-                _lines_of(cos_e, part, picked),
-                _lines_of(view_sq, part, picked),
-                weight[part],
-                cell[part].reshape(-1),
-                flat,
-                first_factor,
-            )
-        return sums, grid
-
-    def _grid_sums(
-        self, blocks: BlockEvaluator, table: _NodeTable, grid: _Grid, rows: tuple, sums: torch.Tensor, first_factor: int
-    ) -> None:
-        """The factors of a `_Grid` of P rows written into the column sums `sums` (F, P, C + 2)
-        (`_factor_columns`): every factor if the grid has every column, else the live columns'
-        from `first_factor` on (the earlier factors unset); the rest 0. `rows`: (geometry,
-        samples, roughnesses, cos_e, view_sq) of the P rows."""
-        geometry, samples, roughnesses, cos_e, view_sq = rows
-        num_factors, num_rows, _ = sums.shape
-        num_columns, num_grid = table.nodes.shape[0], grid.columns.shape[0]
-        in_place = num_grid == num_columns
-        (sums[:, :, num_columns:] if in_place else sums[first_factor:]).zero_()
-        nodes = table.nodes if in_place else table.nodes.index_select(0, grid.columns)
-        parts = slabs(num_rows, num_grid)
-        block = sums.new_empty(0 if in_place or not parts else num_factors * parts[0].stop * num_grid)
-        for part in parts:
-            size = part.stop - part.start
-            out = (
-                sums[:, part, :num_columns]
-                if in_place
-                else block[: num_factors * size * num_grid].view(num_factors, size, num_grid)
-            )
-            blocks.grid(
-                self._node_points,
-                nodes,
-                geometry[part],
-                self._positions(samples[part]),
-                tuple(r[part] for r in roughnesses),
-                cos_e[part],
-                view_sq[part],
-                grid.weight[part],
-                out,
-            )
-            if not in_place:
-                lines = torch.arange(part.start, part.stop, device=sums.device) * (num_columns + 2)
-                add_factors(sums.view(-1), (grid.columns + lines.unsqueeze(1)).view(-1), out, first_factor)
+    def merged_visibility(self, rows: torch.Tensor) -> MergedCuts:
+        """The merged visibility cuts of the three lattice vertices of sub-samples `rows` (P,)."""
+        return self._batches.merged(rows)
 
     def held_bytes(self) -> int:
         """`CacheRelighter.held_bytes`: the direct relighter's, the leaves' light per light and `kept_bytes`."""
@@ -775,329 +457,5 @@ class CutsRelighter:
     def kept_bytes(self) -> int:
         """Bytes kept between frames: the merged visibility batches (and their entries by node),
         the factor columns and the last roughness edit's grids."""
-        tensors = [
-            t
-            for batch in (self._visibility_batches or (0, []))[1]
-            for t in (batch.rows, batch.geometry, batch.node, batch.visibility, batch.length)
-        ]
-        tensors += [t for index in (self._by_node or []) if index is not None for t in index]
-        if self._columns is not None:
-            tensors += [*self._columns.columns, *self._columns.counts, self._columns.sums, self._columns.dirty]
-            for rows, grids in filter(None, self._columns.grids):
-                tensors += [rows, *(t for grid in grids for t in (grid.columns, grid.weight, grid.counts))]
+        tensors = self._batches.tensors() + (self._columns.tensors() if self._columns is not None else [])
         return sum(t.numel() * t.element_size() for t in tensors)
-
-    def _positions(self, rows: torch.Tensor) -> torch.Tensor | None:
-        """(P, 3) positions of sub-samples `rows` (P,) in indirect mode (directions towards the
-        clusters' mean positions); None in env mode (the clusters' mean directions)."""
-        return None if self.mode == "env" else self.direct.gbuffer.position.index_select(0, rows)
-
-    def _entries_by_node(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Batch `index`'s entries by node: ((Q,) int32 the flat (P M) positions of its rows'
-        clusters, padding left out, sorted by node, (2L + 2,) int32 offsets: node n's entries are
-        [offsets[n], offsets[n + 1]), n < 2L - 1). Made on first use (a light edit that changes
-        part of the illumination cut) and kept; a frame's batches, on several threads, each fill
-        their own entry of the list `visibility_batches` makes."""
-        batch = self.visibility_batches()[index]
-        assert self._by_node is not None  # made with the batches
-        entry = self._by_node[index]
-        if entry is None:
-            node = batch.node.view(-1)
-            counts = torch.bincount(node, minlength=self.cuts.tree.num_nodes + 1)
-            offsets = torch.cat((counts.new_zeros(1), torch.cumsum(counts, 0)))
-            # The padding (node 2L - 1, sorted last) is never looked up: not kept.
-            order = torch.argsort(node, stable=True)[: int(offsets[self.cuts.tree.num_nodes])].int()
-            entry = self._by_node[index] = (order, offsets.int())
-        return entry
-
-    def visibility_batches(self) -> list[VisibilityBatch]:
-        """The merged visibility cuts of every covered sub-sample, in batches of
-        `settings.rows_per_batch`: computed on first use, then kept (they depend on neither the
-        lights nor the materials). Sub-samples are batched in the order of their vertices' cut
-        sizes, so that a batch's merged cuts have similar sizes."""
-        batch_rows = self.settings.rows_per_batch
-        if self._visibility_batches is None or self._visibility_batches[0] != batch_rows:
-            cuts, g = self.cuts, self.direct.gbuffer
-            inputs = cuts.visibility.sizes()[cuts.sample_vertices].sum(dim=1)
-            order = torch.argsort(inputs, stable=True)
-            batches = []
-            for start in range(0, g.num_samples, batch_rows):
-                rows = order[start : start + batch_rows]
-                row, node, visibility, dark = [], [], [], 0
-                for first in range(0, rows.shape[0], MERGE_ROWS):  # the merge's temporaries stay small
-                    part = rows[first : first + MERGE_ROWS]
-                    merged = self.merged_visibility(part)
-                    blend = self._visibility(merged, cuts.sample_weights[part])
-                    # Clusters all three vertices see as dark stay dark however the illumination
-                    # cut would split them: they are dropped before the illumination cut is merged in.
-                    lit = blend > 0
-                    row.append(merged.row[lit] + first)
-                    node.append(merged.node[lit])
-                    visibility.append(blend[lit])
-                    dark += int((~lit).sum())
-                length, padded_node, padded_visibility = _padded_rows(
-                    torch.cat(row),
-                    (torch.cat(node), torch.cat(visibility)),
-                    rows.shape[0],
-                    (self.cuts.tree.num_nodes, 0.0),
-                )
-                batches.append(
-                    VisibilityBatch(
-                        rows,
-                        self._geometry[rows],
-                        padded_node.int(),
-                        padded_visibility,
-                        length.int(),
-                        int(inputs[rows].sum()),
-                        dark,
-                    )
-                )
-            self._visibility_batches = (batch_rows, batches)
-            self._by_node = [None] * len(batches)
-        return self._visibility_batches[1]
-
-    def _visibility(self, merged: MergedCuts, weights: torch.Tensor) -> torch.Tensor:
-        """(Q,) barycentric blend of the three vertices' cluster means; `weights` (P, 3) per row."""
-        values = self.cuts.visibility.values
-        row, cover = merged.row, merged.cover
-        return (
-            weights[row, 0] * values[cover[0]] + weights[row, 1] * values[cover[1]] + weights[row, 2] * values[cover[2]]
-        )
-
-    def merged_visibility(self, rows: torch.Tensor) -> MergedCuts:
-        """The merged visibility cuts of the three lattice vertices of sub-samples `rows` (P,)."""
-        vertices = self.cuts.sample_vertices[rows]
-        return merge(self.cuts.tree, [(self.cuts.visibility, vertices[:, j]) for j in range(3)])
-
-
-def _assign_slots(slot_node: torch.Tensor, nodes: torch.Tensor, num_nodes: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Give every node of an illumination cut (K,) a column slot: its own if `slot_node` (S,)
-    already holds it, else a slot no node of the cut holds. Updates `slot_node` in place.
-
-    Returns:
-        ((K,) int64 slot of each node, (K,) bool whether the node is new to the slots).
-    """
-    held = torch.nonzero(slot_node >= 0).squeeze(1)
-    slot_of = torch.full((num_nodes,), -1, dtype=torch.int64, device=nodes.device)
-    slot_of[slot_node.index_select(0, held)] = held
-    slot = slot_of.index_select(0, nodes)
-    new = slot < 0
-    used = torch.zeros_like(slot_node, dtype=torch.bool)
-    used[slot[~new]] = True
-    slot[new] = torch.nonzero(~used).squeeze(1)[: int(new.sum())]
-    slot_node.fill_(-1)
-    slot_node[slot] = nodes
-    return slot, new
-
-
-@dataclass(frozen=True)
-class _NodeTable:
-    """What each tree node is to the wanted nodes of an illumination cut (per frame), and the
-    C output columns they are summed into.
-
-    Attributes:
-        nodes: (C,) int64 each column's illumination-cut node (2L - 1, the padding node, if none).
-        size: (C,) float their leaf counts |C| (0 if none).
-        column: (2L,) int64 per tree node (and the padding node 2L - 1 of `VisibilityBatch`):
-            the column of the wanted node it lies in (< C), C if it lies in no wanted node (or is
-            the padding), C + 1 if it spans several cut nodes, some of them wanted.
-        start, end: (2L,) int64 the wanted nodes [start, end) a node overlaps, numbered in cut order.
-        grid_source: (C,) int64 each column's wanted node in cut order (W: none); None if the
-            columns are the wanted nodes in cut order.
-        ranges: (2, R) int64 node ranges [first, end) holding every node of column != C: the
-            wanted nodes' subtrees [leftleaf, node + 1) and the spanning nodes.
-        inside_size: (2L,) float |C| of the nodes with column < C, else 0.
-        num_wanted: W, the wanted nodes.
-        everything: whether every node of the cut is wanted.
-    """
-
-    nodes: torch.Tensor
-    size: torch.Tensor
-    column: torch.Tensor
-    start: torch.Tensor
-    end: torch.Tensor
-    grid_source: torch.Tensor | None
-    ranges: torch.Tensor
-    inside_size: torch.Tensor
-    num_wanted: int
-    everything: bool
-
-    @staticmethod
-    def of(
-        tree: LightTree,
-        nodes: torch.Tensor,
-        wanted: torch.Tensor,
-        node_size: torch.Tensor,
-        columns: torch.Tensor | None = None,
-        num_columns: int = 0,
-    ) -> _NodeTable:
-        """The table of the cut `nodes` (K,) (sorted) whose `wanted` (K,) bool nodes are to be
-        computed, into `num_columns` columns, `columns` (K,) int64 giving a wanted node's (e.g.
-        its slot), or by default in cut order (C = W); `node_size` (2L - 1,) float |C| of
-        every node. A node overlaps the cut nodes from the one holding its leftmost leaf to the
-        one holding its rightmost (`leaf_cut_index`)."""
-        cut_of = leaf_cut_index(tree, nodes)
-        first = cut_of.index_select(0, tree.leftleaf)
-        last = cut_of.index_select(0, torch.arange(tree.num_nodes, device=nodes.device) - tree.height)
-        rank = torch.cumsum(wanted, 0)
-        start = rank.index_select(0, first) - wanted.index_select(0, first).long()
-        end = rank.index_select(0, last)
-        wanted_index = torch.nonzero(wanted).squeeze(1)
-        num_wanted = wanted_index.shape[0]
-        grid_source = None
-        if columns is None:
-            columns, num_columns = rank - 1, num_wanted
-        else:
-            grid_source = torch.full((num_columns,), num_wanted, dtype=torch.int64, device=nodes.device).index_copy_(
-                0, columns.index_select(0, wanted_index), torch.arange(num_wanted, device=nodes.device)
-            )
-        column_nodes = torch.full((num_columns,), tree.num_nodes, dtype=torch.int64, device=nodes.device).index_copy_(
-            0, columns.index_select(0, wanted_index), nodes.index_select(0, wanted_index)
-        )
-        column = torch.where(
-            first == last,
-            torch.where(wanted.index_select(0, first), columns.index_select(0, first), num_columns),
-            torch.where(end > start, num_columns + 1, num_columns),
-        )
-        pad = column.new_zeros(1)
-        padded_size = torch.cat((node_size, node_size.new_zeros(1)))
-        inside_size = torch.where(column < num_columns, node_size, 0.0)
-        wanted_nodes = nodes.index_select(0, wanted_index)
-        spanning = torch.nonzero(column == num_columns + 1).squeeze(1)
-        ranges = torch.stack(
-            (
-                torch.cat((tree.leftleaf.index_select(0, wanted_nodes), spanning)),
-                torch.cat((wanted_nodes, spanning)) + 1,
-            )
-        )
-        return _NodeTable(
-            column_nodes,
-            padded_size.index_select(0, column_nodes),
-            torch.cat((column, pad + num_columns)),
-            torch.cat((start, pad)),
-            torch.cat((end, pad)),
-            grid_source,
-            ranges,
-            torch.cat((inside_size, inside_size.new_zeros(1))),
-            num_wanted,
-            num_wanted == nodes.shape[0],
-        )
-
-
-@dataclass(frozen=True)
-class _Grid:
-    """What a chunk of rows' factor sums (`CutsRelighter._factor_columns`) depend on besides the
-    materials, past the entries' columns: a roughness edit keeps it for the next edit of the
-    same rows (`FactorColumns.grids`).
-
-    Attributes:
-        columns: (G,) int64 the grid's columns, ascending: every column, or the live ones (some
-            row's cluster spans their node; the others weigh 0 in every row) if at most
-            `GRID_LIVE_SHARE` of them.
-        weight: (P, G) float |C_j| <v> of the cluster spanning column j's node in each row (0: none).
-        counts: (C,) int64 merged entries per column (grid cells and clusters inside the node).
-    """
-
-    columns: torch.Tensor
-    weight: torch.Tensor
-    counts: torch.Tensor
-
-
-def _grid(
-    table: _NodeTable,
-    column: torch.Tensor,
-    entry: torch.Tensor | None,
-    flat_node: torch.Tensor,
-    flat_visibility: torch.Tensor,
-    num_rows: int,
-    width: int,
-) -> _Grid:
-    """The `_Grid` of the (P, M) rows `flat_node`, `flat_visibility` (P M,) of a batch (M =
-    `width`) whose entries `entry` (E,) int64 (None: all) have columns `column` (E,) int64
-    (`_NodeTable.column`)."""
-    num_columns = table.nodes.shape[0]
-    counts = torch.bincount(column, minlength=num_columns + 2)
-    # Clusters spanning several illumination-cut nodes: a grid of the wanted nodes in cut order.
-    spanning = torch.nonzero(column == num_columns + 1).squeeze(1)
-    if entry is not None:
-        spanning = entry.index_select(0, spanning)
-    spanning_node = flat_node.index_select(0, spanning)
-    num_wanted = table.num_wanted
-    # int32 labels: the grid's zeros, running sums and gather move half the bytes of int64.
-    label = torch.arange(1, spanning.shape[0] + 1, dtype=torch.int32, device=flat_node.device)
-    base = torch.div(spanning, width, rounding_mode="floor") * (num_wanted + 1)
-    start, end = table.start.index_select(0, spanning_node), table.end.index_select(0, spanning_node)
-    steps = torch.zeros(num_rows * (num_wanted + 1), dtype=torch.int32, device=flat_node.device)
-    steps.index_add_(0, base + start, label)
-    steps.index_add_(0, base + end, -label)
-    cluster = torch.cumsum(steps.view(num_rows, num_wanted + 1), dim=1, dtype=torch.int32)  # 0: none (last column: 0)
-    # Grid cells holding a cluster, per wanted node in cut order (the last: none).
-    covered = torch.cumsum(
-        torch.bincount(start, minlength=num_wanted + 1) - torch.bincount(end, minlength=num_wanted + 1), 0
-    )
-    weight = (
-        torch.cat((flat_visibility.new_zeros(1), flat_visibility.index_select(0, spanning)))
-        .index_select(0, cluster.view(-1))
-        .view(num_rows, num_wanted + 1)
-    )
-    source = table.grid_source
-    covered = covered[:num_wanted] if source is None else covered.index_select(0, source)
-    # The `dome` backdrop's chunks of 2,048 rows span ~147 of the cut's 256 nodes.
-    live = torch.nonzero(covered).squeeze(1)
-    if live.shape[0] > GRID_LIVE_SHARE * num_columns:  # every column
-        live, size = torch.arange(num_columns, device=flat_node.device), table.size
-        weight = weight[:, :num_wanted] if source is None else weight.index_select(1, source)
-    else:
-        size = table.size.index_select(0, live)
-        weight = weight.index_select(1, live if source is None else source.index_select(0, live))
-    return _Grid(live, weight.mul_(size), covered + counts[:num_columns])
-
-
-def _lines_of(values: torch.Tensor, part: slice, lines: torch.Tensor | None) -> torch.Tensor:
-    """Per-row `values` (P, ...) for the lines `part` of a block: the rows themselves (`lines`
-    None), or those of the lines' rows `lines` (E,) int64, gathered for this block only."""
-    return values[part] if lines is None else values.index_select(0, lines[part])
-
-
-def _concatenated_ranges(low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
-    """(sum(high - low),) int64 the integers of the ranges [low, high) (R,), one after another."""
-    counts = high - low
-    owner = torch.repeat_interleave(torch.arange(low.shape[0], device=low.device), counts)
-    return (low - (torch.cumsum(counts, 0) - counts)).index_select(0, owner) + torch.arange(
-        owner.shape[0], device=low.device
-    )
-
-
-def _padded_rows(
-    row: torch.Tensor, values: tuple[torch.Tensor, ...], num_rows: int, fills: tuple[float, ...]
-) -> tuple[torch.Tensor, ...]:
-    """((P,) int64 entries per row, then (P, M) arrays of per-row entries: `values` (Q,) each, in
-    rows `row` (Q,) int64 ascending, each row's entries in order then its `fill`); M the longest
-    row (at least 1)."""
-    counts = torch.bincount(row, minlength=num_rows)
-    width = max(int(counts.max()) if num_rows else 0, 1)
-    slot = (
-        row * width
-        + torch.arange(row.shape[0], device=row.device)
-        - (torch.cumsum(counts, 0) - counts).index_select(0, row)
-    )
-    return counts, *(
-        torch.full((num_rows * width,), fill, dtype=value.dtype, device=value.device)
-        .index_copy_(0, slot, value)
-        .view(num_rows, width)
-        for value, fill in zip(values, fills, strict=True)
-    )
-
-
-def _rows_of(columns: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-    """(R, F, K) the factor columns (P, F, K) of `rows` (R,) int64: one `index_select` of the
-    flattened (P, F K) rows (on the CPU a bfloat16 `index_select` of the 3-D tensor ran ~20x
-    slower: 28 against 1.5 ms for 10,000 of 16,384 rows at F K = 1,024)."""
-    return columns.view(columns.shape[0], -1).index_select(0, rows).view(rows.shape[0], *columns.shape[1:])
-
-
-def _light_sums(columns: torch.Tensor, table: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """(P, F, 3) factor sums (P, F, K) times the slots' light (K, 6), as `dtype`: diffuse light
-    (first three columns) for the first two factors, specular light for the others."""
-    products = (columns.reshape(-1, columns.shape[2]) @ table).view(columns.shape[0], columns.shape[1], 6).to(dtype)
-    return torch.cat((products[:, :2, :3], products[:, 2:, 3:]), dim=1)

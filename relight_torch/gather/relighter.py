@@ -27,7 +27,8 @@ import functools
 import torch
 
 from relight_torch.diffuse_light import diffuse_radiance
-from relight_torch.direct.relighter import Relighter, unit_light
+from relight_torch.direct.images import unit_light
+from relight_torch.direct.relighter import Relighter
 from relight_torch.gather.reconstruction import interpolate
 from relight_torch.gather.remembered import RememberedVisibility
 from relight_torch.indirect import IndirectRelighter, gather_light_key

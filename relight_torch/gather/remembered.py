@@ -14,7 +14,7 @@ import collections
 
 import torch
 
-from relight_torch.direct.relighter import geometry_key
+from relight_torch.direct.rig import geometry_key
 from relight_torch.lights.light import Light
 from relight_torch.visibility import Visibility
 

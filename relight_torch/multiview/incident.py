@@ -39,7 +39,7 @@ import torch
 
 from relight_torch.brdf import preview_surface
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
-from relight_torch.direct.relighter import unit_light
+from relight_torch.direct.images import unit_light
 from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light
 from relight_torch.lights.geometry import LightFrame

@@ -41,7 +41,9 @@ import torch
 
 from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import check_inputs, load_npy
-from relight_torch.direct.relighter import Relighter, embree_visibility, replace_rig, shot_lights
+from relight_torch.direct.loading import embree_visibility, shot_lights
+from relight_torch.direct.relighter import Relighter
+from relight_torch.direct.rig import replace_rig
 from relight_torch.direct.settings import RelightSettings
 from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer

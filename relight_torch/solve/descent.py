@@ -46,7 +46,7 @@ import torch.autograd.forward_ad as forward_ad
 
 from relight_torch.direct import gradients
 from relight_torch.direct.gradients import LightPose, applies
-from relight_torch.direct.relighter import colour_scale
+from relight_torch.direct.images import colour_scale
 from relight_torch.lights.emission import is_delta_light
 from relight_torch.lights.light import Light
 from relight_torch.protocol import CacheRelighter, GradientRelighter

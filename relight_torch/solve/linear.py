@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from scipy.optimize import nnls
 
-from relight_torch.direct.relighter import colour_scale, unit_light
+from relight_torch.direct.images import colour_scale, unit_light
 from relight_torch.errors import RelightError
 from relight_torch.lights.light import Light
 from relight_torch.protocol import CacheRelighter

@@ -1,6 +1,6 @@
 """What `relight solve` may free, and how a solved emission scale is written back as UsdLux inputs.
 
-A light's emission enters its image through one (3,) factor (`relighter.colour_scale`):
+A light's emission enters its image through one (3,) factor (`direct.images.colour_scale`):
 
     scale = intensity * 2^exposure * color [* blackbody(colorTemperature)]
 
@@ -94,7 +94,7 @@ def scaled_light(light: Light, scale: np.ndarray, free: Iterable[str]) -> Light:
 
     Args:
         light: the light before (its colour temperature and any input not freed are kept).
-        scale: (3,) the wanted emission factor (`relighter.colour_scale`), non-negative; with
+        scale: (3,) the wanted emission factor (`direct.images.colour_scale`), non-negative; with
             'color' not free, a multiple of the light's current factor.
         free: the free kinds; 'intensity', 'exposure' and 'color' are read.
 

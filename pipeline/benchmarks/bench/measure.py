@@ -23,7 +23,7 @@ from pipeline.benchmarks.bench.methods import BenchScene
 from pipeline.benchmarks.rows import NAN, SweepRow
 from pipeline.tracing_bench import median_seconds
 from relight_torch.cache.layer import read_cache_layer
-from relight_torch.direct.relighter import shot_lights
+from relight_torch.direct.loading import shot_lights
 from relight_torch.lights.light import Light
 from relight_torch.metrics import psnr, rel_mse
 
