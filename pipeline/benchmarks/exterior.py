@@ -10,7 +10,7 @@ components by measurement), `relight bake` runs in a child process, timed by wal
 peak resident set (`pipeline.benchmarks.peak_rss`); then `pipeline.benchmarks.relight_memory` opens the cache
 in another child and times sphere-light moves and colour edits (median ms) with the relighter's
 peak. Caches baked by an earlier run into the same --work folder are reused with their bake
-figures. Writes OUT/summary.md and OUT/exterior.csv.
+figures (`--no-bake`: only those are measured). Writes OUT/summary.md and OUT/exterior.csv.
 """
 
 from __future__ import annotations
@@ -80,11 +80,21 @@ def _choice(layer: Path) -> str:
     return f"{parameters['shotComponents']}, {parameters['shotBounces']} bounces, {parameters['shotFiltering']}"
 
 
-def bake(shot: Path, size: tuple[int, int], kind: str, folder: Path) -> tuple[Path, dict]:
-    """The cache of `kind` at `size` in `folder` and its bake figures, baked unless an earlier run
-    left both."""
+def _folder(work: Path, size: tuple[int, int], kind: str) -> Path:
+    return work / f"{kind}_{size[0]}x{size[1]}"
+
+
+def baked(work: Path, size: tuple[int, int], kind: str) -> bool:
+    """Whether an earlier run left the cache of `kind` at `size` in `work` with its bake figures."""
+    folder = _folder(work, size, kind)
+    return (folder / f"{STEM}.relight.usda").exists() and (folder / "bake.json").exists()
+
+
+def bake(shot: Path, size: tuple[int, int], kind: str, work: Path) -> tuple[Path, dict]:
+    """The cache of `kind` at `size` in `work` and its bake figures, baked unless `baked`."""
+    folder = _folder(work, size, kind)
     layer, figures = folder / f"{STEM}.relight.usda", folder / "bake.json"
-    if not (layer.exists() and figures.exists()):
+    if not baked(work, size, kind):
         arguments = ["bake", str(shot), "--camera", CAMERA, "--out", str(folder), "--stem", STEM]
         arguments += ["--width", str(size[0]), "--height", str(size[1]), *KINDS[kind]]
         seconds, peak, _ = run_child("pipeline.cli", arguments)
@@ -95,7 +105,7 @@ def bake(shot: Path, size: tuple[int, int], kind: str, folder: Path) -> tuple[Pa
 
 def measure(shot: Path, size: tuple[int, int], kind: str, work: Path, repeats: int) -> Row:
     """Bake (or reuse) one cache and time a session on it."""
-    layer, figures = bake(shot, size, kind, work / f"{kind}_{size[0]}x{size[1]}")
+    layer, figures = bake(shot, size, kind, work)
     _, _, printed = run_child("pipeline.benchmarks.relight_memory", [str(layer), "--repeats", str(repeats)])
     session = {}
     for line in printed.splitlines():
@@ -117,8 +127,9 @@ FORMATS = {"open_s": ".1f", "colour_ms": ".1f", "colour_cpu_ms": ".1f", "peak_rs
 """Digits of the session's figures (others: whole ms)."""
 
 
-def summary(rows: list[Row], teapots: int, command: str, load: tuple[float, float]) -> str:
-    """The markdown table of `rows` (`load`: the 1-minute load average at the start and end)."""
+def summary(rows: list[Row], missing: list[str], teapots: int, command: str, load: tuple[float, float]) -> str:
+    """The markdown table of `rows` and the `missing` cells (`load`: the 1-minute load average at
+    the start and end)."""
     header = ["size", "cache", "bake s", "bake peak RSS GB", "cache MB", "what the bake chose", "open s"]
     header += ["move ms", "move CPU ms", "colour ms", "colour CPU ms", "relighter peak RSS GB"]
     lines = [
@@ -129,7 +140,8 @@ def summary(rows: list[Row], teapots: int, command: str, load: tuple[float, floa
         "(`pipeline.benchmarks.suite_assets.write_exterior_shot`). Bakes and sessions run in their own",
         "processes; each peak RSS is its process's own. A move translates one sphere light (its transport is",
         "traced again), a colour edit rescales it; each is followed by a render (median of the repeats, after",
-        "the first frame). The relighter runs at its default memory budget.",
+        "the first frame). The relighter runs at its default memory budget. A cache an earlier run baked keeps",
+        "that run's bake figures (on a machine as loaded as it was then).",
         "",
         "| " + " | ".join(header) + " |",
         "|" + "---|" * len(header),
@@ -138,6 +150,8 @@ def summary(rows: list[Row], teapots: int, command: str, load: tuple[float, floa
         cells = [row.size, row.kind, f"{row.bake_s:.0f}", f"{row.bake_peak_rss_gb:.2f}", f"{row.cache_bytes / 1e6:.0f}"]
         cells += [row.choice] + [format(row.session[name], FORMATS.get(name, ".0f")) for name in SESSION]
         lines.append("| " + " | ".join(cells) + " |")
+    if missing:
+        lines += ["", f"Not measured (not baked: `--no-bake`): {', '.join(missing)}."]
     lines += ["", f"Machine: {machine_description()}; load average {load[0]:.1f} / {load[1]:.1f} (1 min, start / end)."]
     return "\n".join(lines) + "\n"
 
@@ -150,6 +164,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--work", type=Path, default=None, help="keep the shot and its caches here")
     parser.add_argument("--out", type=Path, default=Path("docs/bench/exterior"))
+    parser.add_argument(
+        "--no-bake", action="store_true", help="time sessions on the caches an earlier run left in --work, bake none"
+    )
     args = parser.parse_args(argv)
     given = sys.argv[1:] if argv is None else argv
     shown = [a for i, a in enumerate(given) if a != "--work" and (i == 0 or given[i - 1] != "--work")]
@@ -157,10 +174,13 @@ def main(argv: list[str] | None = None) -> int:
 
     def run(work: Path) -> int:
         load = os.getloadavg()[0]
-        rows = []
+        rows, missing = [], []
         shot = write_exterior_shot(work / "shot", args.teapots, SPHERE_LIGHTS)
         for size in args.sizes:
             for kind in args.kinds:
+                if args.no_bake and not baked(work, size, kind):
+                    missing.append(f"{size[0]}x{size[1]} {kind}")
+                    continue
                 rows.append(measure(shot, size, kind, work, args.repeats))
                 print(rows[-1], flush=True)
         args.out.mkdir(parents=True, exist_ok=True)
@@ -180,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
                     + [f"{row.session[name]:.3f}" for name in SESSION]
                 )
         with atomic_path(args.out / "summary.md") as temporary:
-            temporary.write_text(summary(rows, args.teapots, command, (load, os.getloadavg()[0])))
+            temporary.write_text(summary(rows, missing, args.teapots, command, (load, os.getloadavg()[0])))
         print(args.out / "summary.md")
         return 0
 
