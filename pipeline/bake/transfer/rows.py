@@ -48,7 +48,8 @@ import math
 import numpy as np
 import torch
 
-from pipeline.bake.transfer.lobe import glossy_rows, lobe_rows
+from pipeline.bake.transfer.lobe import lobe_rows
+from relight_torch.brdf.preview_surface import glossy
 from relight_torch.gbuffer import GBuffer
 from relight_torch.indirect_samples import GatherSamples
 from relight_torch.math.frame import orthonormal_basis, to_local
@@ -269,7 +270,7 @@ def final_gather_rows(
 ) -> torch.Tensor:
     """(R, G, 3) rows of F for the view samples `rows` of a CPU GBuffer (`support` as `gather_transport`).
 
-    Glossy view samples (`lobe.glossy_rows`) take their specular part from lobe-sampled rays
+    Glossy view samples (`preview_surface.glossy`) take their specular part from lobe-sampled rays
     (`lobe.lobe_rows`) and their diffuse part from the gathers; the others take the whole BRDF
     towards the gathers.
     """
@@ -280,21 +281,21 @@ def final_gather_rows(
     wi_local = to_local(wi_world, *frame)
     params = view.params.index(rows)
     block = reflected_radiance(params.with_sample_axis(), wo_local.unsqueeze(1), wi_local, weight.unsqueeze(-1))
-    glossy = torch.nonzero(glossy_rows(params), as_tuple=True)[0]
-    if glossy.numel():
-        picked = params.index(glossy)
-        block[glossy] = reflected_radiance(
+    lobed = torch.nonzero(glossy(params), as_tuple=True)[0]
+    if lobed.numel():
+        picked = params.index(lobed)
+        block[lobed] = reflected_radiance(
             picked.with_sample_axis(),
-            wo_local[glossy].unsqueeze(1),
-            wi_local[glossy],
-            weight[glossy].unsqueeze(-1),
+            wo_local[lobed].unsqueeze(1),
+            wi_local[lobed],
+            weight[lobed].unsqueeze(-1),
             specular_scale=0.0,
         ) + lobe_rows(
             picked,
-            position[glossy],
-            view.geometric_normal[rows][glossy],
-            tuple(f[glossy, 0] for f in frame),
-            view.wo_world()[rows][glossy],
+            position[lobed],
+            view.geometric_normal[rows][lobed],
+            tuple(f[lobed, 0] for f in frame),
+            view.wo_world()[rows][lobed],
             gathers,
             caster,
             rows.start or 0,
