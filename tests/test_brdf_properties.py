@@ -6,9 +6,10 @@ comparisons use a fine midpoint grid. Random numbers are seeded; the tests are d
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
-from types import ModuleType
+from types import ModuleType, SimpleNamespace
 
 import pytest
 import scipy.stats
@@ -48,8 +49,16 @@ def _preview(device, dtype, specular_workflow: bool) -> brdf.PreviewSurfaceParam
 
 ParamsBuilder = Callable[[torch.device, torch.dtype], BrdfParams]
 
+# UsdPreviewSurface's specular and clearcoat part alone (`split`'s second value) with its own
+# sampler (`sample(..., diffuse=False)`), which the transfer bake's glossy rows draw from.
+PREVIEW_SPECULAR_LOBES = SimpleNamespace(
+    eval=lambda params, wo, wi: brdf.preview_surface.split(params, wo, wi)[1],
+    sample=functools.partial(brdf.preview_surface.sample, diffuse=False),
+    pdf=functools.partial(brdf.preview_surface.pdf, diffuse=False),
+)
+
 # One moderate, coloured parameter set per model (and both Storm workflows).
-CASES: dict[str, tuple[ModuleType, ParamsBuilder]] = {
+CASES: dict[str, tuple[ModuleType | SimpleNamespace, ParamsBuilder]] = {
     "lambert": (brdf.lambert, lambda d, t: brdf.LambertParams(_rows(d, t, 0.8, 0.5, 0.2))),
     "phong": (brdf.phong, lambda d, t: brdf.PhongParams(_rows(d, t, 0.9, 0.7, 0.5), _rows(d, t, 12.0))),
     "blinn_phong": (
@@ -68,6 +77,7 @@ CASES: dict[str, tuple[ModuleType, ParamsBuilder]] = {
     ),
     "preview_metallic": (brdf.preview_surface, lambda d, t: _preview(d, t, specular_workflow=False)),
     "preview_specular": (brdf.preview_surface, lambda d, t: _preview(d, t, specular_workflow=True)),
+    "preview_specular_lobes": (PREVIEW_SPECULAR_LOBES, lambda d, t: _preview(d, t, specular_workflow=False)),
 }
 
 # White parameters of the models (and parameter ranges) claimed to conserve energy.

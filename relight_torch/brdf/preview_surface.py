@@ -338,8 +338,13 @@ def eval(params: PreviewSurfaceParams, wo_local: torch.Tensor, wi_local: torch.T
     return diffuse + specular
 
 
-def lobe_probabilities(params: PreviewSurfaceParams, wo_local: torch.Tensor) -> torch.Tensor:
+def lobe_probabilities(params: PreviewSurfaceParams, wo_local: torch.Tensor, diffuse: bool = True) -> torch.Tensor:
     """Probabilities (..., 3) of sampling the diffuse, specular and clearcoat lobes at wo.
+
+    `diffuse=False` leaves the diffuse lobe out (probability 0): the sampler of the specular and
+    clearcoat part alone (`split`'s second value), for callers that integrate the diffuse part by
+    other means (the transfer bake's glossy rows). A material without either lobe then samples the
+    specular one.
 
     Proportional to the mean over RGB of each lobe's albedo estimate: Schlick F at N.E for the
     specular lobes, diffuse albedo (1 - F0) for the diffuse one. A black material samples the
@@ -358,25 +363,28 @@ def lobe_probabilities(params: PreviewSurfaceParams, wo_local: torch.Tensor) -> 
     coat_fresnel = schlick_fresnel(_dielectric_f0(params), 1.0, cos_o)
     weights = torch.stack(
         (
-            (diffuse_albedo(params) * (1.0 - f0)).mean(-1).expand_as(cos_o),
+            (diffuse_albedo(params) * (1.0 - f0)).mean(-1).expand_as(cos_o) * float(diffuse),
             specular_fresnel.mean(-1),
             params.clearcoat * coat_fresnel,
         ),
         dim=-1,
     ).clamp_min(0.0)
     total = weights.sum(-1, keepdim=True)
-    black = torch.tensor([1.0, 0.0, 0.0], device=weights.device, dtype=weights.dtype)
+    black = torch.tensor([1.0, 0.0, 0.0] if diffuse else [0.0, 1.0, 0.0], device=weights.device, dtype=weights.dtype)
     return torch.where(total > 0, weights / total.clamp_min(torch.finfo(weights.dtype).tiny), black)
 
 
-def sample(params: PreviewSurfaceParams, wo_local: torch.Tensor, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def sample(
+    params: PreviewSurfaceParams, wo_local: torch.Tensor, u: torch.Tensor, diffuse: bool = True
+) -> tuple[torch.Tensor, torch.Tensor]:
     """wi (..., 3) from the lobe mixture, with the mixture pdf (...) (0 for lost samples).
 
     u[..., 0] picks the lobe and is then rescaled to [0, 1) within the lobe's interval, so two
-    numbers per sample suffice.
+    numbers per sample suffice. `diffuse=False`: the specular and clearcoat lobes only
+    (`lobe_probabilities`), with their own mixture pdf (`pdf(..., diffuse=False)`).
     """
     check_sample_args(wo_local, u)
-    probabilities = lobe_probabilities(params, wo_local)
+    probabilities = lobe_probabilities(params, wo_local, diffuse)
     batch = torch.broadcast_shapes(  # type: ignore[no-untyped-call]  # unannotated in torch
         probabilities.shape[:-1], u.shape[:-1]
     )
@@ -400,13 +408,15 @@ def sample(params: PreviewSurfaceParams, wo_local: torch.Tensor, u: torch.Tensor
     )
     candidates = torch.stack(wis, dim=-2)
     wi_local = candidates.gather(-2, lobe.unsqueeze(-1).expand(*lobe.shape[:-1], 1, 3)).squeeze(-2)
-    return wi_local, pdf(params, wo_local, wi_local)
+    return wi_local, pdf(params, wo_local, wi_local, diffuse)
 
 
-def pdf(params: PreviewSurfaceParams, wo_local: torch.Tensor, wi_local: torch.Tensor) -> torch.Tensor:
-    """Mixture density (...) of `sample` at wi, in 1/sr; 0 below the horizon."""
+def pdf(
+    params: PreviewSurfaceParams, wo_local: torch.Tensor, wi_local: torch.Tensor, diffuse: bool = True
+) -> torch.Tensor:
+    """Mixture density (...) of `sample` (with the same `diffuse`) at wi, in 1/sr; 0 below the horizon."""
     check_pair(wo_local, wi_local)
-    probabilities = lobe_probabilities(params, wo_local)
+    probabilities = lobe_probabilities(params, wo_local, diffuse)
     densities = torch.stack(
         torch.broadcast_tensors(  # type: ignore[no-untyped-call]  # unannotated in torch
             cosine_hemisphere_pdf(wi_local),

@@ -48,6 +48,8 @@ import math
 import numpy as np
 import torch
 
+from pipeline.bake.transfer.lobe import lobe_rows
+from relight_torch.brdf.preview_surface import glossy
 from relight_torch.gbuffer import GBuffer
 from relight_torch.indirect_samples import GatherSamples
 from relight_torch.math.frame import orthonormal_basis, to_local
@@ -266,15 +268,39 @@ def normalised_rows(
 def final_gather_rows(
     view: GBuffer, rows: slice, gathers: GatherSamples, caster: RayCaster, support: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """(R, G, 3) rows of F for the view samples `rows` of a CPU GBuffer (`support` as `gather_transport`)."""
+    """(R, G, 3) rows of F for the view samples `rows` of a CPU GBuffer (`support` as `gather_transport`).
+
+    Glossy view samples (`preview_surface.glossy`) take their specular part from lobe-sampled rays
+    (`lobe.lobe_rows`) and their diffuse part from the gathers; the others take the whole BRDF
+    towards the gathers.
+    """
     position = view.position[rows]
     wi_world, weight = normalised_rows(position, view.geometric_normal[rows], gathers, caster, support, rows.start or 0)
     frame = (view.tangent[rows, None], view.bitangent[rows, None], view.normal[rows, None])
     wo_local = to_local(view.wo_world()[rows], *(f[:, 0] for f in frame))
     wi_local = to_local(wi_world, *frame)
-    return reflected_radiance(
-        view.params.index(rows).with_sample_axis(), wo_local.unsqueeze(1), wi_local, weight.unsqueeze(-1)
-    )
+    params = view.params.index(rows)
+    block = reflected_radiance(params.with_sample_axis(), wo_local.unsqueeze(1), wi_local, weight.unsqueeze(-1))
+    lobed = torch.nonzero(glossy(params), as_tuple=True)[0]
+    if lobed.numel():
+        picked = params.index(lobed)
+        block[lobed] = reflected_radiance(
+            picked.with_sample_axis(),
+            wo_local[lobed].unsqueeze(1),
+            wi_local[lobed],
+            weight[lobed].unsqueeze(-1),
+            specular_scale=0.0,
+        ) + lobe_rows(
+            picked,
+            position[lobed],
+            view.geometric_normal[rows][lobed],
+            tuple(f[lobed, 0] for f in frame),
+            view.wo_world()[rows][lobed],
+            gathers,
+            caster,
+            rows.start or 0,
+        )
+    return block
 
 
 def bounce_rows(
