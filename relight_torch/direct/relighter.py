@@ -49,7 +49,6 @@ from relight_torch.direct import gradients
 from relight_torch.direct.budget import MemoryBudget
 from relight_torch.direct.gradients import GEOMETRY_KINDS
 from relight_torch.direct.images import add_scaled, box_filter, lobe_scales
-from relight_torch.direct.images import unit_light as unit_light  # imported from here by relight_torch.transfer
 from relight_torch.direct.loading import embree_visibility, load_opacity, shot_lights
 from relight_torch.direct.progressive import Progress, add_light_at, coarse_light, refine_points
 from relight_torch.direct.rig import LightState, light_group, light_keys, replace_rig

@@ -18,7 +18,8 @@ import torch
 
 from relight_torch.diffuse_light import link_mask
 from relight_torch.direct import gradients
-from relight_torch.direct.relighter import Relighter, unit_light
+from relight_torch.direct.images import unit_light
+from relight_torch.direct.relighter import Relighter
 from relight_torch.indirect import IndirectRelighter, gather_light_key
 from relight_torch.indirect_samples import GatherSamples, gather_radiance
 from relight_torch.light_samples import fixed_light_samples
