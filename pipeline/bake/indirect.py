@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
 from pipeline.bake.direct.bake import direct_payloads, prepare_output, shot_tracer, write_npy
@@ -100,3 +101,67 @@ def view_samples(shot: ShotSpec, texture_samples: int) -> GBuffer:
     once per process with the shot's BVH (`shot_tracer`, shared with the direct chunks)."""
     scene, camera = load_shot(shot)
     return bake_deep_framebuffer(scene, camera, 1, texture_samples, tracer=shot_tracer(shot)).gbuffer
+
+
+@dataclass(frozen=True)
+class PixelViews:
+    """The view samples of an indirect bake's rows: each row box-filters the s x s sub-samples of one pixel.
+
+    Attributes:
+        samples: the covered sub-samples, grouped by pixel (pixels in order, then their sub-samples).
+        offsets: (P + 1,) int64: row p takes samples offsets[p] : offsets[p + 1].
+        pixels: (P,) int64 pixel (row * W + col) of each row: the pixels with a covered sub-sample.
+        supersampling: s; a row is the sum over its sub-samples divided by s^2 (an uncovered
+            sub-sample sees no surface, so it adds no light).
+    """
+
+    samples: GBuffer
+    offsets: torch.Tensor
+    pixels: torch.Tensor
+    supersampling: int
+
+    @property
+    def num_rows(self) -> int:
+        return int(self.pixels.shape[0])
+
+    def row_samples(self, rows: slice) -> tuple[slice, torch.Tensor]:
+        """The sub-samples of rows [start, stop): their slice of `samples`, and (n,) the row (from 0) of each."""
+        first, last = int(self.offsets[rows.start]), int(self.offsets[rows.stop])
+        counts = self.offsets[rows.start + 1 : rows.stop + 1] - self.offsets[rows.start : rows.stop]
+        return slice(first, last), torch.repeat_interleave(torch.arange(rows.stop - rows.start), counts)
+
+
+def group_by_pixel(gbuffer: GBuffer, supersampling: int) -> PixelViews:
+    """`gbuffer`'s sub-samples (an (H s) x (W s) sub-sample image) grouped by the pixel they lie in."""
+    s = supersampling
+    sub_width = gbuffer.image_size[1]
+    row = torch.div(gbuffer.pixel_index, sub_width, rounding_mode="floor")
+    pixel = torch.div(row, s, rounding_mode="floor") * (sub_width // s) + torch.div(
+        gbuffer.pixel_index % sub_width, s, rounding_mode="floor"
+    )
+    order = torch.argsort(pixel, stable=True)
+    pixels, counts = torch.unique_consecutive(pixel[order], return_counts=True)
+    offsets = torch.zeros(pixels.shape[0] + 1, dtype=torch.int64)
+    offsets[1:] = counts.cumsum(0)
+    taken = {
+        f.name: getattr(gbuffer, f.name)[order]
+        for f in dataclasses.fields(gbuffer)
+        if f.name not in ("image_size", "params", "camera_position")
+    }
+    samples = dataclasses.replace(gbuffer, **taken, params=gbuffer.params.index(order))
+    return PixelViews(samples, offsets, pixels.to(torch.int64), s)
+
+
+@per_process
+def pixel_views(shot: ShotSpec, texture_samples: int, supersampling: int) -> PixelViews:
+    """The shot camera's pixels as rows of s x s sub-samples (`group_by_pixel`), baked once per process.
+
+    One sample at each pixel centre (s = 1) stands for the whole pixel; where surfaces change within
+    a pixel (silhouettes of thin objects), the centres are a regular sample of a sub-pixel pattern
+    and their mean need not be the pixels' mean. On the set scene at 64 x 48 (one bounce, the
+    gathers' Lambertian light traced exactly from each view sample), pixel centres gave 0.88-0.99
+    of the path tracer's indirect light per light, 4 x 4 sub-samples 0.96-1.01.
+    """
+    scene, camera = load_shot(shot)
+    gbuffer = bake_deep_framebuffer(scene, camera, supersampling, texture_samples, tracer=shot_tracer(shot)).gbuffer
+    return group_by_pixel(gbuffer, supersampling)

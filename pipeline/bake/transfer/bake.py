@@ -1,10 +1,11 @@
 """`relight bake --method transfer`: the direct cache plus gathers and wavelet transfer rows.
 
 Writes into OUT, beside the direct method's payloads (`pipeline.bake.direct.bake`):
-    <stem>.viewPixels.npy          (R,) int64 pixel (row * W + col) of each F row: one view
-                                   sample per pixel centre (indirect light is smooth; the direct
-                                   part keeps the cache's supersampling, as in the chapter), of
-                                   the image reduced s times per side with --indirect-scale s
+    <stem>.viewPixels.npy          (R,) int64 pixel (row * W + col) of each F row, a covered
+                                   pixel: the mean of the rows of its sub-samples, on the direct
+                                   part's s x s grid (`view_supersampling`); with --indirect-scale
+                                   s > 1, one view sample per pixel centre of the image reduced s
+                                   times per side
     <stem>.view<Field>.npy         with --indirect-scale s > 1: Position, Normal (geometric) (R, 3)
                                    float32 and ObjectId (R,) int32 of the coarse view samples
     <stem>.gather<Field>.npy       the gather cloud (`GatherSamples` fields), texture order;
@@ -37,7 +38,7 @@ import torch
 
 from pipeline.bake.direct.bake import shot_tracer, write_npy
 from pipeline.bake.gather_cloud import create_gathers
-from pipeline.bake.indirect import start_indirect_bake, view_samples
+from pipeline.bake.indirect import PixelViews, pixel_views, start_indirect_bake
 from pipeline.bake.scheduler import (
     ChunkSpec,
     ShotSpec,
@@ -53,7 +54,6 @@ from pipeline.bake.transfer.rows import bounce_rows, disc_support, final_gather_
 from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.cache.layer import Payload
-from relight_torch.gbuffer import GBuffer
 from relight_torch.indirect_samples import GatherSamples, gather_payload_name
 from relight_torch.transfer.encoding import ENCODINGS, EncodedRows, EncodedValues, decode_rows, encode_rows
 from relight_torch.transfer.haar import haar2d
@@ -177,31 +177,55 @@ def compress_rows(dense: torch.Tensor, num_kept: int, factor: bool, probes: torc
 
 @per_process
 def transfer_inputs(
-    shot: ShotSpec, texture_samples: int, num_gathers: int, seed: int
-) -> tuple[Tracer, GBuffer, GatherSamples, torch.Tensor]:
-    """The shot's BVH, view samples (one per pixel centre), gathers and their discs' support on the
-    surfaces (`rows.disc_support`), built once per process."""
+    shot: ShotSpec, texture_samples: int, num_gathers: int, seed: int, view_supersampling: int = 1
+) -> tuple[Tracer, PixelViews, GatherSamples, torch.Tensor]:
+    """The shot's BVH, view samples (`view_supersampling`^2 per pixel, `pixel_views`), gathers and
+    their discs' support on the surfaces (`rows.disc_support`), built once per process."""
     scene, _ = load_shot(shot)
     tracer = shot_tracer(shot)
     gathers = create_gathers(scene, num_gathers, seed)
-    return tracer, view_samples(shot, texture_samples), gathers, disc_support(gathers, tracer)
+    views = pixel_views(shot, texture_samples, view_supersampling)
+    return tracer, views, gathers, disc_support(gathers, tracer)
+
+
+def view_supersampling(supersampling: int, indirect_scale: int) -> int:
+    """Sub-samples per pixel side that each F row box-filters: the direct part's `supersampling` at
+    indirect scale 1 (the row is then the pixel's own mean, as the direct image is), else 1 (a
+    coarse row is a point value the edge-aware upsampler interpolates)."""
+    return supersampling if indirect_scale == 1 else 1
+
+
+def pixel_final_gather_rows(
+    views: PixelViews, rows: slice, gathers: GatherSamples, caster: Tracer, support: torch.Tensor | None
+) -> torch.Tensor:
+    """(R, G, 3) F rows [start, stop) of `views`: each the mean of its pixel's s x s sub-samples'
+    rows (`final_gather_rows`), an uncovered sub-sample counting as zero."""
+    samples, owner = views.row_samples(rows)
+    sub_rows = final_gather_rows(views.samples, samples, gathers, caster, support)
+    summed = sub_rows.new_zeros((rows.stop - rows.start, *sub_rows.shape[1:])).index_add_(0, owner, sub_rows)
+    return summed / views.supersampling**2
 
 
 def _bake_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
     """Evaluate, transform, cull and encode rows [start, stop) of matrix `spec.name` (F_PREFIX or
     M_PREFIX); arrays named as the payload parts. Batches of rows run on `chunk_threads()` threads."""
-    tracer, view, gathers, support = transfer_inputs(
-        spec.shot, spec.param("textureSamples"), spec.param("gathers"), spec.param("gatherSeed")
+    tracer, views, gathers, support = transfer_inputs(
+        spec.shot,
+        spec.param("textureSamples"),
+        spec.param("gathers"),
+        spec.param("gatherSeed"),
+        spec.param("viewSupersampling"),
     )
     side, num_kept = gathers.side, spec.param("coefficients")
-    batch = max(1, spec.option("pairsPerBatch", TransferSettings.pairs_per_batch) // (side * side))
+    per_row = side * side * (views.supersampling**2 if spec.name == F_PREFIX else 1)
+    batch = max(1, spec.option("pairsPerBatch", TransferSettings.pairs_per_batch) // per_row)
     probes_path = spec.option("probes")
     probes = None if probes_path is None else torch.from_numpy(np.load(probes_path, allow_pickle=False))
 
     def work(start: int) -> SparseRows:
         rows = slice(start, min(start + batch, spec.stop))
         block = (
-            final_gather_rows(view, rows, gathers, tracer, support)
+            pixel_final_gather_rows(views, rows, gathers, tracer, support)
             if spec.name == F_PREFIX
             else bounce_rows(rows, gathers, tracer, support)
         )
@@ -224,6 +248,7 @@ def bake_rows(
     progress: bool | None = None,
     probes: Payload | None = None,
     probes_path: Path | None = None,
+    view_supersampling: int = 1,
 ) -> EncodedRows:
     """All rows of matrix `name` (F_PREFIX or M_PREFIX) in chunks on the ambient scheduler
     (`pipeline.bake.scheduler`), reusing the valid chunks `chunk_dir` already holds.
@@ -235,6 +260,7 @@ def bake_rows(
         chunk_dir: where finished chunks are saved.
         probes, probes_path: the probe lights' payload record and file (workers read it), whose
             products the rows keep (`compress_rows`); None for plain top-k rows.
+        view_supersampling: sub-samples per pixel side of each F row (`view_supersampling`).
     """
     parameters = (
         ("textureSamples", texture_samples),
@@ -244,6 +270,7 @@ def bake_rows(
         ("encoding", settings.encoding),
         ("rowColour", settings.factor_colour),
         ("probes", None if probes is None else probes.sha256),
+        ("viewSupersampling", view_supersampling),
     )
     options = (
         ("pairsPerBatch", settings.pairs_per_batch),
@@ -330,9 +357,11 @@ def bake_transfer(
     chunk_dir = bake.chunk_dir
 
     shot = ShotSpec.of(*reduced_view(scene, camera, settings.indirect_scale), time_code)
-    tracer, view, gathers, _ = transfer_inputs(shot, texture_samples, settings.num_gathers, settings.seed)
-    payloads = [bake.payload(stem, "viewPixels", view.pixel_index.numpy())]
+    sub = view_supersampling(supersampling, settings.indirect_scale)
+    tracer, views, gathers, _ = transfer_inputs(shot, texture_samples, settings.num_gathers, settings.seed, sub)
+    payloads = [bake.payload(stem, "viewPixels", views.pixels.numpy())]
     if settings.indirect_scale > 1:  # what the edge-aware upsampling weighs the coarse samples by
+        view = views.samples  # one sample per coarse pixel, at its centre
         payloads += [
             bake.payload(stem, "viewPosition", view.position.numpy()),
             bake.payload(stem, "viewNormal", view.geometric_normal.numpy()),
@@ -353,6 +382,7 @@ def bake_transfer(
             settings,
             chunk_dir,
             progress,
+            view_supersampling=sub,
         )
         payloads += matrix_payloads(bake.out_dir, stem, M_PREFIX, encoded)
         bounce = decode_rows(encoded)
@@ -370,7 +400,7 @@ def bake_transfer(
     final_gather = bake_rows(
         shot,
         F_PREFIX,
-        view.num_samples,
+        views.num_rows,
         settings.num_coefficients,
         texture_samples,
         settings,
@@ -378,6 +408,7 @@ def bake_transfer(
         progress,
         probes,
         probes_path,
+        sub,
     )
     payloads += matrix_payloads(bake.out_dir, stem, F_PREFIX, final_gather)
     return bake.finish(payloads)
