@@ -41,6 +41,8 @@ from relight_torch.math.sampling import cosine_hemisphere, sobol
 # Bounds on the level-by-level loops (each level at least halves something).
 MAX_REFINE_LEVELS = 48
 MAX_SPLIT_LEVELS = 96
+AREA_BLOCK = 1 << 20
+"""Triangles whose areas and centroids are computed in float64 at once (bounds the temporaries)."""
 POSITION_WEIGHT = 20.0
 """sqrt(400) of the chapter's distance, applied to positions divided by the scene diagonal."""
 ALBEDO_PAIRS = 1024
@@ -78,9 +80,23 @@ def reemitted_albedo(params: PreviewSurfaceParams, num_pairs: int = ALBEDO_PAIRS
 
 
 def triangle_areas(corners: np.ndarray) -> np.ndarray:
-    """(T,) float64 areas of (T, 3, 3) triangles."""
-    corners = corners.astype(np.float64)
-    return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=-1)
+    """(T,) float64 areas of (T, 3, 3) triangles, in float64 a block at a time."""
+    areas = np.empty(corners.shape[0])
+    for first in range(0, corners.shape[0], AREA_BLOCK):
+        block = corners[first : first + AREA_BLOCK].astype(np.float64)
+        areas[first : first + AREA_BLOCK] = 0.5 * np.linalg.norm(
+            np.cross(block[:, 1] - block[:, 0], block[:, 2] - block[:, 0]), axis=-1
+        )
+    return areas
+
+
+def triangle_centroids(corners: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """(K, 3) float64 centroids of the triangles `index` (K,) of (T, 3, 3) `corners`, a block at a time."""
+    centroids = np.empty((index.shape[0], 3))
+    for first in range(0, index.shape[0], AREA_BLOCK):
+        chosen = index[first : first + AREA_BLOCK]
+        centroids[first : first + AREA_BLOCK] = corners[chosen].astype(np.float64).mean(axis=1)
+    return centroids
 
 
 def refine_triangles(
@@ -228,22 +244,35 @@ def create_gathers(scene: Scene, num_gathers: int, seed: int = 0) -> GatherSampl
         raise ValueError(f"the number of gathers must be a power of 4, got {num_gathers}")
     geometry = scene.geometry
     areas = triangle_areas(geometry.positions)
-    keep = areas > 0
-    if not keep.any():
+    if not (areas > 0).any():
         raise ValueError("the scene has no surface area to place gathers on")
-    corners, uvs, parent = refine_triangles(
-        geometry.positions[keep].astype(np.float64), geometry.uvs[keep], areas.sum() / num_gathers
+    max_area = areas.sum() / num_gathers
+    # Only triangles larger than a gather's share are refined: the others (all but a few of a
+    # production set's millions) are read where they lie, never copied whole.
+    big = areas > max_area
+    whole = np.flatnonzero((areas > 0) & ~big)
+    pieces, piece_uvs, piece_parent = refine_triangles(
+        geometry.positions[big].astype(np.float64), geometry.uvs[big], max_area
     )
-    parent = np.flatnonzero(keep)[parent]
+    parent = np.concatenate([whole, np.flatnonzero(big)[piece_parent]])
     rng = np.random.default_rng(seed)
-    triangle, sample_area = split_budget(corners.mean(axis=1), triangle_areas(corners), num_gathers, rng)
+    triangle, sample_area = split_budget(
+        np.concatenate([triangle_centroids(geometry.positions, whole), pieces.mean(axis=1)]),
+        np.concatenate([areas[whole], triangle_areas(pieces)]),
+        num_gathers,
+        rng,
+    )
     # Uniform point in each chosen triangle.
     u = rng.random((num_gathers, 2))
     root = np.sqrt(u[:, 0])
     weights = np.stack([1.0 - root, u[:, 1] * root, root * (1.0 - u[:, 1])], axis=1)
-    c = corners[triangle]
+    is_piece = triangle >= whole.shape[0]
+    c = geometry.positions[parent[triangle]].astype(np.float64)
+    c[is_piece] = pieces[triangle[is_piece] - whole.shape[0]]
+    uvs = geometry.uvs[parent[triangle]].astype(np.float64)
+    uvs[is_piece] = piece_uvs[triangle[is_piece] - whole.shape[0]]
     position = np.einsum("gc,gck->gk", weights, c)
-    uv = np.einsum("gc,gck->gk", weights, uvs[triangle].astype(np.float64))
+    uv = np.einsum("gc,gck->gk", weights, uvs)
     normal = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     material_id = geometry.material_ids[parent[triangle]]
