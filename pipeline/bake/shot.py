@@ -184,10 +184,7 @@ def direct_filtering(
             )
         return layers[supersampling, texture_samples]
 
-    relighter = open_cache(baked(*ladder[0]))
-    shot_mean = float(relighter.render().mean())
-    relighter.set_lights([PROBE_DOME])
-    dome_mean = float(relighter.render().mean())
+    shot_mean, dome_mean = _means_under_shot_and_probe(baked(*ladder[0]))
     lightings = [scene.lights]
     if dome_mean > 0 and shot_mean > 0:
         lightings.append([replace(PROBE_DOME, intensity=shot_mean / dome_mean)])
@@ -212,6 +209,17 @@ def direct_filtering(
     )
     supersamplings = [(s, samples) for s in dict.fromkeys(s for s, _ in ladder)]
     return choose_filtering(lambda s, t: measure(s, t, count=1)[0], threshold, supersamplings)
+
+
+def _means_under_shot_and_probe(layer: Path) -> tuple[float, float]:
+    """The mean of the cache's frame under its own lights and under `PROBE_DOME` at unit intensity.
+
+    A function of its own so that the relighter is released before the next bake: a large shot's
+    relighter holds gigabytes (docs/bench/exterior), which a bake beside it would add to."""
+    relighter = open_cache(layer)
+    shot_mean = float(relighter.render().mean())
+    relighter.set_lights([PROBE_DOME])
+    return shot_mean, float(relighter.render().mean())
 
 
 def choose_texture_samples(
