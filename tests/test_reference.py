@@ -8,6 +8,7 @@ every pixel sees (nearly) the same point and the same view direction.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -160,6 +161,29 @@ def test_same_seed_same_image_whatever_the_worker_count(cornell_box):
     np.testing.assert_array_equal(one.variance, two.variance)
     assert not np.array_equal(one.mean, other.mean)
     assert one.num_paths == 12 * 12 * 6 and one.num_vertices >= one.num_paths
+
+
+def test_a_pass_larger_than_a_batch_is_cut_into_bands_of_rows(cornell_box):
+    """A film-size pass does not fit a batch: it is traced in bands of rows, so a batch holds at
+    most `paths_per_batch` paths whatever the image size, and the image is the same whatever the
+    worker count and agrees with whole-pass batches within its noise."""
+    _, scene, camera = cornell_box
+    banded = ReferenceSettings(spp=8, max_bounces=2, paths_per_batch=50, seed=3)
+    tracer = PathTracer(scene, banded)
+    batches = tracer._batches(camera.height, camera.width)
+    assert all(passes * (rows[1] - rows[0]) * camera.width <= 50 for _, passes, rows in batches)
+    covered = np.zeros((banded.spp, camera.height), int)
+    for first, passes, rows in batches:
+        covered[first : first + passes, rows[0] : rows[1]] += 1
+    np.testing.assert_array_equal(covered, 1)
+    one = PathTracer(scene, replace(banded, num_workers=1)).render(camera)
+    two = PathTracer(scene, replace(banded, num_workers=2)).render(camera)
+    np.testing.assert_array_equal(one.mean, two.mean)
+    whole = PathTracer(scene, replace(banded, paths_per_batch=1 << 16)).render(camera)
+    assert not np.array_equal(one.mean, whole.mean)  # other random streams
+    difference = one.mean.mean() - whole.mean.mean()
+    sigma = np.sqrt((one.variance.sum() + whole.variance.sum()) / one.mean.size**2)
+    assert abs(difference) < 4 * sigma
 
 
 def test_variance_is_the_spread_of_independent_renders(cornell_box):

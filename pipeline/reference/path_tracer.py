@@ -129,6 +129,10 @@ class _Vertex:
         )
 
 
+_Batch = tuple[int, int, tuple[int, int]]
+"""A batch of the image's paths: (first pass, passes, pixel rows [first, last))."""
+
+
 def _power_heuristic(pdf_a: torch.Tensor, pdf_b: torch.Tensor) -> torch.Tensor:
     a2, b2 = pdf_a * pdf_a, pdf_b * pdf_b
     return torch.where(a2 > 0, a2 / (a2 + b2), torch.zeros_like(a2))
@@ -171,19 +175,18 @@ class PathTracer:
         total = num_pixels * self.settings.spp
         total_sum = np.zeros((num_pixels, 3), np.float64)
         total_sq = np.zeros((num_pixels, 3), np.float64)
-        passes_per_batch = max(1, self.settings.paths_per_batch // num_pixels)
-        batches = list(enumerate(range(0, self.settings.spp, passes_per_batch)))
+        batches = list(enumerate(self._batches(height, width)))
 
-        def trace_batch(batch: tuple[int, int]) -> tuple[np.ndarray, int]:
-            """((passes, num_pixels, 3) float64 radiance, vertices shaded) of one batch of passes."""
-            batch_index, first = batch
-            num_passes = min(passes_per_batch, self.settings.spp - first)
+        def trace_batch(batch: tuple[int, _Batch]) -> tuple[np.ndarray, int]:
+            """((passes, pixels, 3) float64 radiance, vertices shaded) of one batch."""
+            batch_index, (_, num_passes, rows) = batch
+            tile = (rows[1] - rows[0], width)
             rng = np.random.default_rng([self.settings.seed, batch_index])
-            rays = [camera_rays(camera, rng.random((height, width, 2), dtype=np.float32)) for _ in range(num_passes)]
+            rays = [camera_rays(camera, rng.random(tile + (2,), dtype=np.float32), rows) for _ in range(num_passes)]
             origins = np.concatenate([o.reshape(-1, 3) for o, _ in rays])
             directions = np.concatenate([d.reshape(-1, 3) for _, d in rays])
             radiance, num_vertices = self._trace(origins, directions, rng)
-            radiance = radiance.numpy().astype(np.float64).reshape(num_passes, num_pixels, 3)
+            radiance = radiance.numpy().astype(np.float64).reshape(num_passes, tile[0] * tile[1], 3)
             return radiance * camera.exposure_scale, num_vertices
 
         done = num_vertices = 0
@@ -191,11 +194,15 @@ class PathTracer:
             # Batches are summed in order (the image does not depend on scheduling), a window of
             # num_workers at a time so that memory stays bounded.
             for window in range(0, len(batches), self.num_workers):
-                for radiance, batch_vertices in pool.map(trace_batch, batches[window : window + self.num_workers]):
+                chunk = batches[window : window + self.num_workers]
+                for (_, (_, _, rows)), (radiance, batch_vertices) in zip(
+                    chunk, pool.map(trace_batch, chunk), strict=True
+                ):
+                    pixels = slice(rows[0] * width, rows[1] * width)
                     num_vertices += batch_vertices
-                    total_sum += radiance.sum(axis=0)
-                    total_sq += np.einsum("pnc,pnc->nc", radiance, radiance)
-                    done += radiance.shape[0] * num_pixels
+                    total_sum[pixels] += radiance.sum(axis=0)
+                    total_sq[pixels] += np.einsum("pnc,pnc->nc", radiance, radiance)
+                    done += radiance.shape[0] * radiance.shape[1]
                     if progress is not None:
                         progress(done, total)
         spp = self.settings.spp
@@ -208,6 +215,17 @@ class PathTracer:
             num_paths=total,
             num_vertices=num_vertices,
         )
+
+    def _batches(self, height: int, width: int) -> list[_Batch]:
+        """The batches of an H x W image, about `paths_per_batch` paths each: whole passes
+        while a pass fits, else each pass cut into bands of rows, so that a film-size image
+        takes no more memory than a small one (about 1 KB per path in flight)."""
+        spp, paths = self.settings.spp, self.settings.paths_per_batch
+        if height * width <= paths:
+            step = paths // (height * width)
+            return [(first, min(step, spp - first), (0, height)) for first in range(0, spp, step)]
+        band = max(1, paths // width)
+        return [(first, 1, (row, min(row + band, height))) for first in range(spp) for row in range(0, height, band)]
 
     def _trace(self, origins: np.ndarray, directions: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, int]:
         """(radiance (N, 3) float32 carried back along N camera rays, surface vertices shaded)."""
