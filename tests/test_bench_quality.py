@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from pipeline.bake import quality
 from pipeline.bake.direct.bake import bake_direct
-from pipeline.bake.quality import corrected_psnr, pilot_size
+from pipeline.bake.quality import corrected_psnr, measurement_window, pilot_size
 from pipeline.cli import main
 from pipeline.reference.path_tracer import PathTracer, ReferenceImage, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
@@ -62,6 +63,32 @@ def test_direct_sized_for_a_target_meets_it_with_a_smaller_cache_than_the_defaul
     default = bake_direct(scene, camera, tmp_path / "default", "cornell_box")
     assert parameters["supersampling"] < 2
     assert sum(p.num_bytes for p in description.payloads) < sum(p.num_bytes for p in read_cache_layer(default).payloads)
+
+
+def test_a_film_size_frame_is_measured_on_its_centre_window_and_baked_whole(tmp_path, monkeypatch):
+    """Above MEASURE_PIXELS the full-size check measures the centre window at the frame's pixel
+    density; the cache is still the whole frame, and it says what was measured."""
+    monkeypatch.setattr(quality, "MEASURE_PIXELS", 24 * 16)
+    bundled = SCENES["cornell_box"]
+    shot = bundled.write(tmp_path / "scene")
+    arguments = ["bake", str(shot), "--camera", bundled.camera, "--width", "48", "--height", "32"]
+    arguments += ["--out", str(tmp_path / "sized"), "--quality", "25", "--method", "direct"]
+    assert main(arguments) == 0
+    description = read_cache_layer(tmp_path / "sized" / "cornell_box.relight.usda")
+    assert description.resolution == (48, 32)
+    assert description.parameters["qualityMeasuredSize"] == "24x16"
+    assert math.isfinite(description.parameters["qualityMeasured"])
+    assert not any(path.name.startswith(".") for path in (tmp_path / "sized").iterdir())
+
+
+def test_the_measurement_window_is_the_frame_up_to_its_pixel_cap(tmp_path):
+    bundled = SCENES["cornell_box"]
+    scene = load_scene(bundled.write(tmp_path), width=1920, height=1080)
+    camera = find_camera(scene, bundled.camera)
+    assert measurement_window(scene, camera, 1920 * 1080) == (scene, camera)
+    windowed_scene, window = measurement_window(scene, camera, 640 * 480)
+    assert (window.width, window.height) == (736, 408)  # multiples of 8, the aspect kept within 2 %
+    assert windowed_scene.cameras[camera.path] == window and windowed_scene.geometry is scene.geometry
 
 
 def test_pilot_size_keeps_the_aspect_and_never_grows():

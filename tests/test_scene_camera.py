@@ -7,7 +7,7 @@ import pytest
 from pxr import Gf, Usd, UsdGeom, UsdRender
 
 from pipeline.errors import RelightError
-from pipeline.scene.camera import camera_rays, image_resolution, project, read_cameras
+from pipeline.scene.camera import camera_rays, crop, image_resolution, project, read_cameras
 
 DEFAULT = Usd.TimeCode.Default()
 
@@ -92,6 +92,25 @@ def test_aperture_offset_shifts_the_principal_point():
     _, directions = camera_rays(camera, offsets)
     expected = np.array([5.0, -2.0, -50.0]) / np.linalg.norm([5.0, -2.0, -50.0])
     np.testing.assert_allclose(directions[1, 1], expected, atol=1e-6)
+
+
+def test_a_crop_sees_what_its_pixels_of_the_whole_image_see():
+    camera = _camera(_stage_with_camera(offsets=(1.5, -0.5)), 48, 30)
+    rng = np.random.default_rng(0)
+    offsets = rng.random((30, 48, 2))
+    _, whole = camera_rays(camera, offsets)
+    window = crop(camera, 7, 11, 20, 13)
+    assert (window.width, window.height) == (20, 13)
+    origins, directions = camera_rays(window, offsets[11:24, 7:27])
+    np.testing.assert_allclose(directions, whole[11:24, 7:27], atol=1e-6)
+    np.testing.assert_array_equal(origins[0, 0], camera.world_from_camera[:3, 3].astype(np.float32))
+    assert crop(camera, 0, 0, 48, 30) == camera
+
+
+@pytest.mark.parametrize("window", [(40, 0, 9, 5), (0, 26, 5, 5), (3, 3, 0, 4)])
+def test_a_crop_outside_the_image_is_refused(window):
+    with pytest.raises(ValueError, match="leaves the 48x30 image of /Cam"):
+        crop(_camera(_stage_with_camera(), 48, 30), *window)
 
 
 def test_aspect_mismatch_keeps_the_horizontal_aperture():

@@ -12,12 +12,14 @@
    heuristic: it stops at the first gather count that reaches the target.
 3. The chosen sizes are baked at the full size into OUT and measured against a full-size
    reference (same noise rule). If that misses the target, the threshold is raised by the miss and
-   the search goes on (once).
+   the search goes on (once). A frame of more than MEASURE_PIXELS pixels is measured on its centre
+   window at the full pixel density (`measurement_window`), then baked whole.
 4. The cache layer's parameters record the choice (the method's own parameters hold the bake
    sizes; qualityChoice all of them, relight-time ones such as the illumination cut size included)
    and: qualityTarget, qualityPredicted (pilot PSNR), qualityMeasured (full size), qualityRawPsnr,
    qualityEnergyRatio (mean(image) / mean(reference) at full size), qualityTargetMet (1 when the
-   full-size PSNR reaches the target, else 0), qualityReferenceSpp and qualityPilot ('WxH').
+   full-size PSNR reaches the target, else 0), qualityReferenceSpp, qualityPilot ('WxH') and
+   qualityMeasuredSize ('WxH': the frame, or the window measured).
 
 PSNRs here are noise-corrected: the reference's variance (`ReferenceImage.variance`, over pixels
 it does not saturate) is subtracted from the squared error, which it adds on average; the raw
@@ -39,6 +41,7 @@ from pipeline.bake.adapter import MethodAdapter, format_params
 from pipeline.bake.methods import bake_method
 from pipeline.errors import RelightError
 from pipeline.reference.path_tracer import PathTracer, ReferenceImage, ReferenceSettings
+from pipeline.scene.camera import crop
 from pipeline.scene.types import Camera, Scene
 from relight_torch.cache.layer import content_hash, read_cache_layer, write_cache_layer
 from relight_torch.metrics import psnr_from_mse
@@ -49,6 +52,11 @@ NOISE_HEADROOM_DB = 10.0
 """How far below the target the reference's own noise must be (its MSE then adds ~0.4 dB)."""
 MAX_REFERENCE_SPP = 4096
 START_SPP = 32
+MEASURE_PIXELS = 640 * 480
+"""Full-size checks of larger images measure a window of at most this many pixels at the centre of
+the frame (`measurement_window`): a reference of a film-size frame at the checks' noise floor takes
+hours, while a window at the full pixel density shows the same aliasing and the same error per
+pixel of the subject at the frame's centre."""
 
 
 @dataclass(frozen=True)
@@ -74,6 +82,8 @@ class QualityResult:
         reference_spp: spp of the full-size reference.
         pilot: (width, height) of the pilot.
         candidates: every pilot measurement, in the order made.
+        measured_size: (width, height) the full-size check measured: the frame, or its centre
+            window at the same pixel density (`measurement_window`).
     """
 
     layer: Path
@@ -86,6 +96,7 @@ class QualityResult:
     reference_spp: int
     pilot: tuple[int, int]
     candidates: tuple[Candidate, ...]
+    measured_size: tuple[int, int]
 
 
 def pilot_size(width: int, height: int, pilot_side: int) -> tuple[int, int]:
@@ -98,6 +109,20 @@ def resized(scene: Scene, camera: Camera, width: int, height: int) -> tuple[Scen
     """The scene and camera at another image size (cameras are looked up by path)."""
     resized = dataclasses.replace(camera, width=width, height=height)
     return dataclasses.replace(scene, cameras={**scene.cameras, camera.path: resized}), resized
+
+
+def measurement_window(scene: Scene, camera: Camera, max_pixels: int | None = None) -> tuple[Scene, Camera]:
+    """The scene and camera a full-size check measures: the shot itself up to `max_pixels`
+    (default `MEASURE_PIXELS`), else the centre window of the frame with its aspect, at the same
+    pixel density (`camera.crop`), its sides multiples of 8 (every indirect scale and level
+    stride divides them)."""
+    max_pixels = MEASURE_PIXELS if max_pixels is None else max_pixels
+    if camera.width * camera.height <= max_pixels:
+        return scene, camera
+    scale = math.sqrt(max_pixels / (camera.width * camera.height))
+    width, height = (max(8, int(side * scale) // 8 * 8) for side in (camera.width, camera.height))
+    window = crop(camera, (camera.width - width) // 2, (camera.height - height) // 2, width, height)
+    return dataclasses.replace(scene, cameras={**scene.cameras, camera.path: window}), window
 
 
 def noise_mse(reference: ReferenceImage) -> float:
@@ -255,13 +280,31 @@ def bake_for_quality(
         ladder_spent = chosen is None
         if chosen is None:  # best_effort: no step reached the target on the pilot
             chosen = max(candidates, key=lambda c: c.psnr_db)
-        full_reference = reference_for(scene, camera, bounces, target_db, measure_headroom_db)
+        window_scene, window = measurement_window(scene, camera)
+        windowed = window is not camera
+        full_reference = reference_for(window_scene, window, bounces, target_db, measure_headroom_db)
         for attempt in range(2):
             point = chosen.point
             ((_, measured_db, raw_db, energy_ratio, _, layer),) = _measure(
-                adapter, scene, camera, out_dir, stem, point, full_reference, supersampling, texture_samples, time_code
+                adapter,
+                window_scene,
+                window,
+                pilot_dir / f"window-{attempt}" if windowed else out_dir,
+                stem,
+                point,
+                full_reference,
+                supersampling,
+                texture_samples,
+                time_code,
             )
-            log.info("quality: %s measured %.2f dB at full size (pilot %.2f dB)", point, measured_db, chosen.psnr_db)
+            log.info(
+                "quality: %s measured %.2f dB at full size on %dx%d pixels (pilot %.2f dB)",
+                point,
+                measured_db,
+                window.width,
+                window.height,
+                chosen.psnr_db,
+            )
             if measured_db >= target_db or attempt == 1 or ladder_spent:
                 break
             # Missed: ask the pilot for the miss more than the chosen point gave, among the others.
@@ -270,6 +313,8 @@ def bake_for_quality(
             if retry is None:  # best_effort and nothing better on the ladder: keep what was measured
                 break
             chosen = retry
+        if windowed:  # measured on the window: the cache is the whole frame
+            layer = adapter.bake(scene, camera, out_dir, stem, point, supersampling, texture_samples, time_code)
     finally:
         shutil.rmtree(pilot_dir, ignore_errors=True)
     if ladder_spent:
@@ -284,7 +329,7 @@ def bake_for_quality(
     elif measured_db < target_db:
         log.warning("bake --quality %g: %s measured %.2f dB at full size after a retry", target_db, point, measured_db)
     target_met = measured_db >= target_db
-    reference_spp = round(full_reference.num_paths / (camera.width * camera.height))
+    reference_spp = round(full_reference.num_paths / (window.width * window.height))
     result = QualityResult(
         layer,
         point,
@@ -296,6 +341,7 @@ def bake_for_quality(
         reference_spp,
         (width, height),
         tuple(candidates),
+        (window.width, window.height),
     )
     _record(result, target_db)
     return result
@@ -315,6 +361,7 @@ def _record(result: QualityResult, target_db: float) -> None:
             "qualityEnergyRatio": round(result.energy_ratio, 4),
             "qualityReferenceSpp": int(result.reference_spp),
             "qualityPilot": f"{result.pilot[0]}x{result.pilot[1]}",
+            "qualityMeasuredSize": "{}x{}".format(*result.measured_size),
         },
     )
 

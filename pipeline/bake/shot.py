@@ -12,8 +12,9 @@ full-GI path tracer (every bounce) to a quality target, deciding by measurement 
    terms, would change the image by less than `BOUNCE_TAIL_FRACTION` of the target's error (MSE)
    and its mean by less than `ENERGY_FRACTION`.
 3. Filtering. The direct part's pixel filtering (sub-samples per pixel side, material samples per
-   sub-sample side) is measured at the full size, where textures and normal maps alias as they will
-   in the frame (the pilot's pixels cover several of the full frame's), against the 0-bounce
+   sub-sample side) is measured at the full pixel density (on the frame's centre window when it is
+   film-sized), where textures and normal maps alias as they will in the frame (the pilot's pixels
+   cover several of the full frame's), against the 0-bounce
    reference (`direct_filtering`): material samples while they pay, then sub-samples until the
    direct part alone reaches `DIRECT_SHARE_DB` above the target. Material samples cost only bake
    time; sub-samples cost every edit S^2.
@@ -45,6 +46,7 @@ from pipeline.bake.quality import (
     add_parameters,
     bake_for_quality,
     corrected_psnr,
+    measurement_window,
     pilot_size,
     reference_for,
     resized,
@@ -149,9 +151,10 @@ def direct_filtering(
     min_texture_samples: int,
     time_code: float | None,
 ) -> tuple[tuple[int, int], float]:
-    """`choose_filtering` on the shot at full size: direct bakes against 0-bounce references (noise
-    `MEASURE_HEADROOM_DB` below the direct part's threshold), the ladder's material samples raised to at
-    least `min_texture_samples`.
+    """`choose_filtering` on the shot at full size (its centre window, `quality.measurement_window`,
+    for a film-size frame): direct bakes against 0-bounce references (noise `MEASURE_HEADROOM_DB`
+    below the direct part's threshold), the ladder's material samples raised to at least
+    `min_texture_samples`.
 
     Two choices, each by the lighting that shows what it filters:
     - material samples: at the ladder's first supersampling, raised while they gain at least
@@ -167,6 +170,7 @@ def direct_filtering(
       its open side, took 3 x 3 for the dome's noise alone (a light move 215 against 140 ms).
     """
     threshold = target_db + DIRECT_SHARE_DB
+    scene, camera = measurement_window(scene, camera)
     ladder = list(dict.fromkeys((s, max(t, min_texture_samples)) for s, t in FILTER_LADDER))
     layers: dict[tuple[int, int], Path] = {}
 

@@ -20,6 +20,8 @@ override either.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from pxr import Usd, UsdGeom, UsdRender
 
@@ -146,6 +148,31 @@ def camera_rays(
     directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
     origins = np.broadcast_to(camera.world_from_camera[:3, 3], directions.shape)
     return origins.astype(np.float32), directions.astype(np.float32)
+
+
+def crop(camera: Camera, left: int, top: int, width: int, height: int) -> Camera:
+    """The window of `camera`'s image of `width` x `height` pixels from pixel (row `top`, column
+    `left`), as a camera of its own: its pixels see exactly what those pixels see (the film
+    window's apertures and offsets, the same pinhole and transform).
+
+    Raises:
+        ValueError: the window is empty or leaves the image.
+    """
+    if not (0 <= left < left + width <= camera.width and 0 <= top < top + height <= camera.height):
+        raise ValueError(
+            f"crop {width}x{height} at ({left}, {top}) leaves the {camera.width}x{camera.height} image of {camera.path}"
+        )
+    return dataclasses.replace(
+        camera,
+        horizontal_aperture=camera.horizontal_aperture * width / camera.width,
+        vertical_aperture=camera.vertical_aperture * height / camera.height,
+        horizontal_aperture_offset=camera.horizontal_aperture_offset
+        + camera.horizontal_aperture * ((left + width / 2) / camera.width - 0.5),
+        vertical_aperture_offset=camera.vertical_aperture_offset
+        + camera.vertical_aperture * (0.5 - (top + height / 2) / camera.height),
+        width=width,
+        height=height,
+    )
 
 
 def camera_from_world(camera: Camera) -> np.ndarray:
