@@ -1,11 +1,11 @@
-"""The exterior benchmark's child processes (`pipeline.benchmarks.exterior.run_child`): each peak
-resident set is that child's own, and a failing child is one line."""
+"""The exterior benchmark: its child processes (`run_child`) each report their own peak resident
+set, a failing child is one line, and rows an earlier run measured stay marked with its command."""
 
 from __future__ import annotations
 
 import pytest
 
-from pipeline.benchmarks.exterior import run_child
+from pipeline.benchmarks.exterior import SESSION, Row, read_rows, run_child, summary, write_rows
 
 
 def test_each_child_reports_its_own_peak():
@@ -23,3 +23,14 @@ def test_each_child_reports_its_own_peak():
 def test_a_failing_child_is_one_line():
     with pytest.raises(RuntimeError, match=r"^pipeline.cli bake: relight: error: .*missing.usda"):
         run_child("pipeline.cli", ["bake", "missing.usda", "--camera", "/C", "--out", "out"])
+
+
+def test_rows_of_an_earlier_run_keep_its_command(tmp_path):
+    earlier = Row("640x480", "shot", 1221.0, 10.29, 6 * 10**8, "direct+transfer", dict.fromkeys(SESSION, 1.5), "old")
+    now = Row("1920x1080", "shot", 2000.0, 9.5, 10**9, "direct+transfer", dict.fromkeys(SESSION, 2.0), "new")
+    write_rows(tmp_path / "exterior.csv", [earlier, now])
+    assert read_rows(tmp_path / "exterior.csv") == [earlier, now]
+    assert read_rows(tmp_path / "missing.csv") == []
+    table = summary([earlier, now], [], 1000, "new", (1.0, 1.0))
+    assert "| 640x480* | shot | 1221 | 10.29 |" in table and "| 1920x1080 | shot |" in table
+    assert "* Measured by an earlier run (`--keep-earlier`), on its own: `old`." in table

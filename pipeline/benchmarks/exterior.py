@@ -11,6 +11,9 @@ peak resident set (`pipeline.benchmarks.peak_rss`); then `pipeline.benchmarks.re
 in another child and times sphere-light moves and colour edits (median ms) with the relighter's
 peak. Caches baked by an earlier run into the same --work folder are reused with their bake
 figures (`--no-bake`: only those are measured). Writes OUT/summary.md and OUT/exterior.csv.
+With `--keep-earlier` the rows of OUT/exterior.csv this run does not measure stay in the table,
+each marked with the command that measured it: a film-size shot bake takes long enough to be run
+on its own.
 """
 
 from __future__ import annotations
@@ -43,8 +46,8 @@ SESSION = ("open_s", "move_ms", "move_cpu_ms", "colour_ms", "colour_cpu_ms", "pe
 
 @dataclasses.dataclass
 class Row:
-    """One cache of the shot: its bake (wall s, the child's peak RSS GB, bytes, what the bake chose)
-    and a session on it (`SESSION`)."""
+    """One cache of the shot: its bake (wall s, the child's peak RSS GB, bytes, what the bake chose),
+    a session on it (`SESSION`) and the command of the run that measured them."""
 
     size: str
     kind: str
@@ -53,6 +56,7 @@ class Row:
     cache_bytes: int
     choice: str
     session: dict[str, float]
+    command: str
 
 
 def run_child(module: str, arguments: list[str]) -> tuple[float, float, str]:
@@ -103,8 +107,8 @@ def bake(shot: Path, size: tuple[int, int], kind: str, work: Path) -> tuple[Path
     return layer, json.loads(figures.read_text())
 
 
-def measure(shot: Path, size: tuple[int, int], kind: str, work: Path, repeats: int) -> Row:
-    """Bake (or reuse) one cache and time a session on it."""
+def measure(shot: Path, size: tuple[int, int], kind: str, work: Path, repeats: int, command: str) -> Row:
+    """Bake (or reuse) one cache and time a session on it (`command`: this run's)."""
     layer, figures = bake(shot, size, kind, work)
     _, _, printed = run_child("pipeline.benchmarks.relight_memory", [str(layer), "--repeats", str(repeats)])
     session = {}
@@ -120,7 +124,43 @@ def measure(shot: Path, size: tuple[int, int], kind: str, work: Path, repeats: i
         cache_bytes(layer),
         _choice(layer),
         session,
+        command,
     )
+
+
+COLUMNS = ["size", "kind", "bake_s", "bake_peak_rss_gb", "cache_bytes", "choice", *SESSION, "command"]
+
+
+def write_rows(path: Path, rows: list[Row]) -> None:
+    """`rows` as CSV at `path` (`COLUMNS`), atomically."""
+    with atomic_path(path) as temporary, temporary.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(COLUMNS)
+        for row in rows:
+            figures = [f"{row.bake_s:.1f}", f"{row.bake_peak_rss_gb:.3f}", row.cache_bytes, row.choice]
+            writer.writerow(
+                [row.size, row.kind, *figures, *(f"{row.session[name]:.3f}" for name in SESSION), row.command]
+            )
+
+
+def read_rows(path: Path) -> list[Row]:
+    """The rows `write_rows` wrote at `path`; none when there is no such file."""
+    if not path.exists():
+        return []
+    with path.open(newline="") as handle:
+        return [
+            Row(
+                line["size"],
+                line["kind"],
+                float(line["bake_s"]),
+                float(line["bake_peak_rss_gb"]),
+                int(line["cache_bytes"]),
+                line["choice"],
+                {name: float(line[name]) for name in SESSION},
+                line["command"],
+            )
+            for line in csv.DictReader(handle)
+        ]
 
 
 FORMATS = {"open_s": ".1f", "colour_ms": ".1f", "colour_cpu_ms": ".1f", "peak_rss_gb": ".2f"}
@@ -146,13 +186,19 @@ def summary(rows: list[Row], missing: list[str], teapots: int, command: str, loa
         "| " + " | ".join(header) + " |",
         "|" + "---|" * len(header),
     ]
+    earlier = list(dict.fromkeys(row.command for row in rows if row.command != command))
     for row in rows:
-        cells = [row.size, row.kind, f"{row.bake_s:.0f}", f"{row.bake_peak_rss_gb:.2f}", f"{row.cache_bytes / 1e6:.0f}"]
-        cells += [row.choice] + [format(row.session[name], FORMATS.get(name, ".0f")) for name in SESSION]
+        marks = "*" * (earlier.index(row.command) + 1) if row.command in earlier else ""
+        cells = [row.size + marks, row.kind, f"{row.bake_s:.0f}", f"{row.bake_peak_rss_gb:.2f}"]
+        cells += [f"{row.cache_bytes / 1e6:.0f}", row.choice]
+        cells += [format(row.session[name], FORMATS.get(name, ".0f")) for name in SESSION]
         lines.append("| " + " | ".join(cells) + " |")
+    for index, other in enumerate(earlier):
+        lines += ["", f"{'*' * (index + 1)} Measured by an earlier run (`--keep-earlier`), on its own: `{other}`."]
     if missing:
         lines += ["", f"Not measured (not baked: `--no-bake`): {', '.join(missing)}."]
-    lines += ["", f"Machine: {machine_description()}; load average {load[0]:.1f} / {load[1]:.1f} (1 min, start / end)."]
+    machine = f"Machine: {machine_description()}; this run's load average {load[0]:.1f} / {load[1]:.1f}"
+    lines += ["", machine + " (1 min, start / end)."]
     return "\n".join(lines) + "\n"
 
 
@@ -166,6 +212,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("docs/bench/exterior"))
     parser.add_argument(
         "--no-bake", action="store_true", help="time sessions on the caches an earlier run left in --work, bake none"
+    )
+    parser.add_argument(
+        "--keep-earlier",
+        action="store_true",
+        help="keep the rows of OUT/exterior.csv this run does not measure (marked with their command)",
     )
     args = parser.parse_args(argv)
     given = sys.argv[1:] if argv is None else argv
@@ -181,24 +232,18 @@ def main(argv: list[str] | None = None) -> int:
                 if args.no_bake and not baked(work, size, kind):
                     missing.append(f"{size[0]}x{size[1]} {kind}")
                     continue
-                rows.append(measure(shot, size, kind, work, args.repeats))
+                rows.append(measure(shot, size, kind, work, args.repeats, command))
                 print(rows[-1], flush=True)
+        if args.keep_earlier:
+            measured = {(row.size, row.kind) for row in rows}
+            rows += [row for row in read_rows(args.out / "exterior.csv") if (row.size, row.kind) not in measured]
+            kept = {f"{row.size} {row.kind}" for row in rows}
+            missing = [cell for cell in missing if cell not in kept]
+        rows.sort(
+            key=lambda row: (size_argument(row.size)[0] * size_argument(row.size)[1], list(KINDS).index(row.kind))
+        )
         args.out.mkdir(parents=True, exist_ok=True)
-        with atomic_path(args.out / "exterior.csv") as temporary, temporary.open("w", newline="") as handle:
-            writer = csv.writer(handle)
-            writer.writerow(["size", "kind", "bake_s", "bake_peak_rss_gb", "cache_bytes", "choice", *SESSION])
-            for row in rows:
-                writer.writerow(
-                    [
-                        row.size,
-                        row.kind,
-                        f"{row.bake_s:.1f}",
-                        f"{row.bake_peak_rss_gb:.3f}",
-                        row.cache_bytes,
-                        row.choice,
-                    ]
-                    + [f"{row.session[name]:.3f}" for name in SESSION]
-                )
+        write_rows(args.out / "exterior.csv", rows)
         with atomic_path(args.out / "summary.md") as temporary:
             temporary.write_text(summary(rows, missing, args.teapots, command, (load, os.getloadavg()[0])))
         print(args.out / "summary.md")
