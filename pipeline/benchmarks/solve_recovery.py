@@ -82,7 +82,9 @@ def scene_diagonal(relighter) -> float:
     return float((position.amax(0) - position.amin(0)).norm())
 
 
-def run_scene(name: str, size: tuple[int, int], spp: int, iterations: int, directory: Path) -> dict[str, object]:
+def run_scene(
+    name: str, size: tuple[int, int], spp: int, iterations: int, directory: Path, robust: bool = False
+) -> dict[str, object]:
     """The recovery experiment (module doc) on one scene."""
     spec = SCENES[name]
     shot, layer = bake(name, size, directory)
@@ -94,7 +96,7 @@ def run_scene(name: str, size: tuple[int, int], spp: int, iterations: int, direc
     free = "intensity,color" + (",position" if moved else "")
     start = time.perf_counter()
     result = solve_lights(
-        relighter, torch.from_numpy(target), free=free, settings=DescentSettings(iterations=iterations)
+        relighter, torch.from_numpy(target), free=free, settings=DescentSettings(iterations=iterations), robust=robust
     )
     seconds = time.perf_counter() - start
     solved = {light.path: light for light in result.after}
@@ -125,7 +127,9 @@ def run_scene(name: str, size: tuple[int, int], spp: int, iterations: int, direc
     }
 
 
-def run_cone(name: str, size: tuple[int, int], spp: int, iterations: int, directory: Path) -> dict[str, object] | None:
+def run_cone(
+    name: str, size: tuple[int, int], spp: int, iterations: int, directory: Path, robust: bool = False
+) -> dict[str, object] | None:
     """The first light with ShapingAPI gets a cone 20 % wider; the solve frees its intensity and
     shaping alone. None when the scene has no shaped light."""
     spec = SCENES[name]
@@ -141,7 +145,7 @@ def run_cone(name: str, size: tuple[int, int], spp: int, iterations: int, direct
     start = time.perf_counter()
     result = solve_lights(
         relighter, torch.from_numpy(target), solve=[shaped.path], free="intensity,shaping",
-        settings=DescentSettings(iterations=iterations),
+        settings=DescentSettings(iterations=iterations), robust=robust,
     )  # fmt: skip
     seconds = time.perf_counter() - start
     got = next(light for light in result.after if light.path == shaped.path)
@@ -269,6 +273,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spp", type=int, default=256)
     parser.add_argument("--iterations", type=int, default=200)
     parser.add_argument("--out", type=Path, default=Path("docs/bench/solve"))
+    parser.add_argument("--robust", action="store_true", help="solve under Huber's loss (`relight solve --robust`)")
     parser.add_argument(
         "--experiments", nargs="+", default=["recovery", "cone", "painted"], choices=("recovery", "cone", "painted")
     )
@@ -279,15 +284,15 @@ def main(argv: list[str] | None = None) -> int:
     command = (
         f"python -m pipeline.benchmarks.solve_recovery --scenes {' '.join(args.scenes)} --width {args.width} "
         f"--height {args.height} --spp {args.spp} --iterations {args.iterations} "
-        f"--experiments {' '.join(args.experiments)}"
+        f"--experiments {' '.join(args.experiments)}" + (" --robust" if args.robust else "")
     )
     with tempfile.TemporaryDirectory() as directory:
         for name in args.scenes:
             if "recovery" in args.experiments:
-                rows.append(run_scene(name, size, args.spp, args.iterations, Path(directory)))
+                rows.append(run_scene(name, size, args.spp, args.iterations, Path(directory), args.robust))
                 print(rows[-1], flush=True)
             if "cone" in args.experiments:
-                cone = run_cone(name, size, args.spp, args.iterations, Path(directory))
+                cone = run_cone(name, size, args.spp, args.iterations, Path(directory), args.robust)
                 if cone is not None:
                     extra.append(cone)
                     print(cone, flush=True)

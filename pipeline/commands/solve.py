@@ -59,6 +59,12 @@ def add_parser(subparsers) -> None:
         default=defaults.regularisation,
         help=f"weight of the pull toward the starting rig (default {defaults.regularisation:g})",
     )
+    parser.add_argument(
+        "--robust",
+        action="store_true",
+        help="fit under Huber's loss: a few pixels the cache cannot resolve (highlights, fireflies) do not "
+        "outweigh the frame (targets from another renderer or a camera; not for paint-overs)",
+    )
     add_device_option(parser)
     parser.add_argument("-o", "--out", required=True, metavar="SOLVED.usda", help="lights layer to write")
     parser.set_defaults(run=run)
@@ -78,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     settings = DescentSettings(iterations=args.iterations, regularisation=args.regularisation)
     try:
         with progress_bar("solve", settings.iterations, unit="step") as update:
-            result = solve_lights(relighter, target, mask, args.solve, free, settings, update)
+            result = solve_lights(relighter, target, mask, args.solve, free, settings, update, args.robust)
     except RelightError as error:  # name the file a shape or value error is about
         message = str(error)
         for name, path in (("target", args.target), ("mask", args.mask)):

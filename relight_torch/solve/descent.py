@@ -29,7 +29,10 @@ lands, and lambda grows until one does, so the solve is monotone in the true los
 frozen visibility misleads a derivative (the Cornell box's ceiling light, 1 mm under the ceiling,
 is pushed up by it while its x and z are wrong). The loss is the mask-weighted squared error over
 the target's weighted energy plus `regularisation` x |z|^2, a pull toward the starting rig that
-keeps lights the target says nothing about where they were.
+keeps lights the target says nothing about where they were. With `robust`, the pixel weights are
+Huber's (`linear.huber_weights`), refreshed from the residual at the start and after every
+accepted step (iteratively reweighted least squares, Holland & Welsch 1977): a step is accepted
+when it lowers the loss under the weights it was taken with.
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ from relight_torch.direct.images import colour_scale
 from relight_torch.lights.emission import is_delta_light
 from relight_torch.lights.light import Light
 from relight_torch.protocol import CacheRelighter, GradientRelighter
-from relight_torch.solve.linear import unit_images
+from relight_torch.solve.linear import huber_weights, unit_images
 from relight_torch.solve.rig import SCALE_KINDS, TEMPERATURE_RANGE, blackbody, blackbody_tensor, scaled_light
 
 Progress = Callable[[int, int], None]
@@ -217,7 +220,9 @@ class _Problem:
     rest: torch.Tensor  # (H, W, 3)
     images: torch.Tensor  # (L, H, W, 3)
     target: torch.Tensor  # (H, W, 3)
-    root_weights: torch.Tensor  # (H, W, 1) sqrt(weight / target energy)
+    root_weights: torch.Tensor  # (H, W, 1) sqrt(weight / target energy), the weight Huber's with `robust`
+    mask: torch.Tensor  # (H, W) the caller's pixel weights
+    energy: float  # sum of mask x |target|^2
     starts: list[torch.Tensor]  # (3,) each light's emission factor at the start, no blackbody
     diagonal: float
     samples: int
@@ -233,6 +238,7 @@ def descend(
     free: Sequence[str],
     settings: DescentSettings = DescentSettings(),
     progress: Progress | None = None,
+    robust: bool = False,
 ) -> DescentResult:
     """Solve the free kinds of `lights` by Levenberg-Marquardt through the relighter (module doc).
 
@@ -243,6 +249,8 @@ def descend(
         target: (H, W, 3) linear target; weights: (H, W) non-negative pixel weights.
         free: the free kinds.
         progress: called with (evaluation, iterations) after each evaluation of the loss.
+        robust: Huber's loss instead of the squared error (module doc); the result's losses are
+            then under the weights of the step they were measured at.
     """
     start_time = time.perf_counter()
     dtype = torch.float64
@@ -255,6 +263,8 @@ def descend(
         images.to(dtype),
         target,
         torch.sqrt(weights.to(dtype) / energy).unsqueeze(-1),
+        weights.to(dtype),
+        energy,
         [torch.as_tensor(_factor(light), dtype=dtype, device=device) for light in lights],
         _scene_diagonal(relighter),
         settings.gradient_samples,
@@ -263,6 +273,8 @@ def descend(
     if not any(u.tensors() for u in unknowns):
         return DescentResult(list(lights), math.nan, math.nan, 0, 0.0)
     loss, exact, residual = _evaluate(problem, unknowns, settings.regularisation)
+    if robust:
+        problem, loss, residual = _reweight(problem, unknowns, residual, settings.regularisation)
     history, damping, evaluations = [loss], settings.damping, 1
     current = True  # the relighter and the frozen visibility stand at the unknowns' values
     while evaluations < settings.iterations and damping < 1e10:
@@ -293,6 +305,8 @@ def descend(
         history.append(loss)
         if improvement < settings.tolerance:
             break
+        if robust:
+            problem, loss, residual = _reweight(problem, unknowns, residual, settings.regularisation)
     # What the target leaves open, at the solution: evaluated there again when a refused last step
     # left the relighter and the frozen visibility where it tried.
     if not current:
@@ -313,8 +327,25 @@ def _evaluate(
     exact = _moving_images(problem.relighter, unknowns, problem.diagonal, problem.samples)
     with torch.no_grad():
         residual = (problem.root_weights * (_frame(problem, unknowns, exact, None) - problem.target)).reshape(-1)
-        pull = sum((t.square().sum() for u in unknowns for t in u.tensors()), torch.zeros((), dtype=residual.dtype))
-        return float(residual.square().sum() + regularisation * pull), exact, residual
+        return float(residual.square().sum() + regularisation * _pull(unknowns, residual.dtype)), exact, residual
+
+
+def _reweight(
+    problem: _Problem, unknowns: list[_Unknowns], residual: torch.Tensor, regularisation: float
+) -> tuple[_Problem, float, torch.Tensor]:
+    """Huber's weights from the (M,) weighted residual at the unknowns' values: the problem with
+    them, and the loss and weighted residual there under them (no new render)."""
+    root = problem.root_weights
+    difference = residual.reshape(problem.target.shape) / root.clamp_min(1e-300)  # 0 where the weight is
+    root = torch.sqrt(huber_weights(difference, problem.mask, problem.target) / problem.energy).unsqueeze(-1)
+    residual = (root * difference).reshape(-1)
+    loss = float(residual.square().sum()) + regularisation * float(_pull(unknowns, residual.dtype))
+    return dataclasses.replace(problem, root_weights=root), loss, residual
+
+
+def _pull(unknowns: list[_Unknowns], dtype: torch.dtype) -> torch.Tensor:
+    """|z|^2 of the normalised unknowns (module doc)."""
+    return sum((t.square().sum() for u in unknowns for t in u.tensors()), torch.zeros((), dtype=dtype))
 
 
 def _jacobian(problem: _Problem, unknowns: list[_Unknowns], exact: dict[str, torch.Tensor]) -> torch.Tensor:

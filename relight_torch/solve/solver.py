@@ -8,6 +8,10 @@ Two stages (docs/SOLVE.md):
    that start (`descent`), through a relighter that differentiates the geometry kinds
    (`protocol.GradientRelighter`); then, when intensities or colours are free, the closed form
    again at the solved geometry, so that they are the relighter's exact optimum there.
+
+With `robust`, both stages fit under Huber's loss instead of the squared error (`linear`'s module
+doc): for targets made by another renderer or a camera, whose disagreement with the relighter at
+a few pixels would otherwise decide the solve.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ from relight_torch.errors import RelightError
 from relight_torch.lights.light import Light
 from relight_torch.protocol import CacheRelighter, GradientRelighter
 from relight_torch.solve.descent import DescentSettings, Progress, descend
-from relight_torch.solve.linear import current_scales, solve_scales, unit_images
+from relight_torch.solve.linear import current_scales, robust_scales, solve_scales, unit_images
 from relight_torch.solve.rig import SCALE_KINDS, parse_free, scaled_light
 
 
@@ -61,6 +65,7 @@ def solve_lights(
     free: str | Sequence[str] = ("intensity", "color"),
     settings: DescentSettings = DescentSettings(),
     progress: Progress | None = None,
+    robust: bool = False,
 ) -> SolveResult:
     """Solve the `free` inputs of the lights `solve` so that `relighter.render()` matches `target`.
 
@@ -75,6 +80,8 @@ def solve_lights(
         free: kinds from `rig.FREE_KINDS`, as a list or 'intensity,color'.
         settings: the gradient solve's settings.
         progress: called with (step, iterations) during the gradient solve.
+        robust: fit under Huber's loss (module doc); `loss_start` and `loss_end` stay the squared
+            error.
 
     Raises:
         RelightError: a bad target or mask shape, an unknown light or kind, or a kind the
@@ -95,16 +102,16 @@ def solve_lights(
     solved = [by_path[path] for path in paths]
     scale_kinds = [kind for kind in SCALE_KINDS if kind in kinds]
     if scale_kinds:
-        solved = _closed_form(solved, rest, images, target_t, weights, kinds)
+        solved = _closed_form(solved, rest, images, target_t, weights, kinds, robust)
     iterations = 0
     lines: tuple[str, ...] = ()
     if any(kind in kinds for kind in GEOMETRY_KINDS + ("temperature",)):
-        result = descend(relighter, solved, rest, images, target_t, weights, kinds, settings, progress)
+        result = descend(relighter, solved, rest, images, target_t, weights, kinds, settings, progress, robust)
         solved, iterations, lines = result.lights, result.iterations, result.unresolved
         if scale_kinds:  # the closed form again, now through the relighter at the solved geometry
             _set(relighter, before, solved)
             rest, images = unit_images(relighter, paths)
-            solved = _closed_form(solved, rest, images, target_t, weights, kinds)
+            solved = _closed_form(solved, rest, images, target_t, weights, kinds, robust)
     after = _set(relighter, before, solved)
     loss_end = _loss(relighter.render(), target_t, weights)
     seconds = time.perf_counter() - start_time
@@ -118,9 +125,14 @@ def _closed_form(
     target: torch.Tensor,
     weights: torch.Tensor,
     kinds: Sequence[str],
+    robust: bool,
 ) -> list[Light]:
     current = current_scales(lights)
-    factors = solve_scales(images, target - rest.to(target.dtype), weights, current, "color" in kinds)
+    residual = target - rest.to(target.dtype)
+    if robust:
+        factors, _ = robust_scales(images, residual, weights, current, "color" in kinds, target)
+    else:
+        factors = solve_scales(images, residual, weights, current, "color" in kinds)
     return [scaled_light(light, factor, kinds) for light, factor in zip(lights, factors, strict=True)]
 
 
