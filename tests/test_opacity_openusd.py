@@ -71,7 +71,19 @@ def test_opacity_thresholds_cut_the_texture_as_storm():
         directions = np.broadcast_to(np.float32([0, 0, -1]), origins.shape).copy()
         stopped = tracer.occluded(origins, directions, np.full(s.size, 2.0, np.float32))
         if threshold > 0:
-            np.testing.assert_array_equal(stopped, alpha.ravel() >= threshold, err_msg=f"threshold {threshold}")
+            # A texel whose alpha equals the threshold, beside one below it, is a knife edge: the
+            # hit's float32 barycentrics (rounded as Embree's code path for the CPU does) put the
+            # sample a hair off the texel centre, where the bilinear blend falls an ulp below the
+            # texel (265 of 65,536 rays at threshold 1 on one machine). Every other texel must
+            # stop exactly.
+            below = np.pad(alpha < threshold, 1, constant_values=False)
+            neighbour_below = np.any(
+                [below[1 + dy : 1 + dy + size, 1 + dx : 1 + dx + size] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], 0
+            )
+            decided = ~((np.abs(alpha - threshold) < 1e-6) & neighbour_below).ravel()
+            np.testing.assert_array_equal(
+                stopped[decided], (alpha.ravel() >= threshold)[decided], err_msg=f"threshold {threshold}"
+            )
         else:
             expected = float(alpha.mean())
             sigma = np.sqrt(np.sum(alpha * (1 - alpha))) / alpha.size
