@@ -9,9 +9,10 @@ with the caches given at their baked size: the shot cache, the direct cache and 
 e.g. a cuts cache, whose relighter has material edits, and a multiview cache, which renders from any
 camera). Edit kinds: the light edits of `progressive.edit_rigs` (colour, shaping, move, new light,
 dome turn), a material's diffuse colour and roughness, and a camera move. A cache whose relighter
-lacks what an edit kind needs is listed as such from its declared capability: `material_edits` for
-a material edit, its method's `needs_view` (`relight_torch.methods`) for a camera move; an edit its
-relighter refuses (`RelightError`) is listed with the refusal.
+lacks what an edit kind needs is listed as such from its declared capability
+(`progressive.unsupported`): `material_edits` for a material edit, its method's `needs_view`
+(`relight_torch.methods`) for a camera move; an edit its relighter refuses (`RelightError`) is
+listed with the refusal.
 
 Per cache and edit kind: an untimed edit, then --repeats edits, each from a warm relighter (the
 state before it rendered). Timed by the process's CPU clock (all threads) and the wall clock, from
@@ -42,7 +43,7 @@ from pipeline.bake.multiview.frames import read_view_camera
 from pipeline.bake.multiview.view import view_points
 from pipeline.benchmarks import run_in_work
 from pipeline.benchmarks.bench.measure import machine_description
-from pipeline.benchmarks.progressive import Setup, prepare
+from pipeline.benchmarks.progressive import EDITS, LIGHT_EDITS, Setup, prepare, unsupported
 from pipeline.scene.types import Camera
 from relight_torch import open_cache
 from relight_torch.cache.layer import CacheDescription, read_cache_layer
@@ -54,7 +55,6 @@ from relight_torch.multiview.relighter import MultiviewRelighter
 from relight_torch.progressive import CostModel, progressive_frames
 from relight_torch.protocol import CacheRelighter
 
-LIGHT_EDITS = ("colour", "shaping", "move", "new light", "dome turn")
 MATERIAL = 0
 """The material the material edits change: the first one, as `relight serve`'s material panel does."""
 CAMERA_STEP = 0.01
@@ -103,30 +103,15 @@ def set_view(session: Session, fraction: float) -> None:
 
 @dataclass(frozen=True)
 class Edit:
-    """One edit kind: why a session cannot make it (None: it can), the state before its k-th
-    repetition, and the edit itself (made inside the timing).
+    """One edit kind: the state before its k-th repetition, and the edit itself (made inside the timing).
 
     Attributes:
-        unsupported: (session, method name) -> the capability it lacks, or None.
         before: (session, k) -> None, the state before the edit.
         make: (session, k) -> None, the edit.
     """
 
-    unsupported: Callable[[Session, str], str | None]
     before: Callable[[Session, int], None]
     make: Callable[[Session, int], None]
-
-
-def _any(session: Session, method: str) -> str | None:
-    return None  # light edits: every `CacheRelighter` has set_lights
-
-
-def _materials(session: Session, method: str) -> str | None:
-    return None if session.relighter.material_edits else "material_edits is False"
-
-
-def _camera(session: Session, method: str) -> str | None:
-    return None if relight_method(method).needs_view else "renders its baked camera only (needs_view is False)"
 
 
 def edits(setup: Setup) -> dict[str, Edit]:
@@ -135,7 +120,6 @@ def edits(setup: Setup) -> dict[str, Edit]:
     for name in LIGHT_EDITS:
         rigs = setup.rigs[name]
         table[name] = Edit(
-            _any,
             lambda s, k, rigs=rigs: s.relighter.set_lights(rigs(k)[0]),
             lambda s, k, rigs=rigs: s.relighter.set_lights(rigs(k)[1]),
         )
@@ -146,7 +130,7 @@ def edits(setup: Setup) -> dict[str, Edit]:
             session.relighter.set_lights(lights)
             session.relighter.edit_material(MATERIAL, **values(k))
 
-        return Edit(_materials, before, lambda s, k: s.relighter.edit_material(MATERIAL, **after(k)))
+        return Edit(before, lambda s, k: s.relighter.edit_material(MATERIAL, **after(k)))
 
     table["material colour"] = material(
         lambda k: {"diffuse_color": (0.6, 0.6, 0.6 - 0.01 * k)}, lambda k: {"diffuse_color": (0.2, 0.6, 0.3 - 0.01 * k)}
@@ -159,11 +143,8 @@ def edits(setup: Setup) -> dict[str, Edit]:
         session.relighter.set_lights(lights)
         set_view(session, CAMERA_STEP * k)
 
-    table["camera move"] = Edit(_camera, camera_before, lambda s, k: set_view(s, CAMERA_STEP * (k + 1)))
+    table["camera move"] = Edit(camera_before, lambda s, k: set_view(s, CAMERA_STEP * (k + 1)))
     return table
-
-
-EDITS = (*LIGHT_EDITS, "material colour", "material roughness", "camera move")
 
 
 def first_and_converged(relighter: CacheRelighter) -> tuple[torch.Tensor, str, Callable[[], torch.Tensor]]:
@@ -230,7 +211,7 @@ def _run(args: argparse.Namespace, work: Path) -> int:
         description = read_cache_layer(layer)
         session = Session.open(layer, description)
         for name in args.edits:
-            reason = table[name].unsupported(session, description.method)
+            reason = unsupported(session.relighter, description.method, name)
             if reason is None:
                 try:
                     cpu, wall, db, level = measure(session, table[name], args.repeats)
