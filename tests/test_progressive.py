@@ -352,3 +352,34 @@ def test_unit_images_given_from_elsewhere_are_an_edit(caches):
     # 1 point per 4 x 4 pixels (0.17 of the added light at 32x24), a stale one's by all of it.
     added = 2.0 * float(relighter.light_image(light.path).mean()) / 3.0
     assert abs(float(again.image.mean() - last.image.mean())) < 0.5 * added
+
+
+@pytest.mark.slow
+def test_a_camera_move_is_coarse_first_and_ends_in_the_moved_view(tmp_path):
+    """A multiview relighter's camera move (`camera_move_frames`): a frame per stride, each at one
+    pixel per stride x stride brought to the camera's size, then the view itself, equal to a
+    relighter moved there directly (`set_camera`, `render()`)."""
+    from pipeline.bake.multiview.frames import camera_move_frames, read_view_camera, set_camera
+    from pipeline.benchmarks.tiny_caches import HEIGHT as TINY_HEIGHT
+    from pipeline.benchmarks.tiny_caches import WIDTH as TINY_WIDTH
+    from pipeline.benchmarks.tiny_caches import bake_tiny
+
+    layer = bake_tiny(tmp_path, ("multiview",))["multiview"]
+    progressive, reference = open_cache(layer), open_cache(layer)
+    description = progressive.description
+    camera = read_view_camera(description.source, None, description.camera_path, None, TINY_WIDTH, TINY_HEIGHT)
+    world_from_camera = camera.world_from_camera.copy()
+    world_from_camera[:3, 3] += 0.02 * float(np.linalg.norm(world_from_camera[:3, 3])) * world_from_camera[:3, 0]
+    moved = dataclasses.replace(camera, world_from_camera=world_from_camera)
+    set_camera(progressive, camera)
+    progressive.render()
+    frames = list(camera_move_frames(progressive, moved, strides=(4, 2)))
+    assert [stride for stride, _ in frames] == [4, 2, None]
+    assert all(image.shape == (TINY_HEIGHT, TINY_WIDTH, 3) for _, image in frames)
+    assert all(bool(torch.isfinite(image).all()) for _, image in frames)
+    set_camera(reference, moved)
+    assert _max_difference(frames[-1][1], reference.render()) <= TOLERANCE
+    # The coarse frames are the moved view at fewer pixels: its energy within 25 % (0.94 and 0.84
+    # measured for this 16x12 frame from 4x3 and 8x6 pixels of the tiny cache).
+    exact = float(frames[-1][1].mean())
+    assert all(0.75 < float(image.mean()) / exact < 1.25 for _, image in frames[:-1])

@@ -18,8 +18,9 @@ Per cache and edit kind: an untimed edit, then --repeats edits, each from a warm
 state before it rendered). Timed by the process's CPU clock (all threads) and the wall clock, from
 the edit's call to its first frame: with `progressive` set, `progressive_frames`' first frame at the
 coarsest level (budget 0, a fresh cost model), then refined to the exact frame for the PSNR; without
-it, `render()`, the exact frame itself ('whole' in the level column). A camera move's time includes
-its primary rays and correspondence map (`set_view`, as `relight render --camera`).
+it, `render()`, the exact frame itself ('whole' in the level column). A camera move's frames are
+`camera_move_frames` (`pipeline.bake.multiview.frames`): the new view traced, matched and relit at
+one pixel per 16 x 16 first, its primary rays and correspondence map included in the time.
 Prints one markdown row per cache and edit (median CPU ms, median wall ms, median dB); with --out
 also writes them, with this command, the machine and its load average, to that file.
 """
@@ -32,15 +33,14 @@ import os
 import statistics
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from pipeline.bake.multiview.frames import read_view_camera
-from pipeline.bake.multiview.view import view_points
+from pipeline.bake.multiview.frames import camera_move_frames, read_view_camera, set_camera
 from pipeline.benchmarks import run_in_work
 from pipeline.benchmarks.bench.measure import machine_description
 from pipeline.benchmarks.progressive import EDITS, LIGHT_EDITS, Setup, prepare, unsupported
@@ -59,6 +59,11 @@ MATERIAL = 0
 """The material the material edits change: the first one, as `relight serve`'s material panel does."""
 CAMERA_STEP = 0.01
 """A camera move: the camera translated along its x axis by this fraction of its distance from the origin."""
+
+
+Frames = Iterator[tuple[str, torch.Tensor]]
+"""An edit's frames, first to converged, as (level, (H, W, 3) image): '1/p' (one shaded point per p x p
+pixels), 'exact', or 'whole' (the one exact frame of a relighter without progressive refinement)."""
 
 
 @dataclass
@@ -80,38 +85,56 @@ class Session:
         if relight_method(description.method).needs_view:
             width, height = description.resolution
             session.camera = read_view_camera(description.source, None, description.camera_path, None, width, height)
-            set_view(session, 0.0)
+            set_camera(session.view_relighter, session.camera)
         return session
 
+    @property
+    def view_relighter(self) -> MultiviewRelighter:
+        """The relighter, of a method that `needs_view`."""
+        assert isinstance(self.relighter, MultiviewRelighter), "only a relighter that needs a view moves its camera"
+        return self.relighter
 
-def set_view(session: Session, fraction: float) -> None:
-    """Move a relighter that needs a view to the session's camera translated along its x axis by
-    `fraction` of its distance from the origin: primary rays and correspondence map, as `relight
-    render --camera` does (`pipeline.bake.multiview.frames`); the frame is rendered after."""
-    relighter = session.relighter
-    assert isinstance(relighter, MultiviewRelighter) and session.camera is not None, "a view relighter"
-    camera = session.camera
-    world_from_camera = camera.world_from_camera.copy()
-    distance = max(float(np.linalg.norm(world_from_camera[:3, 3])), 1.0)
-    world_from_camera[:3, 3] += fraction * distance * world_from_camera[:3, 0]
-    camera = dataclasses.replace(camera, world_from_camera=world_from_camera)
-    view = view_points(
-        relighter.caster, relighter.occluder_objects, camera, relighter.supersampling, relighter.corner_normals
-    )
-    relighter.set_view(view, exposure_scale=camera.exposure_scale)
+    def moved_camera(self, fraction: float) -> Camera:
+        """The cache's camera translated along its x axis by `fraction` of its distance from the origin."""
+        assert self.camera is not None, "a camera move needs a view"
+        world_from_camera = self.camera.world_from_camera.copy()
+        distance = max(float(np.linalg.norm(world_from_camera[:3, 3])), 1.0)
+        world_from_camera[:3, 3] += fraction * distance * world_from_camera[:3, 0]
+        return dataclasses.replace(self.camera, world_from_camera=world_from_camera)
+
+
+def relighter_frames(relighter: CacheRelighter) -> Frames:
+    """The frames after an edit: a progressive relighter's levels from the coarsest (budget 0, a
+    fresh cost model), else its `render()`."""
+    if not relighter.progressive:
+        yield "whole", relighter.render()
+        return
+    for frame in progressive_frames(relighter, 0.0, costs=CostModel()):
+        yield ("exact" if frame.stride is None else f"1/{frame.stride}"), frame.image
 
 
 @dataclass(frozen=True)
 class Edit:
-    """One edit kind: the state before its k-th repetition, and the edit itself (made inside the timing).
+    """One edit kind: the state before its k-th repetition, and the edit with its frames (timed
+    from the edit's call to the first frame).
 
     Attributes:
         before: (session, k) -> None, the state before the edit.
-        make: (session, k) -> None, the edit.
+        frames: (session, k) -> the edit made, then its `Frames`.
     """
 
     before: Callable[[Session, int], None]
-    make: Callable[[Session, int], None]
+    frames: Callable[[Session, int], Frames]
+
+
+def _edited(make: Callable[[Session, int], None]) -> Callable[[Session, int], Frames]:
+    """The frames of an edit of the rig or the materials: `make`, then the relighter's frames."""
+
+    def frames(session: Session, k: int) -> Frames:
+        make(session, k)
+        yield from relighter_frames(session.relighter)
+
+    return frames
 
 
 def edits(setup: Setup) -> dict[str, Edit]:
@@ -121,7 +144,7 @@ def edits(setup: Setup) -> dict[str, Edit]:
         rigs = setup.rigs[name]
         table[name] = Edit(
             lambda s, k, rigs=rigs: s.relighter.set_lights(rigs(k)[0]),
-            lambda s, k, rigs=rigs: s.relighter.set_lights(rigs(k)[1]),
+            _edited(lambda s, k, rigs=rigs: s.relighter.set_lights(rigs(k)[1])),
         )
     lights = setup.rigs["colour"](0)[0]
 
@@ -130,7 +153,7 @@ def edits(setup: Setup) -> dict[str, Edit]:
             session.relighter.set_lights(lights)
             session.relighter.edit_material(MATERIAL, **values(k))
 
-        return Edit(before, lambda s, k: s.relighter.edit_material(MATERIAL, **after(k)))
+        return Edit(before, _edited(lambda s, k: s.relighter.edit_material(MATERIAL, **after(k))))
 
     table["material colour"] = material(
         lambda k: {"diffuse_color": (0.6, 0.6, 0.6 - 0.01 * k)}, lambda k: {"diffuse_color": (0.2, 0.6, 0.3 - 0.01 * k)}
@@ -141,34 +164,29 @@ def edits(setup: Setup) -> dict[str, Edit]:
 
     def camera_before(session: Session, k: int) -> None:
         session.relighter.set_lights(lights)
-        set_view(session, CAMERA_STEP * k)
+        set_camera(session.view_relighter, session.moved_camera(CAMERA_STEP * k))
 
-    table["camera move"] = Edit(camera_before, lambda s, k: set_view(s, CAMERA_STEP * (k + 1)))
+    def camera_frames(session: Session, k: int) -> Frames:
+        moves = camera_move_frames(session.view_relighter, session.moved_camera(CAMERA_STEP * (k + 1)))
+        for stride, image in moves:
+            yield ("exact" if stride is None else f"1/{stride}"), image
+
+    table["camera move"] = Edit(camera_before, camera_frames)
     return table
 
 
-def first_and_converged(relighter: CacheRelighter) -> tuple[torch.Tensor, str, Callable[[], torch.Tensor]]:
-    """(the first frame after an edit, its level, a function making the converged frame): a
-    progressive relighter's coarsest level, else `render()` (whole)."""
-    if not relighter.progressive:
-        image = relighter.render()
-        return image, "whole", lambda: image
-    frames = progressive_frames(relighter, 0.0, costs=CostModel())
-    first = next(frames)
-    return first.image, f"1/{first.stride}" if first.stride else "exact", lambda: list(frames)[-1].image
-
-
 def measure(session: Session, edit: Edit, repeats: int) -> tuple[float, float, float, str]:
-    """(median CPU ms, median wall ms, median dB vs converged, level) of `repeats` edits after an untimed one."""
+    """(median CPU ms, median wall ms, median dB vs converged, level) of the first frame of
+    `repeats` edits after an untimed one."""
     cpu_ms, wall_ms, db, levels = [], [], [], []
     for k in range(repeats + 1):
         edit.before(session, k)
         session.relighter.render()
         cpu, wall = time.process_time(), time.perf_counter()
-        edit.make(session, k)
-        image, level, converge = first_and_converged(session.relighter)
+        frames = edit.frames(session, k)
+        level, image = next(frames)
         cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
-        converged = converge()
+        converged = ([image] + [later for _, later in frames])[-1]
         if k:
             cpu_ms.append(1e3 * cpu)
             wall_ms.append(1e3 * wall)
