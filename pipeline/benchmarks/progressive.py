@@ -12,9 +12,10 @@ repetitions; a first repetition per edit kind is not counted (it builds the coar
 Reported: median ms of the first frame and its level, median PSNR of the first frame against the
 converged one, the converged frame's difference from a fresh relighter's `render()`, median ms to
 the converged frame, and PSNR of both frames against the path tracer's full frame (`relight
-reference`) at --reference-size, the relit frames box-filtered to it. Edit kinds the cache's method
-does not support (material edits, a camera move) are listed as such. Writes progressive.csv and
-summary.md into --out.
+reference`) at --reference-size, the relit frames box-filtered to it. Edit kinds a cache's relighter
+lacks the capability for (`unsupported`: material edits, a camera move) are listed as such; the
+light edits are the ones measured here (`pipeline.benchmarks.first_frame` times the others' first
+frame). Writes progressive.csv and summary.md into --out.
 """
 
 from __future__ import annotations
@@ -46,11 +47,16 @@ from relight_torch.direct.images import box_filter
 from relight_torch.direct.loading import shot_lights
 from relight_torch.io.atomic import write_text_atomic
 from relight_torch.lights.light import Light, LightKind, Shaping
+from relight_torch.methods import relight_method
 from relight_torch.metrics import psnr
 from relight_torch.progressive import CostModel, progressive_frames
+from relight_torch.protocol import CacheRelighter
 
 SCENE = "cornell_box"
-EDITS = ("colour", "shaping", "move", "new light", "dome turn", "material colour", "material roughness", "camera move")
+LIGHT_EDITS = ("colour", "shaping", "move", "new light", "dome turn")
+MATERIAL_EDITS = ("material colour", "material roughness")
+CAMERA_EDITS = ("camera move",)
+EDITS = (*LIGHT_EDITS, *MATERIAL_EDITS, *CAMERA_EDITS)
 FIELDS = (
     "cache",
     "method",
@@ -106,6 +112,17 @@ def edit_rigs(lights: Rig, new_light: Light) -> dict[str, Callable[[int], tuple[
     }
 
 
+def unsupported(relighter: CacheRelighter, method: str, edit: str) -> str | None:
+    """Why `relighter` (of cache method `method`) cannot make an edit kind, from what it declares
+    (None: it can): a material edit needs `material_edits`, a camera move its method's
+    `needs_view` (`relight_torch.methods`); every relighter takes light edits."""
+    if edit in MATERIAL_EDITS and not relighter.material_edits:
+        return "material_edits is False"
+    if edit in CAMERA_EDITS and not relight_method(method).needs_view:
+        return "renders its baked camera only (needs_view is False)"
+    return None
+
+
 def reference_image(scene, camera, rig: Rig, spp: int) -> np.ndarray:
     """The path tracer's full frame (H, W, 3) of `scene` under `rig`."""
     lit = dataclasses.replace(scene, lights=rig)
@@ -129,9 +146,9 @@ def measure(
     rows: list[dict[str, object]] = []
     for edit in args.edits:
         row: dict[str, object] = {"cache": label, "method": method, "edit": edit, "repeats": 0}
-        if edit not in rigs:
-            kind = "material edits" if edit.startswith("material") else "camera moves"
-            row["note"] = f"not supported: the {method} method's relighter has no {kind}"
+        reason = unsupported(relighter, method, edit)
+        if reason is not None or edit not in rigs:
+            row["note"] = f"not supported: {reason}" if reason else "not measured here: see first_frame.md"
             rows.append(row)
             continue
         first_ms, first_cpu_ms, first_psnr, converged_ms, levels, level_psnr, first_level = [], [], [], [], {}, {}, []

@@ -223,11 +223,14 @@ class Relighter:
     def set_unit_images(self, path: str, images: torch.Tensor) -> None:
         """Give light `path` unit images (2, N, 3) computed elsewhere (the multiview relighter
         gathers them from its caching cameras): `render` then traces and shades nothing for it
-        until an edit of its transform or shaping drops them."""
+        until an edit of its transform or shaping drops them. Counted as an edit of the light
+        (`edits`): a progressive refinement under way starts again and its coarse frames show them."""
         state = self._lights[path]
         if state.folded:
             self._unfold(state)
         state.images, state.progress, state.external = images, None, True
+        self._edits += 1
+        state.edited = self._edits
         self._others = None
 
     # -- rendering ------------------------------------------------------------------------------
@@ -311,7 +314,8 @@ class Relighter:
 
     @property
     def edits(self) -> int:
-        """`CacheRelighter.edits`: light additions, edits and removals so far."""
+        """`CacheRelighter.edits`: light additions, edits and removals, and unit images given
+        (`set_unit_images`), so far."""
         return self._edits
 
     def pending(self, stride: int | None) -> float:

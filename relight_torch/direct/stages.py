@@ -117,10 +117,10 @@ class LightStages:
     def transport_bytes(self, light: Light) -> int:
         """Bytes of the light's whole transport, kept, estimated from the kept layout (`Transport`):
         per point and sample up to six scalar factors and a direction, or two RGB lobes and a
-        direction, in the G-buffer's dtype."""
+        direction, in the G-buffer's dtype. Grouped as `transports` groups it: by the unit light."""
         size = self.gbuffer.position.element_size()
         per_sample = (6 + 3) * size if light.texture is None else (2 * 3 + 3) * size
-        samples = max(num for _, num, _ in self.sample_groups(light))
+        samples = max(num for _, num, _ in self.sample_groups(self.transport_light(light)))
         return self.gbuffer.num_samples * samples * per_sample
 
     # -- transports -------------------------------------------------------------------------------

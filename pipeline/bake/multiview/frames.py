@@ -10,12 +10,14 @@ demand (`holes.hole_patch`, the shot loaded once) and the view is set again with
 
 from __future__ import annotations
 
+import dataclasses
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 from pxr import UsdGeom
 
 from pipeline.bake.multiview.holes import hole_patch
@@ -28,8 +30,10 @@ from pipeline.scene.types import Camera, Scene
 from pipeline.tracing import Tracer
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.io.preview import write_png
+from relight_torch.multiview.correspondence import ViewPoints
 from relight_torch.multiview.holes import HoleReport
 from relight_torch.multiview.relighter import MultiviewRelighter
+from relight_torch.progressive import STRIDES
 from relight_torch.stage import open_stage, time_code
 
 
@@ -71,9 +75,7 @@ class FrameRenderer:
 
     def render(self, camera: Camera) -> Frame:
         relighter = self.relighter
-        view = view_points(
-            relighter.caster, relighter.occluder_objects, camera, relighter.supersampling, relighter.corner_normals
-        )
+        view = camera_view(relighter, camera)
         report = relighter.set_view(view, exposure_scale=camera.exposure_scale)
         patched = 0
         if self.fill_holes and report.num_large_holes:
@@ -94,6 +96,43 @@ class FrameRenderer:
             relighter.set_view(view, patch=patch, exposure_scale=camera.exposure_scale)
             patched = patch.num_samples
         return Frame(relighter.render().cpu().numpy(), report, patched)
+
+
+def camera_view(relighter: MultiviewRelighter, camera: Camera) -> ViewPoints:
+    """The surfaces `camera` sees, at the relighter's supersampling (`view.view_points`)."""
+    return view_points(
+        relighter.caster, relighter.occluder_objects, camera, relighter.supersampling, relighter.corner_normals
+    )
+
+
+def set_camera(relighter: MultiviewRelighter, camera: Camera) -> HoleReport:
+    """Move the relighter to `camera`: its primary rays and correspondence map
+    (`MultiviewRelighter.set_view`); the frame is the relighter's `render()` after."""
+    return relighter.set_view(camera_view(relighter, camera), exposure_scale=camera.exposure_scale)
+
+
+def coarse_camera(camera: Camera, stride: int) -> Camera:
+    """`camera` with an image `stride` times smaller on each side (rounded up), the same frustum."""
+    return dataclasses.replace(camera, width=-(-camera.width // stride), height=-(-camera.height // stride))
+
+
+def camera_move_frames(
+    relighter: MultiviewRelighter, camera: Camera, strides: Sequence[int] = STRIDES
+) -> Iterator[tuple[int | None, torch.Tensor]]:
+    """A camera move's frames, coarse to exact, as (stride or None, (H, W, 3) image): per stride
+    the new view traced, matched and relit at one pixel per stride x stride (`coarse_camera`),
+    brought to the camera's size bilinearly; then the view itself, whose frame is the one
+    `set_camera` then `render()` make (the relighter is left at that view). The light cached at
+    the caching samples serves every level: a coarse level's work is its pixels'."""
+    for stride in strides:
+        set_camera(relighter, coarse_camera(camera, stride))
+        image = relighter.render().permute(2, 0, 1).unsqueeze(0)
+        # Each coarse pixel covers stride x stride pixels: sized up, then cut to the camera's size.
+        size = (image.shape[2] * stride, image.shape[3] * stride)
+        full = torch.nn.functional.interpolate(image, size=size, mode="bilinear", align_corners=False)
+        yield stride, full[0, :, : camera.height, : camera.width].permute(1, 2, 0)
+    set_camera(relighter, camera)
+    yield None, relighter.render()
 
 
 def frame_path(out: str | os.PathLike, time: float | None, num_frames: int) -> Path:
