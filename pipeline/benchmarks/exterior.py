@@ -22,6 +22,7 @@ import argparse
 import csv
 import dataclasses
 import json
+import math
 import os
 import subprocess
 import sys
@@ -239,9 +240,7 @@ def main(argv: list[str] | None = None) -> int:
             rows += [row for row in read_rows(args.out / "exterior.csv") if (row.size, row.kind) not in measured]
             kept = {f"{row.size} {row.kind}" for row in rows}
             missing = [cell for cell in missing if cell not in kept]
-        rows.sort(
-            key=lambda row: (size_argument(row.size)[0] * size_argument(row.size)[1], list(KINDS).index(row.kind))
-        )
+        rows.sort(key=lambda row: (math.prod(size_argument(row.size)), list(KINDS).index(row.kind)))
         args.out.mkdir(parents=True, exist_ok=True)
         write_rows(args.out / "exterior.csv", rows)
         with atomic_path(args.out / "summary.md") as temporary:
