@@ -20,6 +20,8 @@ Conventions:
 
 from __future__ import annotations
 
+import copy
+import threading
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -44,6 +46,12 @@ class SurfaceTables:
 
     geometry: Geometry
     face_normals: np.ndarray
+
+    @cached_property
+    def tangents(self) -> np.ndarray:
+        """(T, 3) float32 per-triangle tangents (`pipeline.scene.surface.triangle_tangents`),
+        computed once per soup (every twin of a tracer shares its tables)."""
+        return triangle_tangents(self.geometry.positions, self.geometry.uvs)
 
 
 @dataclass(frozen=True)
@@ -165,11 +173,17 @@ class Tracer(EmbreeCaster):
     def geometry(self) -> Geometry:
         return self._surface.geometry
 
-    @cached_property
+    @property
     def tangents(self) -> np.ndarray:
-        """(T, 3) float32 per-triangle tangents (`pipeline.scene.surface.triangle_tangents`), computed
-        once per tracer (a bake's chunks share them)."""
-        return triangle_tangents(self.geometry.positions, self.geometry.uvs)
+        """(T, 3) float32 per-triangle tangents, computed once per soup (`SurfaceTables.tangents`)."""
+        return self._surface.tangents
+
+    def with_threads(self, num_threads: int | None) -> Tracer:
+        """This tracer on `num_threads` threads (None: every CPU this process may use); its BVH and
+        tables are shared, nothing is rebuilt."""
+        twin = copy.copy(self)
+        twin.num_threads = EmbreeCaster.thread_count(num_threads)
+        return twin
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray | None = None) -> Hits:
         """Closest hit of each ray; its surface attributes are computed when first read.
@@ -178,6 +192,28 @@ class Tracer(EmbreeCaster):
         """
         ray_hits = super().intersect(origins, directions, t_far)
         return Hits(ray_hits.hit, ray_hits.distance, ray_hits.triangle_id, ray_hits.barycentrics, self._surface)
+
+
+_SHARED_LOCK = threading.Lock()
+_SHARED: list[tuple[Geometry, object, Tracer]] = []  # at most one: (soup, materials, tracer)
+
+
+def shared_tracer(scene: Scene, num_threads: int | None = None) -> Tracer:
+    """The tracer of `scene`'s soup and materials (`Tracer.for_scene`) on `num_threads` threads,
+    built once in this process for as long as the same soup is asked for.
+
+    A bake measures one shot at several image sizes (pilots, the measurement window, the reduced
+    view of indirect rows) and renders references of it; each is a `dataclasses.replace` of the
+    shot's scene, so they all keep its soup and share one BVH (two BVHs of a 33 M-triangle film
+    shot held at once had pushed its bake past 19 GB). Only the last soup's tracer is held: a new
+    soup releases the old BVH.
+    """
+    with _SHARED_LOCK:
+        if not _SHARED or _SHARED[0][0] is not scene.geometry or _SHARED[0][1] is not scene.materials:
+            _SHARED.clear()  # release the old BVH before building the new one
+            _SHARED.append((scene.geometry, scene.materials, Tracer.for_scene(scene)))
+        tracer = _SHARED[0][2]
+    return tracer.with_threads(num_threads)
 
 
 def _unit_face_normals(corners: np.ndarray) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -9,8 +10,10 @@ import numpy as np
 import pytest
 
 import production_support
+import sky_support
 from pipeline.bake import scheduler
 from pipeline.bake.direct.bake import bake_direct
+from pipeline.bake.quality import measurement_window, resized
 from pipeline.bake.scheduler import ChunkSpec, ShotSpec, chunk_folder, chunk_ranges, load_chunk, run_chunks
 from pipeline.bake.transfer import bake as transfer
 from pipeline.cli import main
@@ -137,3 +140,26 @@ def test_transfer_rows_are_the_same_on_one_or_two_threads_and_resume(tmp_path, m
     monkeypatch.setattr(transfer, "final_gather_rows", lambda *args: pytest.fail("a finished chunk was re-evaluated"))
     again = transfer.bake_rows(shot, transfer.F_PREFIX, 37, 6, 1, settings, tmp_path / "2", progress=False).arrays()
     np.testing.assert_array_equal(again["Values"], baked[2]["Values"])
+
+
+@pytest.mark.parametrize("view", ["window", "reduced", "pilot"])
+def test_a_process_reading_a_view_of_the_shot_reads_the_drivers_surfaces_and_camera(tmp_path, view):
+    """Pool and Dask workers read the shot again from its spec. A measurement window, a reduced
+    view of indirect rows and a pilot are views of the shot as the driver read it: the worker must
+    refine the subdivision teapots for the shot's size (not the view's: a 160x120 window of a
+    640x480 read had given a quarter of the triangles, so other gathers) and see the window's film."""
+    shot = sky_support.write_exterior_shot(tmp_path, 1, 1)
+    scene = load_scene(shot, width=160, height=120)
+    camera = find_camera(scene, "/Shot/Cams/Horizon")
+    driver_scene, driver_camera = {
+        "window": lambda: measurement_window(scene, camera, 40 * 32),
+        "reduced": lambda: transfer.reduced_view(scene, camera, 2),
+        "pilot": lambda: resized(scene, camera, 64, 48),
+    }[view]()
+    spec = ShotSpec.of(driver_scene, driver_camera)
+    scheduler._REMEMBERED.clear()  # as in a worker process
+    worker_scene, worker_camera = scheduler.load_shot(spec)
+    assert worker_scene is not driver_scene
+    np.testing.assert_array_equal(worker_scene.geometry.positions, driver_scene.geometry.positions)
+    for name in (field.name for field in dataclasses.fields(driver_camera)):
+        np.testing.assert_array_equal(getattr(worker_camera, name), getattr(driver_camera, name), err_msg=name)

@@ -1,11 +1,20 @@
 """Tests of pipeline.tracing: hand-computed hits, occlusion, ray offsets, and agreement with a slow
 brute-force Moller-Trumbore twin."""
 
+import gc
+import warnings
+import weakref
+
 import numpy as np
 import pytest
 
+from pipeline.bake.direct.bake import bake_direct
+from pipeline.bake.quality import measurement_window, resized
+from pipeline.reference.path_tracer import PathTracer, ReferenceSettings
+from pipeline.scene import find_camera, load_scene
 from pipeline.scene.types import Geometry
-from pipeline.tracing import Tracer
+from pipeline.scenes import SCENES
+from pipeline.tracing import Tracer, shared_tracer
 from relight_torch.visibility import embree
 
 
@@ -328,3 +337,36 @@ def test_chunked_and_threaded_batches_match_one_call(monkeypatch):
     for name in ("hit", "distance", "triangle_id", "barycentrics", "position", "shading_normal", "uv", "material_id"):
         np.testing.assert_array_equal(getattr(hits, name), getattr(expected_hits, name))
     np.testing.assert_array_equal(chunked.occluded(origins, directions, t_far), expected_blocked)
+
+
+def _bvhs(tracers) -> int:
+    """Distinct Embree scenes among `tracers`."""
+    return len({id(tracer._scene) for tracer in tracers})
+
+
+def test_every_image_size_of_a_shot_shares_one_bvh(tmp_path):
+    """A shot bake's pilot, measurement window and path-traced reference keep the shot's soup and
+    trace one BVH (two had been held at once: the per-shot-size caches kept one each); a new soup
+    releases the old BVH."""
+    shot = SCENES["cornell_box"].write(tmp_path / "shot")
+    scene = load_scene(shot, width=64, height=48)
+    camera = find_camera(scene, SCENES["cornell_box"].camera)
+    pilot_scene, pilot = resized(scene, camera, 32, 24)
+    window_scene, window = measurement_window(scene, camera, 32 * 24)
+    assert window is not camera
+    bake_direct(pilot_scene, pilot, tmp_path / "pilot", "pilot", supersampling=1, texture_samples=1)
+    bake_direct(window_scene, window, tmp_path / "window", "window", supersampling=1, texture_samples=1)
+    tracer = PathTracer(window_scene, ReferenceSettings(spp=1, max_bounces=1, num_workers=2)).tracer
+    gc.collect()
+    with warnings.catch_warnings():  # isinstance on torch's deprecated module attributes warns
+        warnings.simplefilter("ignore", FutureWarning)
+        live = [obj for obj in gc.get_objects() if isinstance(obj, Tracer) and obj.geometry is scene.geometry]
+    assert _bvhs(live) == 1
+    assert tracer.num_threads == 1 and shared_tracer(scene).num_threads >= 1
+    assert tracer.tangents is shared_tracer(scene, 3).tangents
+
+    held = weakref.ref(shared_tracer(scene)._scene)
+    del live, tracer
+    shared_tracer(load_scene(shot, width=64, height=48))  # another soup of the same shot
+    gc.collect()
+    assert held() is None

@@ -26,7 +26,7 @@ from pipeline.scene.camera import camera_rays
 from pipeline.scene.surface import tangent_about
 from pipeline.scene.types import Camera, Scene
 from pipeline.shading_points import ShadingPoints, shading_points
-from pipeline.tracing import Tracer
+from pipeline.tracing import Tracer, shared_tracer
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.gbuffer import GBuffer
 
@@ -87,13 +87,13 @@ def bake_deep_framebuffer(
         supersampling: s >= 1 sub-samples per pixel side.
         texture_samples: t >= 1 material samples per sub-sample side where materials vary
             (1 = point-sampled textures).
-        tracer: reuse a built tracer (the BVH is built otherwise).
+        tracer: the tracer to use (default: the scene's `shared_tracer`).
         rows: bake only the pixel rows [first, last) (a chunk of a bake; the sub-samples keep
             their indices in the whole (H s, W s) image); None: every row.
     """
     if supersampling < 1 or texture_samples < 1:
         raise ValueError(f"supersampling and texture_samples must be >= 1, got {supersampling}, {texture_samples}")
-    tracer = tracer or Tracer.for_scene(scene)
+    tracer = tracer or shared_tracer(scene)
     first, last = rows or (0, camera.height)
     if not 0 <= first < last <= camera.height:
         raise ValueError(f"rows must lie in [0, {camera.height}), got [{first}, {last})")

@@ -18,8 +18,8 @@ import numpy as np
 import torch
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
-from pipeline.bake.direct.bake import direct_payloads, prepare_output, shot_tracer, write_npy
-from pipeline.bake.scheduler import ShotSpec, chunk_folder, load_shot, per_process
+from pipeline.bake.direct.bake import direct_payloads, prepare_output, write_npy
+from pipeline.bake.scheduler import ShotSpec, chunk_folder, load_shot, per_process, shot_tracer
 from pipeline.scene.types import Camera, Scene
 from relight_torch.cache.layer import CacheDescription, Payload, content_hash, write_cache_layer
 from relight_torch.gbuffer import GBuffer

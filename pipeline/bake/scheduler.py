@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import dataclasses
 import functools
 import hashlib
 import logging
@@ -69,6 +70,7 @@ from pipeline.errors import RelightError
 from pipeline.progress import progress_bar
 from pipeline.scene.load import find_camera, load_scene
 from pipeline.scene.types import Camera, Scene
+from pipeline.tracing import Tracer, shared_tracer
 from relight_torch.io.atomic import atomic_path, remove_temp_files
 
 log = logging.getLogger("relight")
@@ -84,9 +86,15 @@ class ShotSpec:
     Attributes:
         shot: the shot's root layer, absolute path.
         camera: the camera prim path.
-        width, height: the resolution in pixels (overrides of the shot's render settings).
+        width, height: the camera's resolution in pixels.
         time: the USD time code read, None for the stage's first frame.
         lights_layer: a light-edit layer composed over the shot, None for none.
+        read_size: the image size overrides the scene was read with (`Scene.read_size`): its
+            subdivision surfaces are refined for the cameras at that size, so a pilot, a
+            measurement window or a reduced view of a shot reads the shot's own surfaces.
+        film: the camera's (horizontal aperture, vertical aperture, horizontal offset, vertical
+            offset) as the bake sees it (a window of the frame is a camera of its own,
+            `pipeline.scene.camera.crop`); None: as the stage authors it at width x height.
     """
 
     shot: str
@@ -95,10 +103,13 @@ class ShotSpec:
     height: int
     time: float | None = None
     lights_layer: str | None = None
+    read_size: tuple[int | None, int | None] = (None, None)
+    film: tuple[float, float, float, float] | None = None
 
     @staticmethod
     def of(scene: Scene, camera: Camera, time_code: float | None = None, lights_layer: str | None = None) -> ShotSpec:
-        """The spec of `scene` (read by `load_scene(scene.source, time=time_code, width=, height=)`),
+        """The spec of `camera` in `scene` (read by `load_scene(scene.source, time=time_code,
+        width=, height=)` at `scene.read_size`, the camera then set to `camera`'s size and film),
         remembered so `load_shot` in this process returns `scene` itself instead of reading it again."""
         shot = ShotSpec(
             str(scene.source),
@@ -107,6 +118,13 @@ class ShotSpec:
             camera.height,
             None if time_code is None else float(time_code),
             lights_layer,
+            scene.read_size,
+            (
+                camera.horizontal_aperture,
+                camera.vertical_aperture,
+                camera.horizontal_aperture_offset,
+                camera.vertical_aperture_offset,
+            ),
         )
         remember_shot(shot, scene)
         return shot
@@ -214,8 +232,25 @@ def per_process(function: Callable) -> Callable:
 
 
 @per_process
+def _read_stage(source: str, time: float | None, lights_layer: str | None, read_size: tuple) -> Scene:
+    """The shot read once per process per read size: every view of it shares one soup (and BVH)."""
+    width, height = read_size
+    return load_scene(source, time=time, lights_layer=lights_layer, width=width, height=height)
+
+
 def _read_shot(shot: ShotSpec) -> Scene:
-    return load_scene(shot.shot, time=shot.time, lights_layer=shot.lights_layer, width=shot.width, height=shot.height)
+    """The scene of `shot`: the stage as read at `shot.read_size`, its camera at the spec's size and film."""
+    scene = _read_stage(shot.shot, shot.time, shot.lights_layer, shot.read_size)
+    camera = dataclasses.replace(find_camera(scene, shot.camera), width=shot.width, height=shot.height)
+    if shot.film is not None:
+        camera = dataclasses.replace(
+            camera,
+            horizontal_aperture=shot.film[0],
+            vertical_aperture=shot.film[1],
+            horizontal_aperture_offset=shot.film[2],
+            vertical_aperture_offset=shot.film[3],
+        )
+    return dataclasses.replace(scene, cameras={**scene.cameras, shot.camera: camera})
 
 
 _REMEMBERED: dict[ShotSpec, Scene] = {}
@@ -231,6 +266,13 @@ def load_shot(shot: ShotSpec) -> tuple[Scene, Camera]:
     """The shot's scene and camera, read once per process (or the one `remember_shot` gave)."""
     scene = _REMEMBERED[shot] if shot in _REMEMBERED else _read_shot(shot)
     return scene, find_camera(scene, shot.camera)
+
+
+def shot_tracer(shot: ShotSpec) -> Tracer:
+    """The shot's BVH on `chunk_threads()` threads, built once per process and shared with every
+    other image size of the same soup (`pipeline.tracing.shared_tracer`)."""
+    scene, _ = load_shot(shot)
+    return shared_tracer(scene, chunk_threads())
 
 
 def spec_digest(spec: ChunkSpec) -> str:

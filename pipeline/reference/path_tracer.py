@@ -38,10 +38,9 @@ import numpy as np
 import torch
 
 from pipeline.scene.camera import camera_rays
-from pipeline.scene.surface import triangle_tangents
 from pipeline.scene.types import Camera, Scene
 from pipeline.shading_points import ShadingPoints, shading_points
-from pipeline.tracing import Tracer
+from pipeline.tracing import shared_tracer
 from relight_torch.brdf import preview_surface
 from relight_torch.lights.emission import emitted_radiance, intersect_light, is_delta_light, light_pdf, sample_light
 from relight_torch.lights.light import Light, LightKind
@@ -148,8 +147,8 @@ class PathTracer:
         self.settings = settings
         self.num_workers = settings.num_workers or len(os.sched_getaffinity(0))
         # Parallelism comes from the workers; one Embree thread each.
-        self.tracer = Tracer.for_scene(scene, num_threads=1 if self.num_workers > 1 else None)
-        self.tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs)
+        self.tracer = shared_tracer(scene, num_threads=1 if self.num_workers > 1 else None)
+        self.tangents = self.tracer.tangents
         self.area_lights = [light for light in scene.lights if not is_delta_light(light)]
         object_paths = [obj.path for obj in scene.objects]
         # Per light with a light link: (num_objects,) float32, 1 for the objects it lights.

@@ -43,6 +43,7 @@ def read_scene(
         meters_per_unit=float(UsdGeom.GetStageMetersPerUnit(stage)),
         up_axis=str(UsdGeom.GetStageUpAxis(stage)),
         warnings=warnings,
+        read_size=(width, height),
     )
 
 

@@ -182,6 +182,9 @@ class Scene:
         meters_per_unit: stage metadata.
         up_axis: 'Y' or 'Z'.
         warnings: the one-line warnings the walker emitted (also logged).
+        read_size: the (width, height) image size overrides the stage was read with (`load_scene`;
+            None: the stage's own): its subdivision surfaces are refined for its cameras at that
+            size (`pipeline.scene.dicing`), whatever size a camera of it is later set to.
     """
 
     source: str
@@ -193,6 +196,7 @@ class Scene:
     meters_per_unit: float = 0.01
     up_axis: str = "Y"
     warnings: list[str] = field(default_factory=list)
+    read_size: tuple[int | None, int | None] = (None, None)
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:

@@ -104,7 +104,7 @@ class EmbreeCaster:
     ):
         if corners.dtype != np.float32 or corners.ndim != 3 or corners.shape[1:] != (3, 3):
             raise ValueError(f"corners must be float32 (T, 3, 3), got {corners.dtype} {corners.shape}")
-        self.num_threads = num_threads or len(os.sched_getaffinity(0))
+        self.num_threads = self.thread_count(num_threads)
         self.corners = corners
         self.opacity = opacity if opacity is not None and opacity.num_triangles else None
         # With cut-outs, two scenes: the opaque triangles (traced as before) and the others, whose
@@ -127,6 +127,11 @@ class EmbreeCaster:
                 low, high = np.minimum(low, self._clear_scene.bounds[0]), np.maximum(high, self._clear_scene.bounds[1])
             epsilon = _bounds_epsilon(low, high)
         self.epsilon = epsilon
+
+    @staticmethod
+    def thread_count(num_threads: int | None) -> int:
+        """`num_threads`, or every CPU this process may use when None."""
+        return num_threads or len(os.sched_getaffinity(0))
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray | None = None) -> RayHits:
         """Closest hit of each ray: distance, triangle and barycentrics. Holes of cut-out and

@@ -25,7 +25,7 @@ from pipeline.bake.cuts.lights import sphere_directions, surface_points
 from pipeline.bake.cuts.tree import build_leaf_order
 from pipeline.bake.cuts.vertices import Lattice, build_lattice
 from pipeline.bake.deep_framebuffer import grid_rays
-from pipeline.bake.scheduler import ChunkSpec, ShotSpec, chunk_threads, load_shot, per_process
+from pipeline.bake.scheduler import ChunkSpec, ShotSpec, load_shot, per_process, shot_tracer
 from pipeline.tracing import Tracer
 from relight_torch.cuts.cuts import MEAN_LEVELS, cuts_from_mask, indirect_scale, variance_cut_mask
 from relight_torch.cuts.tree import LightTree
@@ -49,13 +49,6 @@ class CutsSetup:
 
 
 @per_process
-def tracer_for(shot: ShotSpec) -> Tracer:
-    """The shot's Embree tracer, built once per process."""
-    scene, _ = load_shot(shot)
-    return Tracer.for_scene(scene, num_threads=chunk_threads())
-
-
-@per_process
 def cuts_setup(shot: ShotSpec, parameters: tuple[tuple[str, object], ...]) -> CutsSetup:
     """Light points, their tree order and the vertex lattice of the shot's camera (cached per process).
 
@@ -68,7 +61,7 @@ def cuts_setup(shot: ShotSpec, parameters: tuple[tuple[str, object], ...]) -> Cu
     corners = scene.geometry.positions
     diagonal = float(np.linalg.norm(corners.reshape(-1, 3).max(axis=0) - corners.reshape(-1, 3).min(axis=0)))
     origins, rays = grid_rays(camera, int(values["supersampling"]))
-    hits = tracer_for(shot).intersect(origins, rays)
+    hits = shot_tracer(shot).intersect(origins, rays)
     lattice = build_lattice(
         corners,
         hits.triangle_id[hits.hit],
@@ -87,7 +80,7 @@ def cuts_setup(shot: ShotSpec, parameters: tuple[tuple[str, object], ...]) -> Cu
     beta = float(values["beta"])
     if beta < 1.0:
         features = data_driven_features(
-            features, pilot_visibility(tracer_for(shot), lattice, leaves, int(values["pilots"])), beta
+            features, pilot_visibility(shot_tracer(shot), lattice, leaves, int(values["pilots"])), beta
         )
     order = build_leaf_order(features)
     return CutsSetup(values["mode"], {name: array[order] for name, array in leaves.items()}, lattice)
@@ -150,7 +143,7 @@ def visibility_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:
     rows = slice(spec.start, spec.stop)
     position = setup.lattice.position[rows]
     values = torch.from_numpy(
-        leaf_visibility(tracer_for(spec.shot), position, setup.lattice.normal[rows], setup.leaves)
+        leaf_visibility(shot_tracer(spec.shot), position, setup.lattice.normal[rows], setup.leaves)
     )
     num_leaves = values.shape[1]
     if setup.mode == "indirect":

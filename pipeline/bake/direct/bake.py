@@ -31,16 +31,14 @@ from pipeline.bake.scheduler import (
     ShotSpec,
     chunk_folder,
     chunk_ranges,
-    chunk_threads,
     load_chunk,
     load_shot,
-    per_process,
     run_chunks,
+    shot_tracer,
 )
 from pipeline.errors import warn
 from pipeline.scene.opacity import scene_opacity
 from pipeline.scene.types import Camera, Scene
-from pipeline.tracing import Tracer
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.cache.gbuffer_exr import gbuffer_to_channels
 from relight_torch.cache.layer import SUFFIX, CacheDescription, Payload, file_sha256, write_cache_layer
@@ -78,13 +76,6 @@ def write_npy(path: Path, array: np.ndarray, name: str = "") -> Payload:
         shape=tuple(array.shape),
         dtype=array.dtype.name,
     )
-
-
-@per_process
-def shot_tracer(shot: ShotSpec) -> Tracer:
-    """The shot's BVH, built once per process."""
-    scene, _ = load_shot(shot)
-    return Tracer.for_scene(scene, num_threads=chunk_threads())
 
 
 def _direct_chunk(spec: ChunkSpec) -> dict[str, np.ndarray]:

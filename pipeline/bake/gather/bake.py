@@ -30,7 +30,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.bake.direct.bake import shot_tracer
 from pipeline.bake.gather.hemisphere import ClusteredGathers, cluster_gathers, gather
 from pipeline.bake.gather.representatives import choose_representatives, glossy_share, reconstruction_weights
 from pipeline.bake.gather.surface_points import merge_entries, share_points
@@ -44,6 +43,7 @@ from pipeline.bake.scheduler import (
     load_shot,
     per_process,
     run_chunks,
+    shot_tracer,
 )
 from pipeline.scene.surface import triangle_tangents
 from pipeline.scene.types import Camera, Scene

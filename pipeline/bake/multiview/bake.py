@@ -27,14 +27,22 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.bake.deep_framebuffer import bake_deep_framebuffer
-from pipeline.bake.direct.bake import prepare_output, shot_tracer, write_npy
+from pipeline.bake.direct.bake import prepare_output, write_npy
 from pipeline.bake.inputs import code_version, identify_bake
 from pipeline.bake.multiview.cameras import camera_from_row, camera_row
 from pipeline.bake.multiview.placement import Placement, PlacementSettings, place_cameras
-from pipeline.bake.scheduler import ChunkSpec, ShotSpec, chunk_folder, load_chunk, load_shot, run_chunks
+from pipeline.bake.scheduler import (
+    ChunkSpec,
+    ShotSpec,
+    chunk_folder,
+    load_chunk,
+    load_shot,
+    run_chunks,
+    shot_tracer,
+)
 from pipeline.errors import RelightError
 from pipeline.scene.types import Camera, Scene
-from pipeline.tracing import Tracer
+from pipeline.tracing import shared_tracer
 from relight_torch.cache.gbuffer_exr import gbuffer_to_channels
 from relight_torch.cache.layer import CacheDescription, Payload, file_sha256, read_cache_layer, write_cache_layer
 from relight_torch.io.exr import write_exr
@@ -115,7 +123,7 @@ def bake_multiview(
         box: (lo, hi) workspace; default the scene's bounds.
     """
     out_dir, layer_path = prepare_output(out_dir, stem, supersampling, texture_samples)
-    placement = place_cameras(scene, settings, box, Tracer.for_scene(scene))
+    placement = place_cameras(scene, settings, box, shared_tracer(scene))
     if not placement.cameras:
         raise RelightError(f"{scene.source}: no caching camera sees the surfaces inside the box")
     rows = [camera_row(placed.camera, placed.kind, placed.group) for placed in placement.cameras]

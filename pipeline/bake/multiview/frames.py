@@ -25,9 +25,8 @@ from pipeline.bake.multiview.view import view_points
 from pipeline.errors import RelightError
 from pipeline.scene.camera import read_camera
 from pipeline.scene.load import load_scene
-from pipeline.scene.surface import triangle_tangents
 from pipeline.scene.types import Camera, Scene
-from pipeline.tracing import Tracer
+from pipeline.tracing import Tracer, shared_tracer
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.io.preview import write_png
 from relight_torch.multiview.correspondence import ViewPoints
@@ -70,7 +69,7 @@ class FrameRenderer:
         self.relighter = relighter
         self.lights_layer = lights_layer
         self.fill_holes = fill_holes
-        self._shot: tuple[Scene, Tracer, np.ndarray] | None = None
+        self._shot: tuple[Scene, Tracer] | None = None
         """The shot, its BVH and triangle tangents, loaded for the first hole patch and kept."""
 
     def render(self, camera: Camera) -> Frame:
@@ -84,15 +83,9 @@ class FrameRenderer:
                 scene = load_scene(
                     description.source, time=description.parameters.get("time"), lights_layer=self.lights_layer
                 )
-                self._shot = (
-                    scene,
-                    Tracer.for_scene(scene),
-                    triangle_tangents(scene.geometry.positions, scene.geometry.uvs),
-                )
-            scene, tracer, tangents = self._shot
-            patch = hole_patch(
-                scene, camera, relighter.supersampling, report.large_pixel_index.cpu().numpy(), tracer, tangents
-            )
+                self._shot = (scene, shared_tracer(scene))
+            scene, tracer = self._shot
+            patch = hole_patch(scene, camera, relighter.supersampling, report.large_pixel_index.cpu().numpy(), tracer)
             relighter.set_view(view, patch=patch, exposure_scale=camera.exposure_scale)
             patched = patch.num_samples
         return Frame(relighter.render().cpu().numpy(), report, patched)

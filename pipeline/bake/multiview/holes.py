@@ -12,10 +12,9 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.bake.deep_framebuffer import grid_rays
-from pipeline.scene.surface import triangle_tangents
 from pipeline.scene.types import Camera, Scene
 from pipeline.shading_points import shading_points
-from pipeline.tracing import Tracer
+from pipeline.tracing import Tracer, shared_tracer
 from relight_torch.gbuffer import GBuffer
 
 
@@ -25,15 +24,14 @@ def hole_patch(
     supersampling: int,
     pixel_index: np.ndarray,
     tracer: Tracer | None = None,
-    tangents: np.ndarray | None = None,
 ) -> GBuffer:
     """The G-buffer of `camera`'s sub-samples at `pixel_index` (M,) flat indices of its (H s, W s) image.
 
-    Sub-samples whose rays hit nothing are left out. `tracer` and `tangents` (T, 3, 3) (the scene's
-    BVH and `triangle_tangents`) are built here when not given; a caller patching many frames keeps them.
+    Sub-samples whose rays hit nothing are left out. `tracer`: the scene's (`shared_tracer` when not
+    given); a caller patching many frames keeps it.
     """
-    tracer = tracer or Tracer.for_scene(scene)
-    tangents = triangle_tangents(scene.geometry.positions, scene.geometry.uvs) if tangents is None else tangents
+    tracer = tracer or shared_tracer(scene)
+    tangents = tracer.tangents
     origins, directions = grid_rays(camera, supersampling)
     pixel_index = np.asarray(pixel_index, np.int64)
     directions = directions[pixel_index]

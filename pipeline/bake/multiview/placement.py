@@ -29,7 +29,7 @@ from pipeline.bake.multiview.spheres import maximal_spheres
 from pipeline.bake.multiview.voting import hemisphere_directions, vote
 from pipeline.errors import RelightError
 from pipeline.scene.types import Camera, Scene
-from pipeline.tracing import Tracer
+from pipeline.tracing import Tracer, shared_tracer
 from relight_torch.multiview.views import PRIMARY, SECONDARY
 
 CUBE_UP = np.array([[0, 1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1], [0, 1, 0], [0, 1, 0]], np.float64)
@@ -229,7 +229,7 @@ def place_cameras(
 ) -> Placement:
     """Place the caching cameras of `scene` within `box` (default: the scene's bounds)."""
     settings.check()
-    tracer = tracer or Tracer.for_scene(scene)
+    tracer = tracer or shared_tracer(scene)
     rng = np.random.default_rng(settings.seed)
     lo, hi = (np.asarray(b, np.float64) for b in (box or scene.bounds))
     samples = sample_surfaces(scene, settings.num_samples, rng, object_importance(scene), (lo, hi))

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.bake.direct.bake import shot_tracer, write_npy
+from pipeline.bake.direct.bake import write_npy
 from pipeline.bake.gather_cloud import create_gathers
 from pipeline.bake.indirect import PixelViews, pixel_views, start_indirect_bake
 from pipeline.bake.scheduler import (
@@ -48,6 +48,7 @@ from pipeline.bake.scheduler import (
     load_shot,
     per_process,
     run_chunks,
+    shot_tracer,
 )
 from pipeline.bake.transfer.probes import probe_lights
 from pipeline.bake.transfer.rows import bounce_rows, disc_support, final_gather_rows
