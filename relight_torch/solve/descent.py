@@ -9,7 +9,8 @@ with `rest` and the unit images U_i of lights whose geometry is fixed taken from
 relighter: each step takes their value from the relighter at the current parameters and their
 derivatives from the relighter's differentiable twin (`protocol.GradientRelighter`, built on
 `relight_torch.direct.gradients`: visibility traced at the current parameters and held fixed
-through the derivative), and s_i the emission factor: the closed-form start times a free
+through the derivative), and s_i the emission factor: the start (the closed form's, no dimmer
+than the rig's for a light whose geometry is free: `solver._geometry_start`) times a free
 non-negative multiple (per channel when colours are free) times blackbody(T) / blackbody(T_0).
 
 The unknowns are few (a handful per light) and the residual is a whole image, so the solve is a

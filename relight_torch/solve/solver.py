@@ -142,12 +142,12 @@ def _geometry_start(closed: Light, rig: Light, kinds: Sequence[str]) -> Light:
     """Where the descent starts a light: the closed form's emission, but no dimmer than the rig's
     for a light whose geometry is free.
 
-    The closed form fits the emission at the starting geometry. A light moved in the target (its
-    pool of light elsewhere) can fit there with almost none (measured: a spot moved by 10 % of the
-    Cornell box's diagonal, 0.0001 of its intensity), and a light that is off has no gradient in
-    its geometry; the descent's emission unknown multiplies the start, and its pull toward the
-    start costs (multiple - 1)^2, so it cannot bring the light back either. Started at the rig's
-    emission, the descent sees where the light's image should go, and solves its brightness with it.
+    The closed form fits the emission at the starting geometry. A light the target shows elsewhere
+    (a spot whose pool has moved) can fit there with almost none, and a light that is off has no
+    gradient in its geometry; the descent's emission unknown multiplies the start, and its pull
+    toward the start costs (multiple - 1)^2, so it cannot bring the light back either (the test
+    `test_descent_starts_a_movable_light_at_its_rig_emission`). Started at the rig's emission, the
+    descent sees where the light's image should go, and solves its brightness with it.
     """
     if not any(kind in kinds and applies(kind, rig) for kind in GEOMETRY_KINDS):
         return closed
