@@ -53,4 +53,5 @@ def test_clear_move_takes_the_first_direction_that_stays_in_the_room(tracer: Tra
     for earlier in MOVE_DIRECTIONS[:index]:
         assert not stays_in_room(tracer, window, window + step * np.asarray(earlier), HALL, margin)
     with pytest.raises(RuntimeError, match="stays in the room"):
-        clear_move(tracer, np.array([0.0, 350.0, 5000.0]), HALL, DIAGONAL)  # outside the hall: every move leaves it
+        pier = np.array([set_scene.HALF_WIDTH + 0.5 * set_scene.WALL, 350.0, 0.0])  # inside the wall, between windows
+        clear_move(tracer, pier, HALL, DIAGONAL)
