@@ -9,7 +9,8 @@ with `rest` and the unit images U_i of lights whose geometry is fixed taken from
 relighter: each step takes their value from the relighter at the current parameters and their
 derivatives from the relighter's differentiable twin (`protocol.GradientRelighter`, built on
 `relight_torch.direct.gradients`: visibility traced at the current parameters and held fixed
-through the derivative), and s_i the emission factor: the closed-form start times a free
+through the derivative), and s_i the emission factor: the start (the closed form's, no dimmer
+than the rig's for a light whose geometry is free: `solver._geometry_start`) times a free
 non-negative multiple (per channel when colours are free) times blackbody(T) / blackbody(T_0).
 
 The unknowns are few (a handful per light) and the residual is a whole image, so the solve is a
@@ -194,6 +195,37 @@ def unresolved(jacobian: torch.Tensor, labels: Sequence[str]) -> list[str]:
     return lines
 
 
+def faded(start: torch.Tensor, jacobian: torch.Tensor, labels: Sequence[str], owners: Sequence[str]) -> list[str]:
+    """The unknowns the target stopped determining on the way: one line per light (`owners` (n,)
+    gives each unknown's light) naming its unknowns whose curvature of the loss, diag(J^T J) of the
+    Jacobian (M, n) at the solution, fell below RIDGE_CURVATURE times `start` (n,), the same at the
+    start, and is not zero (`unresolved` names those).
+
+    An unknown of a light is seen through that light's image, so its curvature falls with the
+    light's emission squared and with the share of its light the camera sees: a solve that turned a
+    light off, or moved it out of view, leaves its geometry wherever the last step put it. Typically
+    the target shows the light where no local step reaches: moved behind an occluder, its image at
+    every nearby position is the wrong one (visibility has no gradient), and the best the solve
+    can do is switch it off. Compared with the start rather than with the other unknowns (as
+    `unresolved` does) so that a light the rig has dim is not flagged for being dim."""
+    end = jacobian.square().sum(0)
+    scale = float(end.sqrt().max().clamp_min(1e-300))
+    lost = (end < RIDGE_CURVATURE * start) & (end.sqrt() > 1e-12 * scale)
+    lines = []
+    for owner in dict.fromkeys(owners):
+        index = [k for k, name in enumerate(owners) if name == owner and bool(lost[k])]
+        if not index:
+            continue
+        names = [labels[k].removeprefix(f"{owner} ") for k in index]
+        ratio = max(float(end[k] / start[k]) for k in index)
+        lines.append(
+            f"{owner} {', '.join(names)}: the solve turned the light off or out of view (curvature "
+            f"{ratio:.1e} of the start's), so the target no longer determines them; if the target shows "
+            "it elsewhere, it may lie behind an occluder, where no local step follows it"
+        )
+    return lines
+
+
 def _labels(unknowns: list[_Unknowns]) -> list[str]:
     """One label per unknown, in the Jacobian's column order (`_jacobian`)."""
     labels = []
@@ -277,8 +309,11 @@ def descend(
         problem, loss, residual = _reweight(problem, unknowns, residual, settings.regularisation)
     history, damping, evaluations = [loss], settings.damping, 1
     current = True  # the relighter and the frozen visibility stand at the unknowns' values
+    start_curvature: torch.Tensor | None = None  # diag(J^T J) at the start (`faded`)
     while evaluations < settings.iterations and damping < 1e10:
         jacobian = _jacobian(problem, unknowns, exact)
+        if start_curvature is None:
+            start_curvature = jacobian.square().sum(0)
         kept = [t.clone() for u in unknowns for t in u.tensors()]
         z = torch.cat([t.reshape(-1) for t in kept])
         normal = jacobian.T @ jacobian + settings.regularisation * torch.eye(z.shape[0], dtype=dtype, device=device)
@@ -311,7 +346,11 @@ def descend(
     # left the relighter and the frozen visibility where it tried.
     if not current:
         _, exact, _ = _evaluate(problem, unknowns, settings.regularisation)
-    lines = unresolved(_jacobian(problem, unknowns, exact), _labels(unknowns))
+    jacobian, labels = _jacobian(problem, unknowns, exact), _labels(unknowns)
+    lines = unresolved(jacobian, labels)
+    if start_curvature is not None:
+        owners = [u.light.path for u in unknowns for t in u.tensors() for _ in range(t.numel())]
+        lines += faded(start_curvature, jacobian, labels, owners)
     solved = [
         _solved_light(u, start, problem.diagonal, free) for u, start in zip(unknowns, problem.starts, strict=True)
     ]

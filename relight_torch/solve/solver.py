@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from relight_torch.direct.gradients import GEOMETRY_KINDS, applies
+from relight_torch.direct.images import colour_scale
 from relight_torch.errors import RelightError
 from relight_torch.lights.light import Light
 from relight_torch.protocol import CacheRelighter, GradientRelighter
@@ -106,6 +107,7 @@ def solve_lights(
     iterations = 0
     lines: tuple[str, ...] = ()
     if any(kind in kinds for kind in GEOMETRY_KINDS + ("temperature",)):
+        solved = [_geometry_start(light, by_path[light.path], kinds) for light in solved]
         result = descend(relighter, solved, rest, images, target_t, weights, kinds, settings, progress, robust)
         solved, iterations, lines = result.lights, result.iterations, result.unresolved
         if scale_kinds:  # the closed form again, now through the relighter at the solved geometry
@@ -134,6 +136,22 @@ def _closed_form(
     else:
         factors = solve_scales(images, residual, weights, current, "color" in kinds)
     return [scaled_light(light, factor, kinds) for light, factor in zip(lights, factors, strict=True)]
+
+
+def _geometry_start(closed: Light, rig: Light, kinds: Sequence[str]) -> Light:
+    """Where the descent starts a light: the closed form's emission, but no dimmer than the rig's
+    for a light whose geometry is free.
+
+    The closed form fits the emission at the starting geometry. A light the target shows elsewhere
+    (a spot whose pool has moved) can fit there with almost none, and a light that is off has no
+    gradient in its geometry; the descent's emission unknown multiplies the start, and its pull
+    toward the start costs (multiple - 1)^2, so it cannot bring the light back either (the test
+    `test_descent_starts_a_movable_light_at_its_rig_emission`). Started at the rig's emission, the
+    descent sees where the light's image should go, and solves its brightness with it.
+    """
+    if not any(kind in kinds and applies(kind, rig) for kind in GEOMETRY_KINDS):
+        return closed
+    return closed if float(colour_scale(closed).max()) >= float(colour_scale(rig).max()) else rig
 
 
 def _set(relighter: CacheRelighter, rig: list[Light], solved: list[Light]) -> list[Light]:
