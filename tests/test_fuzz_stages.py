@@ -21,6 +21,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from fuzz_support import RENDER_SECONDS, assert_refused_or_finite, bake_all, bounded, quiet_main, render, tally
+from pipeline.bake import shot as shot_module
+from pipeline.bake.transfer import method as transfer_method
 from relight_torch import open_cache
 from relight_torch.io.exr import read_exr
 
@@ -393,9 +395,13 @@ def test_an_xform_op_of_another_type_is_one_line(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_shot_no_quality_reaches_names_the_shot(tmp_path):
+def test_a_shot_no_quality_reaches_names_the_shot(tmp_path, monkeypatch):
     # The camera on the wall's plane: the --quality refusal named no file. The default (shot) bake
-    # keeps its best effort and says so in one warning naming the shot.
+    # keeps its best effort and says so in one warning naming the shot. One small rung per ladder
+    # keeps the test short (no size of this shot reaches the target).
+    rung = {"gathers": 256, "coefficients": (10,), "bounceCoefficients": 256}
+    monkeypatch.setattr(transfer_method, "METHOD", dataclasses.replace(transfer_method.METHOD, ladder=(rung,)))
+    monkeypatch.setattr(shot_module, "TRANSFER_LADDER", [{**rung, "supersampling": 1}])
     shot = _write_shot(tmp_path / "shot.usda", camera="(0, 0, 0)")
     status, stderr, errors = _bake(shot, tmp_path / "sized", "--method", "transfer", "--quality", "35")
     assert status == 2 and len(errors) == 1 and str(shot) in errors[0], stderr

@@ -95,7 +95,7 @@ def test_default_bake_is_the_shot_cache_and_records_its_choice(tmp_path, capsys)
 
 @pytest.mark.slow
 def test_a_shot_too_small_for_the_target_is_baked_at_its_best_size_and_says_so(tmp_path, capsys, caplog, monkeypatch):
-    # 16 x 16 pixels are too coarse for 45 dB against the full frame at any transfer size: the bake
+    # 16 x 16 pixels are too coarse for 40 dB against the full frame at any transfer size: the bake
     # used to stop with "no transfer size reaches it". One small rung keeps the test short. (At 35 dB
     # this rung now measures 36.1 dB: its F rows box-filter their pixels' sub-samples.)
     rung = {"supersampling": 1, "gathers": 256, "coefficients": (50,), "bounceCoefficients": 256}
@@ -103,14 +103,14 @@ def test_a_shot_too_small_for_the_target_is_baked_at_its_best_size_and_says_so(t
     bundled = SCENES["cornell_box"]
     path = bundled.write(tmp_path)
     out = tmp_path / "cache"
-    arguments = ["bake", str(path), "--camera", bundled.camera, "--width", "16", "--height", "16", "--quality", "45"]
+    arguments = ["bake", str(path), "--camera", bundled.camera, "--width", "16", "--height", "16", "--quality", "40"]
     assert cli.main([*arguments, "--out", str(out)]) == 0
     parameters = read_cache_layer(out / "cornell_box.relight.usda").parameters
     measured = float(parameters["qualityMeasured"])
-    assert measured < 45.0 and int(parameters["qualityTargetMet"]) == 0
+    assert measured < 40.0 and int(parameters["qualityTargetMet"]) == 0
     assert parameters["shotComponents"] == "direct+transfer" and "gathers=256" in parameters["qualityChoice"]
     warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING" and "not reached" in r.getMessage()]
-    assert len(warnings) == 1 and "quality target 45 dB not reached: measured" in warnings[0]
+    assert len(warnings) == 1 and "quality target 40 dB not reached: measured" in warnings[0]
     assert f"{measured:.2f} dB" in warnings[0]
     capsys.readouterr()
     assert cli.main(["info", str(out / "cornell_box.relight.usda")]) == 0
