@@ -60,17 +60,22 @@ class Row:
     command: str
 
 
-def run_child(module: str, arguments: list[str]) -> tuple[float, float, str]:
+def run_child(module: str, arguments: list[str], log: Path) -> tuple[float, float, str]:
     """Run `python -m module arguments` to its end: (wall seconds, its peak RSS in GB, its stdout).
+
+    The child's stderr goes to `log` as it runs: a film-size bake runs for hours, and its log lines
+    (what each pilot and the full-size check measured) can be read there while it runs and after.
 
     Raises:
         RuntimeError: the command failed (its last stderr line before the peak's).
     """
     start = time.perf_counter()
     command = [sys.executable, "-m", "pipeline.benchmarks.peak_rss", module, *arguments]
-    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with log.open("w") as stderr:
+        done = subprocess.run(command, stdout=subprocess.PIPE, stderr=stderr, text=True, check=False)
     seconds = time.perf_counter() - start
-    *lines, peak = done.stderr.strip().splitlines() or ["(no message)"]
+    *lines, peak = log.read_text().strip().splitlines() or ["(no message)"]
     if done.returncode != 0:
         raise RuntimeError(f"{module} {' '.join(arguments[:1])}: {(lines or ['(no message)'])[-1]}")
     return seconds, float(peak.removeprefix("peak_rss_gb: ")), done.stdout
@@ -102,7 +107,7 @@ def bake(shot: Path, size: tuple[int, int], kind: str, work: Path) -> tuple[Path
     if not baked(work, size, kind):
         arguments = ["bake", str(shot), "--camera", CAMERA, "--out", str(folder), "--stem", STEM]
         arguments += ["--width", str(size[0]), "--height", str(size[1]), *KINDS[kind]]
-        seconds, peak, _ = run_child("pipeline.cli", arguments)
+        seconds, peak, _ = run_child("pipeline.cli", arguments, folder.with_name(folder.name + ".bake.log"))
         with atomic_path(figures) as temporary:
             temporary.write_text(json.dumps({"bake_s": seconds, "bake_peak_rss_gb": peak}))
     return layer, json.loads(figures.read_text())
@@ -111,7 +116,9 @@ def bake(shot: Path, size: tuple[int, int], kind: str, work: Path) -> tuple[Path
 def measure(shot: Path, size: tuple[int, int], kind: str, work: Path, repeats: int, command: str) -> Row:
     """Bake (or reuse) one cache and time a session on it (`command`: this run's)."""
     layer, figures = bake(shot, size, kind, work)
-    _, _, printed = run_child("pipeline.benchmarks.relight_memory", [str(layer), "--repeats", str(repeats)])
+    arguments = [str(layer), "--repeats", str(repeats)]
+    log = _folder(work, size, kind).with_name(f"{kind}_{size[0]}x{size[1]}.session.log")
+    _, _, printed = run_child("pipeline.benchmarks.relight_memory", arguments, log)
     session = {}
     for line in printed.splitlines():
         name, _, value = line.partition(": ")
