@@ -39,6 +39,11 @@ DEFAULT_BUDGET_MS = 33.0
 """Time budget of the first frame after an edit (30 frames a second)."""
 
 
+def level_label(stride: int | None) -> str:
+    """A level as tables name it: '1/p' (one shaded point per p x p pixels), or 'exact'."""
+    return "exact" if stride is None else f"1/{stride}"
+
+
 @dataclass(frozen=True)
 class Frame:
     """One progressive frame.

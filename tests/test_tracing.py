@@ -362,7 +362,7 @@ def test_every_image_size_of_a_shot_shares_one_bvh(tmp_path):
         warnings.simplefilter("ignore", FutureWarning)
         live = [obj for obj in gc.get_objects() if isinstance(obj, Tracer) and obj.geometry is scene.geometry]
     assert _bvhs(live) == 1
-    assert tracer.num_threads == 1 and shared_tracer(scene).num_threads >= 1
+    assert tracer.num_threads == 1 and shared_tracer(scene, 3).num_threads == 3
     assert tracer.tangents is shared_tracer(scene, 3).tangents
 
     held = weakref.ref(shared_tracer(scene)._scene)

@@ -52,7 +52,7 @@ from relight_torch.io.atomic import write_text_atomic
 from relight_torch.methods import relight_method
 from relight_torch.metrics import psnr
 from relight_torch.multiview.relighter import MultiviewRelighter
-from relight_torch.progressive import CostModel, progressive_frames
+from relight_torch.progressive import CostModel, level_label, progressive_frames
 from relight_torch.protocol import CacheRelighter
 
 MATERIAL = 0
@@ -110,7 +110,7 @@ def relighter_frames(relighter: CacheRelighter) -> Frames:
         yield "whole", relighter.render()
         return
     for frame in progressive_frames(relighter, 0.0, costs=CostModel()):
-        yield ("exact" if frame.stride is None else f"1/{frame.stride}"), frame.image
+        yield level_label(frame.stride), frame.image
 
 
 @dataclass(frozen=True)
@@ -169,7 +169,7 @@ def edits(setup: Setup) -> dict[str, Edit]:
     def camera_frames(session: Session, k: int) -> Frames:
         moves = camera_move_frames(session.view_relighter, session.moved_camera(CAMERA_STEP * (k + 1)))
         for stride, image in moves:
-            yield ("exact" if stride is None else f"1/{stride}"), image
+            yield level_label(stride), image
 
     table["camera move"] = Edit(camera_before, camera_frames)
     return table

@@ -49,7 +49,7 @@ from relight_torch.io.atomic import write_text_atomic
 from relight_torch.lights.light import Light, LightKind, Shaping
 from relight_torch.methods import relight_method
 from relight_torch.metrics import psnr
-from relight_torch.progressive import CostModel, progressive_frames
+from relight_torch.progressive import CostModel, level_label, progressive_frames
 from relight_torch.protocol import CacheRelighter
 
 SCENE = "cornell_box"
@@ -172,7 +172,7 @@ def measure(
                 continue  # the warm-up: level weights built, costs learnt
             first_ms.append(frames[0].frame_ms)
             first_cpu_ms.append(1e3 * cpu)
-            first_level.append("exact" if frames[0].stride is None else f"1/{frames[0].stride}")
+            first_level.append(level_label(frames[0].stride))
             first_psnr.append(psnr(frames[0].image.cpu().numpy(), frames[-1].image.cpu().numpy()))
             converged_ms.append(frames[-1].elapsed_ms)
             converged = frames[-1].image.cpu().numpy()

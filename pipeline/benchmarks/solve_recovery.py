@@ -98,10 +98,16 @@ def clear_move(tracer: Tracer, start: np.ndarray, bounds: np.ndarray, diagonal: 
     )
 
 
+def movable_light(lights: list[Light]) -> Light | None:
+    """The light the experiments move: the first whose position is free to solve."""
+    return next((light for light in lights if gradients.applies("position", light)), None)
+
+
 def changed_rig(lights: list[Light], offset: np.ndarray) -> tuple[list[Light], str | None]:
-    """The rig with known changes (module doc), the first movable light translated by `offset` (3,)
+    """The rig with known changes (module doc), the `movable_light` translated by `offset` (3,)
     world units, and that light's path (None if none moves)."""
-    moved_path = next((light.path for light in lights if gradients.applies("position", light)), None)
+    movable = movable_light(lights)
+    moved_path = None if movable is None else movable.path
     changed = []
     for index, light in enumerate(lights):
         colour = (light.color[0], light.color[1] * 0.8, light.color[2] * 1.2)
@@ -157,7 +163,7 @@ def run_scene(
     position = relighter.gbuffer.position.to(torch.float64)
     bounds = torch.stack((position.amin(0), position.amax(0))).numpy()
     tracer = Tracer.for_scene(load_scene(shot, width=size[0], height=size[1]))
-    movable = next((light for light in before if gradients.applies("position", light)), None)
+    movable = movable_light(before)
     offset = np.zeros(3)
     if movable is not None:
         origin = movable.world_from_light[:3, 3]
@@ -320,7 +326,8 @@ def write_summary(
     if outside:
         lines += [
             "",
-            "## A light moved out of the room (the same changes, the move along (0.6, 0, -0.8) whatever is in the way)",
+            "## A light moved out of the room (the same changes, the move along "
+            f"{tuple(round(float(v), 2) for v in MOVE_DIRECTIONS[0])} whatever is in the way)",
             "",
             "No local step follows a light through an occluder (visibility has no gradient): the solve cannot "
             "recover it, and must say so in its last column.",

@@ -26,7 +26,6 @@ from pipeline.errors import RelightError
 from pipeline.scene.camera import read_camera
 from pipeline.scene.load import load_scene
 from pipeline.scene.types import Camera, Scene
-from pipeline.tracing import Tracer, shared_tracer
 from relight_torch.io.exr import write_rgb_exr
 from relight_torch.io.preview import write_png
 from relight_torch.multiview.correspondence import ViewPoints
@@ -69,8 +68,8 @@ class FrameRenderer:
         self.relighter = relighter
         self.lights_layer = lights_layer
         self.fill_holes = fill_holes
-        self._shot: tuple[Scene, Tracer] | None = None
-        """The shot, its BVH and triangle tangents, loaded for the first hole patch and kept."""
+        self._scene: Scene | None = None
+        """The shot, loaded for the first hole patch and kept (its BVH: `shared_tracer`)."""
 
     def render(self, camera: Camera) -> Frame:
         relighter = self.relighter
@@ -78,14 +77,13 @@ class FrameRenderer:
         report = relighter.set_view(view, exposure_scale=camera.exposure_scale)
         patched = 0
         if self.fill_holes and report.num_large_holes:
-            if self._shot is None:
+            if self._scene is None:
                 description = relighter.description
-                scene = load_scene(
+                self._scene = load_scene(
                     description.source, time=description.parameters.get("time"), lights_layer=self.lights_layer
                 )
-                self._shot = (scene, shared_tracer(scene))
-            scene, tracer = self._shot
-            patch = hole_patch(scene, camera, relighter.supersampling, report.large_pixel_index.cpu().numpy(), tracer)
+            pixels = report.large_pixel_index.cpu().numpy()
+            patch = hole_patch(self._scene, camera, relighter.supersampling, pixels)
             relighter.set_view(view, patch=patch, exposure_scale=camera.exposure_scale)
             patched = patch.num_samples
         return Frame(relighter.render().cpu().numpy(), report, patched)

@@ -56,7 +56,7 @@ from pipeline.scene import find_camera, load_scene
 from relight_torch import open_cache
 from relight_torch.io.atomic import atomic_path, write_text_atomic
 from relight_torch.metrics import psnr
-from relight_torch.progressive import CostModel, progressive_frames
+from relight_torch.progressive import CostModel, level_label, progressive_frames
 
 EDITS = ("colour", "shaping", "move", "new light")
 LEVELS_DB = (30.0, 35.0, 40.0)
@@ -106,7 +106,7 @@ def relighter_curve(layer: Path, label: str, setup: Setup, edits, reference: dic
             for frame in progressive_frames(relighter, args.budget_ms, costs=costs):
                 frames.append((frame, 1e3 * (time.process_time() - cpu)))
         for frame, cpu_ms in frames:
-            step = "exact" if frame.stride is None else f"1/{frame.stride}"
+            step = level_label(frame.stride)
             image = downsampled(frame.image, size)
             points.append(Point(label, edit, step, frame.elapsed_ms, cpu_ms, psnr(image, reference[edit])))
         print(
