@@ -3,13 +3,21 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from pipeline.bake import quality
 from pipeline.bake.direct.bake import bake_direct
-from pipeline.bake.quality import corrected_psnr, measurement_window, pilot_size
+from pipeline.bake.quality import (
+    Measured,
+    bake_for_quality,
+    climb_at_full_size,
+    corrected_psnr,
+    measurement_window,
+    pilot_size,
+)
 from pipeline.cli import main
 from pipeline.reference.path_tracer import PathTracer, ReferenceImage, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
@@ -79,6 +87,53 @@ def test_a_film_size_frame_is_measured_on_its_centre_window_and_baked_whole(tmp_
     assert description.parameters["qualityMeasuredSize"] == "24x16"
     assert math.isfinite(description.parameters["qualityMeasured"])
     assert not any(path.name.startswith(".") for path in (tmp_path / "sized").iterdir())
+
+
+def test_a_choice_the_full_size_check_rejects_is_replaced_by_a_larger_size_measured_at_full_size(tmp_path):
+    """The pilot's coarse pixels can pass a size the frame does not (on a 1080p exterior, 1,024
+    gathers passed the pilot and measured 34.7 dB on the window): the ladder's next sizes are
+    measured at full size, not predicted again from the pilot. Here a pilot margin of -12 dB makes
+    the pilot pick supersampling 1 for a 40 dB target; at 48 x 48 it measures about 38 dB, 2 about 42."""
+    bundled = SCENES["cornell_box"]
+    scene = load_scene(bundled.write(tmp_path / "scene"), width=48, height=48)
+    camera = find_camera(scene, bundled.camera)
+    result = bake_for_quality(
+        scene, camera, tmp_path / "out", "cornell_box", "direct", 40.0, margin_db=-12.0, pilot_side=16
+    )
+    assert [c.point for c in result.candidates] == [{"supersampling": 1}]  # the pilot stopped at the first size
+    assert result.point == {"supersampling": 2} and result.target_met and result.measured_db >= 40.0
+    parameters = read_cache_layer(result.layer).parameters
+    assert parameters["supersampling"] == 2 and parameters["qualityTargetMet"] == 1
+    assert math.isnan(parameters["qualityPredicted"])  # never baked on the pilot
+    assert not any(path.name.startswith(".") for path in (tmp_path / "out").iterdir())
+
+
+def _measured(point: dict[str, object], db: float, num_bytes: float) -> Measured:
+    return Measured(point, db, db, 1.0, num_bytes, Path("unused"))
+
+
+def test_the_climb_takes_the_cheapest_passing_variant_of_the_first_step_with_one_else_the_best():
+    first = _measured({"gathers": 1, "coefficients": 50}, 34.0, 10)
+    steps = [{"gathers": 1, "coefficients": (50, 100)}, {"gathers": 4, "coefficients": (50, 100)}, {"gathers": 16}]
+    figures = {(1, 100): 34.5, (4, 50): 36.0, (4, 100): 37.0, (16, 50): 40.0}
+    asked = []
+
+    def measure(index: int, step: dict[str, object]) -> list[Measured]:
+        asked.append(index)
+        counts = step.get("coefficients", (50,))
+        return [
+            _measured(
+                {"gathers": step["gathers"], "coefficients": c},
+                figures.get((step["gathers"], c), 34.0),
+                step["gathers"] * c,
+            )
+            for c in counts
+        ]
+
+    assert climb_at_full_size(first, steps, measure, 35.0).point == {"gathers": 4, "coefficients": 50}
+    assert asked == [0, 1]  # stops at the first step with a passing variant
+    assert climb_at_full_size(first, steps, measure, 41.0).point == {"gathers": 16, "coefficients": 50}  # the best
+    assert climb_at_full_size(first, steps[:1], measure, 41.0).point == {"gathers": 1, "coefficients": 100}
 
 
 def test_the_measurement_window_is_the_frame_up_to_its_pixel_cap(tmp_path):

@@ -10,13 +10,16 @@
    bytes) is chosen. Steps grow every size that costs cache bytes, so a later step cannot be
    smaller at equal accuracy; transfer's 4x more gathers per step is the exception taken as a
    heuristic: it stops at the first gather count that reaches the target.
-3. The chosen sizes are baked at the full size into OUT and measured against a full-size
-   reference (same noise rule). If that misses the target, the threshold is raised by the miss and
-   the search goes on (once). A frame of more than MEASURE_PIXELS pixels is measured on its centre
-   window at the full pixel density (`measurement_window`), then baked whole.
+3. The chosen sizes are baked at the full size and measured against a full-size reference (same
+   noise rule). If that misses the target, the ladder's later steps are measured at the full size
+   in turn (`climb_at_full_size`) until one reaches it: what the pilot's coarse pixels cannot show
+   (the near-field indirect light where objects meet the floor, texture aliasing) is what misses.
+   A frame of more than MEASURE_PIXELS pixels is measured on its centre window at the full pixel
+   density (`measurement_window`), then baked whole.
 4. The cache layer's parameters record the choice (the method's own parameters hold the bake
    sizes; qualityChoice all of them, relight-time ones such as the illumination cut size included)
-   and: qualityTarget, qualityPredicted (pilot PSNR), qualityMeasured (full size), qualityRawPsnr,
+   and: qualityTarget, qualityPredicted (pilot PSNR; nan for a step only measured at full size),
+   qualityMeasured (full size), qualityRawPsnr,
    qualityEnergyRatio (mean(image) / mean(reference) at full size), qualityTargetMet (1 when the
    full-size PSNR reaches the target, else 0), qualityReferenceSpp, qualityPilot ('WxH') and
    qualityMeasuredSize ('WxH': the frame, or the window measured).
@@ -32,6 +35,7 @@ import dataclasses
 import logging
 import math
 import shutil
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -61,11 +65,26 @@ pixel of the subject at the frame's centre."""
 
 @dataclass(frozen=True)
 class Candidate:
-    """One pilot measurement: the full-size point, its pilot PSNR (noise-corrected) and cache bytes."""
+    """One pilot measurement: the full-size point, its pilot PSNR (noise-corrected), cache bytes and
+    the index of its ladder step."""
 
     point: dict[str, object]
     psnr_db: float
     cache_bytes: float
+    step: int
+
+
+@dataclass(frozen=True)
+class Measured:
+    """One variant measured against a reference: its single-variant point, PSNR (noise-corrected
+    and raw), energy ratio mean(image) / mean(reference), cache bytes and the layer baked."""
+
+    point: dict[str, object]
+    psnr_db: float
+    raw_db: float
+    energy_ratio: float
+    cache_bytes: float
+    layer: Path
 
 
 @dataclass(frozen=True)
@@ -167,9 +186,8 @@ def _measure(
     supersampling: int,
     texture_samples: int,
     time_code: float | None,
-) -> list[tuple[dict[str, object], float, float, float, float, Path]]:
-    """Bake `point` into `directory`; per variant (parameters, corrected PSNR, raw PSNR, energy ratio
-    mean(image) / mean(reference), cache bytes, layer)."""
+) -> list[Measured]:
+    """Bake `point` into `directory` and measure each of its variants against `reference`."""
     directory.mkdir(parents=True, exist_ok=True)
     layer = adapter.bake(scene, camera, directory, stem, point, supersampling, texture_samples, time_code)
     out = []
@@ -177,8 +195,37 @@ def _measure(
         image = variant.relighter.render().cpu().numpy()
         corrected, raw = corrected_psnr(image, reference)
         energy = float(image.mean() / max(float(reference.mean.mean()), 1e-12))
-        out.append((variant.parameters, corrected, raw, energy, variant.cache_bytes, layer))
+        out.append(
+            Measured(_variant_point(point, variant.parameters), corrected, raw, energy, variant.cache_bytes, layer)
+        )
     return out
+
+
+def climb_at_full_size(
+    first: Measured,
+    steps: Sequence[dict[str, object]],
+    measure: Callable[[int, dict[str, object]], list[Measured]],
+    target_db: float,
+) -> Measured:
+    """After `first` (the pilot's choice measured at full size) missed `target_db`: the ladder's
+    `steps` from the pilot's choice's on, measured at full size in turn (`measure(index into
+    steps, step)` gives its variants; `first` among the first step's is skipped), the cheapest
+    variant (cache bytes) of the first step with one reaching the target, else the best measured."""
+    best = first
+    for index, step in enumerate(steps):
+        measured = [m for m in measure(index, step) if m.point != first.point]
+        for variant in measured:
+            log.info(
+                "quality at full size: %s %.2f dB, %d bytes",
+                format_params(variant.point),
+                variant.psnr_db,
+                variant.cache_bytes,
+            )
+        passing = [m for m in measured if m.psnr_db >= target_db]
+        if passing:
+            return min(passing, key=lambda m: m.cache_bytes)
+        best = max([best, *measured], key=lambda m: m.psnr_db)
+    return best
 
 
 def _variant_point(ladder_point: dict[str, object], parameters: dict[str, object]) -> dict[str, object]:
@@ -235,22 +282,9 @@ def bake_for_quality(
     bounces = adapter.bounces(ladder[0]) if reference_bounces is None else reference_bounces
     pilot_reference = reference_for(pilot_scene, pilot_camera, bounces, target_db + margin_db)
     candidates: list[Candidate] = []
-    steps = iter(enumerate(ladder))
-
-    def cheapest_passing(threshold: float) -> Candidate | None:
-        """The smallest measured candidate reaching `threshold`, measuring further steps until one
-        does; None when the ladder is spent without one and `best_effort` is set."""
-        passing = [c for c in candidates if c.psnr_db >= threshold]
-        while not passing:
-            index, step = next(steps, (None, None))
-            if step is None:
-                if best_effort:
-                    return None
-                best = max(candidates, key=lambda c: c.psnr_db)
-                raise RelightError(
-                    f"{scene.source}: bake --quality {target_db:g}: no {method} size reaches it on the pilot "
-                    f"(best {best.psnr_db:.1f} dB with {best.point})"
-                )
+    passing: list[Candidate] = []
+    try:
+        for index, step in enumerate(ladder):
             measured = _measure(
                 adapter,
                 pilot_scene,
@@ -263,33 +297,34 @@ def bake_for_quality(
                 texture_samples,
                 time_code,
             )
-            new = [
-                Candidate(_variant_point(step, parameters), corrected, num_bytes)
-                for parameters, corrected, _, _, num_bytes, _ in measured
-            ]
+            new = [Candidate(m.point, m.psnr_db, m.cache_bytes, index) for m in measured]
             for candidate in new:
                 log.info(
                     "quality pilot %s: %.2f dB, %d bytes", candidate.point, candidate.psnr_db, candidate.cache_bytes
                 )
             candidates.extend(new)
-            passing = [c for c in new if c.psnr_db >= threshold]
-        return min(passing, key=lambda c: c.cache_bytes)
-
-    try:
-        chosen = cheapest_passing(target_db + margin_db)
-        ladder_spent = chosen is None
-        if chosen is None:  # best_effort: no step reached the target on the pilot
+            passing = [c for c in new if c.psnr_db >= target_db + margin_db]
+            if passing:
+                chosen = min(passing, key=lambda c: c.cache_bytes)
+                break
+        else:
             chosen = max(candidates, key=lambda c: c.psnr_db)
+            if not best_effort:
+                raise RelightError(
+                    f"{scene.source}: bake --quality {target_db:g}: no {method} size reaches it on the pilot "
+                    f"(best {chosen.psnr_db:.1f} dB with {chosen.point})"
+                )
+        ladder_spent = not passing
         window_scene, window = measurement_window(scene, camera)
         windowed = window is not camera
-        full_reference = reference_for(window_scene, window, bounces, target_db, measure_headroom_db)
-        for attempt in range(2):
-            point = chosen.point
-            ((_, measured_db, raw_db, energy_ratio, _, layer),) = _measure(
+
+        def measure_full_size(directory: Path, point: dict[str, object]) -> list[Measured]:
+            """`point` baked at full size (the frame or its window) into `directory`, measured."""
+            return _measure(
                 adapter,
                 window_scene,
                 window,
-                pilot_dir / f"window-{attempt}" if windowed else out_dir,
+                directory,
                 stem,
                 point,
                 full_reference,
@@ -297,26 +332,32 @@ def bake_for_quality(
                 texture_samples,
                 time_code,
             )
-            log.info(
-                "quality: %s measured %.2f dB at full size on %dx%d pixels (pilot %.2f dB)",
-                point,
-                measured_db,
-                window.width,
-                window.height,
-                chosen.psnr_db,
+
+        full_reference = reference_for(window_scene, window, bounces, target_db, measure_headroom_db)
+        # A whole frame is measured where it is kept: the pilot's choice usually holds.
+        (final,) = measure_full_size(pilot_dir / "full-size" if windowed else out_dir, chosen.point)
+        log.info(
+            "quality: %s measured %.2f dB at full size on %dx%d pixels (pilot %.2f dB)",
+            format_params(chosen.point),
+            final.psnr_db,
+            window.width,
+            window.height,
+            chosen.psnr_db,
+        )
+        first = final
+        if final.psnr_db < target_db and not ladder_spent:
+            final = climb_at_full_size(
+                first,
+                ladder[chosen.step :],
+                lambda index, step: measure_full_size(pilot_dir / f"full-size-{chosen.step + index}", step),
+                target_db,
             )
-            if measured_db >= target_db or attempt == 1 or ladder_spent:
-                break
-            # Missed: ask the pilot for the miss more than the chosen point gave, among the others.
-            candidates.remove(chosen)
-            retry = cheapest_passing(chosen.psnr_db + (target_db - measured_db) + margin_db)
-            if retry is None:  # best_effort and nothing better on the ladder: keep what was measured
-                break
-            chosen = retry
-        if windowed:  # measured on the window: the cache is the whole frame
-            layer = adapter.bake(scene, camera, out_dir, stem, point, supersampling, texture_samples, time_code)
+        layer = final.layer
+        if windowed or final is not first:  # measured on the window, or a variant of a larger bake
+            layer = adapter.bake(scene, camera, out_dir, stem, final.point, supersampling, texture_samples, time_code)
     finally:
         shutil.rmtree(pilot_dir, ignore_errors=True)
+    point, measured_db = final.point, final.psnr_db
     if ladder_spent:
         log.warning(
             "%s: quality target %g dB not reached: measured %.2f dB with the best %s size of the ladder (%s)",
@@ -327,17 +368,24 @@ def bake_for_quality(
             format_params(point),
         )
     elif measured_db < target_db:
-        log.warning("bake --quality %g: %s measured %.2f dB at full size after a retry", target_db, point, measured_db)
-    target_met = measured_db >= target_db
+        log.warning(
+            "%s: quality target %g dB not reached at full size: measured %.2f dB with %s, the best of the ladder's "
+            "remaining sizes",
+            scene.source,
+            target_db,
+            measured_db,
+            format_params(point),
+        )
+    predicted = next((c.psnr_db for c in candidates if c.point == point), math.nan)
     reference_spp = round(full_reference.num_paths / (window.width * window.height))
     result = QualityResult(
         layer,
         point,
-        chosen.psnr_db,
+        predicted,
         measured_db,
-        raw_db,
-        target_met,
-        energy_ratio,
+        final.raw_db,
+        measured_db >= target_db,
+        final.energy_ratio,
         reference_spp,
         (width, height),
         tuple(candidates),
