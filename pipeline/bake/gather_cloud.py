@@ -91,8 +91,9 @@ def triangle_areas(corners: np.ndarray) -> np.ndarray:
 
 
 def triangle_centroids(corners: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """(K, 3) float64 centroids of the triangles `index` (K,) of (T, 3, 3) `corners`, a block at a time."""
-    centroids = np.empty((index.shape[0], 3))
+    """(K, 3) float32 centroids of the triangles `index` (K,) of (T, 3, 3) `corners`, a block at a
+    time (summed in float64)."""
+    centroids = np.empty((index.shape[0], 3), np.float32)
     for first in range(0, index.shape[0], AREA_BLOCK):
         chosen = index[first : first + AREA_BLOCK]
         centroids[first : first + AREA_BLOCK] = corners[chosen].astype(np.float64).mean(axis=1)
@@ -139,31 +140,44 @@ def split_budget(
     """Listing 9-1's recursion: which triangle each sample lands on, and the area it stands for.
 
     Args:
-        centroids: (T, 3) triangle centroids; areas: (T,) positive areas.
+        centroids: (T, 3) triangle centroids (float32 is enough to order them); areas: (T,) positive areas.
         num_samples: the budget (>= 1).
         rng: picks the triangle of one-sample groups.
 
     Returns:
         (triangle (num_samples,) int64, area (num_samples,) float64); areas sum to the total.
+
+    Per triangle the recursion holds its order and group (int32) and one coordinate at a time:
+    a production set's tens of millions of triangles are gigabytes per (T, 3) float64 copy.
     """
-    order = np.arange(areas.shape[0])
+    index_type = np.int32 if areas.shape[0] < 2**31 else np.int64
+    order = np.arange(areas.shape[0], dtype=index_type)
     start, count = np.array([0]), np.array([areas.shape[0]])
-    budget, group_area = np.array([num_samples]), np.array([areas.sum()])
+    budget, group_area = np.array([num_samples]), np.array([areas.sum(dtype=np.float64)])
     for _ in range(MAX_SPLIT_LEVELS):
         active = (budget > 1) & (count > 1)
         if not active.any():
             break
-        group = np.repeat(np.arange(start.shape[0]), count)
-        points = centroids[order]
-        extent = np.maximum.reduceat(points, start, axis=0) - np.minimum.reduceat(points, start, axis=0)
-        key = points[np.arange(order.shape[0]), np.argmax(extent, axis=1)[group]]
+        group = np.repeat(np.arange(start.shape[0], dtype=index_type), count)
+        extent = np.stack(
+            [
+                np.maximum.reduceat(column, start) - np.minimum.reduceat(column, start)
+                for column in (centroids[order, axis] for axis in range(3))
+            ],
+            axis=1,
+        )
+        key = centroids[order, np.argmax(extent, axis=1).astype(np.int8)[group]]
         order = order[np.lexsort((key, group))]
-        cumulative = np.cumsum(areas[order])
-        before_group = cumulative[start] - areas[order][start]
+        del key
+        ordered_areas = areas[order]
+        cumulative = np.cumsum(ordered_areas, dtype=np.float64)
+        before_group = cumulative[start] - ordered_areas[start]
+        del ordered_areas
         within = cumulative - before_group[group]
         num_before_half = np.add.reduceat(within < 0.5 * group_area[group], start)
         left = np.clip(num_before_half + 1, 1, np.maximum(count - 1, 1))
         left_area = within[start + left - 1]
+        del within, group, cumulative
         left_budget = np.clip((budget * left_area / group_area).astype(np.int64), 1, np.maximum(budget - 1, 1))
         # Each active group becomes (left, right); inactive groups stay as they are.
         start, count, budget, group_area = (
@@ -172,13 +186,13 @@ def split_budget(
             _interleave(active, budget, left_budget, budget - left_budget),
             _interleave(active, group_area, left_area, group_area - left_area),
         )
-    cumulative = np.cumsum(areas[order])
-    before_group = cumulative[start] - areas[order][start]
+    cumulative = np.cumsum(areas[order], dtype=np.float64)
+    before_group = cumulative[start] - areas[order[start]]
     # One-sample groups: an area-weighted random triangle; one-triangle groups: all their samples on it.
     target = before_group + rng.random(start.shape[0]) * group_area
     pick = np.clip(np.searchsorted(cumulative, target, side="right"), start, start + count - 1)
     sample_group = np.repeat(np.arange(start.shape[0]), budget)
-    triangle = order[pick][sample_group]
+    triangle = order[pick][sample_group].astype(np.int64)
     return triangle, (group_area / budget)[sample_group]
 
 
@@ -254,11 +268,14 @@ def create_gathers(scene: Scene, num_gathers: int, seed: int = 0) -> GatherSampl
     pieces, piece_uvs, piece_parent = refine_triangles(
         geometry.positions[big].astype(np.float64), geometry.uvs[big], max_area
     )
-    parent = np.concatenate([whole, np.flatnonzero(big)[piece_parent]])
+    piece_source = np.flatnonzero(big)[piece_parent]
+    del big
     rng = np.random.default_rng(seed)
+    split_areas = np.concatenate([areas[whole], triangle_areas(pieces)]).astype(np.float32)
+    del areas  # 8 bytes a triangle, not needed by the split
     triangle, sample_area = split_budget(
-        np.concatenate([triangle_centroids(geometry.positions, whole), pieces.mean(axis=1)]),
-        np.concatenate([areas[whole], triangle_areas(pieces)]),
+        np.concatenate([triangle_centroids(geometry.positions, whole), pieces.mean(axis=1).astype(np.float32)]),
+        split_areas,
         num_gathers,
         rng,
     )
@@ -267,15 +284,18 @@ def create_gathers(scene: Scene, num_gathers: int, seed: int = 0) -> GatherSampl
     root = np.sqrt(u[:, 0])
     weights = np.stack([1.0 - root, u[:, 1] * root, root * (1.0 - u[:, 1])], axis=1)
     is_piece = triangle >= whole.shape[0]
-    c = geometry.positions[parent[triangle]].astype(np.float64)
+    source = np.empty_like(triangle)  # each gather's triangle in the soup
+    source[~is_piece] = whole[triangle[~is_piece]]
+    source[is_piece] = piece_source[triangle[is_piece] - whole.shape[0]]
+    c = geometry.positions[source].astype(np.float64)
     c[is_piece] = pieces[triangle[is_piece] - whole.shape[0]]
-    uvs = geometry.uvs[parent[triangle]].astype(np.float64)
+    uvs = geometry.uvs[source].astype(np.float64)
     uvs[is_piece] = piece_uvs[triangle[is_piece] - whole.shape[0]]
     position = np.einsum("gc,gck->gk", weights, c)
     uv = np.einsum("gc,gck->gk", weights, uvs)
     normal = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    material_id = geometry.material_ids[parent[triangle]]
+    material_id = geometry.material_ids[source]
     values = evaluate_materials(scene.materials, material_id, uv.astype(np.float32))
     values.pop("normal_tangent")
     params = PreviewSurfaceParams.from_numpy(values)
@@ -289,7 +309,7 @@ def create_gathers(scene: Scene, num_gathers: int, seed: int = 0) -> GatherSampl
         "emission": values["emissive_color"],
         "area": sample_area,
     }
-    object_id = torch.from_numpy(geometry.object_ids[parent[triangle]][order].astype(np.int64))
+    object_id = torch.from_numpy(geometry.object_ids[source][order].astype(np.int64))
     return GatherSamples(
         **{
             name: torch.from_numpy(np.ascontiguousarray(np.asarray(a)[order], np.float32))
