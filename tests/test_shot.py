@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from pipeline import cli
-from pipeline.bake import shot
+from pipeline.bake import quality, shot
 from pipeline.bake.methods import bake_method
 from pipeline.bake.quality import corrected_psnr, reference_for
 from pipeline.bake.shot import BOUNCE_TAIL_FRACTION, ENERGY_FRACTION, choose_bounces
+from pipeline.benchmarks.suite_assets import write_exterior_shot
 from pipeline.reference.path_tracer import FULL_FRAME_BOUNCES, ReferenceSettings
 from pipeline.scene import find_camera, load_scene
 from pipeline.scenes import SCENES
@@ -154,7 +155,7 @@ def test_textured_shots_get_the_direct_filtering_their_textures_need(tmp_path, n
     scene = load_scene(bundled.write(tmp_path), width=48, height=36)
     camera = find_camera(scene, bundled.camera)
     target_db = 27.0
-    (supersampling, texture_samples), chosen_db = shot.direct_filtering(
+    (supersampling, texture_samples), chosen_db, _ = shot.direct_filtering(
         scene, camera, tmp_path / "work", name, target_db, 2, None
     )
     if name == "cornell_box":
@@ -166,3 +167,28 @@ def test_textured_shots_get_the_direct_filtering_their_textures_need(tmp_path, n
     cheapest = bake_method("direct").bake(scene, camera, tmp_path / "cheapest", name, 2, 2, None, None)
     cheapest_db = corrected_psnr(open_cache(cheapest).render().numpy(), reference)[0]
     assert chosen_db >= cheapest_db
+
+
+@pytest.mark.slow
+def test_direct_light_that_passes_the_pilot_but_not_the_full_size_check_gets_the_bounce_light(tmp_path, monkeypatch):
+    # A 1080p exterior of 100 teapots: direct alone passed the 64 x 36 pilot (its sky half black)
+    # at 36.1 dB and would have been the whole cache; the centre window, teapots and floor, needs
+    # the bounce light. Here 8 teapots at 128 x 72 measured on a 24 x 16 window: direct alone
+    # about 39.2 dB on a 32 x 18 pilot, 26.8 on the window, for a 30 dB target. One small transfer
+    # rung keeps the test short.
+    monkeypatch.setattr(quality, "MEASURE_PIXELS", 512)
+    monkeypatch.setattr(
+        shot,
+        "TRANSFER_LADDER",
+        [{"supersampling": 2, "gathers": 256, "coefficients": (50,), "bounceCoefficients": 256}],
+    )
+    monkeypatch.setattr(shot, "MAX_BOUNCES", 2)
+    monkeypatch.setattr(shot, "SERIES_GATHERS", 256)
+    scene = load_scene(write_exterior_shot(tmp_path / "shot", 8, 4), width=128, height=72)
+    camera = find_camera(scene, "/Shot/Cams/Horizon")
+    choice, result = shot.bake_shot(scene, camera, tmp_path / "cache", "exterior", target_db=30.0, pilot_side=32)
+    assert choice.components == "direct+transfer" and choice.direct_db < 30.0
+    assert result.measured_size == (24, 16)
+    parameters = read_cache_layer(result.layer).parameters
+    assert parameters["shotComponents"] == "direct+transfer"
+    assert parameters["shotDirectDb"] == pytest.approx(choice.direct_db, abs=0.01)

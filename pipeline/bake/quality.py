@@ -250,6 +250,7 @@ def bake_for_quality(
     ladder: list[dict[str, object]] | None = None,
     measure_headroom_db: float = NOISE_HEADROOM_DB,
     best_effort: bool = False,
+    full_reference: ReferenceImage | None = None,
 ) -> QualityResult:
     """Bake `method` sized to reach `target_db` PSNR on the shot (see the module doc).
 
@@ -266,6 +267,8 @@ def bake_for_quality(
             subtracted from the measured error, so a lower floor costs precision, not bias).
         best_effort: when no step reaches the target on the pilot, bake the best one measured
             (with a warning and qualityTargetMet = 0) instead of failing.
+        full_reference: the full-size reference when the caller rendered it already (of
+            `measurement_window(scene, camera)`, at the references' bounces and noise floor).
 
     Raises:
         RelightError: the method has no ladder, or (without `best_effort`) no step reaches the target.
@@ -327,13 +330,17 @@ def bake_for_quality(
                 directory,
                 stem,
                 point,
-                full_reference,
+                reference,
                 supersampling,
                 texture_samples,
                 time_code,
             )
 
-        full_reference = reference_for(window_scene, window, bounces, target_db, measure_headroom_db)
+        reference = (
+            reference_for(window_scene, window, bounces, target_db, measure_headroom_db)
+            if full_reference is None
+            else full_reference
+        )
         # A whole frame is measured where it is kept: the pilot's choice usually holds.
         (final,) = measure_full_size(pilot_dir / "full-size" if windowed else out_dir, chosen.point)
         log.info(
@@ -377,7 +384,7 @@ def bake_for_quality(
             format_params(point),
         )
     predicted = next((c.psnr_db for c in candidates if c.point == point), math.nan)
-    reference_spp = round(full_reference.num_paths / (window.width * window.height))
+    reference_spp = round(reference.num_paths / (window.width * window.height))
     result = QualityResult(
         layer,
         point,

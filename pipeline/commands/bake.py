@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from pathlib import Path
 
@@ -130,7 +131,7 @@ def _bake_method(args: argparse.Namespace, stem: str, out: Path) -> tuple[Path, 
         choice, result = bake_shot(scene, camera, out, stem, args.quality, args.texture_samples, args.time)
         return result.layer, (
             f"shot cache ({choice.components}, {choice.bounces} bounces, {result.point}) for "
-            f"{args.quality:g} dB against the full frame: pilot {result.predicted_db:.1f} dB, measured "
+            f"{args.quality:g} dB against the full frame: pilot {_pilot(result.predicted_db)}, measured "
             f"{result.measured_db:.1f} dB, in {time.perf_counter() - start:.1f} s"
         )
     method = bake_method(args.method)
@@ -149,7 +150,7 @@ def _bake_method(args: argparse.Namespace, stem: str, out: Path) -> tuple[Path, 
         )
         return result.layer, (
             f"{args.method} cache sized for {args.quality:g} dB: {result.point} (pilot "
-            f"{result.predicted_db:.1f} dB, measured {result.measured_db:.1f} dB) "
+            f"{_pilot(result.predicted_db)}, measured {result.measured_db:.1f} dB) "
             f"in {time.perf_counter() - start:.1f} s"
         )
     settings = method.settings_from_args(args, scene, camera)
@@ -160,3 +161,8 @@ def _bake_method(args: argparse.Namespace, stem: str, out: Path) -> tuple[Path, 
         f"{args.method} cache of {args.camera} at {camera.width}x{camera.height} "
         f"(supersampling {args.supersampling}) in {time.perf_counter() - start:.1f} s"
     )
+
+
+def _pilot(predicted_db: float) -> str:
+    """The pilot's PSNR in words: none for a size the full-size check reached without the pilot."""
+    return "not baked (chosen at full size)" if math.isnan(predicted_db) else f"{predicted_db:.1f} dB"
