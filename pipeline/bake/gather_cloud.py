@@ -91,9 +91,8 @@ def triangle_areas(corners: np.ndarray) -> np.ndarray:
 
 
 def triangle_centroids(corners: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """(K, 3) float32 centroids of the triangles `index` (K,) of (T, 3, 3) `corners`, a block at a
-    time (summed in float64)."""
-    centroids = np.empty((index.shape[0], 3), np.float32)
+    """(K, 3) float64 centroids of the triangles `index` (K,) of (T, 3, 3) `corners`, a block at a time."""
+    centroids = np.empty((index.shape[0], 3))
     for first in range(0, index.shape[0], AREA_BLOCK):
         chosen = index[first : first + AREA_BLOCK]
         centroids[first : first + AREA_BLOCK] = corners[chosen].astype(np.float64).mean(axis=1)
@@ -140,7 +139,7 @@ def split_budget(
     """Listing 9-1's recursion: which triangle each sample lands on, and the area it stands for.
 
     Args:
-        centroids: (T, 3) triangle centroids (float32 is enough to order them); areas: (T,) positive areas.
+        centroids: (T, 3) triangle centroids; areas: (T,) positive areas.
         num_samples: the budget (>= 1).
         rng: picks the triangle of one-sample groups.
 
@@ -148,7 +147,9 @@ def split_budget(
         (triangle (num_samples,) int64, area (num_samples,) float64); areas sum to the total.
 
     Per triangle the recursion holds its order and group (int32) and one coordinate at a time:
-    a production set's tens of millions of triangles are gigabytes per (T, 3) float64 copy.
+    a production set's tens of millions of triangles are gigabytes per (T, 3) float64 copy. The
+    inputs stay float64: the split's order and halves, and so every transfer cache's gathers, are
+    those of float64 sums.
     """
     index_type = np.int32 if areas.shape[0] < 2**31 else np.int64
     order = np.arange(areas.shape[0], dtype=index_type)
@@ -271,10 +272,10 @@ def create_gathers(scene: Scene, num_gathers: int, seed: int = 0) -> GatherSampl
     piece_source = np.flatnonzero(big)[piece_parent]
     del big
     rng = np.random.default_rng(seed)
-    split_areas = np.concatenate([areas[whole], triangle_areas(pieces)]).astype(np.float32)
+    split_areas = np.concatenate([areas[whole], triangle_areas(pieces)])
     del areas  # 8 bytes a triangle, not needed by the split
     triangle, sample_area = split_budget(
-        np.concatenate([triangle_centroids(geometry.positions, whole), pieces.mean(axis=1).astype(np.float32)]),
+        np.concatenate([triangle_centroids(geometry.positions, whole), pieces.mean(axis=1)]),
         split_areas,
         num_gathers,
         rng,
