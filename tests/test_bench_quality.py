@@ -91,7 +91,7 @@ def test_a_film_size_frame_is_measured_on_its_centre_window_and_baked_whole(tmp_
 
 def test_a_choice_the_full_size_check_rejects_is_replaced_by_a_larger_size_measured_at_full_size(tmp_path):
     """The pilot's coarse pixels can pass a size the frame does not (on a 1080p exterior, 1,024
-    gathers passed the pilot and measured 34.4 dB on the window): the ladder's next sizes are
+    gathers passed the pilot and measured about 34.5 dB on the window): the ladder's next sizes are
     measured at full size, not predicted again from the pilot. Here a pilot margin of -12 dB makes
     the pilot pick supersampling 1 for a 40 dB target; at 48 x 48 it measures about 38 dB, 2 about 42."""
     bundled = SCENES["cornell_box"]
