@@ -109,7 +109,7 @@ def test_a_choice_the_full_size_check_rejects_is_replaced_by_a_larger_size_measu
 
 
 def _measured(point: dict[str, object], db: float, num_bytes: float) -> Measured:
-    return Measured(point, db, db, 1.0, num_bytes, Path("unused"))
+    return Measured(point, db, db, 1.0, num_bytes, Path("unused"), 0)
 
 
 def test_the_climb_takes_the_cheapest_passing_variant_of_the_first_step_with_one_else_the_best():

@@ -64,20 +64,10 @@ pixel of the subject at the frame's centre."""
 
 
 @dataclass(frozen=True)
-class Candidate:
-    """One pilot measurement: the full-size point, its pilot PSNR (noise-corrected), cache bytes and
-    the index of its ladder step."""
-
-    point: dict[str, object]
-    psnr_db: float
-    cache_bytes: float
-    step: int
-
-
-@dataclass(frozen=True)
 class Measured:
-    """One variant measured against a reference: its single-variant point, PSNR (noise-corrected
-    and raw), energy ratio mean(image) / mean(reference), cache bytes and the layer baked."""
+    """One variant measured against a reference (on the pilot or at full size): its single-variant
+    point, PSNR (noise-corrected and raw), energy ratio mean(image) / mean(reference), cache bytes,
+    the layer baked (a pilot's is removed with the pilot folder) and the index of its ladder step."""
 
     point: dict[str, object]
     psnr_db: float
@@ -85,6 +75,7 @@ class Measured:
     energy_ratio: float
     cache_bytes: float
     layer: Path
+    step: int
 
 
 @dataclass(frozen=True)
@@ -114,7 +105,7 @@ class QualityResult:
     energy_ratio: float
     reference_spp: int
     pilot: tuple[int, int]
-    candidates: tuple[Candidate, ...]
+    candidates: tuple[Measured, ...]
     measured_size: tuple[int, int]
 
 
@@ -182,12 +173,13 @@ def _measure(
     directory: Path,
     stem: str,
     point: dict[str, object],
+    step: int,
     reference: ReferenceImage,
     supersampling: int,
     texture_samples: int,
     time_code: float | None,
 ) -> list[Measured]:
-    """Bake `point` into `directory` and measure each of its variants against `reference`."""
+    """Bake `point` (ladder step `step`) into `directory` and measure each of its variants against `reference`."""
     directory.mkdir(parents=True, exist_ok=True)
     layer = adapter.bake(scene, camera, directory, stem, point, supersampling, texture_samples, time_code)
     out = []
@@ -196,7 +188,9 @@ def _measure(
         corrected, raw = corrected_psnr(image, reference)
         energy = float(image.mean() / max(float(reference.mean.mean()), 1e-12))
         out.append(
-            Measured(_variant_point(point, variant.parameters), corrected, raw, energy, variant.cache_bytes, layer)
+            Measured(
+                _variant_point(point, variant.parameters), corrected, raw, energy, variant.cache_bytes, layer, step
+            )
         )
     return out
 
@@ -284,26 +278,29 @@ def bake_for_quality(
     ladder = [{**step, **(fixed or {})} for step in (entry.ladder if ladder is None else ladder)]
     bounces = adapter.bounces(ladder[0]) if reference_bounces is None else reference_bounces
     pilot_reference = reference_for(pilot_scene, pilot_camera, bounces, target_db + margin_db)
-    candidates: list[Candidate] = []
-    passing: list[Candidate] = []
+    candidates: list[Measured] = []
+    passing: list[Measured] = []
     try:
         for index, step in enumerate(ladder):
-            measured = _measure(
+            new = _measure(
                 adapter,
                 pilot_scene,
                 pilot_camera,
                 pilot_dir / f"step-{index}",
                 stem,
                 step,
+                index,
                 pilot_reference,
                 supersampling,
                 texture_samples,
                 time_code,
             )
-            new = [Candidate(m.point, m.psnr_db, m.cache_bytes, index) for m in measured]
             for candidate in new:
                 log.info(
-                    "quality pilot %s: %.2f dB, %d bytes", candidate.point, candidate.psnr_db, candidate.cache_bytes
+                    "quality pilot %s: %.2f dB, %d bytes",
+                    format_params(candidate.point),
+                    candidate.psnr_db,
+                    candidate.cache_bytes,
                 )
             candidates.extend(new)
             passing = [c for c in new if c.psnr_db >= target_db + margin_db]
@@ -321,8 +318,14 @@ def bake_for_quality(
         window_scene, window = measurement_window(scene, camera)
         windowed = window is not camera
 
-        def measure_full_size(directory: Path, point: dict[str, object]) -> list[Measured]:
-            """`point` baked at full size (the frame or its window) into `directory`, measured."""
+        reference = (
+            reference_for(window_scene, window, bounces, target_db, measure_headroom_db)
+            if full_reference is None
+            else full_reference
+        )
+
+        def measure_full_size(directory: Path, point: dict[str, object], step: int) -> list[Measured]:
+            """`point` (ladder step `step`) baked at full size (the frame or its window) into `directory`, measured."""
             return _measure(
                 adapter,
                 window_scene,
@@ -330,19 +333,15 @@ def bake_for_quality(
                 directory,
                 stem,
                 point,
+                step,
                 reference,
                 supersampling,
                 texture_samples,
                 time_code,
             )
 
-        reference = (
-            reference_for(window_scene, window, bounces, target_db, measure_headroom_db)
-            if full_reference is None
-            else full_reference
-        )
         # A whole frame is measured where it is kept: the pilot's choice usually holds.
-        (final,) = measure_full_size(pilot_dir / "full-size" if windowed else out_dir, chosen.point)
+        (final,) = measure_full_size(pilot_dir / "full-size" if windowed else out_dir, chosen.point, chosen.step)
         log.info(
             "quality: %s measured %.2f dB at full size on %dx%d pixels (pilot %.2f dB)",
             format_params(chosen.point),
@@ -356,7 +355,9 @@ def bake_for_quality(
             final = climb_at_full_size(
                 first,
                 ladder[chosen.step :],
-                lambda index, step: measure_full_size(pilot_dir / f"full-size-{chosen.step + index}", step),
+                lambda index, step: measure_full_size(
+                    pilot_dir / f"full-size-{chosen.step + index}", step, chosen.step + index
+                ),
                 target_db,
             )
         layer = final.layer
