@@ -19,7 +19,7 @@ from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light
 from relight_torch.lights.light import Light
 from relight_torch.lights.linking import linked_points
-from relight_torch.lights.ratio import analytic_ratio
+from relight_torch.lights.ratio import analytic_ratio, estimate_weights
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.visibility import Visibility
 
@@ -86,7 +86,7 @@ def diffuse_radiance(
         shadow = shadow_factor(light.shadow, torch.isfinite(distance), distance)
         irradiance[chunk] = (weight * shadow).mean(dim=1)
         # The ratio estimator (lights.ratio): the samples' unshadowed estimate against the closed form.
-        estimate = (torch.isfinite(sample.distance) * cosine * sample.inverse_pdf()).mean(dim=1)
+        estimate = (estimate_weights(light, sample.distance, sample.radiance) * cosine * sample.inverse_pdf()).mean(1)
         ratio = analytic_ratio(light, position[chunk], normal[chunk], estimate)
         if ratio is not None:
             irradiance[chunk] *= ratio.unsqueeze(-1)

@@ -13,7 +13,8 @@ class RelightSettings:
     Attributes:
         area_samples: fixed samples per shading point for sphere, rect, disk, cylinder and distant
             lights with an angle (delta lights take one).
-        dome_samples: fixed samples per shading point for dome lights.
+        dome_samples: fixed samples per shading point for dome lights, half of them drawn from
+            the BRDF's glossy lobes (`direct.brdf_samples`).
         seed: seed of the per-point sample rotations.
         chunk_samples: light samples processed together (bounds the (N, S, 3) temporaries).
         full_sampling_angle: angular radius (degrees) from which a light gets all `area_samples`;

@@ -16,14 +16,20 @@ from relight_torch.direct.images import unit_light
 from relight_torch.direct.points import EvaluationPoints, Points, take
 from relight_torch.direct.settings import RelightSettings
 from relight_torch.direct.sharing import PixelGroups
-from relight_torch.direct.tracing import chunk_transport, chunks, joined, kept_transport, scalar_radiance
+from relight_torch.direct.tracing import (
+    chunk_transport,
+    chunks,
+    filters_visibility,
+    joined,
+    kept_transport,
+    scalar_radiance,
+)
 from relight_torch.direct.transport import Transport
 from relight_torch.direct.visibility_filter import VisibilityFilter
 from relight_torch.gbuffer import GBuffer
 from relight_torch.light_samples import adaptive_sample_count, angular_radius
 from relight_torch.lights.emission import is_delta_light
 from relight_torch.lights.light import Light, LightKind
-from relight_torch.lights.ratio import has_closed_form
 from relight_torch.lights.shaping import emission_factor
 from relight_torch.parallel import parallel_map, tile_threads
 from relight_torch.visibility import Visibility
@@ -99,7 +105,7 @@ class LightStages:
         at matte points, evaluated once per pixel group where `RelightSettings.shared_lighting`
         (shared), and its usual count at glossy ones (`RelightSettings.filtered_area_samples`)."""
         samples = self.num_light_samples(light)
-        if self.filter_radius == 0 or self._all_glossy or not has_closed_form(light):
+        if self._all_glossy or not filters_visibility(light, self.filter_radius):
             return [(None, samples, False)]
         few, shared = self.settings.filtered_area_samples, self._groups is not None and scalar_radiance(light)
         if self._glossy_split is None:

@@ -10,11 +10,12 @@ import numpy as np
 import torch
 
 from relight_torch.brdf import preview_surface
+from relight_torch.direct.brdf_samples import weighted_samples
 from relight_torch.direct.points import Points, take
 from relight_torch.direct.transport import Transport
-from relight_torch.lights.emission import light_radiance_scale, sample_light
+from relight_torch.lights.emission import light_radiance_scale
 from relight_torch.lights.light import Light, LightKind
-from relight_torch.lights.ratio import closed_form, ratio_of
+from relight_torch.lights.ratio import closed_form, estimate_weights, has_closed_form, ratio_of
 from relight_torch.lights.shadow import shadow_factor, shadow_strength
 from relight_torch.math.frame import dot, to_local
 from relight_torch.visibility import Visibility
@@ -27,6 +28,13 @@ def scalar_radiance(light: Light) -> bool:
     """Whether the unit light's shadowed radiance L_i V is one colour times a scalar (untextured,
     grey shadow colour): its transport is then kept as scalar factors (`Transport.factors`)."""
     return light.texture is None and bool(light_radiance_scale(light).any()) and len(set(light.shadow.color)) == 1
+
+
+def filters_visibility(light: Light, filter_radius: int) -> bool:
+    """Whether the light's diffuse visibility is filtered (`VisibilityFilter`, radius > 0): lights
+    with a closed form, but not domes, whose visibility spans the hemisphere: the filter's one
+    sample a point would blur their contact shadows."""
+    return filter_radius > 0 and light.kind is not LightKind.DOME and has_closed_form(light)
 
 
 def chunks(
@@ -93,22 +101,24 @@ def point_transport(
             form keeps its per-point shadow sums (`Transport.shadow_sums`).
         coat: whether the BRDF factors carry the clearcoat lobe (one answer for every chunk).
     """
-    g, u, viewer = at.gbuffer, at.samples, at.viewer
-    num_samples = u.shape[1]
-    sample = sample_light(light, take(g.position, chunk), take(u, chunk))
-    direction = sample.direction.transpose(0, 1)  # (S, C, 3), contiguous: see sample_light
+    g, u, (wo, cos_e, inverse_norm) = at.gbuffer, at.samples, at.viewer
+    sample = weighted_samples(light, g, chunk, take(u, chunk), take(wo, chunk))
+    direction = sample.direction  # (S, C, 3)
     cosine = dot(direction, take(g.normal, chunk))  # N.L at the shading normal as stored: the closed form's
     facing = dot(direction, take(g.geometric_normal, chunk)) > 0
-    # Every per-sample scalar in one (S, C) factor: 1 / pdf, both hemispheres, cos / S.
-    scalar = sample.inverse_pdf().transpose(0, 1) * ((cosine > 0) & facing) * (cosine / num_samples)
-    radiance = sample.radiance.transpose(0, 1)
-    lit = ((scalar != 0) & (radiance != 0).any(-1)).any(0)
+    # Every per-sample scalar of each lobe in one (S, C) factor: the samples' weight, both
+    # hemispheres, cos (`brdf_samples`; one tensor for both lobes without BRDF samples).
+    front = ((cosine > 0) & facing) * cosine
+    scalar = sample.diffuse_weight * front
+    joint = sample.specular_weight is sample.diffuse_weight
+    specular_scalar = scalar if joint else sample.specular_weight * front
+    radiance = sample.radiance
+    lit = ((specular_scalar != 0) & (radiance != 0).any(-1)).any(0)
     exact = closed_form(light, take(g.position, chunk), take(g.normal, chunk))
-    filtered = exact is not None and filter_radius > 0
+    filtered = filters_visibility(light, filter_radius)
     if filtered:  # lit by the closed form even where no sample is (see `uncovered` below)
         assert exact is not None  # filtered implies a closed form
         lit |= exact > 0
-    wo, cos_e, inverse_norm = viewer
     lit &= take(cos_e, chunk) > 0
     local: slice | torch.Tensor
     rows: slice | torch.Tensor
@@ -120,32 +130,37 @@ def point_transport(
         rows = points = local + chunk.start if isinstance(chunk, slice) else chunk[local]
     direction, cosine = direction[:, local], cosine[:, local]
     scalar, radiance = scalar[:, local], radiance[:, local]
+    specular_scalar = scalar if joint else specular_scalar[:, local]
+    light_distance = sample.distance[:, local]
     distance = visibility.occluder_distance(
         light,
         take(g.position, rows),
         take(g.geometric_normal, rows),
         direction.transpose(0, 1),
-        sample.distance.transpose(0, 1)[:, local].transpose(0, 1),
+        light_distance.transpose(0, 1),
     )
     distance = distance.transpose(0, 1)
     # The samples' unshadowed estimate of the cosine-weighted solid angle, for the ratio estimator.
-    reaching = (sample.distance < math.inf).transpose(0, 1)[:, local]
-    ratio = None if exact is None else ratio_of(take(exact, local), (scalar * reaching).sum(0))
+    weights = estimate_weights(light, light_distance, radiance)
+    ratio = None if exact is None else ratio_of(take(exact, local), (scalar * weights).sum(0))
     params, wo, shadow = g.params.index(rows), take(wo, rows), light.shadow
     scale = light_radiance_scale(light)
     if scalar_radiance(light):
         # L_i V = colour x scalar: keep per-sample scalars, not (S, P, 3) colours.
         k = int(np.argmax(np.abs(scale)))
-        unshadowed = scalar * radiance[..., k] / float(scale[k])
-        weight = unshadowed
+        emitted = radiance[..., k] / float(scale[k])
+        unshadowed = scalar * emitted
+        weight, specular_weight = unshadowed, unshadowed if joint else specular_scalar * emitted
         if shadow.enable:
-            weight = weight * (1.0 - (1.0 - shadow.color[0]) * shadow_strength(shadow, distance < math.inf, distance))
+            shadowing = 1.0 - (1.0 - shadow.color[0]) * shadow_strength(shadow, distance < math.inf, distance)
+            weight = unshadowed * shadowing
+            specular_weight = weight if joint else specular_weight * shadowing
         factors = preview_surface.split_factors(
             params, take(cos_e, rows), cosine * take(inverse_norm, rows), dot(direction, wo), coat
         )
         # With a filtered visibility the diffuse factors stay unshadowed (see Transport).
         factors[:2] *= unshadowed if filtered else weight
-        factors[2:] *= weight
+        factors[2:] *= specular_weight
         sums = None
         if filtered:
             assert exact is not None  # filtered implies a closed form
@@ -160,13 +175,16 @@ def point_transport(
             return Transport(points, None, None, ratio, factors.sum(1, keepdim=True), colour, sums)
         return Transport(points, direction, None, ratio, factors, colour, sums)
     weight = radiance * scalar.unsqueeze(-1)
+    specular_weight = weight if joint else radiance * specular_scalar.unsqueeze(-1)
     if shadow.enable:
-        weight = weight * shadow_factor(shadow, distance < math.inf, distance)
+        shadowing = shadow_factor(shadow, distance < math.inf, distance)
+        weight = weight * shadowing
+        specular_weight = weight if joint else specular_weight * shadowing
     frame = (take(g.tangent, rows), take(g.bitangent, rows), take(g.normal, rows))
     diffuse, specular = preview_surface.split(params, to_local(wo, *frame), to_local(direction, *frame))
     lobes = weight.new_empty(2, *weight.shape)
     torch.mul(diffuse, weight, out=lobes[0])
-    torch.mul(specular, weight, out=lobes[1])
+    torch.mul(specular, specular_weight, out=lobes[1])
     if light.kind not in SHAPED_KINDS:
         return Transport(points, None, lobes.sum(1, keepdim=True), ratio)
     return Transport(points, direction, lobes, ratio)

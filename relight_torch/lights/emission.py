@@ -278,6 +278,14 @@ def emitted_radiance(light: Light, points: torch.Tensor, directions: torch.Tenso
     return _checked_trace(light, points, directions)[1]
 
 
+def trace_light(
+    light: Light, points: torch.Tensor, directions: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`intersect_light` (...), `emitted_radiance` (..., 3) and `light_pdf` (...) along the same
+    `directions`, traced once."""
+    return _checked_trace(light, points, directions)
+
+
 def light_pdf(light: Light, points: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
     """Solid-angle density (...) with which `sample_light` picks `directions` (..., 3) from `points` (..., 3)."""
     return _checked_trace(light, points, directions)[2]

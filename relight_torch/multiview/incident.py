@@ -44,7 +44,7 @@ from relight_torch.light_samples import fixed_light_samples
 from relight_torch.lights.emission import sample_light
 from relight_torch.lights.geometry import LightFrame
 from relight_torch.lights.light import Light
-from relight_torch.lights.ratio import analytic_ratio
+from relight_torch.lights.ratio import analytic_ratio, estimate_weights
 from relight_torch.lights.shadow import shadow_factor
 from relight_torch.lights.shaping import emission_factor
 from relight_torch.math.frame import dot
@@ -147,7 +147,7 @@ def _chunk_table(
     index = torch.nonzero(live).squeeze(-1)
     if index.numel() == 0:
         return table, unshadowed
-    reaching = torch.isfinite(sample.distance).transpose(0, 1)
+    estimate_weight = estimate_weights(unit, sample.distance, sample.radiance).transpose(0, 1)
     distance = sample.distance.transpose(0, 1)
     if index.numel() < live.shape[0]:  # else every point: no copies
 
@@ -155,12 +155,12 @@ def _chunk_table(
             return values.index_select(0, index)
 
         position, normal, shading_normal = pick(position), pick(normal), pick(shading_normal)
-        direction, weight, scalar, reaching, distance = (
-            v.index_select(1, index) for v in (direction, weight, scalar, reaching, distance)
+        direction, weight, scalar, estimate_weight, distance = (
+            v.index_select(1, index) for v in (direction, weight, scalar, estimate_weight, distance)
         )
     # The samples' unshadowed estimate of the cosine-weighted solid angle, for the ratio estimator.
     cosine = dot(direction, shading_normal)
-    ratio = analytic_ratio(unit, position, shading_normal, (scalar * cosine.clamp(min=0.0) * reaching).sum(0))
+    ratio = analytic_ratio(unit, position, shading_normal, (scalar * cosine.clamp(min=0.0) * estimate_weight).sum(0))
     distance = visibility.occluder_distance(
         unit, position, normal, direction.transpose(0, 1), distance.transpose(0, 1)
     ).transpose(0, 1)
