@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
+import types
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +13,7 @@ import pytest
 
 import production_support
 import sky_support
+from pipeline import progress
 from pipeline.bake import scheduler
 from pipeline.bake.direct.bake import bake_direct
 from pipeline.bake.quality import measurement_window, resized
@@ -163,3 +166,18 @@ def test_a_process_reading_a_view_of_the_shot_reads_the_drivers_surfaces_and_cam
     np.testing.assert_array_equal(worker_scene.geometry.positions, driver_scene.geometry.positions)
     for name in (field.name for field in dataclasses.fields(driver_camera)):
         np.testing.assert_array_equal(getattr(worker_camera, name), getattr(driver_camera, name), err_msg=name)
+
+
+def test_work_without_a_bar_logs_its_progress_once_a_minute(monkeypatch, caplog):
+    """A bake whose stderr is a log file says how far it is: one line a minute, none after the end."""
+    clock = iter([0.0, 0.0, 30.0, 61.0, 90.0, 125.0, 200.0])
+    monkeypatch.setattr(progress, "time", types.SimpleNamespace(monotonic=lambda: next(clock)))
+    caplog.set_level(logging.INFO, logger=progress.__name__)
+    with progress.progress_bar("transfer rows", 100, "rows", enabled=False) as update:
+        for done in (10, 20, 30, 40, 60, 100):  # resumed: 10 were baked before
+            update(done, 100)
+    lines = [record.getMessage() for record in caplog.records]
+    assert lines == [
+        "transfer rows: 30 of 100 rows (30%), 61 s elapsed, about 4 min left",
+        "transfer rows: 60 of 100 rows (60%), 2 min elapsed, about 2 min left",
+    ]
