@@ -76,16 +76,19 @@ def closed_form(light: Light, points: torch.Tensor, normals: torch.Tensor) -> to
 
 
 def _dome_integral(light: Light, normals: torch.Tensor) -> torch.Tensor:
-    """(N,) a dome's luminance-weighted G at unit normals (N, 3): pi for an untextured one."""
+    """(N,) a dome's luminance-weighted G at normals (N, 3): pi |n| for an untextured one.
+
+    The integrand max(0, n.w) is linear in |n|, so a normal stored a little off unit length (half
+    floats) scales G as it scales the samples' cosines: the ratio stays exact."""
     weights = _luminance_weights(light)
     assert weights is not None  # a dome with a closed form
+    length = torch.sqrt((normals * normals).sum(-1))
     if light.texture is None:
-        return torch.full_like(normals[..., 0], math.pi)
-    lookup = lookup_from_local(
-        torch.nn.functional.normalize(LightFrame.of(light, normals).vector_to_local(normals), dim=-1), light.pole_axis
-    )
+        return length.mul(math.pi)
+    local = LightFrame.of(light, normals).vector_to_local(normals)
+    lookup = lookup_from_local(torch.nn.functional.normalize(local, dim=-1), light.pole_axis)
     irradiance = dome_irradiances.get(light.texture, normals.device, normals.dtype).irradiance(lookup)
-    return irradiance @ torch.as_tensor(weights, device=normals.device, dtype=normals.dtype)
+    return (irradiance @ torch.as_tensor(weights, device=normals.device, dtype=normals.dtype)).mul_(length)
 
 
 def ratio_of(exact: torch.Tensor, estimate: torch.Tensor) -> torch.Tensor:
