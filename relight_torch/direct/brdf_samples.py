@@ -57,15 +57,9 @@ def weighted_samples(
     directions from the points towards the camera."""
     position = take(gbuffer.position, chunk)
     if not samples_brdf(light) or u.shape[1] < 2:
-        sample = sample_light(light, position, u)
-        weight = _samples_first(sample).inverse_pdf() / u.shape[1]
-        return WeightedSamples(
-            sample.direction.transpose(0, 1),
-            sample.distance.transpose(0, 1),
-            sample.radiance.transpose(0, 1),
-            weight,
-            weight,
-        )
+        sample = _samples_first(sample_light(light, position, u))
+        weight = sample.inverse_pdf() / u.shape[1]
+        return WeightedSamples(sample.direction, sample.distance, sample.radiance, weight, weight)
     light_u, brdf_u = u[:, 0::2], u[:, 1::2]
     num_light, num_brdf = light_u.shape[1], brdf_u.shape[1]
     sample = _samples_first(sample_light(light, position, light_u))

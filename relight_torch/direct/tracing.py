@@ -140,9 +140,10 @@ def point_transport(
         light_distance.transpose(0, 1),
     )
     distance = distance.transpose(0, 1)
-    # The samples' unshadowed estimate of the cosine-weighted solid angle, for the ratio estimator.
-    weights = estimate_weights(light, light_distance, radiance)
-    ratio = None if exact is None else ratio_of(take(exact, local), (scalar * weights).sum(0))
+    ratio = None
+    if exact is not None:  # against the samples' unshadowed estimate of the cosine-weighted solid angle
+        estimate = (scalar * estimate_weights(light, light_distance, radiance)).sum(0)
+        ratio = ratio_of(take(exact, local), estimate)
     params, wo, shadow = g.params.index(rows), take(wo, rows), light.shadow
     scale = light_radiance_scale(light)
     if scalar_radiance(light):

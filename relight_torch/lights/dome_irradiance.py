@@ -65,8 +65,7 @@ class DomeIrradiance:
         u, v_from_top = latlong_coordinates(normals_lookup)
         # align_corners=True: -1 and 1 are the first and last rows and columns (the poles, u = 0 and 1).
         grid = torch.stack((2.0 * u - 1.0, 2.0 * v_from_top - 1.0), dim=-1).reshape(1, 1, -1, 2)
-        table = self.table.to(normals_lookup.dtype).unsqueeze(0)
-        looked_up = torch.nn.functional.grid_sample(table, grid, mode="bilinear", align_corners=True)
+        looked_up = torch.nn.functional.grid_sample(self.table.unsqueeze(0), grid, mode="bilinear", align_corners=True)
         return looked_up.reshape(3, -1).T.reshape(*normals_lookup.shape[:-1], 3)
 
 
