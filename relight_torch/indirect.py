@@ -65,6 +65,10 @@ class IndirectRelighter(Generic[StateT]):
     def lights(self) -> list[Light]:
         return self.direct.lights
 
+    @property
+    def material_paths(self) -> list[str] | None:
+        return self.direct.material_paths
+
     def set_lights(self, lights: list[Light]) -> None:
         """Replace the whole rig; unchanged lights keep their cached work."""
         self.direct.set_lights(lights)
@@ -79,7 +83,7 @@ class IndirectRelighter(Generic[StateT]):
         self.direct.remove_light(path)
         self._per_light.pop(path, None)
 
-    def edit_material(self, material_id: int, **values: object) -> None:
+    def edit_material(self, material: int | str, **values: object) -> None:
         refuse_material_edit(self)
 
     def held_bytes(self) -> int:

@@ -37,6 +37,11 @@ class CacheRelighter(Protocol):
     def lights(self) -> list[Light]:
         """The current rig, in the order lights were added."""
 
+    @property
+    def material_paths(self) -> list[str] | None:
+        """The material prim path of each material id (what `edit_material` takes by path); None
+        for a cache baked before they were stored, or a relighter without material edits."""
+
     def set_lights(self, lights: list[Light]) -> None:
         """Replace the whole rig; unchanged lights keep their cached work."""
 
@@ -55,8 +60,9 @@ class CacheRelighter(Protocol):
     def emission_image(self) -> torch.Tensor:
         """(H, W, 3) the surfaces' own emission, no light's."""
 
-    def edit_material(self, material_id: int, **values: object) -> None:
-        """Set UsdPreviewSurface inputs (`PreviewSurfaceParams` field names, constants) of one material.
+    def edit_material(self, material: int | str, **values: object) -> None:
+        """Set UsdPreviewSurface inputs (`PreviewSurfaceParams` field names, constants) of one
+        material, by id or prim path (`material_edits.material_rows`).
 
         Raises:
             RelightError: `material_edits` is False.

@@ -46,7 +46,7 @@ def usd_error_line(error: Exception) -> str:
     return lines[0] if lines else type(error).__name__
 
 
-def _open_layer(path: str | os.PathLike[str], role: str) -> Sdf.Layer:
+def open_layer(path: str | os.PathLike[str], role: str) -> Sdf.Layer:
     """Open `path` as an Sdf layer, raising `RelightError` if it is missing or not USD.
 
     Args:
@@ -65,15 +65,18 @@ def _open_layer(path: str | os.PathLike[str], role: str) -> Sdf.Layer:
     return layer
 
 
-def open_stage(path: str | os.PathLike[str], lights_layer: str | os.PathLike[str] | None = None) -> Usd.Stage:
-    """Open a shot (.usd, .usda, .usdc or .usdz), with an optional light-edit layer over it.
+def open_stage(
+    path: str | os.PathLike[str], lights_layer: str | os.PathLike[str] | None = None, role: str = "lights layer"
+) -> Usd.Stage:
+    """Open a shot (.usd, .usda, .usdc or .usdz), with an optional layer of edits over it.
 
     Registers the project's schemas first (they must be known before any stage is opened).
 
     Args:
         path: the shot's root layer.
-        lights_layer: a USD layer of light edits, composed as the strongest sublayer over the
-            shot; None opens the shot as it is.
+        lights_layer: a USD layer of light (or other) edits, composed as the strongest sublayer
+            over the shot; None opens the shot as it is.
+        role: what that layer is, in messages.
 
     Returns:
         The composed stage, payloads loaded.
@@ -82,10 +85,10 @@ def open_stage(path: str | os.PathLike[str], lights_layer: str | os.PathLike[str
         RelightError: a file is missing, is not USD, or the stage cannot be composed.
     """
     register_schemas()
-    shot = _open_layer(path, "stage")
+    shot = open_layer(path, "stage")
     root = shot
     if lights_layer is not None:
-        lights = _open_layer(lights_layer, "lights layer")
+        lights = open_layer(lights_layer, role)
         root = Sdf.Layer.CreateAnonymous("relight_root.usda")
         root.subLayerPaths.append(lights.identifier)
         root.subLayerPaths.append(shot.identifier)

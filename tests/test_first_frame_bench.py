@@ -30,7 +30,9 @@ def test_every_edit_kind_on_every_cache(tmp_path):
             assert float(cpu_ms) > 0 and float(wall_ms) > 0 and float(db) > 0
     for edit in ("material colour", "material roughness"):
         assert rows["cuts", edit][0] == "whole"
-        for cache in ("shot sizes (transfer)", "direct", "multiview"):
+        level, cpu_ms, wall_ms, db = rows["direct", edit]
+        assert level == "1/16" and float(cpu_ms) > 0 and float(wall_ms) > 0 and float(db) > 0
+        for cache in ("shot sizes (transfer)", "multiview"):
             assert rows[cache, edit][0] == "not supported: material_edits is False"
     level, cpu_ms, wall_ms, db = rows["multiview", "camera move"]
     assert level == "1/16" and float(cpu_ms) > 0 and float(wall_ms) > 0 and 0 < float(db) < float("inf")

@@ -17,33 +17,15 @@ from pxr import UsdGeom, UsdLux
 from pipeline import cli
 from pipeline.scenes import SCENES, authoring
 from pipeline.scenes.meshes import plane, torus, uv_sphere
-from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.direct.relighter import Relighter, open_relighter
 from relight_torch.direct.settings import RelightSettings
 from relight_torch.direct.sharing import PixelGroups, pixel_owners, take_rows
 from relight_torch.gbuffer import GBuffer
 from relight_torch.metrics import psnr
+from relighter_support import matte_params
 
 WIDTH, HEIGHT = 96, 72
 RADIUS = 4  # sub-samples: the filter of a 640x480 frame at this size's scale
-
-
-def _matte(n: int) -> PreviewSurfaceParams:
-    def full(value: float, channels: int = 0) -> torch.Tensor:
-        return torch.full((n, channels) if channels else (n,), value)
-
-    return PreviewSurfaceParams(
-        diffuse_color=full(0.5, 3),
-        emissive_color=full(0.0, 3),
-        specular_color=full(0.0, 3),
-        metallic=full(0.0),
-        roughness=full(0.5),
-        clearcoat=full(0.0),
-        clearcoat_roughness=full(0.01),
-        ior=full(1.5),
-        opacity=full(1.0),
-        use_specular_workflow=torch.zeros(n, dtype=torch.bool),
-    )
 
 
 def _plane_gbuffer(normals: np.ndarray, objects: np.ndarray, heights: np.ndarray | None = None) -> GBuffer:
@@ -56,7 +38,7 @@ def _plane_gbuffer(normals: np.ndarray, objects: np.ndarray, heights: np.ndarray
     return GBuffer.from_numpy(
         (2, 4),
         np.arange(n),
-        _matte(n),
+        matte_params(n),
         np.array([0.0, 1.0, 0.0], np.float32),
         position=position,
         normal=normals.reshape(-1, 3).astype(np.float32),

@@ -32,6 +32,7 @@ from relight_torch.solve.descent import descend
 from relight_torch.solve.linear import unit_images
 from relight_torch.solve.rig import scaled_light
 from relight_torch.transfer.relighter import TransferRelighter
+from relighter_support import twin
 
 WIDTH, HEIGHT = 48, 36
 CAMERA = SCENES["cornell_box"].camera
@@ -49,16 +50,7 @@ def cornell(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
 
 def _float64(relighter: Relighter) -> Relighter:
     """The same cache's relighter in float64 (gradient checks)."""
-    twin = Relighter(
-        relighter.gbuffer.to("cpu", torch.float64),
-        relighter.visibility,
-        relighter.supersampling,
-        relighter.exposure_scale,
-        relighter.settings,
-        relighter.object_paths,
-    )
-    twin.set_lights(relighter.lights)
-    return twin
+    return twin(relighter, relighter.gbuffer.to("cpu", torch.float64))
 
 
 def _test_lights(ceiling: Light) -> list[Light]:

@@ -16,6 +16,7 @@ from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.exr import exr_layer_names, write_rgb_exr
 from relight_torch.io.preview import write_png
+from relight_torch.material_edits import layer_material_edits
 from relight_torch.progressive import DEFAULT_BUDGET_MS, check_progressive, progressive_frames
 
 
@@ -31,6 +32,12 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("cache", metavar="CACHE", help="cache layer written by `relight bake`")
     add_lights_option(parser)
+    parser.add_argument(
+        "--materials",
+        metavar="LAYER",
+        help="USD layer of material edits: constant UsdPreviewSurface inputs (inputs:diffuseColor, "
+        "inputs:roughness, ...) authored on the shot's materials or their shaders (direct and cuts caches)",
+    )
     add_device_option(parser)
     parser.add_argument("-o", "--out", required=True, metavar="OUT.exr", help="output EXR")
     parser.add_argument("--png", metavar="OUT.png", help="also write an 8-bit sRGB preview")
@@ -107,6 +114,15 @@ def run(args: argparse.Namespace) -> int:
     relighter = open_cache(
         args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights, settings=relight_settings(args)
     )
+    if args.materials:
+        if not relighter.material_edits:
+            raise RelightError(
+                f"--materials: {args.cache} is a {method.name!r} cache, whose light transport holds its materials; "
+                "bake it with --method direct or --method cuts to edit materials"
+            )
+        edits = layer_material_edits(read_cache_layer(args.cache), args.materials, relighter.material_paths)
+        for material, values in edits.items():
+            relighter.edit_material(material, **values)
     if args.progressive:
         try:
             check_progressive(relighter)

@@ -31,19 +31,11 @@ from pipeline.errors import RelightError, warn
 from pipeline.scene import materialx
 from pipeline.scene.textures import ImageCache, fit_channels, load_texture, select_output
 from pipeline.scene.types import Material, MaterialInput
+from relight_torch.brdf.preview_surface import USD_INPUT_FIELDS
 
 # UsdPreviewSurface inputs that may be textured -> Material field.
-_TEXTURABLE_INPUTS = {
-    "diffuseColor": "diffuse_color",
-    "emissiveColor": "emissive_color",
-    "specularColor": "specular_color",
-    "metallic": "metallic",
-    "roughness": "roughness",
-    "clearcoat": "clearcoat",
-    "clearcoatRoughness": "clearcoat_roughness",
-    "opacity": "opacity",
-    "ior": "ior",
-    "normal": "normal",
+_TEXTURABLE_INPUTS = {name: field for name, field in USD_INPUT_FIELDS.items() if name != "useSpecularWorkflow"} | {
+    "normal": "normal"
 }
 _OPACITY_MODES = ("transparent", "presence")
 _DISPLAY_COLOR = "displayColor"

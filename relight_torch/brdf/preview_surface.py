@@ -78,6 +78,21 @@ class PreviewSurfaceParams(BrdfParams):
     use_specular_workflow: torch.Tensor = flag()
 
 
+USD_INPUT_FIELDS = {
+    "diffuseColor": "diffuse_color",
+    "emissiveColor": "emissive_color",
+    "specularColor": "specular_color",
+    "metallic": "metallic",
+    "roughness": "roughness",
+    "clearcoat": "clearcoat",
+    "clearcoatRoughness": "clearcoat_roughness",
+    "ior": "ior",
+    "opacity": "opacity",
+    "useSpecularWorkflow": "use_specular_workflow",
+}
+"""UsdPreviewSurface input name -> `PreviewSurfaceParams` field."""
+
+
 GLOSSY_ROUGHNESS = 0.5
 """Roughness below which a lobe counts as glossy (`glossy`)."""
 

@@ -28,7 +28,6 @@ direct relighter's.
 from __future__ import annotations
 
 import collections
-import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -49,6 +48,7 @@ from relight_torch.lights.dome import REC709_LUMINANCE
 from relight_torch.lights.emission import validate_light
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import linked_points
+from relight_torch.material_edits import apply_material_edit
 from relight_torch.math.frame import to_local
 from relight_torch.parallel import parallel_map, tile_threads
 from relight_torch.protocol import Refinement, refuse_progressive, tensor_bytes
@@ -126,7 +126,7 @@ class CutsRelighter:
 
     Attributes:
         params: the current material parameters of every sub-sample (edit with `set_params` or
-            `edit_material`; no re-bake). Only the cuts' light follows them.
+            `edit_material`; no re-bake), the direct relighter's.
         stats: of the last cuts render, summed over the sub-samples: 'inputs' (entries of the
             three vertices' visibility cuts, the merge's input), 'merged' (entries of the
             merged cuts built with the illumination cut), 'dark' (visibility clusters dark at all
@@ -204,6 +204,10 @@ class CutsRelighter:
     def lights(self) -> list[Light]:
         return self.direct.lights + list(self._domes.values())
 
+    @property
+    def material_paths(self) -> list[str] | None:
+        return self.direct.material_paths
+
     def set_lights(self, lights: list[Light]) -> None:
         """Replace the whole rig (env mode: domes go to the cuts, the rest to the direct relighter)."""
         self.direct.set_lights([light for light in lights if not self._by_cuts(light)])
@@ -240,13 +244,10 @@ class CutsRelighter:
         self._samples = None
 
     def set_params(self, params: PreviewSurfaceParams) -> None:
-        """Replace the material parameters of every sub-sample (rows as the G-buffer's).
-
-        Only the cuts' light follows: the direct relighter keeps the baked materials.
-        """
-        if params.diffuse_color.shape != self.params.diffuse_color.shape:
-            raise ValueError(f"material parameters must have {self.params.diffuse_color.shape[0]} rows")
-        params = params.to(self.params.diffuse_color.device, self.params.diffuse_color.dtype)
+        """Replace the material parameters of every sub-sample (rows as the G-buffer's): the direct
+        relighter's lights (`Relighter.set_params`) and the cuts' light follow them."""
+        self.direct.set_params(params)
+        params = self.direct.gbuffer.params
         if self._columns is not None:  # only the lobes' widths enter the kept factors
             self._columns.dirty |= (params.roughness != self.params.roughness) | (
                 params.clearcoat_roughness != self.params.clearcoat_roughness
@@ -255,17 +256,11 @@ class CutsRelighter:
         self._samples = None
         self._edits += 1
 
-    def edit_material(self, material_id: int, **values: object) -> None:
+    def edit_material(self, material: int | str, **values: object) -> None:
         """Set UsdPreviewSurface inputs (field names of `PreviewSurfaceParams`, constants) on the
-        sub-samples of one material, e.g. `edit_material(3, diffuse_color=(0.1, 0.5, 0.1), roughness=0.6)`."""
-        rows = self.direct.gbuffer.material_id == material_id
-        changes = {}
-        for name, value in values.items():
-            field = getattr(self.params, name)
-            new = torch.as_tensor(value, dtype=field.dtype, device=field.device).expand_as(field)
-            mask = rows.reshape(-1, *([1] * (field.dim() - 1)))
-            changes[name] = torch.where(mask, new, field)
-        self.set_params(dataclasses.replace(self.params, **changes))
+        sub-samples of one material (id or prim path), e.g. `edit_material(3, diffuse_color=(0.1, 0.5, 0.15))`."""
+        ids, paths = self.direct.gbuffer.material_id, self.direct.material_paths
+        self.set_params(apply_material_edit(self.params, ids, material, values, paths))
 
     # -- rendering ------------------------------------------------------------------------------
 

@@ -3,10 +3,13 @@ share their light (`direct.sharing`), each with its fixed light samples and its 
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 from typing import NamedTuple
 
 import torch
 
+from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.direct.sharing import PixelGroups
 from relight_torch.gbuffer import GBuffer
 from relight_torch.light_samples import fixed_light_samples
@@ -55,6 +58,15 @@ class EvaluationPoints:
         # (wo, N.E / |N|, 1 / |N|) of every point, made on first use (`view_directions`).
         self._viewer: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
         self._group_points: dict[int, Points] = {}  # the groups as shading points, by samples per point
+
+    def with_params(self, params: PreviewSurfaceParams) -> EvaluationPoints:
+        """These points with other materials (rows as the G-buffer's): the fixed samples and the
+        view terms kept (geometry), the pixel groups given their owners' new materials."""
+        points = copy.copy(self)
+        points.gbuffer = dataclasses.replace(self.gbuffer, params=params)
+        points.groups = None if self.groups is None else self.groups.with_params(params)
+        points._group_points = {}
+        return points
 
     def fixed_samples(self, num_samples: int) -> torch.Tensor:
         """(N, S, 2) the fixed light-sample numbers of every point for S samples, made once per S."""

@@ -115,6 +115,26 @@ def refine_points(
     return int(todo.numel()), int(todo.numel()) * progress.samples_per_point, complete
 
 
+def reshade_at(stages: LightStages, state: LightState, rows: torch.Tensor) -> None:
+    """After an edit of the colours of the materials at `rows` (N,) bool (`material_edits`): the
+    light's unit images become a `Progress` whose points elsewhere are done, so that refinement
+    (or the next render) shades those points again from the light's kept transport, tracing
+    nothing. The light keeps a transport of scalar factors (`Transport.factors`), whose BRDF
+    colours enter when its images are made."""
+    progress = state.progress
+    if state.images is not None:
+        groups = stages.sample_groups(stages.transport_light(state.light))
+        progress = Progress.start(stages.gbuffer, groups, traced=False, keep_parts=False)
+        progress.images.copy_(state.images)
+        progress.done.copy_(~rows)
+        state.images, state.progress = None, progress
+    elif progress is None or progress.traced:
+        return  # nothing shaded yet from the transport: the next shading uses the new colours
+    else:
+        progress.done.logical_and_(~rows)
+    progress.num_done = int(progress.done.sum())
+
+
 def add_light_at(
     values: torch.Tensor,
     state: LightState,

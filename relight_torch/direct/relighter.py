@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import check_inputs, load_gbuffer, load_npy
 from relight_torch.direct import gradients
@@ -50,7 +51,7 @@ from relight_torch.direct.budget import MemoryBudget
 from relight_torch.direct.gradients import GEOMETRY_KINDS
 from relight_torch.direct.images import add_scaled, box_filter, lobe_scales
 from relight_torch.direct.loading import embree_visibility, load_opacity, shot_lights
-from relight_torch.direct.progressive import Progress, add_light_at, coarse_light, refine_points
+from relight_torch.direct.progressive import Progress, add_light_at, coarse_light, refine_points, reshade_at
 from relight_torch.direct.rig import LightState, light_group, light_keys, replace_rig
 from relight_torch.direct.settings import RelightSettings, auto_filter_radius, default_memory_budget
 from relight_torch.direct.stages import LightStages
@@ -59,9 +60,10 @@ from relight_torch.errors import RelightError
 from relight_torch.gbuffer import GBuffer
 from relight_torch.levels import Level, build_level
 from relight_torch.lights.emission import validate_light
-from relight_torch.lights.light import Light, lights_equal
+from relight_torch.lights.light import Light, LightKind, lights_equal
 from relight_torch.lights.linking import decode_paths, linked_points
-from relight_torch.protocol import Refinement, refuse_material_edit
+from relight_torch.material_edits import MaterialChange, apply_material_edit
+from relight_torch.protocol import Refinement
 from relight_torch.visibility import Visibility
 from relight_torch.visibility.shadow_maps import ShadowMapVisibility
 
@@ -77,13 +79,15 @@ class Relighter:
         settings: sampling settings.
         object_paths: the prim path of each object id of the G-buffer, to resolve light links
             against; None when unknown (lights with a light link are then refused).
+        material_paths: the prim path of each material id, to edit materials by path
+            (`edit_material`); None when unknown (a cache baked before it was stored).
 
     Attributes:
         description: the cache layer's description when opened with `open_relighter`.
         counters: 'visibility', 'shading' and 'masks' passes run so far (one per light and stage).
     """
 
-    material_edits = False  # the baked materials are shaded as they are (`CacheRelighter`)
+    material_edits = True  # `edit_material` shades the edited materials' points again (`CacheRelighter`)
     # The `--free` kinds `relight solve` may differentiate through this relighter
     # (`protocol.GradientRelighter`, `relight_torch.direct.gradients`).
     gradient_kinds = frozenset(GEOMETRY_KINDS)
@@ -97,6 +101,7 @@ class Relighter:
         exposure_scale: float = 1.0,
         settings: RelightSettings = RelightSettings(),
         object_paths: list[str] | None = None,
+        material_paths: list[str] | None = None,
     ):
         height, width = gbuffer.image_size
         if height % supersampling or width % supersampling:
@@ -114,6 +119,7 @@ class Relighter:
         self.counters: collections.Counter[str] = collections.Counter()
         self.description: CacheDescription | None = None
         self.object_paths = object_paths
+        self.material_paths = material_paths
         self._lights: dict[str, LightState] = {}
         self._masks: dict[tuple[str, ...], torch.Tensor] = {}
         self._stages = LightStages(gbuffer, visibility, settings, self.filter_radius, supersampling, self.counters)
@@ -212,8 +218,60 @@ class Relighter:
         """`CacheRelighter.held_bytes`: the per-light caches (`cache_bytes`)."""
         return self.cache_bytes()
 
-    def edit_material(self, material_id: int, **values: object) -> None:
-        refuse_material_edit(self)
+    def edit_material(self, material: int | str, **values: object) -> None:
+        """`CacheRelighter.edit_material`: set UsdPreviewSurface inputs (constants) of one material,
+        by id or prim path, e.g. `edit_material("/World/Looks/Wall", diffuse_color=(0.1, 0.5, 0.1),
+        roughness=0.6)` (`set_params`).
+
+        Raises:
+            RelightError: a bad material or input (`material_edits.apply_material_edit`), or as
+                `set_params`.
+        """
+        g = self.gbuffer
+        self.set_params(apply_material_edit(g.params, g.material_id, material, values, self.material_paths))
+
+    def set_params(self, params: PreviewSurfaceParams) -> None:
+        """Replace the material parameters of every sub-sample (rows as the G-buffer's).
+
+        Every light's work away from the changed points is kept. A change of colours only
+        (`material_edits.COLOUR_INPUTS`) shades those points again from each light's kept
+        transport where it keeps one of scalar factors, tracing nothing; any other change, a dome
+        (whose BRDF samples follow the material) and a light whose transport is not kept trace
+        the light again. An emissive colour change alters the emission alone. Progressive
+        refinement sees the lights as edited (`edits`).
+
+        Raises:
+            RelightError: another number of rows, an opacity change (`MaterialChange.between`), or a
+                light whose images were given from elsewhere (`set_unit_images`: not shaded here).
+        """
+        params = params.to(self.gbuffer.device, self.gbuffer.position.dtype)
+        change = MaterialChange.between(self.gbuffer.params, params)
+        if not change.inputs:
+            return
+        external = [path for path, state in self._lights.items() if state.external]
+        if external:
+            raise RelightError(
+                f"{external[0]}: its light was shaded elsewhere (set_unit_images); a material edit cannot "
+                "shade it again"
+            )
+        for state in self._lights.values():
+            if state.folded:  # out of the folded sum while it still holds the old materials' light
+                self._unfold(state)
+        old_stages = self._stages
+        self._stages = old_stages.with_params(params, change.rows)
+        self.gbuffer = self._stages.gbuffer
+        self._edits += 1
+        self._others, self._static = None, None
+        if change.inputs == {"emissive_color"}:
+            return  # no light reflects differently
+        reshade = change.colour_only and self._stages.same_sample_groups(old_stages)
+        for state in self._lights.values():
+            kept = state.transports is not None and all(t.factors is not None for t in state.transports)
+            if reshade and kept and state.light.kind is not LightKind.DOME:
+                reshade_at(self._stages, state, change.rows)
+            else:
+                state.transports, state.images, state.progress = None, None, None
+            state.edited = self._edits
 
     def unit_images(self, path: str) -> torch.Tensor | None:
         """Light `path`'s cached diffuse and specular unit images (2, N, 3); None before it is shaded
@@ -546,8 +604,18 @@ def open_relighter(
         )
     else:
         raise RelightError(f"shadows must be 'embree' or 'shadowmaps', got {shadows!r}")
+    names = {payload.name for payload in description.payloads}
+    material_paths = (
+        decode_paths(load_npy(layer_path, description, "materialPaths")) if "materialPaths" in names else None
+    )
     relighter = Relighter(
-        gbuffer, visibility, description.supersampling, description.exposure_scale, settings, object_paths
+        gbuffer,
+        visibility,
+        description.supersampling,
+        description.exposure_scale,
+        settings,
+        object_paths,
+        material_paths,
     )
     relighter.description = description
     relighter.set_lights(shot_lights(description, lights_layer))

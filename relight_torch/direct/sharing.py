@@ -19,11 +19,13 @@ levels' points (`relight_torch.levels`) are owners.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 
 import torch
 
+from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.gbuffer import GBuffer
 from relight_torch.math.frame import dot
 from relight_torch.visibility.surface_filter import MAX_PLANE_SLOPE, FilterGrid, SurfaceFilter
@@ -119,6 +121,13 @@ class PixelGroups:
             self.gbuffer.position.index_select(0, self.primary),
             self.gbuffer.normal.index_select(0, self.primary),
         )
+
+    def with_params(self, params: PreviewSurfaceParams) -> PixelGroups:
+        """The same groups whose shading points take their owners' rows of `params` (other materials
+        of the same sub-samples: a group is one material's, so it stays one)."""
+        groups = copy.copy(self)
+        groups.gbuffer = dataclasses.replace(self.gbuffer, params=params.index(self.owners))
+        return groups
 
     def of(self, chunk: slice | torch.Tensor) -> tuple[slice | torch.Tensor, torch.Tensor]:
         """(groups, which) of the sub-samples of `chunk` (a slice of all of them, or P indices):

@@ -5,6 +5,7 @@ point), made whole, tile by tile without keeping the transport, or at some point
 from __future__ import annotations
 
 import collections
+import copy
 import dataclasses
 import functools
 
@@ -12,6 +13,7 @@ import numpy as np
 import torch
 
 from relight_torch.brdf import preview_surface
+from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.direct.images import unit_light
 from relight_torch.direct.points import EvaluationPoints, Points, take
 from relight_torch.direct.settings import RelightSettings
@@ -60,11 +62,21 @@ class LightStages:
         supersampling: int,
         counters: collections.Counter[str],
     ):
-        self.gbuffer = gbuffer
         self.visibility = visibility
         self.settings = settings
         self.filter_radius = filter_radius
         self.counters = counters
+        self._material_terms(gbuffer)
+        # The sub-samples that share their light (`direct.sharing`), or None.
+        sharing = settings.shared_lighting and supersampling > 1 and filter_radius > 0
+        groups = PixelGroups(gbuffer, supersampling) if sharing else None
+        self._groups = groups
+        self.points = EvaluationPoints(gbuffer, settings.seed, groups)
+        self.filter = VisibilityFilter(gbuffer, filter_radius, supersampling, groups)
+
+    def _material_terms(self, gbuffer: GBuffer) -> None:
+        """Take `gbuffer` and what its materials decide: the clearcoat factors, the glossy points."""
+        self.gbuffer = gbuffer
         # Whether the transport factors carry the clearcoat lobe: one answer for every chunk.
         self._coat = bool(gbuffer.params.clearcoat.any())
         # The glossy and the matte points, or None for both when the image is all one kind.
@@ -74,12 +86,30 @@ class LightStages:
         if glossy.any() and not self._all_glossy:
             self._glossy_split = (torch.nonzero(~glossy).squeeze(-1), torch.nonzero(glossy).squeeze(-1))
         self._factor_colours: torch.Tensor | None = None  # (F, N, 3), made on first use
-        # The sub-samples that share their light (`direct.sharing`), or None.
-        sharing = settings.shared_lighting and supersampling > 1 and filter_radius > 0
-        groups = PixelGroups(gbuffer, supersampling) if sharing else None
-        self._groups = groups
-        self.points = EvaluationPoints(gbuffer, settings.seed, groups)
-        self.filter = VisibilityFilter(gbuffer, filter_radius, supersampling, groups)
+
+    def with_params(self, params: PreviewSurfaceParams, changed: torch.Tensor) -> LightStages:
+        """These stages for other materials of the same points: the points' geometry, pixel groups,
+        fixed samples and visibility filter kept, the rest made for `params` (rows as the G-buffer's)
+        that differ from the current ones at `changed` ((N,) bool). The factor colours made so far
+        are updated in place at those rows only: these stages are not to be used again."""
+        stages = copy.copy(self)
+        stages._material_terms(dataclasses.replace(self.gbuffer, params=params))
+        stages.points = self.points.with_params(params)
+        if self._factor_colours is not None and stages._coat == self._coat:
+            rows = torch.nonzero(changed).squeeze(-1)
+            colours = preview_surface.factor_colours(params.index(rows), self._coat)
+            stages._factor_colours = self._factor_colours.index_copy_(1, rows, colours)
+        return stages
+
+    def same_sample_groups(self, other: LightStages) -> bool:
+        """Whether `other` (of the same points, other materials) samples and factors every light
+        as these do: the same glossy points and the same clearcoat factors, so that transports
+        made by either serve both."""
+        if (self._coat, self._all_glossy) != (other._coat, other._all_glossy):
+            return False
+        if self._glossy_split is None or other._glossy_split is None:
+            return self._glossy_split is None and other._glossy_split is None
+        return all(torch.equal(a, b) for a, b in zip(self._glossy_split, other._glossy_split, strict=True))
 
     # -- sampling ---------------------------------------------------------------------------------
 

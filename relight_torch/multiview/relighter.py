@@ -261,6 +261,8 @@ class MultiviewRelighter:
     def lights(self) -> list[Light]:
         return list(self._lights.values())
 
+    material_paths = None  # no material edits (`CacheRelighter`)
+
     @property
     def edits(self) -> int:
         """`CacheRelighter.edits`: light additions, edits and removals so far."""
@@ -339,7 +341,7 @@ class MultiviewRelighter:
         """`CacheRelighter.held_bytes`: the caching samples' lighting and the current view's relighter."""
         return self.lighting_bytes() + (0 if self._relighter is None else self._relighter.held_bytes())
 
-    def edit_material(self, material_id: int, **values: object) -> None:
+    def edit_material(self, material: int | str, **values: object) -> None:
         refuse_material_edit(self)
 
     def render(self) -> torch.Tensor:

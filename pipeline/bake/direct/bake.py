@@ -7,6 +7,8 @@ Writes into OUT:
     <stem>.occluderObjects.npy  (T,) int32 object id of each occluder triangle
     <stem>.objectPaths.npy  uint8 UTF-8 object prim paths by object id, newline-separated: light
                             and shadow links are resolved against them at relight time
+    <stem>.materialPaths.npy  the same of the material prim paths by material id ('<fallback>',
+                            '<displayColor>' for unbound gprims): materials are edited by path
     <stem>.opacity*.npy     only when some occluder is cut out or partially opaque: its opacity
                             table (`relight_torch.visibility.opacity.OpacityTable.to_arrays`), so
                             that shadow rays and shadow maps pass through the holes
@@ -177,6 +179,9 @@ def direct_payloads(
     object_paths = write_npy(
         out_dir / f"{stem}.objectPaths.npy", encode_paths([obj.path for obj in scene.objects]), "objectPaths"
     )
+    material_paths = write_npy(
+        out_dir / f"{stem}.materialPaths.npy", encode_paths([m.path for m in scene.materials]), "materialPaths"
+    )
     opacity = scene_opacity(scene)
     opacity_payloads = (
         ()
@@ -196,7 +201,7 @@ def direct_payloads(
         content_hash=digest,
         inputs=inputs,
         parameters=parameters,
-        payloads=(deep, occluders, occluder_objects, object_paths) + opacity_payloads,
+        payloads=(deep, occluders, occluder_objects, object_paths, material_paths) + opacity_payloads,
         code_version=code_version(),
     )
     return description, chunk_dir

@@ -1,0 +1,194 @@
+"""Material edits: UsdPreviewSurface inputs set to constants on one material's shading points.
+
+One function makes the edited parameters for every relighter that edits materials (the direct
+relighter and the cuts' light), so that an input name, a value's shape and the inputs refused mean
+the same everywhere.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Mapping
+
+import torch
+from pxr import Sdf, Usd, UsdShade
+
+from relight_torch.brdf.preview_surface import USD_INPUT_FIELDS, PreviewSurfaceParams
+from relight_torch.cache.layer import CacheDescription
+from relight_torch.errors import RelightError
+from relight_torch.stage import open_layer, open_stage
+
+COLOUR_INPUTS = frozenset({"diffuse_color", "specular_color", "metallic", "ior", "use_specular_workflow"})
+"""Inputs that reach reflected light only through the colours of the BRDF's split factors
+(`preview_surface.factor_colours`): editing them re-weights kept factors and traces nothing."""
+
+REFUSED_INPUTS = {"opacity": "opacity changes the shadows the occluders cast, which the cache baked; re-bake the cache"}
+"""Inputs a relighter cannot edit, and why."""
+
+
+@dataclasses.dataclass(frozen=True)
+class MaterialChange:
+    """What differs between two sets of material parameters of the same shading points.
+
+    Attributes:
+        inputs: the names of the inputs that differ somewhere.
+        rows: (N,) bool, the shading points where any input differs.
+    """
+
+    inputs: frozenset[str]
+    rows: torch.Tensor
+
+    @property
+    def colour_only(self) -> bool:
+        """Whether every changed input is a `COLOUR_INPUTS` one."""
+        return self.inputs <= COLOUR_INPUTS
+
+    @classmethod
+    def between(cls, old: PreviewSurfaceParams, new: PreviewSurfaceParams) -> MaterialChange:
+        """The change from `old` to `new` (same rows, device and dtype).
+
+        Raises:
+            RelightError: a `REFUSED_INPUTS` input differs, or the rows differ in number.
+        """
+        if new.opacity.shape != old.opacity.shape:
+            raise RelightError(f"material parameters must have {old.opacity.shape[0]} rows, got {new.opacity.shape[0]}")
+        rows = torch.zeros(old.opacity.shape, dtype=torch.bool, device=old.opacity.device)
+        inputs = set()
+        for item in dataclasses.fields(old):
+            differs = getattr(old, item.name) != getattr(new, item.name)
+            differs = differs.any(-1) if differs.dim() > 1 else differs
+            if bool(differs.any()):
+                if item.name in REFUSED_INPUTS:
+                    raise RelightError(f"{item.name}: {REFUSED_INPUTS[item.name]}")
+                inputs.add(item.name)
+                rows |= differs
+        return cls(frozenset(inputs), rows)
+
+
+def material_rows(material_ids: torch.Tensor, material: int | str, material_paths: list[str] | None) -> torch.Tensor:
+    """(N,) bool: the shading points of `material`, a material id or a material prim path (every id
+    of that path: a material bound with several displayColors has one id per colour).
+
+    Raises:
+        RelightError: a path without the cache's material paths, or one the cache does not have.
+    """
+    if isinstance(material, int):
+        return material_ids == material
+    if material_paths is None:
+        raise RelightError(f"material {material}: the cache has no material paths; re-bake it with this version")
+    ids = [index for index, path in enumerate(material_paths) if path == material]
+    if not ids:
+        known = ", ".join(sorted(set(material_paths))[:8])
+        raise RelightError(
+            f"no material {material} in the cache (its materials: {known}{', ...' * (len(set(material_paths)) > 8)})"
+        )
+    return torch.isin(material_ids, torch.tensor(ids, dtype=material_ids.dtype, device=material_ids.device))
+
+
+def apply_material_edit(
+    params: PreviewSurfaceParams,
+    material_ids: torch.Tensor,
+    material: int | str,
+    values: Mapping[str, object],
+    material_paths: list[str] | None = None,
+) -> PreviewSurfaceParams:
+    """`params` with `values` (input name -> constant: 3 numbers for a colour, or one for grey; one
+    number otherwise) set on the rows of `material` (`material_rows`; `material_ids` (N,)).
+
+    Raises:
+        RelightError: an unknown material, an input that is not a `PreviewSurfaceParams` field, a
+            refused one, or a value of the wrong shape, naming the input and the material.
+    """
+    if not values:
+        raise RelightError(f"material {material}: no input to edit")
+    rows = material_rows(material_ids, material, material_paths)
+    changes = {}
+    for name, value in values.items():
+        if name in REFUSED_INPUTS:
+            raise RelightError(f"material {material}: {name}: {REFUSED_INPUTS[name]}")
+        field = getattr(params, name, None)
+        if not isinstance(field, torch.Tensor):
+            inputs = ", ".join(f.name for f in dataclasses.fields(params) if f.name not in REFUSED_INPUTS)
+            raise RelightError(f"material {material}: no input {name!r} (UsdPreviewSurface inputs: {inputs})")
+        try:
+            new = torch.as_tensor(value, dtype=field.dtype, device=field.device)
+            new = new.expand(field.shape[1:]).expand_as(field) if field.dim() > 1 else new.expand_as(field)
+        except (RuntimeError, TypeError, ValueError):
+            shape = f"{field.shape[1]} numbers" if field.dim() > 1 else "one number"
+            raise RelightError(f"material {material}: {name} takes {shape}, got {value!r}") from None
+        mask = rows.reshape(-1, *([1] * (field.dim() - 1)))
+        changes[name] = torch.where(mask, new, field)
+    return dataclasses.replace(params, **changes)
+
+
+def layer_material_edits(
+    description: CacheDescription, layer: str | os.PathLike[str], material_paths: list[str] | None
+) -> dict[str, dict[str, object]]:
+    """The material edits a USD layer authors: material prim path -> {`PreviewSurfaceParams` field:
+    constant}. The layer is composed over the cache's shot as its strongest sublayer, and each
+    material's UsdPreviewSurface input takes the value a renderer would (through a connection to
+    the material's interface input, at the baked time); an input is edited where the attribute
+    giving its value has an opinion in the layer.
+
+    Raises:
+        RelightError: the layer is missing or not USD; the cache has no material paths; an
+            `inputs:` attribute of the layer that gives no UsdPreviewSurface input of the cache's
+            materials its value (naming it), or one overridden by a connection.
+    """
+    if material_paths is None:
+        raise RelightError(f"materials layer {layer}: the cache has no material paths; re-bake it with this version")
+    stage = open_stage(description.source, layer, role="materials layer")
+    edits_layer = open_layer(layer, "materials layer")
+    authored: set[Sdf.Path] = set()
+    edits_layer.Traverse(
+        Sdf.Path.absoluteRootPath,
+        lambda path: authored.add(path) if path.IsPropertyPath() and path.name.startswith("inputs:") else None,
+    )
+    time = description.parameters.get("time")
+    time_code = Usd.TimeCode.Default() if time is None else Usd.TimeCode(float(time))
+    edits: dict[str, dict[str, object]] = {}
+    used: set[Sdf.Path] = set()
+    for material_path in sorted({path for path in material_paths if path.startswith("/")}):
+        shader = UsdShade.Material(stage.GetPrimAtPath(material_path)).ComputeSurfaceSource()[0]
+        if not shader or shader.GetShaderId() != "UsdPreviewSurface":
+            continue
+        for name, field in USD_INPUT_FIELDS.items():
+            shader_input = shader.GetInput(name)
+            if not shader_input:
+                continue
+            sources = [attribute.GetPath() for attribute in shader_input.GetValueProducingAttributes()]
+            own = shader_input.GetAttr().GetPath()
+            if own in authored and own not in sources:
+                raise RelightError(
+                    f"materials layer {layer}: {own}: connected to {sources[0] if sources else 'nothing'}, "
+                    "so its value is not used; set the input it is connected to"
+                )
+            for source in sources:
+                if source in authored:
+                    if UsdShade.Output.IsOutput(stage.GetAttributeAtPath(source)):
+                        raise RelightError(f"materials layer {layer}: {source}: a shader output, not a constant")
+                    value = stage.GetAttributeAtPath(source).Get(time_code)
+                    edits.setdefault(material_path, {})[field] = _constant(value, f"materials layer {layer}: {source}")
+                    used.add(source)
+    unused = sorted(authored - used, key=str)
+    if unused:
+        raise RelightError(
+            f"materials layer {layer}: {unused[0]}: gives no UsdPreviewSurface input of the cache's materials its "
+            f"value ({', '.join(USD_INPUT_FIELDS)})"
+        )
+    return edits
+
+
+def _constant(value: object, where: str) -> object:
+    """A USD input value as `apply_material_edit` takes it: the number, or a tuple for a colour.
+
+    Raises:
+        RelightError: neither (`where` names the attribute).
+    """
+    if isinstance(value, bool | int | float):
+        return value
+    try:
+        return tuple(float(v) for v in value)  # type: ignore[attr-defined]  # Gf.Vec3f iterates
+    except (TypeError, ValueError):
+        raise RelightError(f"{where}: {value!r} is neither a number nor a colour") from None
