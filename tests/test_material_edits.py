@@ -32,7 +32,8 @@ EDITS = {
     "diffuse colour": {"diffuse_color": (0.1, 0.6, 0.2)},
     "metallic": {"metallic": 1.0, "diffuse_color": (0.9, 0.6, 0.3)},
     "specular workflow": {"use_specular_workflow": True, "specular_color": (0.3, 0.3, 0.9)},
-    "roughness": {"roughness": 0.2},
+    "roughness": {"roughness": 0.55},
+    "glossy": {"roughness": 0.2},
     "clearcoat": {"clearcoat": 1.0, "clearcoat_roughness": 0.1},
     "emission": {"emissive_color": (0.5, 0.2, 0.1)},
 }
@@ -89,13 +90,24 @@ def test_a_colour_edit_traces_nothing_and_shades_only_its_material(cornell, edit
     assert 0 < pending <= int(rows.sum()) * max(relighter.num_light_samples(light) for light in relighter.lights)
 
 
-def test_a_roughness_edit_traces_the_lights_again(cornell):
-    relighter = open_cache(cornell)
+@pytest.mark.parametrize("edit", ["roughness", "glossy"])
+def test_a_roughness_edit_traces_the_material_again(cornell, edit):
+    """Within matte (or glossy) points only the material's points are traced again; a material
+    made glossy changes how many samples its points take: every point is traced again."""
+    relighter = open_cache(cornell, settings=SETTINGS["filtered"])
     relighter.render()
     traced = relighter.counters["visibility"]
-    relighter.edit_material(_largest_material(relighter), roughness=0.3)
+    material = _largest_material(relighter)
+    rows = int((relighter.gbuffer.material_id == material).sum())
+    relighter.edit_material(material, **EDITS[edit])
+    pending = relighter.pending(None)
     relighter.render()
     assert relighter.counters["visibility"] == traced + len(relighter.lights)
+    samples = max(relighter.num_light_samples(light) for light in relighter.lights)
+    if edit == "roughness":
+        assert 0 < pending <= rows * samples
+    else:
+        assert pending >= relighter.gbuffer.num_samples * len(relighter.lights)
 
 
 @pytest.mark.parametrize("edit", ["diffuse colour", "roughness"])

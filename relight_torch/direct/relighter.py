@@ -235,10 +235,12 @@ class Relighter:
 
         Every light's work away from the changed points is kept. A change of colours only
         (`material_edits.COLOUR_INPUTS`) shades those points again from each light's kept
-        transport where it keeps one of scalar factors, tracing nothing; any other change, a dome
-        (whose BRDF samples follow the material) and a light whose transport is not kept trace
-        the light again. An emissive colour change alters the emission alone. Progressive
-        refinement sees the lights as edited (`edits`).
+        transport where it keeps one of scalar factors, tracing nothing; any other change, and a
+        dome (whose BRDF samples follow the material), traces the light again at the changed points
+        only. A light whose transport is not kept, and every light after a change of which points
+        are glossy or have a clearcoat (their samples per point), is traced again whole. An emissive
+        colour change alters the emission alone. Progressive refinement sees the lights as edited
+        (`edits`).
 
         Raises:
             RelightError: another number of rows, an opacity change (`MaterialChange.between`), or a
@@ -264,14 +266,24 @@ class Relighter:
         self._others, self._static = None, None
         if change.inputs == {"emissive_color"}:
             return  # no light reflects differently
-        reshade = change.colour_only and self._stages.same_sample_groups(old_stages)
+        same_groups = self._stages.same_sample_groups(old_stages)
+        todo = torch.nonzero(change.rows).squeeze(-1)
         for state in self._lights.values():
-            kept = state.transports is not None and all(t.factors is not None for t in state.transports)
-            if reshade and kept and state.light.kind is not LightKind.DOME:
+            if same_groups and self._transport_serves(state, change, todo):
                 reshade_at(self._stages, state, change.rows)
             else:
                 state.transports, state.images, state.progress = None, None, None
             state.edited = self._edits
+
+    def _transport_serves(self, state: LightState, change: MaterialChange, todo: torch.Tensor) -> bool:
+        """Whether the light's kept transport serves the changed materials: as it is for a change of
+        colours of a transport of scalar factors (whose colours enter when its images are made; not
+        a dome's, whose BRDF samples follow the colours too), or traced again at the changed points
+        `todo` ((K,) ascending, `LightStages.retrace_at`)."""
+        if state.transports is None:
+            return False
+        recolour = all(t.factors is not None for t in state.transports) and state.light.kind is not LightKind.DOME
+        return (change.colour_only and recolour) or self._stages.retrace_at(state.light, state.transports, todo)
 
     def unit_images(self, path: str) -> torch.Tensor | None:
         """Light `path`'s cached diffuse and specular unit images (2, N, 3); None before it is shaded

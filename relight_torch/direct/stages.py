@@ -17,7 +17,7 @@ from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.direct.images import unit_light
 from relight_torch.direct.points import EvaluationPoints, Points, take
 from relight_torch.direct.settings import RelightSettings
-from relight_torch.direct.sharing import PixelGroups
+from relight_torch.direct.sharing import PixelGroups, take_rows
 from relight_torch.direct.tracing import (
     chunk_transport,
     chunks,
@@ -180,6 +180,31 @@ class LightStages:
         self.counters["visibility"] += 1
         return transports
 
+    def retrace_at(self, light: Light, transports: list[Transport], todo: torch.Tensor) -> bool:
+        """Trace the light again at the shading points `todo` ((K,) ascending) for the current
+        materials and write their BRDF values into its kept `transports` (one per sample group), in
+        place: what a material edit of those points changes. The rest of a transport does not
+        depend on the materials (the samples, their directions, the points reached, the ratio
+        estimator's factors and the filtered visibility), except for a dome, whose BRDF samples
+        follow them: its ratios are taken too. Returns False, changing nothing, when the transports
+        are not one per sample group."""
+        unit = self.transport_light(light)
+        groups = self.sample_groups(unit)
+        if len(groups) != len(transports):
+            return False
+        g = self.gbuffer
+        for (points, num_samples, shared), transport in zip(groups, transports, strict=True):
+            chunk = todo
+            if points is not None:  # the group's points among `todo`
+                member = torch.zeros(g.num_samples, dtype=torch.bool, device=g.device)
+                member[points] = True
+                chunk = todo[member[todo]]
+            if chunk.numel():
+                part = self._chunk_transport(unit, chunk, self.points.at(num_samples, shared))
+                _write_part(transport, part, chunk)
+        self.counters["visibility"] += 1
+        return True
+
     def kept_transport(self, group: list[tuple[torch.Tensor, Transport]]) -> Transport:
         """One sample group's transport from the parts traced for its points (`tracing.kept_transport`)."""
         return kept_transport(group, self.gbuffer.num_samples, self.gbuffer.device)
@@ -314,3 +339,27 @@ class LightStages:
             position = take(position, transport.points)
         origin = torch.as_tensor(light.world_from_light[:3, 3], device=position.device, dtype=position.dtype)
         return emission_factor(light, transport.emission_in(light), position, origin)
+
+
+def _write_part(transport: Transport, part: Transport, chunk: torch.Tensor) -> None:
+    """Write into `transport` the BRDF values (factors or lobes; a dome's ratios) of `part`, traced
+    at the shading points `chunk` ((K,) ascending): at each of them `transport` holds, `part`'s
+    values, or zero where `part` dropped the point (no sample lights it)."""
+    if transport.points is None:
+        where, points = chunk, chunk
+    else:
+        where, held = transport.locate(chunk)
+        where, points = where[held], chunk[held]
+    named = part.points if part.points is not None else chunk
+    source = torch.searchsorted(named, points).clamp_(max=max(named.shape[0] - 1, 0))
+    found = named[source] == points if named.numel() else torch.zeros_like(points, dtype=torch.bool)
+    fields = [("factors", 2), ("lobes", 2)]
+    if part.shadow_sums is None:  # a filtered light's part lacks the filtered visibility its ratios carry
+        fields.append(("diffuse_ratio", 0))
+    for name, dim in fields:
+        values, new = getattr(transport, name), getattr(part, name)
+        if values is None:
+            continue
+        assert new is not None, f"a light's transports keep the same fields ({name})"
+        values.index_fill_(dim, where, 0.0)
+        values.index_copy_(dim, where[found], take_rows(new, dim, source[found]))
