@@ -252,7 +252,7 @@ def edit_timings(layer: Path, shot: Shot, repeats: int) -> dict[str, float | str
         "move": timed(lambda k: relighter.set_light(moved(first, 0.01 * (1 + k)))),
         "new light": timed(lambda k: relighter.set_light(added) if k == 0 else relighter.remove_light(added.path)),
         "dome turn": NO_DOME if dome is None else timed(lambda k: relighter.set_light(rotated(dome, 2.0 * (1 + k)))),
-        # UsdPreviewSurface roughness of the first material, as `relight serve`'s material panel edits it.
+        # UsdPreviewSurface roughness of the first material (`CacheRelighter.edit_material`).
         "material": (
             timed(lambda k: relighter.edit_material(0, roughness=0.3 + 0.2 * k))
             if relighter.material_edits
