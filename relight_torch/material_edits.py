@@ -92,9 +92,10 @@ def apply_material_edit(
     material: int | str,
     values: Mapping[str, object],
     material_paths: list[str] | None = None,
-) -> PreviewSurfaceParams:
+) -> tuple[PreviewSurfaceParams, torch.Tensor]:
     """`params` with `values` (input name -> constant: 3 numbers for a colour, or one for grey; one
-    number otherwise) set on the rows of `material` (`material_rows`; `material_ids` (N,)).
+    number otherwise) set on the rows of `material` (`material_rows`; `material_ids` (N,)), and
+    those rows ((N,) bool).
 
     Raises:
         RelightError: an unknown material, an input that is not a `PreviewSurfaceParams` field, a
@@ -119,7 +120,7 @@ def apply_material_edit(
             raise RelightError(f"material {material}: {name} takes {shape}, got {value!r}") from None
         mask = rows.reshape(-1, *([1] * (field.dim() - 1)))
         changes[name] = torch.where(mask, new, field)
-    return dataclasses.replace(params, **changes)
+    return dataclasses.replace(params, **changes), rows
 
 
 def layer_material_edits(

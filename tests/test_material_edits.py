@@ -148,7 +148,8 @@ def test_bad_inputs_are_one_line_errors(values, message):
 
 
 def test_a_grey_value_sets_every_channel():
-    params = apply_material_edit(matte_params(4), torch.tensor([0, 1, 0, 1]), 1, {"diffuse_color": 0.25})
+    params, rows = apply_material_edit(matte_params(4), torch.tensor([0, 1, 0, 1]), 1, {"diffuse_color": 0.25})
+    assert rows.tolist() == [False, True, False, True]
     assert params.diffuse_color[1].tolist() == [0.25, 0.25, 0.25]
     assert params.diffuse_color[0].tolist() == [0.5, 0.5, 0.5]
     assert math.isclose(float(params.roughness[1]), 0.5)

@@ -78,11 +78,22 @@ FIELDS = (
 Rig = list[Light]
 
 
-def dome(turn_degrees: float) -> Light:
-    """A textured dome (a warm sun patch on a dim blue sky), turned about +Y by `turn_degrees`."""
+def _sky() -> np.ndarray:
+    """The bench dome's image: a warm sun patch on a dim blue sky."""
     texture = np.empty((32, 64, 3), np.float32)
     texture[:] = (0.02, 0.03, 0.05)
     texture[8:12, 20:26] = (6.0, 5.0, 4.0)
+    return texture
+
+
+_SKY = _sky()
+
+
+def dome(turn_degrees: float) -> Light:
+    """A textured dome (`_sky`), turned about +Y by `turn_degrees`. Every turn shares one image
+    array, as a session turning a dome does (`dataclasses.replace` of its transform): the relighter
+    keeps what it derives from an image (its sampler, its irradiance table) per array."""
+    texture = _SKY
     angle = math.radians(turn_degrees)
     world_from_light = np.eye(4)
     world_from_light[[0, 0, 2, 2], [0, 2, 0, 2]] = (math.cos(angle), math.sin(angle), -math.sin(angle), math.cos(angle))

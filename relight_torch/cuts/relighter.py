@@ -260,7 +260,7 @@ class CutsRelighter:
         """Set UsdPreviewSurface inputs (field names of `PreviewSurfaceParams`, constants) on the
         sub-samples of one material (id or prim path), e.g. `edit_material(3, diffuse_color=(0.1, 0.5, 0.15))`."""
         ids, paths = self.direct.gbuffer.material_id, self.direct.material_paths
-        self.set_params(apply_material_edit(self.params, ids, material, values, paths))
+        self.set_params(apply_material_edit(self.params, ids, material, values, paths)[0])
 
     # -- rendering ------------------------------------------------------------------------------
 

@@ -48,13 +48,22 @@ class Progress:
     parts: list[list[tuple[torch.Tensor, Transport]]] | None = None
 
     @classmethod
-    def start(cls, gbuffer: GBuffer, groups: list[SampleGroup], traced: bool, keep_parts: bool) -> Progress:
-        """No point done yet of a light made in sample `groups`, its parts kept with `keep_parts`."""
+    def start(
+        cls,
+        gbuffer: GBuffer,
+        groups: list[SampleGroup],
+        traced: bool,
+        keep_parts: bool,
+        images: torch.Tensor | None = None,
+    ) -> Progress:
+        """No point done yet of a light made in sample `groups`, its parts kept with `keep_parts`,
+        into `images` ((2, N, 3) in the G-buffer's dtype, taken over; None: allocated)."""
         g = gbuffer
         done = torch.zeros(g.num_samples, dtype=torch.bool, device=g.device)
         samples = sum((g.num_samples if p is None else p.shape[0]) * num for p, num, _ in groups)
         per_point = samples / max(g.num_samples, 1)
-        progress = cls(g.position.new_empty(2, g.num_samples, 3), done, traced, per_point)
+        images = g.position.new_empty(2, g.num_samples, 3) if images is None else images
+        progress = cls(images, done, traced, per_point)
         if keep_parts:
             progress.parts = [[] for _ in groups]
         return progress
@@ -116,16 +125,15 @@ def refine_points(
 
 
 def reshade_at(stages: LightStages, state: LightState, rows: torch.Tensor) -> None:
-    """After an edit of the colours of the materials at `rows` (N,) bool (`material_edits`): the
-    light's unit images become a `Progress` whose points elsewhere are done, so that refinement
-    (or the next render) shades those points again from the light's kept transport, tracing
-    nothing. The light keeps a transport of scalar factors (`Transport.factors`), whose BRDF
-    colours enter when its images are made."""
+    """After an edit of the materials at `rows` (N,) bool (`material_edits`) that the light's kept
+    transport already serves (its colours enter when its images are made; `LightStages.retrace_at`
+    wrote the rest): its unit images become a `Progress` whose points elsewhere are done, so that
+    refinement (or the next render) shades those points again from that transport, tracing nothing."""
     progress = state.progress
     if state.images is not None:
         groups = stages.sample_groups(stages.transport_light(state.light))
-        progress = Progress.start(stages.gbuffer, groups, traced=False, keep_parts=False)
-        progress.images.copy_(state.images)
+        images = state.images.to(stages.gbuffer.position.dtype)  # taken over, or widened from half
+        progress = Progress.start(stages.gbuffer, groups, traced=False, keep_parts=False, images=images)
         progress.done.copy_(~rows)
         state.images, state.progress = None, progress
     elif progress is None or progress.traced:

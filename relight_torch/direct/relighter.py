@@ -228,7 +228,8 @@ class Relighter:
                 `set_params`.
         """
         g = self.gbuffer
-        self.set_params(apply_material_edit(g.params, g.material_id, material, values, self.material_paths))
+        params, rows = apply_material_edit(g.params, g.material_id, material, values, self.material_paths)
+        self._change_params(params, MaterialChange(frozenset(values), rows))
 
     def set_params(self, params: PreviewSurfaceParams) -> None:
         """Replace the material parameters of every sub-sample (rows as the G-buffer's).
@@ -247,8 +248,11 @@ class Relighter:
                 light whose images were given from elsewhere (`set_unit_images`: not shaded here).
         """
         params = params.to(self.gbuffer.device, self.gbuffer.position.dtype)
-        change = MaterialChange.between(self.gbuffer.params, params)
-        if not change.inputs:
+        self._change_params(params, MaterialChange.between(self.gbuffer.params, params))
+
+    def _change_params(self, params: PreviewSurfaceParams, change: MaterialChange) -> None:
+        """`set_params` of `params` that differ from the current ones by `change` (or less)."""
+        if not change.inputs or not bool(change.rows.any()):
             return
         external = [path for path, state in self._lights.items() if state.external]
         if external:
