@@ -23,6 +23,9 @@ COLOUR_INPUTS = frozenset({"diffuse_color", "specular_color", "metallic", "ior",
 """Inputs that reach reflected light only through the colours of the BRDF's split factors
 (`preview_surface.factor_colours`): editing them re-weights kept factors and traces nothing."""
 
+FACTOR_COLOUR_INPUTS = COLOUR_INPUTS | {"clearcoat"}
+"""Inputs the colours of the split factors depend on (`preview_surface.factor_colours`)."""
+
 REFUSED_INPUTS = {"opacity": "opacity changes the shadows the occluders cast, which the cache baked; re-bake the cache"}
 """Inputs a relighter cannot edit, and why."""
 

@@ -121,6 +121,23 @@ def test_progressive_frames_after_an_edit_end_in_the_edited_render(cornell, edit
     assert frames[0].evaluated < progressive.gbuffer.num_samples * len(progressive.lights)
 
 
+def test_edits_mid_refinement_end_in_the_last_edit(cornell):
+    """A colour edit, one coarse frame, then a roughness edit and another colour: the stale points
+    and colours of both are made again as they are shaded."""
+    progressive = open_cache(cornell, settings=SETTINGS["filtered"])
+    progressive.set_light(_dome())
+    progressive.render()
+    material = _largest_material(progressive)
+    progressive.edit_material(material, diffuse_color=(0.1, 0.6, 0.2))
+    frames = progressive_frames(progressive, budget_ms=0.0, strides=(4, 2, 1))
+    assert next(frames).stride == 4
+    progressive.edit_material(material, roughness=0.55)
+    progressive.edit_material(material, specular_color=(0.2, 0.2, 0.6), use_specular_workflow=True)
+    rest = list(frames)
+    assert rest[0].stride == 4 and rest[-1].done
+    assert float((rest[-1].image - _fresh(progressive).render()).abs().max()) <= TOLERANCE
+
+
 def test_an_edit_of_a_material_out_of_view_changes_nothing(cornell):
     relighter = open_cache(cornell)
     image = relighter.render()

@@ -101,6 +101,7 @@ def refine_points(
             )
         else:
             assert state.transports is not None  # not traced: shaded from the kept transport
+            stages.retrace_stale(state, todo)
             for transport in state.transports:
                 part = transport.subset(todo)
                 assert part.points is not None  # a subset names its points
@@ -116,6 +117,7 @@ def refine_points(
             images[0].mul_(visibility.unsqueeze(-1))
         if progress.parts is not None:  # the transport `LightStages.transports` would have made
             state.transports = [stages.kept_transport(group) for group in progress.parts if group]
+            state.stale = None
             if visibility is not None:
                 stages.filter.fold(state.transports, visibility)
         stages.counters["visibility"] += int(progress.traced)

@@ -264,30 +264,35 @@ class Relighter:
             if state.folded:  # out of the folded sum while it still holds the old materials' light
                 self._unfold(state)
         old_stages = self._stages
-        self._stages = old_stages.with_params(params, change.rows)
+        self._stages = old_stages.with_params(params, change)
         self.gbuffer = self._stages.gbuffer
         self._edits += 1
         self._others, self._static = None, None
         if change.inputs == {"emissive_color"}:
             return  # no light reflects differently
         same_groups = self._stages.same_sample_groups(old_stages)
-        todo = torch.nonzero(change.rows).squeeze(-1)
         for state in self._lights.values():
-            if same_groups and self._transport_serves(state, change, todo):
+            if same_groups and self._transport_serves(state, change):
                 reshade_at(self._stages, state, change.rows)
             else:
-                state.transports, state.images, state.progress = None, None, None
+                state.transports, state.images, state.progress, state.stale = None, None, None, None
             state.edited = self._edits
 
-    def _transport_serves(self, state: LightState, change: MaterialChange, todo: torch.Tensor) -> bool:
+    def _transport_serves(self, state: LightState, change: MaterialChange) -> bool:
         """Whether the light's kept transport serves the changed materials: as it is for a change of
         colours of a transport of scalar factors (whose colours enter when its images are made; not
-        a dome's, whose BRDF samples follow the colours too), or traced again at the changed points
-        `todo` ((K,) ascending, `LightStages.retrace_at`)."""
+        a dome's, whose BRDF samples follow the colours too), or once its changed points are traced
+        again, as they are shaded (`LightState.stale`, `LightStages.retrace_stale`)."""
         if state.transports is None:
             return False
         recolour = all(t.factors is not None for t in state.transports) and state.light.kind is not LightKind.DOME
-        return (change.colour_only and recolour) or self._stages.retrace_at(state.light, state.transports, todo)
+        if change.colour_only and recolour:
+            return True
+        if not self._stages.retraceable(state.light, state.transports):
+            return False
+        state.stale = change.rows.clone() if state.stale is None else state.stale | change.rows
+        self.counters["visibility"] += 1
+        return True
 
     def unit_images(self, path: str) -> torch.Tensor | None:
         """Light `path`'s cached diffuse and specular unit images (2, N, 3); None before it is shaded
@@ -538,7 +543,8 @@ class Relighter:
         """The light's transport, one per sample group (`LightStages.transports`), made on first use."""
         if state.transports is None:
             state.transports = self._stages.transports(state.light)
-            state.images = None
+            state.images, state.stale = None, None
+        self._stages.retrace_stale(state)
         return state.transports
 
     def _images(self, state: LightState) -> torch.Tensor:

@@ -82,3 +82,6 @@ class LightState:
     # Folded: its image is part of `MemoryBudget.folded` and its own images were dropped (the budget).
     folded: bool = False
     external: bool = False  # its images came from `set_unit_images`: they cannot be made again here
+    # (N,) bool: points whose kept transport a material edit made stale, traced again when they are
+    # next shaded (`LightStages.retrace_stale`); None: none.
+    stale: torch.Tensor | None = None

@@ -16,6 +16,7 @@ from relight_torch.brdf import preview_surface
 from relight_torch.brdf.preview_surface import PreviewSurfaceParams
 from relight_torch.direct.images import unit_light
 from relight_torch.direct.points import EvaluationPoints, Points, take
+from relight_torch.direct.rig import LightState
 from relight_torch.direct.settings import RelightSettings
 from relight_torch.direct.sharing import PixelGroups, take_rows
 from relight_torch.direct.tracing import (
@@ -33,6 +34,7 @@ from relight_torch.light_samples import adaptive_sample_count, angular_radius
 from relight_torch.lights.emission import is_delta_light
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.shaping import emission_factor
+from relight_torch.material_edits import FACTOR_COLOUR_INPUTS, MaterialChange
 from relight_torch.parallel import parallel_map, tile_threads
 from relight_torch.visibility import Visibility
 from relight_torch.visibility.rays import RayVisibility
@@ -86,19 +88,23 @@ class LightStages:
         if glossy.any() and not self._all_glossy:
             self._glossy_split = (torch.nonzero(~glossy).squeeze(-1), torch.nonzero(glossy).squeeze(-1))
         self._factor_colours: torch.Tensor | None = None  # (F, N, 3), made on first use
+        self._stale_colours: torch.Tensor | None = None  # (N,) bool: its rows to make again, or None
 
-    def with_params(self, params: PreviewSurfaceParams, changed: torch.Tensor) -> LightStages:
+    def with_params(self, params: PreviewSurfaceParams, change: MaterialChange) -> LightStages:
         """These stages for other materials of the same points: the points' geometry, pixel groups,
-        fixed samples and visibility filter kept, the rest made for `params` (rows as the G-buffer's)
-        that differ from the current ones at `changed` ((N,) bool). The factor colours made so far
-        are updated in place at those rows only: these stages are not to be used again."""
+        fixed samples and visibility filter kept, the rest made for `params` (rows as the G-buffer's),
+        which differ from the current ones by `change`. The factor colours made so far are updated in
+        place at the changed rows, where a changed input enters them: these stages are not to be
+        used again."""
         stages = copy.copy(self)
         stages._material_terms(dataclasses.replace(self.gbuffer, params=params))
         stages.points = self.points.with_params(params)
         if self._factor_colours is not None and stages._coat == self._coat:
-            rows = torch.nonzero(changed).squeeze(-1)
-            colours = preview_surface.factor_colours(params.index(rows), self._coat)
-            stages._factor_colours = self._factor_colours.index_copy_(1, rows, colours)
+            stages._factor_colours = self._factor_colours
+            stages._stale_colours = self._stale_colours
+            if change.inputs & FACTOR_COLOUR_INPUTS:  # made again as points are shaded (`_colours_at`)
+                stale = self._stale_colours
+                stages._stale_colours = change.rows.clone() if stale is None else stale | change.rows
         return stages
 
     def same_sample_groups(self, other: LightStages) -> bool:
@@ -180,20 +186,32 @@ class LightStages:
         self.counters["visibility"] += 1
         return transports
 
-    def retrace_at(self, light: Light, transports: list[Transport], todo: torch.Tensor) -> bool:
+    def retraceable(self, light: Light, transports: list[Transport]) -> bool:
+        """Whether `retrace_at` can write into the light's kept `transports`: one per sample group."""
+        return len(self.sample_groups(self.transport_light(light))) == len(transports)
+
+    def retrace_stale(self, state: LightState, points: torch.Tensor | None = None) -> None:
+        """Trace the light of `state` again at its stale points (`LightState.stale`) among `points`
+        ((M,) ascending; None: all), before its kept transport shades them (`retrace_at`)."""
+        if state.stale is None or state.transports is None:
+            return
+        todo = torch.nonzero(state.stale).squeeze(-1) if points is None else points[take(state.stale, points)]
+        if todo.numel():
+            self.retrace_at(state.light, state.transports, todo)
+            state.stale.index_fill_(0, todo, False)
+        if points is None:
+            state.stale = None
+
+    def retrace_at(self, light: Light, transports: list[Transport], todo: torch.Tensor) -> None:
         """Trace the light again at the shading points `todo` ((K,) ascending) for the current
-        materials and write their BRDF values into its kept `transports` (one per sample group), in
-        place: what a material edit of those points changes. The rest of a transport does not
-        depend on the materials (the samples, their directions, the points reached, the ratio
-        estimator's factors and the filtered visibility), except for a dome, whose BRDF samples
-        follow them: its ratios are taken too. Returns False, changing nothing, when the transports
-        are not one per sample group."""
+        materials and write their BRDF values into its kept `transports` (`retraceable`), in place:
+        what a material edit of those points changes. The rest of a transport does not depend on the
+        materials (the samples, their directions, the points reached, the ratio estimator's factors
+        and the filtered visibility), except for a dome, whose BRDF samples follow them: its ratios
+        are taken too."""
         unit = self.transport_light(light)
-        groups = self.sample_groups(unit)
-        if len(groups) != len(transports):
-            return False
         g = self.gbuffer
-        for (points, num_samples, shared), transport in zip(groups, transports, strict=True):
+        for (points, num_samples, shared), transport in zip(self.sample_groups(unit), transports, strict=True):
             chunk = todo
             if points is not None:  # the group's points among `todo`
                 member = torch.zeros(g.num_samples, dtype=torch.bool, device=g.device)
@@ -202,8 +220,6 @@ class LightStages:
             if chunk.numel():
                 part = self._chunk_transport(unit, chunk, self.points.at(num_samples, shared))
                 _write_part(transport, part, chunk)
-        self.counters["visibility"] += 1
-        return True
 
     def kept_transport(self, group: list[tuple[torch.Tensor, Transport]]) -> Transport:
         """One sample group's transport from the parts traced for its points (`tracing.kept_transport`)."""
@@ -323,12 +339,25 @@ class LightStages:
             sums = factors[:, 0].unsqueeze(-1) * factor[0]
             for s in range(1, factors.shape[1]):
                 sums.addcmul_(factors[:, s].unsqueeze(-1), factor[s])
+        colours = self._colours_at(transport.points)
+        return torch.stack(preview_surface.combine_factors(colours, sums)).mul_(transport.colour)
+
+    def _colours_at(self, points: torch.Tensor | None) -> torch.Tensor:
+        """(F, P, 3) `preview_surface.factor_colours` at the shading points `points` ((P,); None:
+        all), made on first use; the rows a material edit changed are made again when first read."""
         if self._factor_colours is None:
             self._factor_colours = preview_surface.factor_colours(self.gbuffer.params, self._coat)
+        stale = self._stale_colours
+        if stale is not None:
+            todo = torch.nonzero(stale).squeeze(-1) if points is None else points[take(stale, points)]
+            if todo.numel():
+                made = preview_surface.factor_colours(self.gbuffer.params.index(todo), self._coat)
+                self._factor_colours.index_copy_(1, todo, made)
+                stale.index_fill_(0, todo, False)
+            if points is None:
+                self._stale_colours = None
         colours = self._factor_colours
-        if transport.points is not None:
-            colours = colours.index_select(1, transport.points)
-        return torch.stack(preview_surface.combine_factors(colours, sums)).mul_(transport.colour)
+        return colours if points is None else colours.index_select(1, points)
 
     def _emission_factor(self, light: Light, transport: Transport) -> torch.Tensor | None:
         """(S, P, 3) ShapingAPI x Barzel factor of each cached sample; None when nothing applies."""
