@@ -56,7 +56,8 @@ from relight_torch.progressive import CostModel, level_label, progressive_frames
 from relight_torch.protocol import CacheRelighter
 
 MATERIAL = 0
-"""The material the material edits change: the first one, as `relight serve`'s material panel does."""
+"""The material the material edits change: the first one (its roughness edits cross GLOSSY_ROUGHNESS: every
+point of it changes its samples, the worst case)."""
 CAMERA_STEP = 0.01
 """A camera move: the camera translated along its x axis by this fraction of its distance from the origin."""
 
