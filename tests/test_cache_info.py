@@ -47,6 +47,9 @@ def test_valid_cache_is_described_with_provenance_and_sizes(baked, capsys):
     assert sorted(types["FLOAT"]) == ["P.X", "P.Y", "P.Z", "Z"]
     assert types["UINT"] == ["materialId", "objectId"] and "N.X" in types["HALF"]
     assert "constant (not stored): clearcoat = 0" in out
+    materials = re.search(r"^  materials: (\d+) \(edited by these prim paths\)\n((?:    .*\n)+)", out, re.M)
+    assert materials is not None and "    /World/Materials/" in materials.group(2)
+    assert int(materials.group(1)) == len(materials.group(2).splitlines())
     assert out.rstrip().endswith("  status: valid")
 
 

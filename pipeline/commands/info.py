@@ -21,8 +21,10 @@ from pipeline.errors import RelightError
 from pipeline.scene.load import find_camera, read_scene
 from pipeline.scene.types import Scene
 from relight_torch.cache.layer import is_cache_layer
+from relight_torch.cache.load import load_npy
 from relight_torch.cache.status import CacheStatus, PayloadStatus, cache_status
 from relight_torch.io.exr import PIXEL_TYPE_NAMES, read_exr_header
+from relight_torch.lights.linking import decode_paths
 from relight_torch.stage import open_stage
 
 
@@ -107,11 +109,22 @@ def _describe_cache(status: CacheStatus) -> list[str]:
         )
         if payload.format == "exr":
             lines += _exr_lines(payload_status)
+    lines += _material_lines(status)
     problems = [p.problem for p in status.payloads if p.problem]
     problems += [f"input {file} {state} since the bake" for file, state in status.stale_inputs.items()]
     lines.append(f"  status: {status.verdict}")
     lines += [f"    {problem}" for problem in problems]
     return lines
+
+
+def _material_lines(status: CacheStatus) -> list[str]:
+    """The material prim paths a cache's materials are edited by (`edit_material`, `relight render
+    --materials`), when it stores them and they read back as written."""
+    payload = next((p for p in status.payloads if p.payload.name == "materialPaths"), None)
+    if payload is None or payload.problem is not None:
+        return []
+    paths = sorted(set(decode_paths(load_npy(status.path, status.description, "materialPaths"))))
+    return [f"  materials: {len(paths)} (edited by these prim paths)"] + [f"    {path}" for path in paths]
 
 
 def _describe_scene(scene: Scene) -> list[str]:
