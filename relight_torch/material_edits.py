@@ -135,14 +135,18 @@ def layer_material_edits(
     the material's interface input, at the baked time); an input is edited where the attribute
     giving its value has an opinion in the layer.
 
+    Inputs of other prims (a light's, when one layer holds both kinds of edits) are left to
+    their readers.
+
     Raises:
         RelightError: the layer is missing or not USD; the cache has no material paths; an
-            `inputs:` attribute of the layer that gives no UsdPreviewSurface input of the cache's
-            materials its value (naming it), or one overridden by a connection.
+            `inputs:` attribute on or beneath a material, or on a prim defined nowhere, that gives
+            no UsdPreviewSurface input of the cache's materials its value (naming it), or one
+            overridden by a connection.
     """
     if material_paths is None:
         raise RelightError(f"materials layer {layer}: the cache has no material paths; re-bake it with this version")
-    stage = open_stage(description.source, layer, role="materials layer")
+    stage = open_stage(description.source, materials_layer=layer)
     edits_layer = open_layer(layer, "materials layer")
     authored: set[Sdf.Path] = set()
     edits_layer.Traverse(
@@ -175,13 +179,27 @@ def layer_material_edits(
                     value = stage.GetAttributeAtPath(source).Get(time_code)
                     edits.setdefault(material_path, {})[field] = _constant(value, f"materials layer {layer}: {source}")
                     used.add(source)
-    unused = sorted(authored - used, key=str)
+    unused = sorted((path for path in authored - used if _in_material_or_undefined(stage, path)), key=str)
     if unused:
         raise RelightError(
             f"materials layer {layer}: {unused[0]}: gives no UsdPreviewSurface input of the cache's materials its "
             f"value ({', '.join(USD_INPUT_FIELDS)})"
         )
     return edits
+
+
+def _in_material_or_undefined(stage: Usd.Stage, attribute: Sdf.Path) -> bool:
+    """Whether an attribute's prim is a material, lies beneath one, or is defined nowhere but in
+    an `over` (a misspelt path): an input the materials layer should have given a value to. Other
+    prims' inputs (a light's, from the same layer) are not its business."""
+    prim = stage.GetPrimAtPath(attribute.GetPrimPath())
+    if not prim or not prim.IsDefined():
+        return True
+    while prim and not prim.IsPseudoRoot():
+        if prim.IsA(UsdShade.Material):
+            return True
+        prim = prim.GetParent()
+    return False
 
 
 def _constant(value: object, where: str) -> object:

@@ -66,17 +66,20 @@ def open_layer(path: str | os.PathLike[str], role: str) -> Sdf.Layer:
 
 
 def open_stage(
-    path: str | os.PathLike[str], lights_layer: str | os.PathLike[str] | None = None, role: str = "lights layer"
+    path: str | os.PathLike[str],
+    lights_layer: str | os.PathLike[str] | None = None,
+    materials_layer: str | os.PathLike[str] | None = None,
 ) -> Usd.Stage:
-    """Open a shot (.usd, .usda, .usdc or .usdz), with an optional layer of edits over it.
+    """Open a shot (.usd, .usda, .usdc or .usdz), with optional layers of edits over it.
 
     Registers the project's schemas first (they must be known before any stage is opened).
 
     Args:
         path: the shot's root layer.
-        lights_layer: a USD layer of light (or other) edits, composed as the strongest sublayer
-            over the shot; None opens the shot as it is.
-        role: what that layer is, in messages.
+        lights_layer: a USD layer of light edits, composed as the strongest sublayer over the
+            shot; None: none.
+        materials_layer: a USD layer of material edits (`relight_torch.material_edits`),
+            composed over the shot below the lights layer; None: none.
 
     Returns:
         The composed stage, payloads loaded.
@@ -87,11 +90,12 @@ def open_stage(
     register_schemas()
     shot = open_layer(path, "stage")
     root = shot
-    if lights_layer is not None:
-        lights = open_layer(lights_layer, role)
+    edits = [(lights_layer, "lights layer"), (materials_layer, "materials layer")]
+    layers = [open_layer(layer, role) for layer, role in edits if layer is not None]
+    if layers:
         root = Sdf.Layer.CreateAnonymous("relight_root.usda")
-        root.subLayerPaths.append(lights.identifier)
-        root.subLayerPaths.append(shot.identifier)
+        for layer in [*layers, shot]:
+            root.subLayerPaths.append(layer.identifier)
         for key in _SHOT_METADATA:
             if shot.pseudoRoot.HasInfo(key):
                 root.pseudoRoot.SetInfo(key, shot.pseudoRoot.GetInfo(key))

@@ -32,6 +32,16 @@ def add_lights_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_materials_option(parser: argparse.ArgumentParser, where: str = "") -> None:
+    """--materials LAYER: a USD layer of material edits (`relight_torch.material_edits`)."""
+    parser.add_argument(
+        "--materials",
+        metavar="LAYER",
+        help="USD layer of material edits: constant UsdPreviewSurface inputs (inputs:diffuseColor, "
+        f"inputs:roughness, ...) authored on the shot's materials or their shaders{where}",
+    )
+
+
 def add_device_option(parser: argparse.ArgumentParser) -> None:
     """--device cpu|cuda."""
     parser.add_argument(

@@ -6,7 +6,7 @@ import argparse
 
 import numpy as np
 
-from pipeline.commands.common import add_camera_options, add_lights_option
+from pipeline.commands.common import add_camera_options, add_lights_option, add_materials_option
 from pipeline.errors import RelightError
 from pipeline.progress import progress_bar
 from pipeline.reference.path_tracer import FULL_FRAME_BOUNCES, PathTracer, ReferenceSettings
@@ -24,6 +24,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("scene", metavar="SCENE", help="USD stage (.usda, .usdc, .usdz)")
     add_camera_options(parser)
     add_lights_option(parser)
+    add_materials_option(parser, ", composed over the shot (what `relight render --materials` relights)")
     parser.add_argument("-o", "--out", required=True, metavar="OUT.exr", help="output EXR")
     parser.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     parser.add_argument(
@@ -39,7 +40,14 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    scene = load_scene(args.scene, time=args.time, lights_layer=args.lights, width=args.width, height=args.height)
+    scene = load_scene(
+        args.scene,
+        time=args.time,
+        lights_layer=args.lights,
+        materials_layer=args.materials,
+        width=args.width,
+        height=args.height,
+    )
     camera = find_camera(scene, args.camera)
     if args.spp < 1 or args.max_bounces < 0:
         raise RelightError(f"--spp must be >= 1 and --max-bounces >= 0 (got {args.spp}, {args.max_bounces})")

@@ -10,7 +10,13 @@ import numpy as np
 import torch
 
 from pipeline.bake.methods import bake_method, bake_methods
-from pipeline.commands.common import add_device_option, add_lights_option, add_memory_budget_option, relight_settings
+from pipeline.commands.common import (
+    add_device_option,
+    add_lights_option,
+    add_materials_option,
+    add_memory_budget_option,
+    relight_settings,
+)
 from pipeline.errors import RelightError
 from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
@@ -32,12 +38,7 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("cache", metavar="CACHE", help="cache layer written by `relight bake`")
     add_lights_option(parser)
-    parser.add_argument(
-        "--materials",
-        metavar="LAYER",
-        help="USD layer of material edits: constant UsdPreviewSurface inputs (inputs:diffuseColor, "
-        "inputs:roughness, ...) authored on the shot's materials or their shaders (direct and cuts caches)",
-    )
+    add_materials_option(parser, " (direct and cuts caches)")
     add_device_option(parser)
     parser.add_argument("-o", "--out", required=True, metavar="OUT.exr", help="output EXR")
     parser.add_argument("--png", metavar="OUT.png", help="also write an 8-bit sRGB preview")

@@ -52,6 +52,7 @@ def load_scene(
     *,
     time: float | None = None,
     lights_layer: str | Path | None = None,
+    materials_layer: str | Path | None = None,
     width: int | None = None,
     height: int | None = None,
 ) -> Scene:
@@ -61,6 +62,7 @@ def load_scene(
         path: the shot (.usd, .usda, .usdc, .usdz).
         time: USD time code to read, None for the stage's first frame (see `time_code`).
         lights_layer: a USD layer of light edits composed as the strongest sublayer, or None.
+        materials_layer: a USD layer of material edits composed below it, or None.
         width, height: image size overrides in pixels.
 
     Raises:
@@ -68,7 +70,7 @@ def load_scene(
             without lights only warns (lights may come from a later `--lights` layer).
     """
     source = str(Path(path).resolve())
-    stage = open_stage(path, lights_layer)
+    stage = open_stage(path, lights_layer, materials_layer)
     material_warnings = check_composition(stage, path)
     try:
         scene = read_scene(stage, source, time=time, width=width, height=height)
