@@ -17,6 +17,7 @@ from pxr import Sdf, Usd, UsdShade
 from relight_torch.brdf.preview_surface import USD_INPUT_FIELDS, PreviewSurfaceParams
 from relight_torch.cache.layer import CacheDescription
 from relight_torch.errors import RelightError
+from relight_torch.protocol import CacheRelighter
 from relight_torch.stage import open_layer, open_stage
 
 COLOUR_INPUTS = frozenset({"diffuse_color", "specular_color", "metallic", "ior", "use_specular_workflow"})
@@ -186,6 +187,25 @@ def layer_material_edits(
             f"value ({', '.join(USD_INPUT_FIELDS)})"
         )
     return edits
+
+
+def apply_materials_layer(
+    relighter: CacheRelighter, description: CacheDescription, layer: str | os.PathLike[str]
+) -> None:
+    """Make the material edits `layer` authors (`layer_material_edits`) on the relighter of the
+    cache `description` records.
+
+    Raises:
+        RelightError: the relighter has no material edits (naming the cache's method), or as
+            `layer_material_edits` and `CacheRelighter.edit_material`.
+    """
+    if not relighter.material_edits:
+        raise RelightError(
+            f"a {description.method!r} cache's light transport holds its materials; bake it with --method direct "
+            "or --method cuts to edit materials"
+        )
+    for material, values in layer_material_edits(description, layer, relighter.material_paths).items():
+        relighter.edit_material(material, **values)
 
 
 def _in_material_or_undefined(stage: Usd.Stage, attribute: Sdf.Path) -> bool:

@@ -299,3 +299,18 @@ def test_relit_material_edits_match_the_path_tracer_of_the_edited_look(cornell, 
         scores[name] = (10 * math.log10(1.0 / float(np.mean((image - truth) ** 2))), float(image.mean() / truth.mean()))
     assert scores["edited"][0] >= max(40.0, scores["shot"][0] - 1.0)
     assert abs(scores["edited"][1] - 1.0) <= 0.03
+
+
+def test_a_session_opens_with_a_materials_layer(cornell, tmp_path):
+    from pipeline.serve.session import Session
+
+    relighter = open_cache(cornell)
+    material, shader = _wall(relighter)
+    looks = _materials_layer(tmp_path / "looks.usda", {shader: {"inputs:diffuseColor": (0.1, 0.6, 0.2)}})
+    session = Session.open(cornell, out_dir=tmp_path, materials_layer=looks)
+    try:
+        frame = list(session.frames())[-1]
+    finally:
+        session.close()
+    relighter.edit_material(material, diffuse_color=(0.1, 0.6, 0.2))
+    assert frame.final and np.abs(frame.image - relighter.render().numpy()).max() <= TOLERANCE

@@ -22,7 +22,7 @@ from relight_torch import open_cache
 from relight_torch.cache.layer import read_cache_layer
 from relight_torch.io.exr import exr_layer_names, write_rgb_exr
 from relight_torch.io.preview import write_png
-from relight_torch.material_edits import layer_material_edits
+from relight_torch.material_edits import apply_materials_layer
 from relight_torch.progressive import DEFAULT_BUDGET_MS, check_progressive, progressive_frames
 
 
@@ -116,14 +116,10 @@ def run(args: argparse.Namespace) -> int:
         args.cache, device=args.device, shadows=args.shadows, lights_layer=args.lights, settings=relight_settings(args)
     )
     if args.materials:
-        if not relighter.material_edits:
-            raise RelightError(
-                f"--materials: {args.cache} is a {method.name!r} cache, whose light transport holds its materials; "
-                "bake it with --method direct or --method cuts to edit materials"
-            )
-        edits = layer_material_edits(read_cache_layer(args.cache), args.materials, relighter.material_paths)
-        for material, values in edits.items():
-            relighter.edit_material(material, **values)
+        try:
+            apply_materials_layer(relighter, read_cache_layer(args.cache), args.materials)
+        except RelightError as error:
+            raise RelightError(f"--materials: {args.cache}: {error}") from None
     if args.progressive:
         try:
             check_progressive(relighter)

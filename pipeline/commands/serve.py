@@ -7,7 +7,13 @@ import logging
 import secrets
 from pathlib import Path
 
-from pipeline.commands.common import add_device_option, add_lights_option, add_memory_budget_option, relight_settings
+from pipeline.commands.common import (
+    add_device_option,
+    add_lights_option,
+    add_materials_option,
+    add_memory_budget_option,
+    relight_settings,
+)
 from pipeline.errors import RelightError
 
 log = logging.getLogger("relight")
@@ -24,6 +30,7 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("cache", metavar="CACHE", help="cache layer written by `relight bake`")
     add_lights_option(parser)
+    add_materials_option(parser, ", for the whole session (direct and cuts caches)")
     add_device_option(parser)
     parser.add_argument("--reference", metavar="EXR", help="image to compare against (A/B view, PSNR)")
     parser.add_argument(
@@ -51,7 +58,9 @@ def run(args: argparse.Namespace) -> int:
         raise RelightError(f"--port {args.port}: must be 0..65535")
     settings = relight_settings(args)
     listener = bind(args.host, args.port)
-    session = Session.open(args.cache, args.lights, args.reference, Path(args.out), args.device, args.shadows, settings)
+    session = Session.open(
+        args.cache, args.lights, args.reference, Path(args.out), args.device, args.shadows, settings, args.materials
+    )
     token = secrets.token_urlsafe(32)
     # Bound to every interface, the page may be reached by any of the machine's names.
     everywhere = args.host in ("0.0.0.0", "::")

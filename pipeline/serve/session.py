@@ -41,6 +41,7 @@ from relight_torch.direct.settings import RelightSettings
 from relight_torch.io.exr import read_rgb_exr
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.overrides import light_overrides_text, write_light_overrides
+from relight_torch.material_edits import apply_materials_layer
 from relight_torch.methods import relight_method
 from relight_torch.progressive import CostModel, progressive_frames
 from relight_torch.protocol import CacheRelighter
@@ -117,12 +118,16 @@ class Session:
         device: str = "cpu",
         shadows: str = "embree",
         settings: RelightSettings = RelightSettings(),
+        materials_layer: str | os.PathLike[str] | None = None,
     ) -> Session:
-        """Open a cache for editing with the relighter's `settings` (its memory budget).
+        """Open a cache for editing with the relighter's `settings` (its memory budget), its
+        materials edited by `materials_layer` (`material_edits.apply_materials_layer`) for the
+        whole session.
 
         Raises:
             RelightError: the cache cannot be opened, is of a method that needs a view (its camera
-                moves), the reference's size is not the frame's, or `out_dir` is no folder.
+                moves), the reference's size is not the frame's, `out_dir` is no folder, or the
+                materials layer cannot be applied.
         """
         description = read_cache_layer(cache)
         if relight_method(description.method).needs_view:
@@ -133,6 +138,11 @@ class Session:
         if not Path(out_dir).is_dir():
             raise RelightError(f"--out {out_dir}: not a folder")
         relighter = open_cache(cache, device=device, shadows=shadows, lights_layer=lights_layer, settings=settings)
+        if materials_layer is not None:
+            try:
+                apply_materials_layer(relighter, description, materials_layer)
+            except RelightError as error:
+                raise RelightError(f"--materials: {cache}: {error}") from None
         lookup = SurfaceLookup(load_gbuffer(Path(cache), description), description.supersampling)
         image = None
         if reference is not None:
