@@ -9,6 +9,7 @@ the base scales and sums them, per light for the image and per light group for t
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import Generic, TypeVar
 
 import torch
@@ -82,6 +83,9 @@ class IndirectRelighter(Generic[StateT]):
     def remove_light(self, path: str) -> None:
         self.direct.remove_light(path)
         self._per_light.pop(path, None)
+
+    def set_material_edits(self, edits: Mapping[int | str, Mapping[str, object]]) -> None:
+        refuse_material_edit(self)
 
     def edit_material(self, material: int | str, **values: object) -> None:
         refuse_material_edit(self)

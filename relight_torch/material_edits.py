@@ -12,7 +12,7 @@ import os
 from collections.abc import Mapping
 
 import torch
-from pxr import Sdf, Usd, UsdShade
+from pxr import Gf, Sdf, Usd, UsdShade
 
 from relight_torch.brdf.preview_surface import USD_INPUT_FIELDS, PreviewSurfaceParams
 from relight_torch.cache.layer import CacheDescription
@@ -68,6 +68,25 @@ class MaterialChange:
                 inputs.add(item.name)
                 rows |= differs
         return cls(frozenset(inputs), rows)
+
+
+def check_material_values(material: str, values: Mapping[str, object]) -> None:
+    """Check inputs as `apply_material_edit` does, without shading points (an edit to keep for later).
+
+    Raises:
+        RelightError: as `apply_material_edit`, naming `material`.
+    """
+    fields = dataclasses.fields(PreviewSurfaceParams)
+    none = PreviewSurfaceParams(
+        **{
+            f.name: torch.zeros(
+                (0, f.metadata["channels"]) if f.metadata["channels"] else (0,),
+                dtype=torch.bool if f.metadata.get("bool") else torch.float32,
+            )
+            for f in fields
+        }
+    )
+    apply_material_edit(none, torch.zeros(0, dtype=torch.int32), material, values, [material])
 
 
 def material_rows(material_ids: torch.Tensor, material: int | str, material_paths: list[str] | None) -> torch.Tensor:
@@ -189,22 +208,70 @@ def layer_material_edits(
     return edits
 
 
-def apply_materials_layer(
+def relighter_layer_edits(
     relighter: CacheRelighter, description: CacheDescription, layer: str | os.PathLike[str]
-) -> None:
-    """Make the material edits `layer` authors (`layer_material_edits`) on the relighter of the
-    cache `description` records.
+) -> dict[str, dict[str, object]]:
+    """The material edits `layer` authors (`layer_material_edits`) for the relighter of the cache
+    `description` records.
 
     Raises:
         RelightError: the relighter has no material edits (naming the cache's method), or as
-            `layer_material_edits` and `CacheRelighter.edit_material`.
+            `layer_material_edits`.
     """
     if not relighter.material_edits:
         raise RelightError(
             f"a {description.method!r} cache's light transport holds its materials; bake it with --method direct "
             "or --method cuts to edit materials"
         )
-    for material, values in layer_material_edits(description, layer, relighter.material_paths).items():
+    return layer_material_edits(description, layer, relighter.material_paths)
+
+
+def write_material_edits(
+    layer: Sdf.Layer, description: CacheDescription, edits: Mapping[str, Mapping[str, object]]
+) -> None:
+    """Author `edits` (material prim path -> {`PreviewSurfaceParams` field: constant}) into `layer`
+    as `layer_material_edits` reads them: on the attribute that gives each UsdPreviewSurface input
+    its value in the cache's shot (the input itself, or the material's interface input it is
+    connected to)."""
+    stage = open_stage(description.source)
+    names = {field: name for name, field in USD_INPUT_FIELDS.items()}
+    for material_path, values in sorted(edits.items()):
+        shader = UsdShade.Material(stage.GetPrimAtPath(material_path)).ComputeSurfaceSource()[0]
+        if not shader:
+            raise RelightError(f"{material_path}: no UsdPreviewSurface shader to write its edits on")
+        for field, value in sorted(values.items()):
+            name = names[field]
+            shader_input = shader.GetInput(name)
+            sources = shader_input.GetValueProducingAttributes() if shader_input else []
+            target = sources[0].GetPath() if sources else shader.GetPath().AppendProperty(f"inputs:{name}")
+            spec = Sdf.CreatePrimInLayer(layer, target.GetPrimPath())  # an `over` where the layer has none
+            attribute = layer.GetAttributeAtPath(target) or Sdf.AttributeSpec(spec, target.name, _value_type(value))
+            attribute.default = _usd_value(value)
+
+
+def _value_type(value: object) -> Sdf.ValueTypeName:
+    """The UsdPreviewSurface type of an input's constant: color3f, int (the workflow) or float."""
+    if isinstance(value, tuple):
+        return Sdf.ValueTypeNames.Color3f
+    return Sdf.ValueTypeNames.Int if isinstance(value, bool) else Sdf.ValueTypeNames.Float
+
+
+def _usd_value(value: object) -> object:
+    """A constant as USD stores it (`_value_type`)."""
+    if isinstance(value, tuple):
+        return Gf.Vec3f(*value)
+    return int(value) if isinstance(value, bool) else value
+
+
+def apply_materials_layer(
+    relighter: CacheRelighter, description: CacheDescription, layer: str | os.PathLike[str]
+) -> None:
+    """Make the material edits `layer` authors on the relighter (`relighter_layer_edits`).
+
+    Raises:
+        RelightError: as `relighter_layer_edits` and `CacheRelighter.edit_material`.
+    """
+    for material, values in relighter_layer_edits(relighter, description, layer).items():
         relighter.edit_material(material, **values)
 
 

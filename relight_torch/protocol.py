@@ -7,6 +7,7 @@ nothing else. Each method's relighter class satisfies it structurally (no base c
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, NoReturn, Protocol, runtime_checkable
 
@@ -66,6 +67,15 @@ class CacheRelighter(Protocol):
 
         Raises:
             RelightError: `material_edits` is False.
+        """
+
+    def set_material_edits(self, edits: Mapping[int | str, Mapping[str, object]]) -> None:
+        """Make the materials the baked ones with `edits` (material -> inputs, as `edit_material`
+        takes them) and no others: what a session undoing and redoing material edits needs. Only
+        what differs from the current materials is redone.
+
+        Raises:
+            RelightError: `material_edits` is False, or a bad material or input.
         """
 
     @property

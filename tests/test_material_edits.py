@@ -314,3 +314,22 @@ def test_a_session_opens_with_a_materials_layer(cornell, tmp_path):
         session.close()
     relighter.edit_material(material, diffuse_color=(0.1, 0.6, 0.2))
     assert frame.final and np.abs(frame.image - relighter.render().numpy()).max() <= TOLERANCE
+
+
+def test_material_edits_are_set_whole_over_the_baked_materials(cornell):
+    """`set_material_edits`: the baked materials with exactly these edits; an empty set restores
+    the baked frame (a session's undo)."""
+    relighter = open_cache(cornell)
+    baked = relighter.render()
+    material, _ = _wall(relighter)
+    relighter.set_material_edits({material: {"diffuse_color": (0.1, 0.6, 0.2), "roughness": 0.55}})
+    edited = relighter.render()
+    expected = open_cache(cornell)
+    expected.edit_material(material, diffuse_color=(0.1, 0.6, 0.2), roughness=0.55)
+    assert float((edited - expected.render()).abs().max()) <= TOLERANCE
+    relighter.set_material_edits({material: {"roughness": 0.55}})
+    expected = open_cache(cornell)
+    expected.edit_material(material, roughness=0.55)
+    assert float((relighter.render() - expected.render()).abs().max()) <= TOLERANCE
+    relighter.set_material_edits({})
+    assert float((relighter.render() - baked).abs().max()) <= TOLERANCE

@@ -105,6 +105,12 @@ def create_app(session: Session, token: str, hosts: tuple[str, ...] | None = LOO
         version = await run_in_threadpool(session.edit, _prim(request), body, gesture)
         return JSONResponse({"version": version})
 
+    async def edit_material(request: Request) -> Response:
+        body = await _json_object(request)
+        gesture = request.query_params.get("gesture")
+        version = await run_in_threadpool(session.edit_material, _prim(request), body, gesture)
+        return JSONResponse({"version": version})
+
     async def remove_light(request: Request) -> Response:
         version = await run_in_threadpool(session.remove, _prim(request))
         return JSONResponse({"version": version})
@@ -199,6 +205,7 @@ def create_app(session: Session, token: str, hosts: tuple[str, ...] | None = LOO
         Route("/api/lights", add_light, methods=["POST"]),
         Route("/api/lights/{prim:path}", edit_light, methods=["PATCH"]),
         Route("/api/lights/{prim:path}", remove_light, methods=["DELETE"]),
+        Route("/api/materials/{prim:path}", edit_material, methods=["PATCH"]),
         Route("/api/place", place, methods=["POST"]),
         Route("/api/undo", undo, methods=["POST"]),
         Route("/api/redo", redo, methods=["POST"]),

@@ -1,4 +1,5 @@
-"""The light rig of an editing session: lights with their enable, mute and solo switches.
+"""The light rig of an editing session: lights with their enable, mute and solo switches, and the
+session's material edits.
 
 A `Rig` is immutable, so undo and redo keep whole rigs (a rig shares its frozen `Light`s with the
 ones before it: a step costs a tuple). Meaning of the switches:
@@ -36,15 +37,34 @@ class RigLight:
     soloed: bool = False
 
 
+MaterialEdits = tuple[tuple[str, tuple[tuple[str, object], ...]], ...]
+"""Material prim path -> its edited inputs (`PreviewSurfaceParams` field, constant), as sorted pairs."""
+
+
 @dataclass(frozen=True)
 class Rig:
-    """The session's lights, in the order they were added."""
+    """The session's lights, in the order they were added, and its material edits."""
 
     lights: tuple[RigLight, ...]
+    materials: MaterialEdits = ()
 
     @staticmethod
-    def of(lights: list[Light]) -> Rig:
-        return Rig(tuple(RigLight(light) for light in lights))
+    def of(lights: list[Light], materials: dict[str, dict[str, object]] | None = None) -> Rig:
+        edits = tuple(sorted((path, tuple(sorted(values.items()))) for path, values in (materials or {}).items()))
+        return Rig(tuple(RigLight(light) for light in lights), edits)
+
+    def material_edits(self) -> dict[str, dict[str, object]]:
+        """Material prim path -> {field: constant} of every edited material."""
+        return {path: dict(values) for path, values in self.materials}
+
+    def with_material(self, path: str, values: dict[str, object]) -> Rig:
+        """This rig with `values` set on the material at `path` (over its earlier edits)."""
+        edits = self.material_edits()
+        edits[path] = {**edits.get(path, {}), **values}
+        return Rig.of([], edits).with_lights(self.lights)
+
+    def with_lights(self, lights: tuple[RigLight, ...]) -> Rig:
+        return dataclasses.replace(self, lights=lights)
 
     def find(self, path: str) -> RigLight:
         """The light at prim `path`.
@@ -63,12 +83,12 @@ class Rig:
     def replaced(self, entry: RigLight) -> Rig:
         """This rig with `entry` in place of the light at its path, or added at the end."""
         if entry.light.path not in self.paths():
-            return Rig((*self.lights, entry))
-        return Rig(tuple(entry if e.light.path == entry.light.path else e for e in self.lights))
+            return self.with_lights((*self.lights, entry))
+        return self.with_lights(tuple(entry if e.light.path == entry.light.path else e for e in self.lights))
 
     def without(self, path: str) -> Rig:
         self.find(path)
-        return Rig(tuple(e for e in self.lights if e.light.path != path))
+        return self.with_lights(tuple(e for e in self.lights if e.light.path != path))
 
     def audible(self, entry: RigLight) -> bool:
         """Whether the light is heard in the frame (enabled, not muted, soloed when any is)."""

@@ -31,8 +31,9 @@ from pipeline.errors import RelightError
 from pipeline.serve.attributes import edited_light, light_attributes
 from pipeline.serve.files import SessionFiles
 from pipeline.serve.placement import SurfaceLookup, aimed_at, along_normal, facing, new_light
-from pipeline.serve.rig import SWITCHES, Rig, RigLight, silenced
+from pipeline.serve.rig import SWITCHES, MaterialEdits, Rig, RigLight, silenced
 from relight_torch import open_cache
+from relight_torch.brdf.preview_surface import USD_INPUT_FIELDS
 from relight_torch.cache.layer import CacheDescription, read_cache_layer
 from relight_torch.cache.load import load_gbuffer
 from relight_torch.direct.loading import shot_lights
@@ -40,8 +41,13 @@ from relight_torch.direct.rig import light_group
 from relight_torch.direct.settings import RelightSettings
 from relight_torch.io.exr import read_rgb_exr
 from relight_torch.lights.light import Light, LightKind
-from relight_torch.lights.overrides import light_overrides_text, write_light_overrides
-from relight_torch.material_edits import apply_materials_layer
+from relight_torch.lights.overrides import export_layer, light_overrides_layer
+from relight_torch.material_edits import (
+    check_material_values,
+    layer_material_edits,
+    relighter_layer_edits,
+    write_material_edits,
+)
 from relight_torch.methods import relight_method
 from relight_torch.progressive import CostModel, progressive_frames
 from relight_torch.protocol import CacheRelighter
@@ -78,6 +84,7 @@ class Session:
         lookup: the deep framebuffer's pixel -> surface lookup (click placement).
         files: the paths clients may name.
         reference: (H, W, 3) float32 image to compare against, or None.
+        materials: the first rig's material edits (material prim path -> {field: constant}).
     """
 
     def __init__(
@@ -88,6 +95,7 @@ class Session:
         lookup: SurfaceLookup,
         files: SessionFiles,
         reference: np.ndarray | None = None,
+        materials: dict[str, dict[str, object]] | None = None,
     ):
         self.description = description
         self.files = files
@@ -101,8 +109,9 @@ class Session:
         """Notified on every rig change (and by renderers poking each other)."""
         self._render_lock = threading.Lock()
         self._costs = CostModel()  # the progressive first-frame budget's cost model, kept across edits
-        self._rig = Rig.of(relighter.lights)
+        self._rig = Rig.of(relighter.lights, materials)
         self._sent: dict[str, tuple[Light, bool]] = {light.path: (light, True) for light in relighter.lights}
+        self._sent_materials: MaterialEdits = ()  # the relighter's materials are the baked ones
         self._undo: list[Rig] = []
         self._redo: list[Rig] = []
         self._gesture: str | None = None
@@ -138,9 +147,10 @@ class Session:
         if not Path(out_dir).is_dir():
             raise RelightError(f"--out {out_dir}: not a folder")
         relighter = open_cache(cache, device=device, shadows=shadows, lights_layer=lights_layer, settings=settings)
+        materials = None
         if materials_layer is not None:
             try:
-                apply_materials_layer(relighter, description, materials_layer)
+                materials = relighter_layer_edits(relighter, description, materials_layer)
             except RelightError as error:
                 raise RelightError(f"--materials: {cache}: {error}") from None
         lookup = SurfaceLookup(load_gbuffer(Path(cache), description), description.supersampling)
@@ -153,7 +163,7 @@ class Session:
                     f"--reference {reference}: {image.shape[1]}x{image.shape[0]}, the cache renders {width}x{height}"
                 )
         files = SessionFiles(Path(out_dir), Path(description.source).parent)
-        return cls(relighter, description, shot_lights(description), lookup, files, image)
+        return cls(relighter, description, shot_lights(description), lookup, files, image, materials)
 
     def close(self) -> None:
         self.files.close()
@@ -181,7 +191,21 @@ class Session:
             for entry in rig.lights
         ]
         groups = sorted({light["group"] for light in lights})
-        return {"version": version, "canUndo": can_undo, "canRedo": can_redo, "groups": groups, "lights": lights}
+        names = {field: f"inputs:{name}" for name, field in USD_INPUT_FIELDS.items()}
+        materials = {
+            path: {names[field]: list(value) if isinstance(value, tuple) else value for field, value in edits}
+            for path, edits in rig.materials
+        }
+        return {
+            "version": version,
+            "canUndo": can_undo,
+            "canRedo": can_redo,
+            "groups": groups,
+            "lights": lights,
+            "materialEdits": self._relighter.material_edits,
+            "materialPaths": sorted({p for p in self._relighter.material_paths or () if p.startswith("/")}),
+            "materials": materials,
+        }
 
     # --- edits (each one undo step, except consecutive edits of one gesture) -------------------
 
@@ -210,6 +234,33 @@ class Session:
             attributes = {name: value for name, value in values.items() if name not in SWITCHES}
             light = edited_light(entry.light, attributes, self.files.image_path) if attributes else entry.light
             return self._commit(self._rig.replaced(dataclasses.replace(entry, light=light, **switches)), gesture)
+
+    def edit_material(self, path: str, values: dict[str, Any], gesture: str | None = None) -> int:
+        """Set UsdPreviewSurface inputs ('inputs:diffuseColor': [r, g, b], 'inputs:roughness': 0.4,
+        ...) of the material at prim `path`, over its earlier edits (one undo step, as `edit`).
+
+        Returns:
+            The new version.
+
+        Raises:
+            RelightError: the cache's method has no material edits, no material at `path`, or a bad
+                input name or value (the rig is unchanged).
+        """
+        if not self._relighter.material_edits:
+            raise RelightError(f"{path}: a {self.description.method!r} cache's light transport holds its materials")
+        if not isinstance(values, dict) or not values:
+            raise RelightError(f"{path}: a material edit is a non-empty JSON object of input values")
+        fields = {}
+        for name, value in values.items():
+            if name.removeprefix("inputs:") not in USD_INPUT_FIELDS:
+                inputs = ", ".join(f"inputs:{input_name}" for input_name in USD_INPUT_FIELDS)
+                raise RelightError(f"{path}: {name!r:.80} is not a UsdPreviewSurface input ({inputs})")
+            fields[USD_INPUT_FIELDS[name.removeprefix("inputs:")]] = tuple(value) if isinstance(value, list) else value
+        check_material_values(path, fields)  # before the rig takes them
+        with self._lock:
+            if path not in (self._relighter.material_paths or ()):
+                raise RelightError(f"{path}: no material of the cache at this prim (GET /api/lights lists them)")
+            return self._commit(self._rig.with_material(path, fields), gesture)
 
     def add(self, kind: str, path: str | None = None, values: dict[str, Any] | None = None) -> str:
         """Add a light of UsdLux type `kind`, facing the surface at the image centre.
@@ -311,10 +362,18 @@ class Session:
     # --- layers --------------------------------------------------------------------------------
 
     def save_text(self) -> str:
-        """The lights layer of what changed against the shot (`light_overrides_text`)."""
+        """The layer of what changed against the shot: its lights (`light_overrides_layer`) and
+        materials (`write_material_edits`), as `.usda` text."""
         with self._lock:
             rig = self._rig
-        return light_overrides_text(self._shot, rig.saved_lights())
+        return str(self._saved_layer(rig).ExportToString())
+
+    def _saved_layer(self, rig: Rig) -> Sdf.Layer:
+        """What `save` writes: `relight render CACHE --lights L --materials L` renders the rig."""
+        layer = light_overrides_layer(self._shot, rig.saved_lights())
+        if rig.materials:
+            write_material_edits(layer, self.description, rig.material_edits())
+        return layer
 
     def save(self, path: str) -> Path:
         """Write the changes layer to `path` inside the output directory; returns the file.
@@ -327,7 +386,7 @@ class Session:
         with self._lock:
             rig = self._rig
         try:
-            write_light_overrides(target, self._shot, rig.saved_lights())
+            export_layer(target, self._saved_layer(rig))
         except OSError as error:
             raise RelightError(f"save: {path!r:.120}: {error.strerror or error}") from None
         return target
@@ -348,8 +407,11 @@ class Session:
         layer_path = self.files.layer_from_text(text) if text is not None else self.files.layer_path(path)
         self.files.check_layer(layer_path)
         lights = shot_lights(self.description, layer_path)
+        materials = None
+        if self._relighter.material_edits:
+            materials = layer_material_edits(self.description, layer_path, self._relighter.material_paths)
         with self._lock:
-            return self._commit(Rig.of(lights))
+            return self._commit(Rig.of(lights, materials))
 
     # --- frames ---------------------------------------------------------------------------------
 
@@ -395,7 +457,11 @@ class Session:
         return self.version
 
     def _sync(self, rig: Rig) -> None:
-        """Bring the relighter to `rig`: set only the lights whose object or audibility changed."""
+        """Bring the relighter to `rig`: set only the lights whose object or audibility changed, and
+        the material edits when they changed."""
+        if rig.materials != self._sent_materials:
+            self._relighter.set_material_edits(rig.material_edits())
+            self._sent_materials = rig.materials
         wanted = {light.path: (light, audible) for light, audible in rig.rendered_lights()}
         for path in [path for path in self._sent if path not in wanted]:
             self._relighter.remove_light(path)

@@ -28,6 +28,7 @@ direct relighter's.
 from __future__ import annotations
 
 import collections
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
@@ -255,6 +256,11 @@ class CutsRelighter:
         self.params = params
         self._samples = None
         self._edits += 1
+
+    def set_material_edits(self, edits: Mapping[int | str, Mapping[str, object]]) -> None:
+        """`CacheRelighter.set_material_edits`: the direct relighter's, which the cuts' light follows."""
+        self.direct.set_material_edits(edits)
+        self.set_params(self.direct.gbuffer.params)
 
     def edit_material(self, material: int | str, **values: object) -> None:
         """Set UsdPreviewSurface inputs (field names of `PreviewSurfaceParams`, constants) on the

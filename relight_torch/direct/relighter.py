@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import collections
 import os
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -120,6 +121,7 @@ class Relighter:
         self.description: CacheDescription | None = None
         self.object_paths = object_paths
         self.material_paths = material_paths
+        self._baked_params = gbuffer.params  # what `set_material_edits` edits
         self._lights: dict[str, LightState] = {}
         self._masks: dict[tuple[str, ...], torch.Tensor] = {}
         self._stages = LightStages(gbuffer, visibility, settings, self.filter_radius, supersampling, self.counters)
@@ -230,6 +232,13 @@ class Relighter:
         g = self.gbuffer
         params, rows = apply_material_edit(g.params, g.material_id, material, values, self.material_paths)
         self._change_params(params, MaterialChange(frozenset(values), rows))
+
+    def set_material_edits(self, edits: Mapping[int | str, Mapping[str, object]]) -> None:
+        """`CacheRelighter.set_material_edits`: the baked materials with `edits` (`set_params`)."""
+        g, params = self.gbuffer, self._baked_params
+        for material, values in edits.items():
+            params, _ = apply_material_edit(params, g.material_id, material, values, self.material_paths)
+        self.set_params(params)
 
     def set_params(self, params: PreviewSurfaceParams) -> None:
         """Replace the material parameters of every sub-sample (rows as the G-buffer's).

@@ -53,15 +53,19 @@ def light_overrides_text(before: Sequence[Light], after: Sequence[Light]) -> str
 
 
 def write_light_overrides(path: str | os.PathLike[str], before: Sequence[Light], after: Sequence[Light]) -> None:
-    """Write `light_overrides_layer(before, after)` to `path` atomically (temp file, then rename).
+    """Write `light_overrides_layer(before, after)` to `path` atomically (`export_layer`)."""
+    export_layer(path, light_overrides_layer(before, after))
+
+
+def export_layer(path: str | os.PathLike[str], layer: Sdf.Layer) -> None:
+    """Write `layer` to `path` (its format from the suffix) atomically: temp file, then rename.
 
     Raises:
-        RelightError: the file could not be written (disk full, permissions), naming `path`.
+        OSError: the file could not be written (disk full, permissions), naming `path`.
     """
-    layer = light_overrides_layer(before, after)
     with atomic_path(path) as temp:
         if not layer.Export(os.fspath(temp)):
-            raise OSError(f"{path}: could not write the lights layer")
+            raise OSError(f"{path}: could not write the layer")
 
 
 def _by_path(lights: Sequence[Light], role: str) -> dict[str, Light]:

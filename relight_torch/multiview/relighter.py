@@ -33,6 +33,7 @@ import collections
 import dataclasses
 import os
 import threading
+from collections.abc import Mapping
 from pathlib import Path
 from typing import NamedTuple, cast
 
@@ -340,6 +341,9 @@ class MultiviewRelighter:
     def held_bytes(self) -> int:
         """`CacheRelighter.held_bytes`: the caching samples' lighting and the current view's relighter."""
         return self.lighting_bytes() + (0 if self._relighter is None else self._relighter.held_bytes())
+
+    def set_material_edits(self, edits: Mapping[int | str, Mapping[str, object]]) -> None:
+        refuse_material_edit(self)
 
     def edit_material(self, material: int | str, **values: object) -> None:
         refuse_material_edit(self)
