@@ -1,7 +1,7 @@
 """`relight serve`'s page in a real browser: Debian's chromium driven by Playwright through its system
-executable. The page loads and shows frames, a slider drag changes the displayed frame, a click
-places the selected light, and save writes a layer that `relight render` turns into the page's last
-frame. Without /usr/bin/chromium these tests fail, naming the package (`.ci/run` installs it)."""
+executable. The page loads and shows frames, a slider drag changes the displayed frame, the
+material panel edits a material, a click places the selected light, and save writes a layer that
+`relight render` turns into the page's last frame. Without /usr/bin/chromium these tests fail, naming the package (`.ci/run` installs it)."""
 
 from __future__ import annotations
 
@@ -91,6 +91,21 @@ def test_slider_drag_changes_the_displayed_frame(served):
     after = displayed(page)
     assert after.sum() > before.sum()
     assert session.state()["canUndo"]
+
+
+def test_the_material_panel_edits_a_material(served):
+    page, session = served
+    material = page.evaluate("document.getElementById('material-select').value")
+    assert material in session.state()["materialPaths"]
+    before, version = displayed(page), page.evaluate("window.relight.displayedVersion")
+    picker = page.locator('#material-inputs [data-input="inputs:diffuseColor"] input[type=color]')
+    picker.fill("#00ff00")  # an input and a change event, as a colour chosen in the picker
+    wait_for_version_after(page, version)
+    page.wait_for_function(
+        f"window.relight.displayedVersion >= {session.version} && window.relight.displayedFinal", timeout=WAIT_MS
+    )
+    assert session.state()["materials"][material]["inputs:diffuseColor"] == [0.0, 1.0, 0.0]
+    assert np.abs(displayed(page) - before).max() > 0
 
 
 def test_click_places_the_selected_light(served, layer):
