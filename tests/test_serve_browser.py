@@ -1,7 +1,8 @@
 """`relight serve`'s page in a real browser: Debian's chromium driven by Playwright through its system
 executable. The page loads and shows frames, a slider drag changes the displayed frame, the
 material panel edits a material, a click places the selected light, and save writes a layer that
-`relight render` turns into the page's last frame. Without /usr/bin/chromium these tests fail, naming the package (`.ci/run` installs it)."""
+`relight render` turns into the page's last frame. Without /usr/bin/chromium these tests fail,
+naming the package (`.ci/run` installs it)."""
 
 from __future__ import annotations
 
