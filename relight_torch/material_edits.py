@@ -1,8 +1,11 @@
-"""Material edits: UsdPreviewSurface inputs set to constants on one material's shading points.
+"""Material edits: UsdPreviewSurface inputs set to constants on one material's shading points, and
+the USD layers that carry them.
 
-One function makes the edited parameters for every relighter that edits materials (the direct
-relighter and the cuts' light), so that an input name, a value's shape and the inputs refused mean
-the same everywhere.
+The relighters that edit materials (the direct relighter, and through it the cuts') take their
+inputs through `apply_material_edit`, so that an input name, a value's shape and the inputs refused
+mean the same everywhere. A materials layer is read by `layer_material_edits` (`relight render`,
+`relight serve` and a session's load) and written by `write_material_edits` (a session's save), on
+the attribute that gives each shader input its value.
 """
 
 from __future__ import annotations
