@@ -211,15 +211,25 @@ class LightStages:
         are taken too."""
         unit = self.transport_light(light)
         g = self.gbuffer
+        threads = tile_threads(g.device, self.visibility.thread_safe)
         for (points, num_samples, shared), transport in zip(self.sample_groups(unit), transports, strict=True):
-            chunk = todo
-            if points is not None:  # the group's points among `todo`
-                member = torch.zeros(g.num_samples, dtype=torch.bool, device=g.device)
-                member[points] = True
-                chunk = todo[member[todo]]
-            if chunk.numel():
-                part = self._chunk_transport(unit, chunk, self.points.at(num_samples, shared))
-                _write_part(transport, part, chunk)
+            among = self._among(points, todo)
+            if among.numel() == 0:
+                continue
+            tiles = chunks(g.num_samples, self.settings.chunk_samples, num_samples, among, threads)
+            shade = functools.partial(self._chunk_transport, unit, points=self.points.at(num_samples, shared))
+            for part, tile in zip(parallel_map(shade, tiles, threads), tiles, strict=True):
+                assert isinstance(tile, torch.Tensor), "tiles of a list of points are lists of points"
+                _write_part(transport, part, tile)
+
+    def _among(self, group: torch.Tensor | None, todo: torch.Tensor) -> torch.Tensor:
+        """The points of a sample group (`sample_groups`: (P,) or None for all) among the shading
+        points `todo` ((K,) ascending)."""
+        if group is None:
+            return todo
+        member = torch.zeros(self.gbuffer.num_samples, dtype=torch.bool, device=todo.device)
+        member[group] = True
+        return todo[member[todo]]
 
     def kept_transport(self, group: list[tuple[torch.Tensor, Transport]]) -> Transport:
         """One sample group's transport from the parts traced for its points (`tracing.kept_transport`)."""
@@ -280,12 +290,7 @@ class LightStages:
         threads = tile_threads(g.device, self.visibility.thread_safe)
         for group, (points, num_samples, shared) in enumerate(self.sample_groups(unit)):
             if todo is not None:
-                if points is not None:  # the group's points among `todo`
-                    member = torch.zeros(g.num_samples, dtype=torch.bool, device=g.device)
-                    member[points] = True
-                    points = todo[member[todo]]
-                else:
-                    points = todo
+                points = self._among(points, todo)
                 if points.numel() == 0:
                     continue
             tiles = chunks(g.num_samples, self.settings.chunk_samples, num_samples, points, threads)
