@@ -21,7 +21,7 @@ from relight_torch.brdf.preview_surface import USD_INPUT_FIELDS, PreviewSurfaceP
 from relight_torch.cache.layer import CacheDescription
 from relight_torch.errors import RelightError
 from relight_torch.protocol import CacheRelighter
-from relight_torch.stage import open_layer, open_stage
+from relight_torch.stage import open_layer, open_stage, time_code
 
 COLOUR_INPUTS = frozenset({"diffuse_color", "specular_color", "metallic", "ior", "use_specular_workflow"})
 """Inputs that reach reflected light only through the colours of the BRDF's split factors
@@ -79,17 +79,13 @@ def check_material_values(material: str, values: Mapping[str, object]) -> None:
     Raises:
         RelightError: as `apply_material_edit`, naming `material`.
     """
-    fields = dataclasses.fields(PreviewSurfaceParams)
-    none = PreviewSurfaceParams(
-        **{
-            f.name: torch.zeros(
-                (0, f.metadata["channels"]) if f.metadata["channels"] else (0,),
-                dtype=torch.bool if f.metadata.get("bool") else torch.float32,
-            )
-            for f in fields
-        }
-    )
-    apply_material_edit(none, torch.zeros(0, dtype=torch.int32), material, values, [material])
+    apply_material_edit(PreviewSurfaceParams.zeros(0), torch.zeros(0, dtype=torch.int32), material, values, [material])
+
+
+def prim_material_paths(material_paths: list[str]) -> list[str]:
+    """The distinct material prim paths of a cache's material paths, sorted: without the pseudo
+    paths of unbound gprims ('<fallback>', '<displayColor>'), which no layer can name."""
+    return sorted({path for path in material_paths if path.startswith("/")})
 
 
 def material_rows(material_ids: torch.Tensor, material: int | str, material_paths: list[str] | None) -> torch.Tensor:
@@ -177,12 +173,12 @@ def layer_material_edits(
         lambda path: authored.add(path) if path.IsPropertyPath() and path.name.startswith("inputs:") else None,
     )
     time = description.parameters.get("time")
-    time_code = Usd.TimeCode.Default() if time is None else Usd.TimeCode(float(time))
+    at = time_code(stage, None if time is None else float(time))  # as the bake read the materials
     edits: dict[str, dict[str, object]] = {}
     used: set[Sdf.Path] = set()
-    for material_path in sorted({path for path in material_paths if path.startswith("/")}):
-        shader = UsdShade.Material(stage.GetPrimAtPath(material_path)).ComputeSurfaceSource()[0]
-        if not shader or shader.GetShaderId() != "UsdPreviewSurface":
+    for material_path in prim_material_paths(material_paths):
+        shader = _preview_surface(stage, material_path)
+        if shader is None:
             continue
         for name, field in USD_INPUT_FIELDS.items():
             shader_input = shader.GetInput(name)
@@ -199,7 +195,7 @@ def layer_material_edits(
                 if source in authored:
                     if UsdShade.Output.IsOutput(stage.GetAttributeAtPath(source)):
                         raise RelightError(f"materials layer {layer}: {source}: a shader output, not a constant")
-                    value = stage.GetAttributeAtPath(source).Get(time_code)
+                    value = stage.GetAttributeAtPath(source).Get(at)
                     edits.setdefault(material_path, {})[field] = _constant(value, f"materials layer {layer}: {source}")
                     used.add(source)
     unused = sorted((path for path in authored - used if _in_material_or_undefined(stage, path)), key=str)
@@ -239,8 +235,8 @@ def write_material_edits(
     stage = open_stage(description.source)
     names = {field: name for name, field in USD_INPUT_FIELDS.items()}
     for material_path, values in sorted(edits.items()):
-        shader = UsdShade.Material(stage.GetPrimAtPath(material_path)).ComputeSurfaceSource()[0]
-        if not shader:
+        shader = _preview_surface(stage, material_path)
+        if shader is None:
             raise RelightError(f"{material_path}: no UsdPreviewSurface shader to write its edits on")
         for field, value in sorted(values.items()):
             name = names[field]
@@ -250,6 +246,13 @@ def write_material_edits(
             spec = Sdf.CreatePrimInLayer(layer, target.GetPrimPath())  # an `over` where the layer has none
             attribute = layer.GetAttributeAtPath(target) or Sdf.AttributeSpec(spec, target.name, _value_type(value))
             attribute.default = _usd_value(value)
+
+
+def _preview_surface(stage: Usd.Stage, material_path: str) -> UsdShade.Shader | None:
+    """The UsdPreviewSurface shader of the material at `material_path`'s universal surface, or
+    None (another shader, or none)."""
+    shader = UsdShade.Material(stage.GetPrimAtPath(material_path)).ComputeSurfaceSource()[0]
+    return shader if shader and shader.GetShaderId() == "UsdPreviewSurface" else None
 
 
 def _value_type(value: object) -> Sdf.ValueTypeName:

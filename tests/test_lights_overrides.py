@@ -11,7 +11,7 @@ from pxr import Sdf, Usd
 from pipeline.scene.lights import read_lights
 from pipeline.scenes.registry import SCENES
 from relight_torch.lights.light import Light, LightKind, Shaping
-from relight_torch.lights.overrides import light_overrides_text, write_light_overrides
+from relight_torch.lights.overrides import light_overrides_layer, write_light_overrides
 from relight_torch.stage import open_stage
 from test_lights_usd import assert_same
 
@@ -58,8 +58,7 @@ def test_only_changed_attributes_are_authored(shot):
     _, before = shot
     light = before[0]
     after = [dataclasses.replace(light, color=(1.0, 0.5, 0.25)), *before[1:]]
-    layer = Sdf.Layer.CreateAnonymous(".usda")
-    layer.ImportFromString(light_overrides_text(before, after))
+    layer = light_overrides_layer(before, after)
     spec = layer.GetPrimAtPath(light.path)
     assert spec.specifier == Sdf.SpecifierOver
     assert list(spec.properties.keys()) == ["inputs:color"]
@@ -70,8 +69,7 @@ def test_only_changed_attributes_are_authored(shot):
 
 def test_no_change_is_an_empty_layer(shot):
     _, before = shot
-    layer = Sdf.Layer.CreateAnonymous(".usda")
-    layer.ImportFromString(light_overrides_text(before, list(before)))
+    layer = light_overrides_layer(before, list(before))
     assert not layer.rootPrims
 
 
@@ -86,4 +84,4 @@ def test_moved_light_lands_where_it_was_put(shot, tmp_path):
 def test_duplicate_paths_are_refused(shot):
     _, before = shot
     with pytest.raises(ValueError, match=f"{before[0].path}: two lights of the after rig"):
-        light_overrides_text(before, [before[0], before[0]])
+        light_overrides_layer(before, [before[0], before[0]])

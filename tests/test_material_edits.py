@@ -230,6 +230,22 @@ def test_render_applies_a_materials_layer(cornell, tmp_path):
     assert np.abs(read_rgb_exr(out) - relighter.render().numpy()).max() <= TOLERANCE
 
 
+def test_a_materials_layer_is_read_at_the_baked_time(cornell, tmp_path):
+    """An input with time samples only (no default) is read at the frame the bake read."""
+    relighter = open_cache(cornell)
+    material, shader = _wall(relighter)
+    layer = Sdf.Layer.CreateNew(str(tmp_path / "animated.usda"))
+    spec = Sdf.CreatePrimInLayer(layer, shader)
+    attribute = Sdf.AttributeSpec(spec, "inputs:diffuseColor", Sdf.ValueTypeNames.Color3f)
+    for frame, colour in ((1.0, (0.1, 0.6, 0.2)), (50.0, (0.9, 0.1, 0.1))):
+        layer.SetTimeSample(attribute.path, frame, Gf.Vec3f(*colour))
+    layer.Save()
+    out = tmp_path / "edited.exr"
+    assert cli.main(["render", cornell, "--materials", str(tmp_path / "animated.usda"), "-o", str(out)]) == 0
+    relighter.edit_material(material, diffuse_color=(0.1, 0.6, 0.2))
+    assert np.abs(read_rgb_exr(out) - relighter.render().numpy()).max() <= TOLERANCE
+
+
 def test_one_layer_holds_light_and_material_edits(cornell, tmp_path):
     relighter = open_cache(cornell)
     material, shader = _wall(relighter)

@@ -25,6 +25,7 @@ from relight_torch.cache.load import load_npy
 from relight_torch.cache.status import CacheStatus, PayloadStatus, cache_status
 from relight_torch.io.exr import PIXEL_TYPE_NAMES, read_exr_header
 from relight_torch.lights.linking import decode_paths
+from relight_torch.material_edits import prim_material_paths
 from relight_torch.stage import open_stage
 
 
@@ -123,7 +124,7 @@ def _material_lines(status: CacheStatus) -> list[str]:
     payload = next((p for p in status.payloads if p.payload.name == "materialPaths"), None)
     if payload is None or payload.problem is not None:
         return []
-    paths = sorted(set(decode_paths(load_npy(status.path, status.description, "materialPaths"))))
+    paths = prim_material_paths(decode_paths(load_npy(status.path, status.description, "materialPaths")))
     return [f"  materials: {len(paths)} (edited by these prim paths)"] + [f"    {path}" for path in paths]
 
 

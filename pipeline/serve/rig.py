@@ -50,8 +50,7 @@ class Rig:
 
     @staticmethod
     def of(lights: list[Light], materials: dict[str, dict[str, object]] | None = None) -> Rig:
-        edits = tuple(sorted((path, tuple(sorted(values.items()))) for path, values in (materials or {}).items()))
-        return Rig(tuple(RigLight(light) for light in lights), edits)
+        return Rig(tuple(RigLight(light) for light in lights), _frozen(materials or {}))
 
     def material_edits(self) -> dict[str, dict[str, object]]:
         """Material prim path -> {field: constant} of every edited material."""
@@ -61,7 +60,7 @@ class Rig:
         """This rig with `values` set on the material at `path` (over its earlier edits)."""
         edits = self.material_edits()
         edits[path] = {**edits.get(path, {}), **values}
-        return Rig.of([], edits).with_lights(self.lights)
+        return dataclasses.replace(self, materials=_frozen(edits))
 
     def with_lights(self, lights: tuple[RigLight, ...]) -> Rig:
         return dataclasses.replace(self, lights=lights)
@@ -102,6 +101,11 @@ class Rig:
     def rendered_lights(self) -> list[tuple[Light, bool]]:
         """(light, audible) of every light, for the relighter (silent ones go in with intensity 0)."""
         return [(entry.light, self.audible(entry)) for entry in self.lights]
+
+
+def _frozen(materials: dict[str, dict[str, object]]) -> MaterialEdits:
+    """Material edits as a `Rig` keeps them (sorted pairs, comparable and hashable)."""
+    return tuple(sorted((path, tuple(sorted(values.items()))) for path, values in materials.items()))
 
 
 def silenced(light: Light) -> Light:

@@ -45,6 +45,7 @@ from relight_torch.lights.overrides import export_layer, light_overrides_layer
 from relight_torch.material_edits import (
     check_material_values,
     layer_material_edits,
+    prim_material_paths,
     relighter_layer_edits,
     write_material_edits,
 )
@@ -129,9 +130,8 @@ class Session:
         settings: RelightSettings = RelightSettings(),
         materials_layer: str | os.PathLike[str] | None = None,
     ) -> Session:
-        """Open a cache for editing with the relighter's `settings` (its memory budget), its
-        materials edited by `materials_layer` (`material_edits.apply_materials_layer`) for the
-        whole session.
+        """Open a cache for editing with the relighter's `settings` (its memory budget), the first
+        rig holding the material edits of `materials_layer` (`material_edits.relighter_layer_edits`).
 
         Raises:
             RelightError: the cache cannot be opened, is of a method that needs a view (its camera
@@ -203,7 +203,7 @@ class Session:
             "groups": groups,
             "lights": lights,
             "materialEdits": self._relighter.material_edits,
-            "materialPaths": sorted({p for p in self._relighter.material_paths or () if p.startswith("/")}),
+            "materialPaths": prim_material_paths(self._relighter.material_paths or []),
             "materials": materials,
         }
 

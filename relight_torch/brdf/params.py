@@ -80,6 +80,19 @@ class BrdfParams:
         return dataclasses.replace(self, **{f.name: _insert_axis(getattr(self, f.name), f) for f in fields})
 
     @classmethod
+    def zeros(cls, rows: int) -> Self:
+        """`rows` rows of zeros (False for boolean fields), float32, on the CPU."""
+        return cls(
+            **{
+                item.name: torch.zeros(
+                    (rows, item.metadata[_CHANNELS]) if item.metadata[_CHANNELS] else (rows,),
+                    dtype=torch.bool if item.metadata.get("bool") else torch.float32,
+                )
+                for item in dataclasses.fields(cls)
+            }
+        )
+
+    @classmethod
     def from_numpy(
         cls,
         arrays: Mapping[str, np.ndarray],

@@ -49,7 +49,6 @@ from relight_torch.lights.dome import REC709_LUMINANCE
 from relight_torch.lights.emission import validate_light
 from relight_torch.lights.light import Light, LightKind
 from relight_torch.lights.linking import linked_points
-from relight_torch.material_edits import apply_material_edit
 from relight_torch.math.frame import to_local
 from relight_torch.parallel import parallel_map, tile_threads
 from relight_torch.protocol import Refinement, refuse_progressive, tensor_bytes
@@ -126,8 +125,6 @@ class CutsRelighter:
         settings: illumination cut size, batch size.
 
     Attributes:
-        params: the current material parameters of every sub-sample (edit with `set_params` or
-            `edit_material`; no re-bake), the direct relighter's.
         stats: of the last cuts render, summed over the sub-samples: 'inputs' (entries of the
             three vertices' visibility cuts, the merge's input), 'merged' (entries of the
             merged cuts built with the illumination cut), 'dark' (visibility clusters dark at all
@@ -148,7 +145,6 @@ class CutsRelighter:
         self.direct = direct
         self.cuts = cuts
         self.settings = settings
-        self.params = direct.gbuffer.params
         self.stats: collections.Counter[str] = collections.Counter()
         g, tree = direct.gbuffer, cuts.tree
         # The BRDF is evaluated in the stored frames, as `preview_surface.split` is given
@@ -244,29 +240,43 @@ class CutsRelighter:
         self.settings = settings
         self._samples = None
 
+    @property
+    def params(self) -> PreviewSurfaceParams:
+        """The current material parameters of every sub-sample: the direct relighter's."""
+        return self.direct.gbuffer.params
+
     def set_params(self, params: PreviewSurfaceParams) -> None:
         """Replace the material parameters of every sub-sample (rows as the G-buffer's): the direct
         relighter's lights (`Relighter.set_params`) and the cuts' light follow them."""
+        before = self.params
         self.direct.set_params(params)
-        params = self.direct.gbuffer.params
-        if self._columns is not None:  # only the lobes' widths enter the kept factors
-            self._columns.dirty |= (params.roughness != self.params.roughness) | (
-                params.clearcoat_roughness != self.params.clearcoat_roughness
-            )
-        self.params = params
-        self._samples = None
-        self._edits += 1
+        self._follow_materials(before)
 
     def set_material_edits(self, edits: Mapping[int | str, Mapping[str, object]]) -> None:
         """`CacheRelighter.set_material_edits`: the direct relighter's, which the cuts' light follows."""
+        before = self.params
         self.direct.set_material_edits(edits)
-        self.set_params(self.direct.gbuffer.params)
+        self._follow_materials(before)
 
     def edit_material(self, material: int | str, **values: object) -> None:
         """Set UsdPreviewSurface inputs (field names of `PreviewSurfaceParams`, constants) on the
-        sub-samples of one material (id or prim path), e.g. `edit_material(3, diffuse_color=(0.1, 0.5, 0.15))`."""
-        ids, paths = self.direct.gbuffer.material_id, self.direct.material_paths
-        self.set_params(apply_material_edit(self.params, ids, material, values, paths)[0])
+        sub-samples of one material (id or prim path), e.g. `edit_material(3, diffuse_color=(0.1, 0.5, 0.15))`:
+        the direct relighter's (`Relighter.edit_material`), which the cuts' light follows."""
+        before = self.params
+        self.direct.edit_material(material, **values)
+        self._follow_materials(before)
+
+    def _follow_materials(self, before: PreviewSurfaceParams) -> None:
+        """The cuts' light after the direct relighter's materials changed from `before`."""
+        params = self.params
+        if params is before:
+            return
+        if self._columns is not None:  # only the lobes' widths enter the kept factors
+            self._columns.dirty |= (params.roughness != before.roughness) | (
+                params.clearcoat_roughness != before.clearcoat_roughness
+            )
+        self._samples = None
+        self._edits += 1
 
     # -- rendering ------------------------------------------------------------------------------
 

@@ -613,7 +613,8 @@ def open_relighter(
     gbuffer = load_gbuffer(layer_path, description).to(device)
     # Mapped read-only, not loaded: Embree copies it block by block and gives its pages back.
     occluders = load_npy(layer_path, description, "occluders")
-    linking = {payload.name for payload in description.payloads} >= {"objectPaths", "occluderObjects"}
+    names = {payload.name for payload in description.payloads}
+    linking = names >= {"objectPaths", "occluderObjects"}
     object_paths = decode_paths(load_npy(layer_path, description, "objectPaths")) if linking else None
     visibility: Visibility
     if shadows == "embree":
@@ -635,7 +636,6 @@ def open_relighter(
         )
     else:
         raise RelightError(f"shadows must be 'embree' or 'shadowmaps', got {shadows!r}")
-    names = {payload.name for payload in description.payloads}
     material_paths = (
         decode_paths(load_npy(layer_path, description, "materialPaths")) if "materialPaths" in names else None
     )

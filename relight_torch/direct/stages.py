@@ -195,10 +195,9 @@ class LightStages:
         ((M,) ascending; None: all), before its kept transport shades them (`retrace_at`)."""
         if state.stale is None or state.transports is None:
             return
-        todo = torch.nonzero(state.stale).squeeze(-1) if points is None else points[take(state.stale, points)]
+        todo = _take_marked(state.stale, points)
         if todo.numel():
             self.retrace_at(state.light, state.transports, todo)
-            state.stale.index_fill_(0, todo, False)
         if points is None:
             state.stale = None
 
@@ -352,13 +351,11 @@ class LightStages:
         all), made on first use; the rows a material edit changed are made again when first read."""
         if self._factor_colours is None:
             self._factor_colours = preview_surface.factor_colours(self.gbuffer.params, self._coat)
-        stale = self._stale_colours
-        if stale is not None:
-            todo = torch.nonzero(stale).squeeze(-1) if points is None else points[take(stale, points)]
+        if self._stale_colours is not None:
+            todo = _take_marked(self._stale_colours, points)
             if todo.numel():
                 made = preview_surface.factor_colours(self.gbuffer.params.index(todo), self._coat)
                 self._factor_colours.index_copy_(1, todo, made)
-                stale.index_fill_(0, todo, False)
             if points is None:
                 self._stale_colours = None
         colours = self._factor_colours
@@ -375,6 +372,14 @@ class LightStages:
         return emission_factor(light, transport.emission_in(light), position, origin)
 
 
+def _take_marked(marked: torch.Tensor, points: torch.Tensor | None) -> torch.Tensor:
+    """The points marked in `marked` ((N,) bool) among `points` ((M,) ascending; None: all), which
+    are unmarked: (K,) ascending, for the caller to make again."""
+    todo = torch.nonzero(marked).squeeze(-1) if points is None else points[take(marked, points)]
+    marked.index_fill_(0, todo, False)
+    return todo
+
+
 def _write_part(transport: Transport, part: Transport, chunk: torch.Tensor) -> None:
     """Write into `transport` the BRDF values (factors or lobes; a dome's ratios) of `part`, traced
     at the shading points `chunk` ((K,) ascending): at each of them `transport` holds, `part`'s
@@ -384,9 +389,8 @@ def _write_part(transport: Transport, part: Transport, chunk: torch.Tensor) -> N
     else:
         where, held = transport.locate(chunk)
         where, points = where[held], chunk[held]
-    named = part.points if part.points is not None else chunk
-    source = torch.searchsorted(named, points).clamp_(max=max(named.shape[0] - 1, 0))
-    found = named[source] == points if named.numel() else torch.zeros_like(points, dtype=torch.bool)
+    assert part.points is not None, "a transport of a list of points names them"
+    source, found = part.locate(points)
     fields = [("factors", 2), ("lobes", 2)]
     if part.shadow_sums is None:  # a filtered light's part lacks the filtered visibility its ratios carry
         fields.append(("diffuse_ratio", 0))

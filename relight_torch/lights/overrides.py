@@ -47,11 +47,6 @@ def light_overrides_layer(before: Sequence[Light], after: Sequence[Light]) -> Sd
     return layer
 
 
-def light_overrides_text(before: Sequence[Light], after: Sequence[Light]) -> str:
-    """The `.usda` text of `light_overrides_layer(before, after)`."""
-    return str(light_overrides_layer(before, after).ExportToString())
-
-
 def write_light_overrides(path: str | os.PathLike[str], before: Sequence[Light], after: Sequence[Light]) -> None:
     """Write `light_overrides_layer(before, after)` to `path` atomically (`export_layer`)."""
     export_layer(path, light_overrides_layer(before, after))
