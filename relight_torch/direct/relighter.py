@@ -297,8 +297,6 @@ class Relighter:
         recolour = all(t.factors is not None for t in state.transports) and state.light.kind is not LightKind.DOME
         if change.colour_only and recolour:
             return True
-        if not self._stages.retraceable(state.light, state.transports):
-            return False
         state.stale = change.rows.clone() if state.stale is None else state.stale | change.rows
         self.counters["visibility"] += 1
         return True

@@ -186,10 +186,6 @@ class LightStages:
         self.counters["visibility"] += 1
         return transports
 
-    def retraceable(self, light: Light, transports: list[Transport]) -> bool:
-        """Whether `retrace_at` can write into the light's kept `transports`: one per sample group."""
-        return len(self.sample_groups(self.transport_light(light))) == len(transports)
-
     def retrace_stale(self, state: LightState, points: torch.Tensor | None = None) -> None:
         """Trace the light of `state` again at its stale points (`LightState.stale`) among `points`
         ((M,) ascending; None: all), before its kept transport shades them (`retrace_at`)."""
@@ -203,7 +199,7 @@ class LightStages:
 
     def retrace_at(self, light: Light, transports: list[Transport], todo: torch.Tensor) -> None:
         """Trace the light again at the shading points `todo` ((K,) ascending) for the current
-        materials and write their BRDF values into its kept `transports` (`retraceable`), in place:
+        materials and write their BRDF values into its kept `transports` (one per sample group), in place:
         what a material edit of those points changes. The rest of a transport does not depend on the
         materials (the samples, their directions, the points reached, the ratio estimator's factors
         and the filtered visibility), except for a dome, whose BRDF samples follow them: its ratios
